@@ -1,0 +1,1 @@
+"""Instruments: device protocols, serial drivers, the simulated rig (``devices.sim``) and acquisition sweeps."""

@@ -1,0 +1,1 @@
+"""Simulators shipped with the package: closed-form and Monte Carlo models behind the simulated rig."""

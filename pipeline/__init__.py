@@ -1,0 +1,50 @@
+"""selpath's engine: stores of capture cubes, the stage registry, workflow specs and runs.
+
+The public surface, for notebooks and plugins::
+
+    from pipeline import open_store, stage, load_workflow, run_workflow
+"""
+
+from pipeline.engine import RunReport, build, run_workflow
+from pipeline.errors import DeviceError, Problem, SelpathError, SpecError, StageError, StoreError
+from pipeline.registry import Stage, StageRegistry, default_registry, stage
+from pipeline.schema import FORMAT_VERSION, KINDS, check_dataset
+from pipeline.spec import StorePath, Workflow, load_workflow
+from pipeline.store import (
+    create_capture,
+    missing_frames,
+    open_store,
+    read_provenance,
+    to_store,
+    write_frame,
+    write_provenance,
+)
+
+__all__ = [
+    "FORMAT_VERSION",
+    "KINDS",
+    "DeviceError",
+    "Problem",
+    "RunReport",
+    "SelpathError",
+    "SpecError",
+    "Stage",
+    "StageError",
+    "StageRegistry",
+    "StoreError",
+    "StorePath",
+    "Workflow",
+    "build",
+    "check_dataset",
+    "create_capture",
+    "default_registry",
+    "load_workflow",
+    "missing_frames",
+    "open_store",
+    "read_provenance",
+    "run_workflow",
+    "stage",
+    "to_store",
+    "write_frame",
+    "write_provenance",
+]

@@ -1,0 +1,145 @@
+"""The ``selpath`` command line: run, validate, stages, inspect, demo."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+from rich.markup import escape
+from rich.table import Table
+
+from pipeline.engine import RunReport, run_workflow
+from pipeline.errors import SelpathError
+from pipeline.registry import default_registry
+from pipeline.spec import load_workflow
+from pipeline.store import missing_frames, open_store, read_provenance
+
+app = typer.Typer(help="selpath: selected light path measurement, from capture to science.",
+                  no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
+console = Console()
+errors = Console(stderr=True)
+
+#: the workflow `selpath demo` runs on the built-in simulated rig (it grows with the project)
+DEMO_WORKFLOW = Path(__file__).resolve().parent.parent / "workflows" / "tomography-absorption-sim.yaml"
+
+
+def _fail(exc: SelpathError) -> None:
+    errors.print(f"[bold red]error:[/] {exc}", markup=True, highlight=False, soft_wrap=True)
+    raise typer.Exit(2)
+
+
+def _print_report(report: RunReport) -> None:
+    table = Table(title=f"workflow {report.workflow}: {report.seconds:.1f} s")
+    for column in ("step", "status", "why"):
+        table.add_column(column)
+    colours = {"computed": "green", "reused": "cyan", "not needed": "dim"}
+    for step in report.steps.values():
+        table.add_row(step.id, f"[{colours[step.status]}]{step.status}[/]", escape(step.reason))
+    console.print(table)
+    for store in report.written:
+        console.print(f"wrote {store}")
+
+
+@app.command()
+def run(
+    file: Annotated[Path, typer.Argument(help="workflow YAML file")],
+    scheduler: Annotated[str | None, typer.Option(help="override the workflow's scheduler")] = None,
+    force: Annotated[bool, typer.Option(help="recompute every output even if up to date")] = False,
+    progress: Annotated[bool, typer.Option(help="show a progress bar")] = True,
+) -> None:
+    """Validate and run a workflow; steps whose stored output is up to date are skipped."""
+    try:
+        workflow = load_workflow(file)
+        report = run_workflow(workflow, scheduler=scheduler, progress=progress, reuse=not force, log=console.print)
+    except SelpathError as exc:
+        _fail(exc)
+    _print_report(report)
+
+
+@app.command()
+def validate(file: Annotated[Path, typer.Argument(help="workflow YAML file")]) -> None:
+    """Check a workflow without running it; lists every problem with file:line and the fix."""
+    try:
+        workflow = load_workflow(file)
+    except SelpathError as exc:
+        _fail(exc)
+    console.print(f"[green]ok[/]: {workflow.name}: {len(workflow.steps)} steps, outputs "
+                  + ", ".join(f"{n} -> {o.store}" for n, o in workflow.outputs.items()))
+
+
+@app.command()
+def stages(name: Annotated[str | None, typer.Argument(help="show one stage in full")] = None) -> None:
+    """List the registered stages with their inputs, settings, defaults, units and docs."""
+    try:
+        registry = default_registry()
+    except SelpathError as exc:
+        _fail(exc)
+    chosen = [registry[name]] if name and name in registry else list(registry)
+    if name and name not in registry:
+        errors.print(f"[bold red]error:[/] unknown stage {name!r}; known: {', '.join(registry.names())}")
+        raise typer.Exit(2)
+    for s in chosen:
+        table = Table(title=f"[bold]{s.name}[/]  ({s.source})", caption=escape(s.summary), show_lines=False)
+        for column in ("parameter", "kind", "type", "default", "description"):
+            table.add_column(column, overflow="fold")
+        for i in s.inputs:
+            table.add_row(i, "input", "Dataset/DataArray", "required" if i in s.required_inputs else "None", "")
+        for field_name, field in s.params.model_fields.items():
+            default = "required" if field.is_required() else repr(field.default)
+            table.add_row(field_name, "setting", escape(_type_text(field.annotation)), escape(default),
+                          escape(field.description or ""))
+        console.print(table)
+
+
+def _type_text(annotation) -> str:
+    return getattr(annotation, "__name__", None) or str(annotation).replace("typing.", "")
+
+
+@app.command()
+def inspect(store: Annotated[Path, typer.Argument(help="a selpath zarr store")]) -> None:
+    """Check a store and show its kind, dims, coords with units, variables, missing frames and provenance."""
+    try:
+        ds = open_store(store, keep_flags=True)
+        missing = missing_frames(store)
+    except SelpathError as exc:
+        _fail(exc)
+    console.print(f"[bold]{store}[/]: {ds.attrs.get('selpath_kind')} cube, format {ds.attrs.get('selpath_format')}")
+    console.print(ds.drop_vars([v for v in ds.data_vars if str(v).startswith("written__")]))
+    for variable, frames in missing.items():
+        state = "[green]complete[/]" if not frames else f"[yellow]{len(frames)} frames missing[/], first {frames[0]}"
+        console.print(f"capture of {variable}: {state}")
+    provenance = read_provenance(store)
+    if provenance:
+        summary = {k: provenance.get(k) for k in ("workflow", "output", "created", "step_hash", "versions")}
+        console.print_json(json.dumps(summary))
+
+
+@app.command()
+def demo(
+    out: Annotated[Path, typer.Option(help="folder for the demo's stores")] = Path("selpath-demo"),
+    scheduler: Annotated[str | None, typer.Option(help="override the scheduler")] = None,
+) -> None:
+    """Run the main job on the built-in simulated rig (today: tomography capture -> absorption)."""
+    try:
+        workflow = load_workflow(DEMO_WORKFLOW)
+        outputs = {n: o.model_copy(update={"store": str((out / Path(o.store).name).resolve())})
+                   for n, o in workflow.outputs.items()}
+        workflow = dataclasses.replace(workflow, outputs=outputs)
+        report = run_workflow(workflow, scheduler=scheduler, log=console.print)
+        _print_report(report)
+        absorption = open_store(outputs["absorption"].store)
+        valid = absorption["flags"] == 0
+        console.print(
+            f"absorption: {float(valid.mean()) * 100:.1f}% of pixels valid, "
+            f"max A = {float(absorption['absorption'].where(valid).max()):.4f}"
+        )
+    except SelpathError as exc:
+        _fail(exc)
+
+
+def main() -> None:
+    app()

@@ -1,0 +1,81 @@
+"""Computing a dask graph under the workflow's scheduler, with a progress bar that suits it.
+
+* ``synchronous`` / ``threads``: dask's local schedulers; progress is a rich bar fed by a dask callback.
+* ``processes``: a ``distributed.LocalCluster`` of single-threaded worker processes (one XLA thread each).
+* ``tcp://host:port``: an existing dask scheduler. ``DASK_SCHEDULER_ADDRESS`` overrides any of these.
+  Distributed progress uses distributed's own progress bar, which follows tasks on the workers.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from typing import Any
+
+import dask
+from dask.callbacks import Callback
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+#: Environment of worker processes: one thread for XLA and BLAS each, since dask owns the parallelism.
+WORKER_ENV = {
+    "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1",
+    "OMP_NUM_THREADS": "1",
+    "OPENBLAS_NUM_THREADS": "1",
+    "MKL_NUM_THREADS": "1",
+}
+
+
+class _RichCallback(Callback):
+    """A rich progress bar over the tasks of a local-scheduler compute."""
+
+    def __init__(self, progress: Progress, description: str):
+        super().__init__()
+        self._progress, self._description, self._task = progress, description, None
+
+    def _start_state(self, dsk, state):
+        total = sum(len(state[k]) for k in ("ready", "waiting", "running", "finished"))
+        self._task = self._progress.add_task(self._description, total=total)
+
+    def _posttask(self, key, result, dsk, state, worker_id):
+        self._progress.advance(self._task)
+
+
+@contextmanager
+def scheduler_session(scheduler: str, *, n_workers: int | None = None) -> Iterator[Any]:
+    """Yield a ``distributed.Client`` for distributed schedulers, else None (local schedulers)."""
+    address = os.environ.get("DASK_SCHEDULER_ADDRESS") or (scheduler if scheduler.startswith("tcp://") else None)
+    if address:
+        from distributed import Client
+
+        with Client(address) as client:
+            yield client
+    elif scheduler == "processes":
+        from distributed import Client, LocalCluster
+
+        workers = n_workers or min(2, os.cpu_count() or 1)
+        with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, dashboard_address=None,
+                          env=WORKER_ENV) as cluster, Client(cluster) as client:
+            yield client
+    else:
+        yield None
+
+
+def compute(collections: Sequence[Any], *, scheduler: str, client: Any = None, progress: bool = True,
+            description: str = "computing") -> tuple:
+    """Compute dask ``collections`` in one pass under ``scheduler`` (or on ``client``)."""
+    if not collections:
+        return ()
+    if client is not None:
+        futures = client.compute(list(collections))
+        if progress:
+            from distributed import progress as distributed_progress
+
+            distributed_progress(futures, notebook=False)
+        return tuple(client.gather(futures))
+    local = scheduler if scheduler in ("synchronous", "threads") else "threads"
+    if not progress:
+        return dask.compute(*collections, scheduler=local)
+    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
+    with Progress(*columns, transient=False) as bar, _RichCallback(bar, description):
+        return dask.compute(*collections, scheduler=local)

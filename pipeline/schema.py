@@ -1,0 +1,240 @@
+"""Capture-cube kinds (DESIGN §2) and the schema check run whenever a store is opened or written.
+
+A kind fixes, for each variable, its dims in order (an optional trailing ``channel`` dim is always
+allowed), which dims need a coordinate with a ``units`` attr (and which units), and which attrs
+the store must carry. :func:`check_dataset` returns *every* problem at once; callers raise them
+together as one :class:`~pipeline.errors.StoreError`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+
+import xarray as xr
+
+from pipeline.errors import Problem
+
+#: Schema version written into every store as ``selpath_format``. Bump it (and add a migration in
+#: :data:`MIGRATIONS`) whenever a kind's dims, units or required attrs change.
+FORMAT_VERSION = 1
+
+#: Migrations from older formats: ``{old_version: function(Dataset) -> Dataset of old_version + 1}``.
+#: Archives are migrated step by step on open, never guessed.
+MIGRATIONS: dict[int, Callable[[xr.Dataset], xr.Dataset]] = {}
+
+PIXEL_DIMS = ("row", "col")
+CHANNEL_DIM = "channel"
+LENGTH_UNITS = frozenset({"m", "cm", "mm", "um", "px"})
+ANGLE_UNITS = frozenset({"degree"})
+TIME_UNITS = frozenset({"us"})
+PX_UNITS = frozenset({"px"})
+
+
+@dataclass(frozen=True)
+class Variable:
+    dims: tuple[str, ...]
+    required: bool = True
+    description: str = ""
+
+
+@dataclass(frozen=True)
+class CubeKind:
+    """The schema of one kind of capture cube."""
+
+    name: str
+    variables: Mapping[str, Variable]
+    #: dims whose coordinate must exist and carry one of these units (``None``: any length unit)
+    coord_units: Mapping[str, frozenset[str]]
+    #: attrs every store of this kind carries, with a description for errors and docs
+    attrs: Mapping[str, str] = field(default_factory=dict)
+    #: extra checks on attr values; each returns problems
+    attr_checks: tuple[Callable[[Mapping], list[str]], ...] = ()
+    description: str = ""
+
+    def frame_dims(self, variable: str) -> tuple[str, ...]:
+        """Dims that index whole frames (everything but row/col/channel): the unit of a region write."""
+        return tuple(d for d in self.variables[variable].dims if d not in (*PIXEL_DIMS, CHANNEL_DIM))
+
+
+def _camera_model_check(attrs: Mapping) -> list[str]:
+    model = attrs.get("camera_model")
+    if model is None:
+        return []
+    if model not in ("perspective", "orthographic"):
+        return [f"attr camera_model is {model!r}; expected 'perspective' or 'orthographic'"]
+    needed = {
+        "perspective": ("focal_length_px", "principal_point_px", "camera_distance", "light_distance"),
+        "orthographic": ("pixel_size",),
+    }[model]
+    return [f"attr {a!r} is required for a {model} camera" for a in needed if a not in attrs]
+
+
+_FRAME = ("row", "col")
+KINDS: dict[str, CubeKind] = {
+    k.name: k
+    for k in (
+        CubeKind(
+            name="tomography_capture",
+            description="frames of the rotating object: target, reference (no inclusion), backlit, dark",
+            variables={
+                "target": Variable(("angle", *_FRAME), description="object with the inclusion"),
+                "reference": Variable(("angle", *_FRAME), description="same object without it (§4.4.2)"),
+                "backlit": Variable(("angle", *_FRAME), False, "silhouettes against a lit plane (§4.2.6)"),
+                "dark": Variable(_FRAME, False, "sensor offset with all lights off"),
+            },
+            coord_units={"angle": ANGLE_UNITS},
+            attrs={
+                "camera_model": "'perspective' or 'orthographic'",
+                "light_angle_deg": "light angle θ_l between the beam and the camera axis, degree",
+                "length_unit": "unit of every length attr and of sinogram x, e.g. 'mm'",
+            },
+            attr_checks=(_camera_model_check,),
+        ),
+        CubeKind(
+            name="absorption",
+            description="total absorption A = log I_reference − log I_target per pixel, with flags",
+            variables={
+                "absorption": Variable(("angle", *_FRAME)),
+                "flags": Variable(("angle", *_FRAME), description="CF flag bits; 0 means valid"),
+            },
+            coord_units={"angle": ANGLE_UNITS},
+        ),
+        CubeKind(
+            name="transmittance",
+            description="I_target / I_reference per pixel, with flags",
+            variables={
+                "transmittance": Variable(("angle", *_FRAME)),
+                "flags": Variable(("angle", *_FRAME), description="CF flag bits; 0 means valid"),
+            },
+            coord_units={"angle": ANGLE_UNITS},
+        ),
+        CubeKind(
+            name="plane_to_ray_capture",
+            variables={"image": Variable(("delay", "exposure", *_FRAME))},
+            coord_units={"delay": TIME_UNITS, "exposure": TIME_UNITS},
+            attrs={
+                "scan_speed_px_per_us": "projector scan speed v_p, projector rows per µs",
+                "line_time_us": "projector line time t_p, µs",
+            },
+        ),
+        CubeKind(
+            name="full_transport_capture",
+            variables={"image": Variable(("delay", "exposure", "line", *_FRAME))},
+            coord_units={"delay": TIME_UNITS, "exposure": TIME_UNITS, "line": PX_UNITS},
+            attrs={
+                "scan_speed_px_per_us": "projector scan speed v_p, projector rows per µs",
+                "line_time_us": "projector line time t_p, µs",
+                "line_width_px": "width l_w of the projected vertical line, projector columns",
+            },
+        ),
+        CubeKind(
+            name="plane_to_ray_transport",
+            variables={"transport": Variable(("offset", *_FRAME))},
+            coord_units={"offset": PX_UNITS},
+        ),
+        CubeKind(
+            name="full_transport",
+            variables={"transport": Variable(("du", "dv", *_FRAME))},
+            coord_units={"du": PX_UNITS, "dv": PX_UNITS},
+        ),
+        CubeKind(
+            name="sinogram",
+            variables={
+                "absorption": Variable(("theta", "x")),
+                "observed": Variable(("theta", "x"), description="True where a ray was measured"),
+            },
+            coord_units={"theta": ANGLE_UNITS, "x": LENGTH_UNITS},
+        ),
+        CubeKind(
+            name="reconstruction",
+            variables={"sigma": Variable(("y", "x"), description="absorption coefficient per unit length")},
+            coord_units={"y": LENGTH_UNITS, "x": LENGTH_UNITS},
+        ),
+    )
+}
+
+# Dims a kind may add after its own (sinograms and reconstructions are batched over slices).
+_EXTRA_LEADING_OK = {"sinogram": ("slice",), "reconstruction": ("slice",)}
+
+
+def _dims_ok(actual: tuple[str, ...], expected: tuple[str, ...], kind: str) -> bool:
+    core = tuple(d for d in actual if d not in _EXTRA_LEADING_OK.get(kind, ()))
+    if core and core[-1] == CHANNEL_DIM:
+        core = core[:-1]
+    return core == expected
+
+
+def check_dataset(ds: xr.Dataset, kind: str) -> list[Problem]:
+    """Every way ``ds`` breaks the schema of ``kind``, as problems (empty list: it conforms).
+
+    >>> import numpy as np, xarray as xr
+    >>> ds = xr.Dataset({"sigma": (("y", "x"), np.zeros((2, 2)))})
+    >>> [p.message for p in check_dataset(ds, "reconstruction")]  # doctest: +NORMALIZE_WHITESPACE
+    ['dim y has no coordinate; it needs one with attrs units in [cm, m, mm, px, um]',
+     'dim x has no coordinate; it needs one with attrs units in [cm, m, mm, px, um]']
+    """
+    if kind not in KINDS:
+        known = ", ".join(sorted(KINDS))
+        return [Problem(f"unknown cube kind {kind!r}", fix=f"use one of: {known}")]
+    spec = KINDS[kind]
+    problems: list[Problem] = []
+    for name, var in spec.variables.items():
+        if name not in ds.data_vars:
+            if var.required:
+                problems.append(
+                    Problem(
+                        f"variable {name!r} is missing",
+                        path=name,
+                        fix=f"add it with dims {var.dims}" + (f" ({var.description})" if var.description else ""),
+                    )
+                )
+            continue
+        dims = tuple(ds[name].dims)
+        if not _dims_ok(dims, var.dims, kind):
+            problems.append(
+                Problem(
+                    f"variable {name!r} has dims {dims}; expected {var.dims} (optionally + 'channel')",
+                    path=name,
+                    fix="transpose or rename the dims (xarray .transpose / .rename)",
+                )
+            )
+    used_dims = {d for v in spec.variables.values() for d in v.dims}
+    for dim, units in spec.coord_units.items():
+        if dim not in used_dims or not any(dim in ds[v].dims for v in spec.variables if v in ds):
+            continue
+        want = "[" + ", ".join(sorted(units)) + "]"
+        if dim not in ds.coords:
+            problems.append(Problem(f"dim {dim} has no coordinate; it needs one with attrs units in {want}"))
+            continue
+        got = ds.coords[dim].attrs.get("units")
+        if got is None:
+            problems.append(
+                Problem(f"coordinate {dim!r} has no units", fix=f"set ds[{dim!r}].attrs['units'] to one of {want}")
+            )
+        elif got not in units:
+            problems.append(
+                Problem(
+                    f"coordinate {dim!r} is in {got!r}; expected one of {want}",
+                    fix="convert the values and set attrs['units']",
+                )
+            )
+    for attr, description in spec.attrs.items():
+        if attr not in ds.attrs:
+            problems.append(Problem(f"attr {attr!r} is missing", fix=f"set ds.attrs[{attr!r}]: {description}"))
+    for check in spec.attr_checks:
+        problems.extend(Problem(msg) for msg in check(ds.attrs))
+    return problems
+
+
+def describe_kinds() -> str:
+    """A Markdown table of every kind, used by docs/format.md and ``selpath stages``."""
+    rows = ["| kind | variable: dims | coordinate units | required attrs |", "|---|---|---|---|"]
+    for kind in KINDS.values():
+        variables = "<br>".join(
+            f"`{n}`{'' if v.required else ' (optional)'}: ({', '.join(v.dims)})" for n, v in kind.variables.items()
+        )
+        units = "<br>".join(f"{d}: {'/'.join(sorted(u))}" for d, u in kind.coord_units.items())
+        attrs = "<br>".join(f"`{a}`" for a in kind.attrs) or "—"
+        rows.append(f"| `{kind.name}` | {variables} | {units} | {attrs} |")
+    return "\n".join(rows)

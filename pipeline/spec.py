@@ -1,0 +1,318 @@
+"""Workflow files: strict schema, wiring and validation against the stage registry.
+
+A workflow is YAML read with the safe loader (it can name registered stages only, never code).
+:func:`load_workflow` checks the *whole* file before anything runs and raises one
+:class:`~pipeline.errors.SpecError` listing every problem with its ``file:line``, its path in the
+file (``steps[2].with.n_theta``) and a fix. Relative paths in settings typed :data:`StorePath` are
+resolved against the workflow file's folder, so a workflow runs the same from any working directory.
+"""
+
+from __future__ import annotations
+
+import difflib
+import json
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Any
+
+import pydantic
+import yaml
+
+from pipeline.errors import Problem, SpecError
+from pipeline.registry import Stage, StageRegistry, default_registry
+from pipeline.schema import KINDS
+
+
+class _PathMarker:
+    """Annotation metadata: this str setting is a filesystem path, resolved against the workflow's folder."""
+
+
+#: Type of a stage setting that names a file or store (relative paths resolve against the workflow file).
+StorePath = Annotated[str, _PathMarker()]
+
+REF = re.compile(r"^\$(?P<step>[A-Za-z_][A-Za-z0-9_-]*)(?:\.(?P<variable>[A-Za-z_][A-Za-z0-9_]*))?$")
+SCHEDULERS = ("synchronous", "threads", "processes")
+
+
+@dataclass(frozen=True)
+class Ref:
+    """A wire from another step's result (``$step``) or one of its variables (``$step.variable``)."""
+
+    step: str
+    variable: str | None = None
+
+    def __str__(self) -> str:
+        return f"${self.step}" + (f".{self.variable}" if self.variable else "")
+
+
+def parse_ref(value: Any) -> Ref | None:
+    if isinstance(value, str):
+        match = REF.match(value)
+        if match:
+            return Ref(match["step"], match["variable"])
+    return None
+
+
+# -- the file's structure (pydantic, strict, every field described) ---------------------------------
+
+
+class _Strict(pydantic.BaseModel):
+    model_config = pydantic.ConfigDict(extra="forbid", strict=True, populate_by_name=True)
+
+
+class StepSpec(_Strict):
+    id: str = pydantic.Field(pattern=r"^[A-Za-z_][A-Za-z0-9_-]*$", description="unique step name, used as $id")
+    stage: str = pydantic.Field(description="a registered stage name (see `selpath stages`)")
+    with_: dict[str, Any] = pydantic.Field(default_factory=dict, alias="with",
+                                           description="data inputs ($id, $id.var) and settings of the stage")
+
+
+class OutputSpec(_Strict):
+    from_: str = pydantic.Field(alias="from", description="id of the step whose result is stored")
+    store: str = pydantic.Field(description="zarr store path, relative to the workflow file's folder")
+    kind: str | None = pydantic.Field(None, description="cube kind to check before writing (default: the "
+                                      "result's selpath_kind attr)")
+
+
+class WorkflowFile(_Strict):
+    workflow: str = pydantic.Field(description="name of the workflow")
+    scheduler: str = pydantic.Field("threads", description="synchronous | threads | processes | tcp://host:port")
+    steps: list[StepSpec] = pydantic.Field(min_length=1, description="the stages to run, wired by $id")
+    outputs: dict[str, OutputSpec] = pydantic.Field(default_factory=dict, description="results stored as zarr")
+
+    @pydantic.field_validator("scheduler")
+    @classmethod
+    def _scheduler(cls, value: str) -> str:
+        if value not in SCHEDULERS and not value.startswith("tcp://"):
+            raise ValueError(f"must be one of {', '.join(SCHEDULERS)} or a tcp://host:port address")
+        return value
+
+
+# -- the validated workflow ------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Step:
+    id: str
+    stage: Stage
+    inputs: dict[str, Ref]
+    settings: pydantic.BaseModel
+    index: int
+
+
+@dataclass(frozen=True)
+class Workflow:
+    name: str
+    scheduler: str
+    steps: dict[str, Step]  # in an order where every step follows its inputs
+    outputs: dict[str, OutputSpec]  # store paths already resolved
+    text: str
+    source: str
+    base_dir: Path
+
+
+# -- YAML with locations ---------------------------------------------------------------------------
+
+
+def _locations(node: yaml.Node, path: tuple = (), out: dict | None = None) -> dict[tuple, int]:
+    """Map each path in the document (keys and list indices) to its 1-based line."""
+    out = {} if out is None else out
+    out[path] = node.start_mark.line + 1
+    if isinstance(node, yaml.MappingNode):
+        for key, value in node.value:
+            out[(*path, key.value)] = key.start_mark.line + 1
+            _locations(value, (*path, key.value), out)
+            out[(*path, key.value)] = key.start_mark.line + 1
+    elif isinstance(node, yaml.SequenceNode):
+        for i, item in enumerate(node.value):
+            _locations(item, (*path, i), out)
+    return out
+
+
+def _format_path(path: tuple) -> str:
+    text = ""
+    for part in path:
+        text += f"[{part}]" if isinstance(part, int) else (f".{part}" if text else str(part))
+    return text
+
+
+class _Located:
+    def __init__(self, source: str, lines: dict[tuple, int]):
+        self.source, self.lines, self.problems = source, lines, []
+
+    def add(self, path: tuple, message: str, fix: str = "") -> None:
+        probe = path
+        while probe and probe not in self.lines:
+            probe = probe[:-1]
+        self.problems.append(Problem(message, f"{self.source}:{self.lines.get(probe, 1)}", _format_path(path), fix))
+
+
+def _read(path_or_text: str | os.PathLike, source: str | None) -> tuple[str, str, Path]:
+    candidate = Path(path_or_text) if not isinstance(path_or_text, str) or "\n" not in path_or_text else None
+    if candidate is not None:
+        if not candidate.is_file():
+            raise SpecError(Problem("no such workflow file", where=str(candidate), fix="check the path"))
+        return candidate.read_text(), source or str(candidate), candidate.resolve().parent
+    return str(path_or_text), source or "<workflow>", Path.cwd()
+
+
+def load_workflow(path_or_text: str | os.PathLike, registry: StageRegistry | None = None,
+                  *, source: str | None = None) -> Workflow:
+    """Read, validate and wire a workflow file (or YAML text). Raises one SpecError listing every problem."""
+    registry = default_registry() if registry is None else registry
+    text, source, base_dir = _read(path_or_text, source)
+    loader = yaml.SafeLoader(text)
+    try:
+        node = loader.get_single_node()
+        raw = loader.construct_document(node) if node is not None else None
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        line = f":{mark.line + 1}" if mark else ""
+        raise SpecError(Problem(f"not valid YAML: {getattr(exc, 'problem', exc)}", where=f"{source}{line}")) from exc
+    finally:
+        loader.dispose()
+    located = _Located(source, _locations(node) if node is not None else {})
+    if not isinstance(raw, dict):
+        raise SpecError(Problem("a workflow file is a mapping with keys workflow, steps and outputs", f"{source}:1"))
+    try:
+        spec = WorkflowFile.model_validate(raw)
+    except pydantic.ValidationError as exc:
+        for err in exc.errors():
+            loc = tuple("with" if p == "with_" else "from" if p == "from_" else p for p in err["loc"])
+            located.add(loc, _pydantic_message(err))
+        raise SpecError(located.problems) from None
+    steps = _check_steps(spec, raw, registry, located, base_dir)
+    outputs = _check_outputs(spec, steps, located, base_dir)
+    order = _topological_order(steps, located)
+    if located.problems:
+        raise SpecError(located.problems)
+    return Workflow(spec.workflow, spec.scheduler, {i: steps[i] for i in order}, outputs, text, source, base_dir)
+
+
+def _pydantic_message(err: dict) -> str:
+    if err["type"] == "missing":
+        return "is required but missing"
+    if err["type"] == "extra_forbidden":
+        return "is not a known field"
+    return f"{err['msg']} (got {err['input']!r})"
+
+
+def _suggest(name: str, choices: list[str]) -> str:
+    close = difflib.get_close_matches(name, choices, n=3)
+    return f"did you mean {' or '.join(repr(c) for c in close)}?" if close else f"one of: {', '.join(choices)}"
+
+
+def _is_path_setting(model: type[pydantic.BaseModel], name: str) -> bool:
+    return any(isinstance(m, _PathMarker) for m in model.model_fields[name].metadata)
+
+
+def _check_steps(spec: WorkflowFile, raw: dict, registry: StageRegistry, located: _Located,
+                 base_dir: Path) -> dict[str, Step]:
+    steps: dict[str, Step] = {}
+    seen: dict[str, int] = {}
+    for i, step in enumerate(spec.steps):
+        where = ("steps", i)
+        if step.id in seen:
+            located.add((*where, "id"), f"duplicate step id {step.id!r} (also steps[{seen[step.id]}])",
+                        "give every step a unique id")
+            continue
+        seen[step.id] = i
+        if step.stage not in registry:
+            located.add((*where, "stage"), f"unknown stage {step.stage!r}", _suggest(step.stage, registry.names()))
+            continue
+        stage = registry[step.stage]
+        inputs: dict[str, Ref] = {}
+        settings: dict[str, Any] = {}
+        for key, value in step.with_.items():
+            ref = parse_ref(value)
+            path = (*where, "with", key)
+            if key in stage.inputs:
+                if ref is None:
+                    located.add(path, f"data input {key!r} of stage {stage.name!r} takes a reference, got {value!r}",
+                                "write $step or $step.variable")
+                else:
+                    inputs[key] = ref
+            elif ref is not None and key in stage.params.model_fields:
+                located.add(path, f"setting {key!r} takes a value, not a reference ({value})")
+            elif key not in stage.params.model_fields:
+                known = list(stage.inputs) + list(stage.params.model_fields)
+                located.add(path, f"stage {stage.name!r} has no parameter {key!r}", _suggest(key, known))
+            else:
+                settings[key] = value
+        for name in stage.required_inputs:
+            if name not in step.with_:
+                located.add((*where, "with"), f"data input {name!r} of stage {stage.name!r} is missing",
+                            f"add `{name}: $step`")
+        try:
+            # strict JSON-mode validation: YAML lists fill tuples, but "3" is no int and 1 no bool
+            model = stage.params.model_validate_json(json.dumps(settings, default=str))
+        except pydantic.ValidationError as exc:
+            for err in exc.errors():
+                field = err["loc"][0] if err["loc"] else ""
+                expected = stage.params.model_fields.get(str(field))
+                fix = f"expected {_type_name(expected.annotation)}" if expected is not None else ""
+                located.add((*where, "with", *err["loc"]), f"setting of stage {stage.name!r} "
+                            f"{_pydantic_message(err)}", fix)
+            continue
+        for name in stage.params.model_fields:
+            value = getattr(model, name)
+            if _is_path_setting(stage.params, name) and isinstance(value, str) and value:
+                model = model.model_copy(update={name: str((base_dir / value).resolve())})
+        if stage.precheck is not None:
+            for message in stage.precheck(model):
+                located.add((*where, "with"), message)
+        steps[step.id] = Step(step.id, stage, inputs, model, i)
+    for step_id, step in steps.items():
+        for key, ref in step.inputs.items():
+            if ref.step not in seen:
+                located.add(("steps", step.index, "with", key), f"reference {ref} names no step",
+                            _suggest(ref.step, list(seen)))
+    return steps
+
+
+def _type_name(annotation: Any) -> str:
+    return getattr(annotation, "__name__", None) or str(annotation).replace("typing.", "")
+
+
+def _check_outputs(spec: WorkflowFile, steps: dict[str, Step], located: _Located,
+                   base_dir: Path) -> dict[str, OutputSpec]:
+    outputs: dict[str, OutputSpec] = {}
+    stores: dict[str, str] = {}
+    ids = [s.id for s in spec.steps]
+    for name, out in spec.outputs.items():
+        path = ("outputs", name)
+        if out.from_ not in ids:
+            located.add((*path, "from"), f"output {name!r} comes from unknown step {out.from_!r}",
+                        _suggest(out.from_, ids))
+        if out.kind is not None and out.kind not in KINDS:
+            located.add((*path, "kind"), f"unknown cube kind {out.kind!r}", _suggest(out.kind, sorted(KINDS)))
+        store = out.store if "://" in out.store else str((base_dir / out.store).resolve())
+        if store in stores:
+            located.add((*path, "store"), f"store {out.store!r} is also written by output {stores[store]!r}",
+                        "give each output its own store")
+        stores[store] = name
+        outputs[name] = out.model_copy(update={"store": store})
+    return outputs
+
+
+def _topological_order(steps: dict[str, Step], located: _Located) -> list[str]:
+    """Steps in dependency order; a cycle is reported with its members (Kahn's algorithm)."""
+    needs = {i: {r.step for r in s.inputs.values() if r.step in steps} for i, s in steps.items()}
+    order: list[str] = []
+    ready = [i for i in steps if not needs[i]]
+    while ready:
+        current = ready.pop(0)
+        order.append(current)
+        for i in steps:
+            if current in needs[i]:
+                needs[i].discard(current)
+                if not needs[i]:
+                    ready.append(i)
+    stuck = [i for i in steps if i not in order]
+    if stuck:
+        cycle = " -> ".join(f"${i}" for i in stuck)
+        located.add(("steps", steps[stuck[0]].index), f"steps form a cycle: {cycle}",
+                    "a step cannot depend on itself or on a later step that depends on it")
+    return order

@@ -1,0 +1,279 @@
+"""Zarr stores of capture cubes: open with a schema check, write lazily, capture frame by frame, resume.
+
+Layout of a store (zarr v3 group, no consolidated metadata; see ``docs/format.md``):
+
+* the xarray variables and coords of the cube, with group attrs ``selpath_format`` (int) and
+  ``selpath_kind`` plus the kind's required attrs;
+* for stores filled frame by frame, one boolean variable ``written__<var>`` per data variable over its
+  frame dims, set *after* the frame's pixels land, so a kill at any point loses at most the frame in
+  flight and :func:`missing_frames` says exactly which frames to capture again;
+* a child group ``_selpath`` whose attrs hold the provenance. Appends and region writes rewrite the
+  root group's attrs (xarray #8755) but never touch a child group, and ``xr.open_zarr`` ignores it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import xarray as xr
+import zarr
+
+from pipeline.errors import Problem, StoreError
+from pipeline.schema import FORMAT_VERSION, KINDS, MIGRATIONS, check_dataset
+
+WRITTEN_PREFIX = "written__"
+PROVENANCE_GROUP = "_selpath"
+
+
+def _where(path: str | os.PathLike) -> str:
+    return os.fspath(path)
+
+
+def _open_raw(path: str | os.PathLike) -> xr.Dataset:
+    where = _where(path)
+    if not Path(where).exists() and "://" not in where:
+        raise StoreError(Problem("no store at this path", where=where, fix="check the path, or run the step that writes it"))
+    try:
+        return xr.open_zarr(where, consolidated=False, decode_timedelta=False)
+    except Exception as exc:  # zarr/xarray raise many types for a corrupt store; name it, keep the cause
+        raise StoreError(
+            Problem(f"cannot be read as a zarr store ({type(exc).__name__}: {exc})", where=where,
+                    fix="the store is corrupt or not zarr v3; re-create it or restore it from a backup")
+        ) from exc
+
+
+def _migrate(ds: xr.Dataset, where: str) -> xr.Dataset:
+    version = ds.attrs.get("selpath_format")
+    if not isinstance(version, int | np.integer) or isinstance(version, bool):
+        raise StoreError(
+            Problem(f"attr selpath_format is {version!r}; expected an integer schema version", where=where,
+                    fix=f"stores of this selpath carry selpath_format = {FORMAT_VERSION}")
+        )
+    if version > FORMAT_VERSION:
+        raise StoreError(
+            Problem(f"format {version} is newer than this selpath reads (format {FORMAT_VERSION})", where=where,
+                    fix="upgrade selpath (pip install -U selpath)")
+        )
+    while version < FORMAT_VERSION:
+        if version not in MIGRATIONS:
+            raise StoreError(Problem(f"no migration from format {version}", where=where))
+        ds = MIGRATIONS[version](ds)
+        version += 1
+        ds.attrs["selpath_format"] = version
+    return ds
+
+
+def open_store(path: str | os.PathLike, kind: str | None = None, *, keep_flags: bool = False) -> xr.Dataset:
+    """Open a store lazily, migrate it if old, and check it against its kind's schema.
+
+    ``kind`` defaults to the store's ``selpath_kind`` attr; when both are given they must agree.
+    Every problem is reported at once in one :class:`StoreError`. The ``written__*`` frame flags
+    are dropped unless ``keep_flags``.
+    """
+    where = _where(path)
+    ds = _migrate(_open_raw(path), where)
+    stored_kind = ds.attrs.get("selpath_kind")
+    if kind is None:
+        kind = stored_kind
+    if kind is None:
+        raise StoreError(
+            Problem("attr selpath_kind is missing and no kind was given", where=where,
+                    fix=f"set ds.attrs['selpath_kind'] to one of {sorted(KINDS)}")
+        )
+    problems = [] if stored_kind in (None, kind) else [
+        Problem(f"store holds a {stored_kind!r} cube, not a {kind!r} cube", where=where)
+    ]
+    problems += [Problem(p.message, where=where, path=p.path, fix=p.fix) for p in check_dataset(ds, kind)]
+    if problems:
+        raise StoreError(problems)
+    if not keep_flags:
+        ds = ds.drop_vars([v for v in ds.data_vars if str(v).startswith(WRITTEN_PREFIX)])
+    return ds
+
+
+def stamp(ds: xr.Dataset, kind: str) -> xr.Dataset:
+    """``ds`` with ``selpath_format`` and ``selpath_kind`` attrs set, after checking it against ``kind``."""
+    problems = check_dataset(ds, kind)
+    if problems:
+        raise StoreError(problems)
+    return ds.assign_attrs(selpath_format=FORMAT_VERSION, selpath_kind=kind)
+
+
+def _writable(ds: xr.Dataset) -> xr.Dataset:
+    """A copy whose dask chunks zarr can take (regular but for the last) and with stale encodings dropped."""
+    ds = ds.copy()
+    for name in ds.variables:
+        ds[name].encoding = {}
+    if not ds.chunks:
+        return ds
+    ds = ds.unify_chunks()
+    regular = {}
+    for dim, chunks in ds.chunks.items():
+        if len(chunks) > 1 and (len(set(chunks[:-1])) > 1 or chunks[-1] > chunks[0]):
+            regular[dim] = max(chunks)
+    return ds.chunk(regular) if regular else ds
+
+
+def to_store(ds: xr.Dataset, path: str | os.PathLike, kind: str, *, compute: bool = True):
+    """Write a whole cube (checked and stamped) to a new store, replacing any store at ``path``.
+
+    With ``compute=False`` returns the dask delayed write, so many outputs can be computed in one pass.
+    """
+    return _writable(stamp(ds, kind)).to_zarr(_where(path), mode="w", consolidated=False, compute=compute)
+
+
+# -- frame-by-frame capture -------------------------------------------------------------------------
+
+
+def create_capture(path: str | os.PathLike, template: xr.Dataset, kind: str) -> xr.Dataset:
+    """Pre-allocate a store for frame-by-frame capture, or reopen a matching one to resume.
+
+    ``template`` holds the full cube with lazy (dask) data that is never computed: only its metadata,
+    dims, coords and attrs are used. Data variables are chunked one frame per chunk. If a store already
+    exists at ``path`` with the same variables, dims, coords and attrs, it is kept untouched (so
+    :func:`missing_frames` tells what to capture next); if it differs, nothing is overwritten.
+    Returns the opened store with its ``written__*`` flags.
+    """
+    where = _where(path)
+    spec_kind = KINDS[kind] if kind in KINDS else None
+    template = stamp(template, kind)
+    frame_chunks = {v: {d: 1 for d in spec_kind.frame_dims(v)} for v in template.data_vars}  # type: ignore[union-attr]
+    if Path(where).exists():
+        existing = open_store(where, kind, keep_flags=True)
+        differences = _sweep_differences(existing, template)
+        if differences:
+            raise StoreError(
+                [Problem(d, where=where) for d in differences]
+                + [Problem("a different sweep is already stored here", where=where,
+                           fix="choose another store path, or delete this one to start over")]
+            )
+        return existing
+    flags = {}
+    for name, var in template.data_vars.items():
+        frame_dims = spec_kind.frame_dims(str(name))  # type: ignore[union-attr]
+        shape = tuple(template.sizes[d] for d in frame_dims)
+        flags[f"{WRITTEN_PREFIX}{name}"] = (frame_dims, np.zeros(shape, dtype=bool))
+        template[name] = var.chunk(frame_chunks[str(name)])
+    template = _writable(template.assign(flags))
+    template.to_zarr(where, mode="w-", consolidated=False, compute=False)
+    # the flags are small numpy arrays: write them for real, so every frame starts as missing
+    template[list(flags)].to_zarr(where, mode="r+", consolidated=False)
+    return open_store(where, kind, keep_flags=True)
+
+
+def _sweep_differences(existing: xr.Dataset, template: xr.Dataset) -> list[str]:
+    out = []
+    for name, var in template.data_vars.items():
+        if name not in existing:
+            out.append(f"variable {name!r} is not in the existing store")
+        elif existing[name].dims != var.dims or existing[name].shape != var.shape:
+            out.append(f"variable {name!r} is {existing[name].dims}{existing[name].shape}, "
+                       f"the new sweep {var.dims}{var.shape}")
+    for name, coord in template.coords.items():
+        if name not in existing.coords or not np.array_equal(existing[name].values, coord.values):
+            out.append(f"coordinate {name!r} differs from the new sweep's")
+    for key, value in template.attrs.items():
+        if _jsonable(existing.attrs.get(key)) != _jsonable(value):
+            out.append(f"attr {key!r} is {existing.attrs.get(key)!r} in the store, {value!r} in the new sweep")
+    return out
+
+
+def write_frame(path: str | os.PathLike, variable: str, index: Mapping[str, int], frame: np.ndarray) -> None:
+    """Write one frame into a pre-allocated store, then mark it written.
+
+    ``index`` gives an integer position for each frame dim of ``variable`` (e.g. ``{"angle": 12}``).
+    The pixels land before the flag, so an interrupted write is seen as missing and captured again.
+    """
+    where = _where(path)
+    group = zarr.open_group(where, mode="r+")
+    flag_name = f"{WRITTEN_PREFIX}{variable}"
+    if variable not in group or flag_name not in group:
+        raise StoreError(Problem(f"variable {variable!r} was not pre-allocated for capture", where=where,
+                                 fix="create the store with create_capture first"))
+    array, flags = group[variable], group[flag_name]
+    frame_dims = tuple(array.metadata.dimension_names)[: flags.ndim]
+    if set(index) != set(frame_dims):
+        raise StoreError(Problem(f"index {dict(index)} must name exactly the frame dims {frame_dims}", where=where,
+                                 path=variable))
+    position = tuple(int(index[d]) for d in frame_dims)
+    frame = np.asarray(frame)
+    if frame.shape != array.shape[len(frame_dims):]:
+        raise StoreError(Problem(f"frame has shape {frame.shape}; the store expects {array.shape[len(frame_dims):]}",
+                                 where=where, path=f"{variable}{list(position)}"))
+    array[position] = frame
+    flags[position] = True
+
+
+def missing_frames(path: str | os.PathLike) -> dict[str, list[dict[str, Any]]]:
+    """For each captured variable, the frames not yet written, as ``{dim: coordinate value}`` dicts.
+
+    Stores written whole (without ``written__*`` flags) have no missing frames.
+    """
+    ds = open_store(path, keep_flags=True)
+    out: dict[str, list[dict[str, Any]]] = {}
+    for name in ds.data_vars:
+        if not str(name).startswith(WRITTEN_PREFIX):
+            continue
+        flags = ds[name].load()
+        positions = np.argwhere(~flags.values)
+        out[str(name)[len(WRITTEN_PREFIX):]] = [
+            {dim: (ds[dim].values[i].item() if dim in ds.coords else int(i)) for dim, i in zip(flags.dims, pos)}
+            for pos in positions
+        ]
+    return out
+
+
+# -- provenance --------------------------------------------------------------------------------------
+
+
+def _jsonable(value: Any) -> Any:
+    return json.loads(json.dumps(value, default=_json_default, sort_keys=True))
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    raise TypeError(f"{type(value).__name__} is not JSON serialisable")
+
+
+def write_provenance(path: str | os.PathLike, provenance: Mapping[str, Any]) -> None:
+    """Record how a store was made, in its ``_selpath`` child group (safe from appends)."""
+    group = zarr.open_group(_where(path), mode="r+")
+    child = group.require_group(PROVENANCE_GROUP)
+    child.attrs["provenance"] = _jsonable(dict(provenance))
+
+
+def read_provenance(path: str | os.PathLike) -> dict[str, Any] | None:
+    """The provenance recorded by :func:`write_provenance`, or None if the store has none (or is absent)."""
+    try:
+        group = zarr.open_group(_where(path), mode="r")
+        return dict(group[PROVENANCE_GROUP].attrs["provenance"])
+    except (FileNotFoundError, KeyError, zarr.errors.GroupNotFoundError, zarr.errors.NodeTypeValidationError):
+        return None
+
+
+def store_identity(path: str | os.PathLike) -> dict[str, Any]:
+    """What identifies a store's content for provenance: its own provenance hash if selpath made it,
+    else a fingerprint of its metadata and (for local stores) file sizes and modification times."""
+    where = _where(path)
+    prov = read_provenance(where)
+    if prov and "step_hash" in prov:
+        return {"store": where, "step_hash": prov["step_hash"]}
+    digest = hashlib.sha256()
+    root = Path(where)
+    if root.is_dir():
+        for file in sorted(root.rglob("*")):
+            if file.is_file():
+                stat = file.stat()
+                digest.update(f"{file.relative_to(root)}:{stat.st_size}:{stat.st_mtime_ns}\n".encode())
+                if file.name == "zarr.json":
+                    digest.update(file.read_bytes())
+    return {"store": where, "fingerprint": digest.hexdigest()}

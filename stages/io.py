@@ -1,0 +1,33 @@
+"""Reading stores into a workflow: the ``load_store`` stage."""
+
+from __future__ import annotations
+
+import xarray as xr
+
+from pipeline.errors import StoreError
+from pipeline.registry import stage
+from pipeline.spec import StorePath
+from pipeline.store import open_store, store_identity
+
+
+def _precheck(settings) -> list[str]:
+    """Open the store's metadata at validation time, so a bad input fails before anything runs."""
+    try:
+        open_store(settings.store, settings.kind)
+    except StoreError as exc:
+        return [str(p) for p in exc.problems]
+    return []
+
+
+@stage("load_store", precheck=_precheck, identity=lambda settings: store_identity(settings.store))
+def load_store(*, store: StorePath, kind: str | None = None) -> xr.Dataset:
+    """Open a selpath store lazily, checked against its cube kind.
+
+    Parameters
+    ----------
+    store : str
+        Path of the zarr store, relative to the workflow file's folder.
+    kind : str or None
+        Cube kind the store must hold (default: the store's own ``selpath_kind``).
+    """
+    return open_store(store, kind)
