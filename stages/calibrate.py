@@ -103,6 +103,22 @@ def frame_flags(raw: xr.DataArray, corrected: xr.DataArray, *, saturation_level:
     return (saturated * SATURATED + no_signal * NO_SIGNAL + nonfinite * NONFINITE).astype(np.uint8)
 
 
+def _checked_pair(capture: xr.Dataset, stage_name: str, saturation_level: float | None, min_signal: float):
+    """Dark-subtracted target and reference, their flags, and the attrs every output carries."""
+    _require(capture, ("target", "reference"), stage_name)
+    level = _saturation_level(capture, saturation_level)
+    raw_t, cor_t = _raw_and_corrected(capture, "target")
+    raw_r, cor_r = _raw_and_corrected(capture, "reference")
+    flags = (frame_flags(raw_t, cor_t, saturation_level=level, min_signal=min_signal)
+             | (frame_flags(raw_r, cor_r, saturation_level=level, min_signal=min_signal) << 3)).astype(np.uint8)
+    flags.attrs.update(flag_masks=FLAG_MASKS, flag_meanings=FLAG_MEANINGS, long_name="why a pixel is invalid")
+    attrs = {k: v for k, v in capture.attrs.items() if k != "selpath_kind"}
+    attrs.update(saturation_level=level, min_signal=min_signal)
+    valid = flags == 0
+    # invalid pixels get 1.0 before any log or division, so no warning and no inf is ever produced
+    return xr.where(valid, cor_t, 1.0), xr.where(valid, cor_r, 1.0), flags, attrs
+
+
 @stage("normalise_reference")
 def normalise_reference(capture: xr.Dataset, /, *, saturation_level: float | None = None,
                         min_signal: float = 0.0) -> xr.Dataset:
@@ -116,28 +132,19 @@ def normalise_reference(capture: xr.Dataset, /, *, saturation_level: float | Non
     min_signal : float
         Dark-subtracted count at or below which a pixel has no usable signal [counts].
     """
-    _require(capture, ("target", "reference"), "normalise_reference")
-    level = _saturation_level(capture, saturation_level)
-    raw_t, cor_t = _raw_and_corrected(capture, "target")
-    raw_r, cor_r = _raw_and_corrected(capture, "reference")
-    flags = (frame_flags(raw_t, cor_t, saturation_level=level, min_signal=min_signal)
-             | (frame_flags(raw_r, cor_r, saturation_level=level, min_signal=min_signal) << 3)).astype(np.uint8)
-    valid = flags == 0
-    ratio = xr.where(valid, cor_t, 1.0) / xr.where(valid, cor_r, 1.0)
-    transmittance = xr.where(valid, ratio, np.nan).astype(cor_t.dtype)
-    flags.attrs.update(flag_masks=FLAG_MASKS, flag_meanings=FLAG_MEANINGS, long_name="why a pixel is invalid")
-    attrs = {k: v for k, v in capture.attrs.items() if k != "selpath_kind"}
-    return xr.Dataset(
-        {"transmittance": transmittance.assign_attrs(units="1", long_name="I_target / I_reference"),
-         "flags": flags},
-        attrs={**attrs, "selpath_kind": "transmittance", "saturation_level": level, "min_signal": min_signal},
-    )
+    target, reference, flags, attrs = _checked_pair(capture, "normalise_reference", saturation_level, min_signal)
+    value = xr.where(flags == 0, target / reference, np.nan).astype(target.dtype)
+    value.attrs.update(units="1", long_name="I_target / I_reference")
+    return xr.Dataset({"transmittance": value, "flags": flags}, attrs={**attrs, "selpath_kind": "transmittance"})
 
 
 @stage("absorption")
 def absorption(capture: xr.Dataset, /, *, saturation_level: float | None = None,
                min_signal: float = 0.0) -> xr.Dataset:
     """Total absorption A = log I_reference − log I_target per pixel (thesis Eq. 3), with flags.
+
+    Computed as a difference of logs, never as the log of a ratio, so float32 frames spanning
+    1e-8…1e8 cannot under- or overflow.
 
     Parameters
     ----------
@@ -147,10 +154,7 @@ def absorption(capture: xr.Dataset, /, *, saturation_level: float | None = None,
     min_signal : float
         Dark-subtracted count at or below which a pixel has no usable signal [counts].
     """
-    normalised = normalise_reference(capture, saturation_level=saturation_level, min_signal=min_signal)
-    transmittance = normalised["transmittance"]
-    safe = xr.where(normalised["flags"] == 0, transmittance, 1.0)
-    value = xr.where(normalised["flags"] == 0, -np.log(safe), np.nan).astype(transmittance.dtype)
+    target, reference, flags, attrs = _checked_pair(capture, "absorption", saturation_level, min_signal)
+    value = xr.where(flags == 0, np.log(reference) - np.log(target), np.nan).astype(target.dtype)
     value.attrs.update(units="1", long_name="total absorption log I_reference - log I_target")
-    return xr.Dataset({"absorption": value, "flags": normalised["flags"]},
-                      attrs={**normalised.attrs, "selpath_kind": "absorption"})
+    return xr.Dataset({"absorption": value, "flags": flags}, attrs={**attrs, "selpath_kind": "absorption"})

@@ -1,0 +1,67 @@
+"""Shared fixtures: a small valid workflow, and a dask scheduler that fails on any compute."""
+
+from __future__ import annotations
+
+import textwrap
+from pathlib import Path
+
+import dask
+import pytest
+
+SMALL_WORKFLOW = textwrap.dedent("""\
+    workflow: small-absorption
+    scheduler: synchronous
+    steps:
+      - id: capture
+        stage: simulate_parallel_capture
+        with:
+          angles: {start: 0, stop: 40, step: 5}
+          n_rows: 3
+          n_cols: 48
+          pixel_size: 1.0
+          radius: 20.0
+          rods:
+            - {x: 6.0, y: 3.0, radius: 4.0, sigma: 0.05}
+          noise_std: 1.5
+      - id: absorption
+        stage: absorption
+        with:
+          capture: $capture
+          min_signal: 1.0
+    outputs:
+      capture: {from: capture, store: out/capture.zarr}
+      absorption: {from: absorption, store: out/absorption.zarr}
+    """)
+
+
+@pytest.fixture
+def workflow_text() -> str:
+    return SMALL_WORKFLOW
+
+
+@pytest.fixture
+def small_workflow(tmp_path: Path) -> Path:
+    path = tmp_path / "small.yaml"
+    path.write_text(SMALL_WORKFLOW)
+    return path
+
+
+class ComputeCounter:
+    """A dask scheduler that counts computes and, if strict, fails on the first one (cf. xarray's
+    raise_if_dask_computes)."""
+
+    def __init__(self, strict: bool = True):
+        self.strict, self.count = strict, 0
+
+    def __call__(self, dsk, keys, **kwargs):
+        self.count += 1
+        if self.strict:
+            raise RuntimeError("a dask compute happened where the graph must stay lazy")
+        return dask.get(dsk, keys, **kwargs)
+
+
+@pytest.fixture
+def no_compute():
+    counter = ComputeCounter()
+    with dask.config.set(scheduler=counter):
+        yield counter

@@ -1,0 +1,145 @@
+"""The engine: one lazy graph, reuse by provenance, the same outputs under every scheduler."""
+
+from __future__ import annotations
+
+import collections
+import functools
+import shutil
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from pipeline import StageError, StageRegistry, build, load_workflow, open_store, read_provenance, run_workflow
+from pipeline.registry import default_registry, stage
+
+CALLS: collections.Counter = collections.Counter()
+
+
+def counting_registry() -> StageRegistry:
+    registry = StageRegistry()
+    for builtin in default_registry():
+        def make(name=builtin.name, func=builtin.func):
+            @functools.wraps(func)
+            def wrapper(*args, **kwargs):
+                CALLS[name] += 1
+                return func(*args, **kwargs)
+            return stage(name, precheck=builtin.precheck, identity=builtin.identity)(wrapper).__selpath_stage__
+        registry.add(make())
+    return registry
+
+
+@pytest.fixture
+def counted():
+    CALLS.clear()
+    return counting_registry()
+
+
+def test_building_the_graph_computes_nothing(small_workflow, no_compute):
+    results, _, report = build(load_workflow(small_workflow), reuse=False)
+    assert set(results) == {"capture", "absorption"}
+    assert report.computed() == ["capture", "absorption"]
+    assert no_compute.count == 0
+
+
+def test_rerun_recomputes_nothing_and_a_changed_setting_only_what_follows(small_workflow, counted):
+    first = run_workflow(load_workflow(small_workflow, counted), progress=False)
+    assert first.computed() == ["capture", "absorption"] and CALLS == {"simulate_parallel_capture": 1,
+                                                                        "absorption": 1}
+    before = open_store(first.written[1]).load()
+
+    CALLS.clear()
+    again = run_workflow(load_workflow(small_workflow, counted), progress=False)
+    assert again.computed() == [] and again.written == [] and not CALLS
+    assert {s.status for s in again.steps.values()} == {"reused"}
+
+    small_workflow.write_text(small_workflow.read_text().replace("min_signal: 1.0", "min_signal: 2.0"))
+    changed = run_workflow(load_workflow(small_workflow, counted), progress=False)
+    assert changed.computed() == ["absorption"] and CALLS == {"absorption": 1}
+    assert changed.steps["absorption"].reason == "settings changed: min_signal 1.0 -> 2.0"
+    xr.testing.assert_identical(open_store(changed.written[0])["absorption"].load(), before["absorption"])
+
+    CALLS.clear()
+    small_workflow.write_text(small_workflow.read_text().replace("noise_std: 1.5", "noise_std: 0.5"))
+    upstream = run_workflow(load_workflow(small_workflow, counted), progress=False)
+    assert upstream.computed() == ["capture", "absorption"]
+    assert upstream.steps["absorption"].reason == "inputs changed: $capture"
+
+
+def test_an_interrupted_output_is_redone(small_workflow, counted):
+    report = run_workflow(load_workflow(small_workflow, counted), progress=False)
+    shutil.rmtree(report.written[1] + "/_selpath")  # as if killed before provenance was written
+    redo = run_workflow(load_workflow(small_workflow, counted), progress=False)
+    assert redo.computed() == ["absorption"]
+    assert redo.steps["absorption"].reason.startswith("no finished output at")
+
+
+def test_outputs_carry_provenance(small_workflow):
+    report = run_workflow(load_workflow(small_workflow), progress=False)
+    provenance = read_provenance(report.written[1])
+    assert provenance["workflow"] == "small-absorption"
+    assert provenance["workflow_text"] == small_workflow.read_text()
+    assert provenance["steps"]["capture"]["settings"]["rods"] == [{"x": 6.0, "y": 3.0, "radius": 4.0, "sigma": 0.05}]
+    assert provenance["steps"]["absorption"]["settings"] == {"saturation_level": None, "min_signal": 1.0}
+    assert set(provenance["versions"]) >= {"selpath", "xarray", "dask", "zarr"}
+
+
+def _outputs(report) -> list[xr.Dataset]:
+    return [open_store(path).load() for path in report.written]
+
+
+def test_same_outputs_under_every_local_scheduler(small_workflow, tmp_path):
+    reference = _outputs(run_workflow(load_workflow(small_workflow), scheduler="synchronous", progress=False))
+    other = tmp_path / "threads"
+    other.mkdir()
+    shutil.copy(small_workflow, other / "wf.yaml")
+    threaded = _outputs(run_workflow(load_workflow(other / "wf.yaml"), scheduler="threads", progress=False))
+    for a, b in zip(reference, threaded, strict=True):
+        xr.testing.assert_identical(a, b)
+    assert float(reference[1]["absorption"].max()) > 0.3
+
+
+def test_same_outputs_on_a_two_worker_process_cluster(small_workflow, tmp_path):
+    reference = _outputs(run_workflow(load_workflow(small_workflow), scheduler="synchronous", progress=False))
+    other = tmp_path / "processes"
+    other.mkdir()
+    shutil.copy(small_workflow, other / "wf.yaml")
+    clustered = _outputs(run_workflow(load_workflow(other / "wf.yaml"), scheduler="processes", progress=False))
+    for a, b in zip(reference, clustered, strict=True):
+        xr.testing.assert_identical(a, b)
+
+
+def test_dask_scheduler_address_overrides(small_workflow, tmp_path, monkeypatch):
+    from distributed import LocalCluster
+
+    reference = _outputs(run_workflow(load_workflow(small_workflow), scheduler="synchronous", progress=False))
+    other = tmp_path / "tcp"
+    other.mkdir()
+    shutil.copy(small_workflow, other / "wf.yaml")
+    with LocalCluster(n_workers=1, processes=False, dashboard_address=None) as cluster:
+        monkeypatch.setenv("DASK_SCHEDULER_ADDRESS", cluster.scheduler_address)
+        remote = _outputs(run_workflow(load_workflow(other / "wf.yaml"), progress=False))
+    for a, b in zip(reference, remote, strict=True):
+        xr.testing.assert_identical(a, b)
+
+
+@stage("scaled_transmittance")
+def scaled_transmittance(frames: xr.DataArray, /, *, factor: float = 0.5) -> xr.Dataset:
+    """Test stage: a DataArray input wired with $step.variable."""
+    return xr.Dataset({"transmittance": frames * factor, "flags": xr.zeros_like(frames, dtype=np.uint8)},
+                      attrs={"selpath_kind": "transmittance"})
+
+
+def test_variable_references(small_workflow, tmp_path):
+    registry = StageRegistry([*default_registry(), scaled_transmittance.__selpath_stage__])
+    text = small_workflow.read_text().replace(
+        "outputs:", "  - id: scaled\n    stage: scaled_transmittance\n    with: {frames: $capture.target}\noutputs:")
+    text += "  scaled: {from: scaled, store: out/scaled.zarr}\n"
+    path = tmp_path / "vars.yaml"
+    path.write_text(text)
+    report = run_workflow(load_workflow(path, registry), progress=False)
+    scaled, capture = open_store(report.written[-1]), open_store(report.written[0])
+    xr.testing.assert_allclose(scaled["transmittance"], capture["target"] * 0.5)
+    path.write_text(text.replace("$capture.target", "$capture.nosuch"))
+    with pytest.raises(StageError, match=r"\$capture.nosuch names no variable of step 'capture' \(it has \["):
+        run_workflow(load_workflow(path, registry), progress=False, reuse=False)

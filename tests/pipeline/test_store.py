@@ -1,0 +1,143 @@
+"""Stores: round-trips, the schema check, frame-by-frame capture with resume, provenance."""
+
+from __future__ import annotations
+
+import re
+import shutil
+
+import dask.array as da
+import numpy as np
+import pytest
+import xarray as xr
+import zarr
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from pipeline import (
+    StoreError,
+    create_capture,
+    missing_frames,
+    open_store,
+    read_provenance,
+    to_store,
+    write_frame,
+    write_provenance,
+)
+from pipeline.schema import FORMAT_VERSION
+
+GEOMETRY = {"camera_model": "perspective", "focal_length_px": 1800.0, "principal_point_px": [800.0, 600.0],
+            "camera_distance": 300.0, "light_distance": 250.0, "light_angle_deg": 45.0, "length_unit": "mm"}
+
+
+def capture(n_angles=3, rows=4, cols=5, dtype=np.float32, data=None, lazy=False) -> xr.Dataset:
+    shape = (n_angles, rows, cols)
+    if data is None:
+        data = np.arange(np.prod(shape), dtype=dtype).reshape(shape)
+    frames = da.zeros(shape, dtype=dtype, chunks=(1, rows, cols)) if lazy else data
+    return xr.Dataset(
+        {"target": (("angle", "row", "col"), frames), "reference": (("angle", "row", "col"), frames)},
+        coords={"angle": ("angle", np.arange(n_angles) * 1.5, {"units": "degree"})},
+        attrs=dict(GEOMETRY),
+    )
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(
+    data=arrays(np.float32, st.tuples(st.integers(1, 4), st.integers(1, 5), st.integers(1, 6)),
+                elements=st.floats(width=32, allow_nan=True, allow_infinity=True)),
+    channel=st.booleans(),
+)
+def test_round_trip_is_identical(tmp_path_factory, data, channel):
+    ds = capture(*data.shape, data=data)
+    if channel:
+        ds = ds.expand_dims(channel=["r", "g", "b"], axis=-1)
+    path = tmp_path_factory.mktemp("rt") / "s.zarr"
+    to_store(ds, path, "tomography_capture")
+    back = open_store(path).load()
+    expected = ds.assign_attrs(selpath_format=FORMAT_VERSION, selpath_kind="tomography_capture")
+    xr.testing.assert_identical(back, expected)
+
+
+def test_store_written_by_plain_xarray_opens(tmp_path):
+    """The documented format is enough: no selpath writer involved."""
+    ds = capture().assign_attrs(selpath_format=1, selpath_kind="tomography_capture")
+    ds.to_zarr(tmp_path / "plain.zarr", consolidated=False)
+    xr.testing.assert_identical(open_store(tmp_path / "plain.zarr").load(), ds)
+
+
+def test_schema_check_lists_every_problem(tmp_path):
+    ds = capture().drop_vars("reference").transpose("row", "angle", "col")
+    ds["angle"].attrs["units"] = "rad"
+    del ds.attrs["length_unit"], ds.attrs["focal_length_px"]
+    ds = ds.assign_attrs(selpath_format=1, selpath_kind="tomography_capture")
+    ds.to_zarr(tmp_path / "bad.zarr", consolidated=False)
+    with pytest.raises(StoreError) as info:
+        open_store(tmp_path / "bad.zarr")
+    message = str(info.value)
+    assert message.startswith("5 problems in the store:"), message
+    for expected in [
+        r"bad.zarr: target: variable 'target' has dims \('row', 'angle', 'col'\); expected \('angle', 'row', 'col'\)",
+        r"bad.zarr: reference: variable 'reference' is missing",
+        r"coordinate 'angle' is in 'rad'; expected one of \[degree\]",
+        r"attr 'length_unit' is missing",
+        r"attr 'focal_length_px' is required for a perspective camera",
+    ]:
+        assert re.search(expected, message), (expected, message)
+
+
+def test_newer_format_and_wrong_kind_and_corrupt_store(tmp_path):
+    to_store(capture(), tmp_path / "s.zarr", "tomography_capture")
+    with pytest.raises(StoreError, match="holds a 'tomography_capture' cube, not a 'sinogram' cube"):
+        open_store(tmp_path / "s.zarr", "sinogram")
+    zarr.open_group(tmp_path / "s.zarr", mode="r+").attrs["selpath_format"] = FORMAT_VERSION + 1
+    with pytest.raises(StoreError, match=r"format 2 is newer than this selpath reads \(format 1\)"):
+        open_store(tmp_path / "s.zarr")
+    (tmp_path / "junk.zarr").mkdir()
+    (tmp_path / "junk.zarr" / "zarr.json").write_text("{not json")
+    with pytest.raises(StoreError, match=r"junk.zarr: cannot be read as a zarr store"):
+        open_store(tmp_path / "junk.zarr")
+
+
+def test_region_written_capture_reports_missing_frames_and_resumes(tmp_path):
+    path = tmp_path / "cap.zarr"
+    template = capture(n_angles=5, lazy=True)
+    create_capture(path, template, "tomography_capture")
+    assert missing_frames(path)["target"] == [{"angle": a} for a in (0.0, 1.5, 3.0, 4.5, 6.0)]
+    truth = np.random.default_rng(0).normal(size=(5, 4, 5)).astype(np.float32)
+    for i in (0, 1, 3):
+        write_frame(path, "target", {"angle": i}, truth[i])
+    for i in range(5):
+        write_frame(path, "reference", {"angle": i}, truth[i] * 2)
+    assert missing_frames(path) == {"target": [{"angle": 3.0}, {"angle": 6.0}], "reference": []}
+    # resume: reopening with the same sweep keeps every frame already captured
+    reopened = create_capture(path, template, "tomography_capture")
+    np.testing.assert_array_equal(reopened["target"][[0, 1, 3]].values, truth[[0, 1, 3]])
+    for i in (2, 4):
+        write_frame(path, "target", {"angle": i}, truth[i])
+    assert missing_frames(path) == {"target": [], "reference": []}
+    np.testing.assert_array_equal(open_store(path)["target"].values, truth)
+    assert "written__target" not in open_store(path)
+
+
+def test_resume_refuses_a_different_sweep_and_bad_frames(tmp_path):
+    path = tmp_path / "cap.zarr"
+    create_capture(path, capture(n_angles=5, lazy=True), "tomography_capture")
+    other = capture(n_angles=5, lazy=True).assign_coords(angle=("angle", np.arange(5) * 2.0, {"units": "degree"}))
+    with pytest.raises(StoreError, match=r"coordinate 'angle' differs from the new sweep's"):
+        create_capture(path, other, "tomography_capture")
+    with pytest.raises(StoreError, match=r"frame has shape \(3, 5\); the store expects \(4, 5\)"):
+        write_frame(path, "target", {"angle": 0}, np.zeros((3, 5)))
+    with pytest.raises(StoreError, match=r"must name exactly the frame dims \('angle',\)"):
+        write_frame(path, "target", {"delay": 0}, np.zeros((4, 5)))
+    assert len(missing_frames(path)["target"]) == 5
+
+
+def test_provenance_survives_region_writes(tmp_path):
+    path = tmp_path / "cap.zarr"
+    create_capture(path, capture(lazy=True), "tomography_capture")
+    write_provenance(path, {"step_hash": "abc", "settings": {"n": np.int64(3)}})
+    write_frame(path, "target", {"angle": 1}, np.ones((4, 5)))
+    assert read_provenance(path) == {"step_hash": "abc", "settings": {"n": 3}}
+    assert read_provenance(tmp_path / "absent.zarr") is None
+    shutil.rmtree(path)
