@@ -141,3 +141,12 @@ def test_provenance_survives_region_writes(tmp_path):
     assert read_provenance(path) == {"step_hash": "abc", "settings": {"n": 3}}
     assert read_provenance(tmp_path / "absent.zarr") is None
     shutil.rmtree(path)
+
+
+def test_format_doc_lists_every_kind_as_the_code_does():
+    from pathlib import Path
+
+    from pipeline.schema import describe_kinds
+
+    doc = (Path(__file__).resolve().parents[2] / "docs" / "format.md").read_text()
+    assert describe_kinds() in doc, "docs/format.md is out of date: paste pipeline.schema.describe_kinds()"

@@ -1,0 +1,77 @@
+"""The stage registry: entry points, signatures, duplicates."""
+
+from __future__ import annotations
+
+from importlib.metadata import EntryPoint
+
+import pytest
+import xarray as xr
+
+from pipeline import SelpathError, StageRegistry, stage
+from pipeline.registry import default_registry
+
+
+def test_builtin_stages_come_through_the_entry_point_group():
+    names = default_registry().names()
+    assert {"absorption", "normalise_reference", "subtract_dark", "subtract_background", "load_store",
+            "simulate_parallel_capture"} <= set(names)
+    absorption = default_registry()["absorption"]
+    assert absorption.inputs == ("capture",) and absorption.required_inputs == ("capture",)
+    assert absorption.params.model_fields["min_signal"].default == 0.0
+    assert "[counts]" in absorption.param_docs["min_signal"]
+
+
+def _fake_entry_points(monkeypatch, tmp_path, module: str, source: str):
+    (tmp_path / f"{module}.py").write_text(source)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    fake = [EntryPoint(name="fake", value=module, group="selpath.stages")]
+    monkeypatch.setattr("pipeline.registry.entry_points", lambda group: fake if group == "selpath.stages" else [])
+
+
+def test_a_plugin_registers_through_the_same_group(monkeypatch, tmp_path):
+    _fake_entry_points(monkeypatch, tmp_path, "selpath_fake_plugin", (
+        "import xarray as xr\nfrom pipeline import stage\n"
+        "@stage('brighten')\n"
+        "def brighten(frames: xr.DataArray, /, *, gain: float = 2.0) -> xr.DataArray:\n"
+        "    return frames * gain\n"))
+    registry = StageRegistry.from_entry_points()
+    assert registry.names() == ["brighten"]
+    assert registry["brighten"].source == "selpath_fake_plugin:brighten"
+
+
+def test_a_broken_plugin_is_named(monkeypatch, tmp_path):
+    _fake_entry_points(monkeypatch, tmp_path, "selpath_broken_plugin", "raise ImportError('missing dependency foo')\n")
+    with pytest.raises(SelpathError, match=r"stage plugin 'fake' \(selpath_broken_plugin\) failed to import: "
+                                           r"ImportError: missing dependency foo"):
+        StageRegistry.from_entry_points()
+
+
+def test_duplicate_names_are_refused_naming_both():
+    @stage("absorption")
+    def impostor(capture: xr.Dataset, /) -> xr.Dataset:
+        return capture
+
+    registry = StageRegistry(default_registry())
+    with pytest.raises(SelpathError, match=r"stage 'absorption' is registered twice: by stages.calibrate:absorption "
+                                           r"and by .*impostor"):
+        registry.add(impostor.__selpath_stage__)
+
+
+def test_signatures_must_be_explicit_and_typed():
+    with pytest.raises(SelpathError, match=r"\*args/\*\*kwargs are not allowed"):
+        @stage("loose")
+        def loose(data: xr.Dataset, /, **options: float) -> xr.Dataset:
+            return data
+
+    with pytest.raises(SelpathError, match=r"parameter 'gain' has no type annotation"):
+        @stage("untyped")
+        def untyped(data: xr.Dataset, /, *, gain=1.0) -> xr.Dataset:
+            return data
+
+    with pytest.raises(SelpathError, match=r"a data input must be annotated xr.Dataset or xr.DataArray"):
+        @stage("positional_setting")
+        def positional_setting(data: xr.Dataset, gain: float = 1.0) -> xr.Dataset:
+            return data
+
+    with pytest.raises(SelpathError, match=r"must be lower_snake_case"):
+        stage("Bad-Name")(lambda: None)

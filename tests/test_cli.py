@@ -1,0 +1,44 @@
+"""The command line, driven as a user would (typer's runner)."""
+
+from __future__ import annotations
+
+import re
+
+from typer.testing import CliRunner
+
+from pipeline.cli import app
+
+runner = CliRunner()
+
+
+def test_validate_ok_and_every_problem(small_workflow):
+    ok = runner.invoke(app, ["validate", str(small_workflow)])
+    assert ok.exit_code == 0 and "ok: small-absorption: 2 steps" in ok.output
+    small_workflow.write_text(small_workflow.read_text().replace("stage: absorption", "stage: absorb")
+                              .replace("n_rows: 3", "n_rows: three"))
+    bad = runner.invoke(app, ["validate", str(small_workflow)])
+    assert bad.exit_code == 2
+    assert "2 problems in the workflow" in bad.output
+    assert re.search(r"small.yaml:16: steps\[1\].stage: unknown stage 'absorb'", bad.output.replace("\n", ""))
+
+
+def test_run_then_inspect(small_workflow):
+    first = runner.invoke(app, ["run", str(small_workflow), "--no-progress"])
+    assert first.exit_code == 0, first.output
+    assert "computed" in first.output and "wrote" in first.output
+    second = runner.invoke(app, ["run", str(small_workflow), "--no-progress"])
+    assert "reused" in second.output and "computed" not in second.output
+    store = small_workflow.parent / "out" / "absorption.zarr"
+    shown = runner.invoke(app, ["inspect", str(store)])
+    assert shown.exit_code == 0, shown.output
+    assert "absorption cube, format 1" in shown.output and '"workflow": "small-absorption"' in shown.output
+    missing = runner.invoke(app, ["inspect", str(small_workflow.parent / "nothing.zarr")])
+    assert missing.exit_code == 2 and "no store at this path" in missing.output
+
+
+def test_stages_lists_settings_with_units():
+    listed = runner.invoke(app, ["stages", "absorption"], env={"COLUMNS": "200"})
+    assert listed.exit_code == 0
+    assert "min_signal" in listed.output and "[counts]" in listed.output and "float | None" in listed.output
+    unknown = runner.invoke(app, ["stages", "nope"])
+    assert unknown.exit_code == 2 and "unknown stage 'nope'" in unknown.output
