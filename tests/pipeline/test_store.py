@@ -59,6 +59,15 @@ def test_round_trip_is_identical(tmp_path_factory, data, channel):
     xr.testing.assert_identical(back, expected)
 
 
+def test_opening_a_store_and_building_on_it_computes_nothing(tmp_path, no_compute):
+    from stages.calibrate import absorption
+
+    to_store(capture().assign_attrs(saturation_level=1e9), tmp_path / "s.zarr", "tomography_capture")  # numpy
+    opened = open_store(tmp_path / "s.zarr")
+    result = absorption(opened)
+    assert result["absorption"].chunks is not None and no_compute.count == 0
+
+
 def test_store_written_by_plain_xarray_opens(tmp_path):
     """The documented format is enough: no selpath writer involved."""
     ds = capture().assign_attrs(selpath_format=1, selpath_kind="tomography_capture")
