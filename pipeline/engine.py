@@ -74,6 +74,8 @@ class RunReport:
     workflow: str
     steps: dict[str, StepReport] = field(default_factory=dict)
     written: list[str] = field(default_factory=list)
+    #: output stores whose provenance already matches their step: read back, never rewritten
+    fresh: set[str] = field(default_factory=set)
     seconds: float = 0.0
 
     def computed(self) -> list[str]:
@@ -130,8 +132,12 @@ def build(workflow: Workflow, *, reuse: bool = True, log: Callable[[str], None] 
     records = step_records(workflow)
     report = RunReport(workflow.name)
     outputs_of: dict[str, list[OutputSpec]] = {}
+    stored: dict[str, dict | None] = {}
     for out in workflow.outputs.values():
         outputs_of.setdefault(out.from_, []).append(out)
+        stored[out.store] = read_provenance(out.store)  # once per output, shared with run_workflow
+        if reuse and (stored[out.store] or {}).get("step_hash") == records[out.from_]["step_hash"]:
+            report.fresh.add(out.store)
     results: dict[str, Any] = {}
 
     def resolve(step_id: str) -> Any:
@@ -140,13 +146,12 @@ def build(workflow: Workflow, *, reuse: bool = True, log: Callable[[str], None] 
         step, record = workflow.steps[step_id], records[step_id]
         reasons = []
         for out in outputs_of.get(step_id, []):
-            stored = read_provenance(out.store)
-            if reuse and stored is not None and stored.get("step_hash") == record["step_hash"]:
+            if out.store in report.fresh:
                 results[step_id] = open_store(out.store)
                 report.steps[step_id] = StepReport(step_id, "reused", f"{out.store} has the same provenance")
                 log(f"[dim]skip[/] {step_id}: {out.store} is up to date")
                 return results[step_id]
-            reasons.append(_why_changed(stored, record, out.store) if reuse else "forced")
+            reasons.append(_why_changed(stored[out.store], record, out.store) if reuse else "forced")
         inputs = {name: _select(resolve(ref.step), ref, step) for name, ref in step.inputs.items()}
         results[step_id] = _call(step, inputs)
         reason = "; ".join(reasons) if reasons else "no stored output (intermediate step)"
@@ -175,9 +180,7 @@ def run_workflow(workflow: Workflow, *, scheduler: str | None = None, progress: 
     results, records, report = build(workflow, reuse=reuse, log=log)
     pending = []
     for name, out in workflow.outputs.items():
-        record = records[out.from_]
-        stored = read_provenance(out.store)
-        if reuse and stored is not None and stored.get("step_hash") == record["step_hash"]:
+        if out.store in report.fresh:
             continue
         data = _as_dataset(results[out.from_], name)
         kind = out.kind or data.attrs.get("selpath_kind")

@@ -264,7 +264,7 @@ def _check_steps(spec: WorkflowFile, raw: dict, registry: StageRegistry, located
             for message in stage.precheck(model):
                 located.add((*where, "with"), message)
         steps[step.id] = Step(step.id, stage, inputs, model, i)
-    for step_id, step in steps.items():
+    for step in steps.values():
         for key, ref in step.inputs.items():
             if ref.step not in seen:
                 located.add(("steps", step.index, "with", key), f"reference {ref} names no step",

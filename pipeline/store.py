@@ -38,7 +38,8 @@ def _where(path: str | os.PathLike) -> str:
 def _open_raw(path: str | os.PathLike) -> xr.Dataset:
     where = _where(path)
     if not Path(where).exists() and "://" not in where:
-        raise StoreError(Problem("no store at this path", where=where, fix="check the path, or run the step that writes it"))
+        raise StoreError(Problem("no store at this path", where=where,
+                                 fix="check the path, or run the step that writes it"))
     try:
         return xr.open_zarr(where, consolidated=False, decode_timedelta=False)
     except Exception as exc:  # zarr/xarray raise many types for a corrupt store; name it, keep the cause
@@ -141,9 +142,8 @@ def create_capture(path: str | os.PathLike, template: xr.Dataset, kind: str) -> 
     Returns the opened store with its ``written__*`` flags.
     """
     where = _where(path)
-    spec_kind = KINDS[kind] if kind in KINDS else None
-    template = stamp(template, kind)
-    frame_chunks = {v: {d: 1 for d in spec_kind.frame_dims(v)} for v in template.data_vars}  # type: ignore[union-attr]
+    template = stamp(template, kind)  # raises for an unknown kind or a template that breaks its schema
+    spec_kind = KINDS[kind]
     if Path(where).exists():
         existing = open_store(where, kind, keep_flags=True)
         differences = _sweep_differences(existing, template)
@@ -156,10 +156,10 @@ def create_capture(path: str | os.PathLike, template: xr.Dataset, kind: str) -> 
         return existing
     flags = {}
     for name, var in template.data_vars.items():
-        frame_dims = spec_kind.frame_dims(str(name))  # type: ignore[union-attr]
+        frame_dims = spec_kind.frame_dims(str(name))
         shape = tuple(template.sizes[d] for d in frame_dims)
         flags[f"{WRITTEN_PREFIX}{name}"] = (frame_dims, np.zeros(shape, dtype=bool))
-        template[name] = var.chunk(frame_chunks[str(name)])
+        template[name] = var.chunk(dict.fromkeys(frame_dims, 1))
     template = _writable(template.assign(flags))
     template.to_zarr(where, mode="w-", consolidated=False, compute=False)
     # the flags are small numpy arrays: write them for real, so every frame starts as missing
@@ -223,7 +223,8 @@ def missing_frames(path: str | os.PathLike) -> dict[str, list[dict[str, Any]]]:
         flags = ds[name].load()
         positions = np.argwhere(~flags.values)
         out[str(name)[len(WRITTEN_PREFIX):]] = [
-            {dim: (ds[dim].values[i].item() if dim in ds.coords else int(i)) for dim, i in zip(flags.dims, pos)}
+            {dim: (ds[dim].values[i].item() if dim in ds.coords else int(i))
+             for dim, i in zip(flags.dims, pos, strict=True)}
             for pos in positions
         ]
     return out

@@ -42,7 +42,7 @@ _DEFAULT_RODS = (RodSpec(x=6.0, y=3.0, radius=2.0, sigma=0.15),)
 @stage("simulate_parallel_capture")
 def simulate_parallel_capture(
     *,
-    angles: AngleSweep = AngleSweep(),
+    angles: AngleSweep = AngleSweep(),  # noqa: B008 (a frozen model: immutable default)
     n_rows: int = 8,
     n_cols: int = 256,
     pixel_size: float = 0.2,

@@ -19,12 +19,12 @@ CALLS: collections.Counter = collections.Counter()
 def counting_registry() -> StageRegistry:
     registry = StageRegistry()
     for builtin in default_registry():
-        def make(name=builtin.name, func=builtin.func):
+        def make(name=builtin.name, func=builtin.func, original=builtin):
             @functools.wraps(func)
             def wrapper(*args, **kwargs):
                 CALLS[name] += 1
                 return func(*args, **kwargs)
-            return stage(name, precheck=builtin.precheck, identity=builtin.identity)(wrapper).__selpath_stage__
+            return stage(name, precheck=original.precheck, identity=original.identity)(wrapper).__selpath_stage__
         registry.add(make())
     return registry
 
@@ -88,38 +88,38 @@ def _outputs(report) -> list[xr.Dataset]:
     return [open_store(path).load() for path in report.written]
 
 
-def test_same_outputs_under_every_local_scheduler(small_workflow, tmp_path):
-    reference = _outputs(run_workflow(load_workflow(small_workflow), scheduler="synchronous", progress=False))
-    other = tmp_path / "threads"
-    other.mkdir()
-    shutil.copy(small_workflow, other / "wf.yaml")
-    threaded = _outputs(run_workflow(load_workflow(other / "wf.yaml"), scheduler="threads", progress=False))
-    for a, b in zip(reference, threaded, strict=True):
+def _run_copy(small_workflow, folder, **options) -> list[xr.Dataset]:
+    """Run a copy of the workflow in its own folder (so its stores are its own) and load the outputs."""
+    folder.mkdir()
+    shutil.copy(small_workflow, folder / "wf.yaml")
+    return _outputs(run_workflow(load_workflow(folder / "wf.yaml"), progress=False, **options))
+
+
+@pytest.fixture
+def synchronous_outputs(small_workflow, tmp_path) -> list[xr.Dataset]:
+    return _run_copy(small_workflow, tmp_path / "synchronous", scheduler="synchronous")
+
+
+def test_same_outputs_under_every_local_scheduler(small_workflow, tmp_path, synchronous_outputs):
+    threaded = _run_copy(small_workflow, tmp_path / "threads", scheduler="threads")
+    for a, b in zip(synchronous_outputs, threaded, strict=True):
         xr.testing.assert_identical(a, b)
-    assert float(reference[1]["absorption"].max()) > 0.3
+    assert float(synchronous_outputs[1]["absorption"].max()) > 0.3
 
 
-def test_same_outputs_on_a_two_worker_process_cluster(small_workflow, tmp_path):
-    reference = _outputs(run_workflow(load_workflow(small_workflow), scheduler="synchronous", progress=False))
-    other = tmp_path / "processes"
-    other.mkdir()
-    shutil.copy(small_workflow, other / "wf.yaml")
-    clustered = _outputs(run_workflow(load_workflow(other / "wf.yaml"), scheduler="processes", progress=False))
-    for a, b in zip(reference, clustered, strict=True):
+def test_same_outputs_on_a_two_worker_process_cluster(small_workflow, tmp_path, synchronous_outputs):
+    clustered = _run_copy(small_workflow, tmp_path / "processes", scheduler="processes")
+    for a, b in zip(synchronous_outputs, clustered, strict=True):
         xr.testing.assert_identical(a, b)
 
 
-def test_dask_scheduler_address_overrides(small_workflow, tmp_path, monkeypatch):
+def test_dask_scheduler_address_overrides(small_workflow, tmp_path, monkeypatch, synchronous_outputs):
     from distributed import LocalCluster
 
-    reference = _outputs(run_workflow(load_workflow(small_workflow), scheduler="synchronous", progress=False))
-    other = tmp_path / "tcp"
-    other.mkdir()
-    shutil.copy(small_workflow, other / "wf.yaml")
     with LocalCluster(n_workers=1, processes=False, dashboard_address=None) as cluster:
         monkeypatch.setenv("DASK_SCHEDULER_ADDRESS", cluster.scheduler_address)
-        remote = _outputs(run_workflow(load_workflow(other / "wf.yaml"), progress=False))
-    for a, b in zip(reference, remote, strict=True):
+        remote = _run_copy(small_workflow, tmp_path / "tcp")
+    for a, b in zip(synchronous_outputs, remote, strict=True):
         xr.testing.assert_identical(a, b)
 
 
