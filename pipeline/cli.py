@@ -78,10 +78,10 @@ def stages(name: Annotated[str | None, typer.Argument(help="show one stage in fu
         registry = default_registry()
     except SelpathError as exc:
         _fail(exc)
-    chosen = [registry[name]] if name and name in registry else list(registry)
     if name and name not in registry:
         errors.print(f"[bold red]error:[/] unknown stage {name!r}; known: {', '.join(registry.names())}")
         raise typer.Exit(2)
+    chosen = [registry[name]] if name else list(registry)
     for s in chosen:
         table = Table(title=f"[bold]{s.name}[/]  ({s.source})", caption=escape(s.summary), show_lines=False)
         for column in ("parameter", "kind", "type", "default", "description"):

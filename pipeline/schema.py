@@ -111,6 +111,7 @@ KINDS: dict[str, CubeKind] = {
         ),
         CubeKind(
             name="plane_to_ray_capture",
+            description="image stacks over sync delay and exposure (§5.2.3)",
             variables={"image": Variable(("delay", "exposure", *_FRAME))},
             coord_units={"delay": TIME_UNITS, "exposure": TIME_UNITS},
             attrs={
@@ -120,6 +121,7 @@ KINDS: dict[str, CubeKind] = {
         ),
         CubeKind(
             name="full_transport_capture",
+            description="stacks over delay, exposure and projected line position (§5.3.1)",
             variables={"image": Variable(("delay", "exposure", "line", *_FRAME))},
             coord_units={"delay": TIME_UNITS, "exposure": TIME_UNITS, "line": PX_UNITS},
             attrs={
@@ -130,16 +132,19 @@ KINDS: dict[str, CubeKind] = {
         ),
         CubeKind(
             name="plane_to_ray_transport",
+            description="T(v, s, t) indexed by offset = projector row − camera row",
             variables={"transport": Variable(("offset", *_FRAME))},
             coord_units={"offset": PX_UNITS},
         ),
         CubeKind(
             name="full_transport",
+            description="T(u, v, s, t) indexed by offsets from the direct correspondence",
             variables={"transport": Variable(("du", "dv", *_FRAME))},
             coord_units={"du": PX_UNITS, "dv": PX_UNITS},
         ),
         CubeKind(
             name="sinogram",
+            description="total absorption on a (θ, X) grid with a mask of observed rays",
             variables={
                 "absorption": Variable(("theta", "x")),
                 "observed": Variable(("theta", "x"), description="True where a ray was measured"),
@@ -148,6 +153,7 @@ KINDS: dict[str, CubeKind] = {
         ),
         CubeKind(
             name="reconstruction",
+            description="absorption coefficient σ per slice",
             variables={"sigma": Variable(("y", "x"), description="absorption coefficient per unit length")},
             coord_units={"y": LENGTH_UNITS, "x": LENGTH_UNITS},
         ),
@@ -199,10 +205,9 @@ def check_dataset(ds: xr.Dataset, kind: str) -> list[Problem]:
                     fix="transpose or rename the dims (xarray .transpose / .rename)",
                 )
             )
-    used_dims = {d for v in spec.variables.values() for d in v.dims}
     for dim, units in spec.coord_units.items():
-        if dim not in used_dims or not any(dim in ds[v].dims for v in spec.variables if v in ds):
-            continue
+        if not any(dim in ds[v].dims for v in spec.variables if v in ds):
+            continue  # the variables using this dim are missing: already reported
         want = "[" + ", ".join(sorted(units)) + "]"
         if dim not in ds.coords:
             problems.append(Problem(f"dim {dim} has no coordinate; it needs one with attrs units in {want}"))
@@ -229,12 +234,12 @@ def check_dataset(ds: xr.Dataset, kind: str) -> list[Problem]:
 
 def describe_kinds() -> str:
     """A Markdown table of every kind, used by docs/format.md and ``selpath stages``."""
-    rows = ["| kind | variable: dims | coordinate units | required attrs |", "|---|---|---|---|"]
+    rows = ["| kind | what | variable: dims | coordinate units | required attrs |", "|---|---|---|---|---|"]
     for kind in KINDS.values():
         variables = "<br>".join(
             f"`{n}`{'' if v.required else ' (optional)'}: ({', '.join(v.dims)})" for n, v in kind.variables.items()
         )
         units = "<br>".join(f"{d}: {'/'.join(sorted(u))}" for d, u in kind.coord_units.items())
         attrs = "<br>".join(f"`{a}`" for a in kind.attrs) or "—"
-        rows.append(f"| `{kind.name}` | {variables} | {units} | {attrs} |")
+        rows.append(f"| `{kind.name}` | {kind.description or '—'} | {variables} | {units} | {attrs} |")
     return "\n".join(rows)

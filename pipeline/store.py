@@ -31,12 +31,8 @@ WRITTEN_PREFIX = "written__"
 PROVENANCE_GROUP = "_selpath"
 
 
-def _where(path: str | os.PathLike) -> str:
-    return os.fspath(path)
-
-
 def _open_raw(path: str | os.PathLike) -> xr.Dataset:
-    where = _where(path)
+    where = os.fspath(path)
     if not Path(where).exists() and "://" not in where:
         raise StoreError(Problem("no store at this path", where=where,
                                  fix="check the path, or run the step that writes it"))
@@ -77,7 +73,7 @@ def open_store(path: str | os.PathLike, kind: str | None = None, *, keep_flags: 
     Every problem is reported at once in one :class:`StoreError`. The ``written__*`` frame flags
     are dropped unless ``keep_flags``.
     """
-    where = _where(path)
+    where = os.fspath(path)
     ds = _migrate(_open_raw(path), where)
     stored_kind = ds.attrs.get("selpath_kind")
     if kind is None:
@@ -126,7 +122,7 @@ def to_store(ds: xr.Dataset, path: str | os.PathLike, kind: str, *, compute: boo
 
     With ``compute=False`` returns the dask delayed write, so many outputs can be computed in one pass.
     """
-    return _writable(stamp(ds, kind)).to_zarr(_where(path), mode="w", consolidated=False, compute=compute)
+    return _writable(stamp(ds, kind)).to_zarr(os.fspath(path), mode="w", consolidated=False, compute=compute)
 
 
 # -- frame-by-frame capture -------------------------------------------------------------------------
@@ -141,7 +137,7 @@ def create_capture(path: str | os.PathLike, template: xr.Dataset, kind: str) -> 
     :func:`missing_frames` tells what to capture next); if it differs, nothing is overwritten.
     Returns the opened store with its ``written__*`` flags.
     """
-    where = _where(path)
+    where = os.fspath(path)
     template = stamp(template, kind)  # raises for an unknown kind or a template that breaks its schema
     spec_kind = KINDS[kind]
     if Path(where).exists():
@@ -190,7 +186,7 @@ def write_frame(path: str | os.PathLike, variable: str, index: Mapping[str, int]
     ``index`` gives an integer position for each frame dim of ``variable`` (e.g. ``{"angle": 12}``).
     The pixels land before the flag, so an interrupted write is seen as missing and captured again.
     """
-    where = _where(path)
+    where = os.fspath(path)
     group = zarr.open_group(where, mode="r+")
     flag_name = f"{WRITTEN_PREFIX}{variable}"
     if variable not in group or flag_name not in group:
@@ -247,7 +243,7 @@ def _json_default(value: Any) -> Any:
 
 def write_provenance(path: str | os.PathLike, provenance: Mapping[str, Any]) -> None:
     """Record how a store was made, in its ``_selpath`` child group (safe from appends)."""
-    group = zarr.open_group(_where(path), mode="r+")
+    group = zarr.open_group(os.fspath(path), mode="r+")
     child = group.require_group(PROVENANCE_GROUP)
     child.attrs["provenance"] = _jsonable(dict(provenance))
 
@@ -255,7 +251,7 @@ def write_provenance(path: str | os.PathLike, provenance: Mapping[str, Any]) -> 
 def read_provenance(path: str | os.PathLike) -> dict[str, Any] | None:
     """The provenance recorded by :func:`write_provenance`, or None if the store has none (or is absent)."""
     try:
-        group = zarr.open_group(_where(path), mode="r")
+        group = zarr.open_group(os.fspath(path), mode="r")
         return dict(group[PROVENANCE_GROUP].attrs["provenance"])
     except (FileNotFoundError, KeyError, zarr.errors.GroupNotFoundError, zarr.errors.NodeTypeValidationError):
         return None
@@ -264,7 +260,7 @@ def read_provenance(path: str | os.PathLike) -> dict[str, Any] | None:
 def store_identity(path: str | os.PathLike) -> dict[str, Any]:
     """What identifies a store's content for provenance: its own provenance hash if selpath made it,
     else a fingerprint of its metadata and (for local stores) file sizes and modification times."""
-    where = _where(path)
+    where = os.fspath(path)
     prov = read_provenance(where)
     if prov and "step_hash" in prov:
         return {"store": where, "step_hash": prov["step_hash"]}

@@ -116,9 +116,9 @@ def _pair_kernel(target, reference, background, *, subtracted: bool, level: floa
 def _checked_pair(capture: xr.Dataset, stage_name: str, saturation_level: float | None, min_signal: float,
                   *, absorption: bool) -> tuple[xr.DataArray, xr.DataArray, dict]:
     """Absorption (or transmittance) and flags of dark-subtracted target and reference, lazily per tile."""
-    _require(capture, ("target", "reference"), stage_name)
-    level = _saturation_level(capture, saturation_level)
     background_name = capture.attrs.get("background_subtracted") or ("dark" if "dark" in capture else None)
+    _require(capture, ("target", "reference") + ((background_name,) if background_name else ()), stage_name)
+    level = _saturation_level(capture, saturation_level)
     background = capture[background_name] if background_name else xr.DataArray(0.0)
     dtype = np.result_type(_float_dtype(capture["target"]), _float_dtype(capture["reference"]))
     value, flags = xr.apply_ufunc(

@@ -19,12 +19,13 @@ CALLS: collections.Counter = collections.Counter()
 def counting_registry() -> StageRegistry:
     registry = StageRegistry()
     for builtin in default_registry():
-        def make(name=builtin.name, func=builtin.func, original=builtin):
-            @functools.wraps(func)
+        def make(original=builtin):
+            @functools.wraps(original.func)
             def wrapper(*args, **kwargs):
-                CALLS[name] += 1
-                return func(*args, **kwargs)
-            return stage(name, precheck=original.precheck, identity=original.identity)(wrapper).__selpath_stage__
+                CALLS[original.name] += 1
+                return original.func(*args, **kwargs)
+            return stage(original.name, precheck=original.precheck,
+                         identity=original.identity)(wrapper).__selpath_stage__
         registry.add(make())
     return registry
 

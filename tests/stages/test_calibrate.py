@@ -112,6 +112,9 @@ def test_bad_inputs_are_named():
     frames = np.ones((1, 2, 2))
     with pytest.raises(StageError, match=r"cannot tell saturated pixels of float frames \(fix: set the capture's"):
         absorption(make_capture(frames, frames).drop_attrs())
+    orphan = make_capture(frames, frames, np.zeros((2, 2)), saturation_level=9.0)
+    with pytest.raises(StageError, match=r"stage 'absorption' needs variable 'dark'"):
+        absorption(subtract_dark(orphan).drop_vars("dark"))
     with pytest.raises(StageError, match=r"stage 'absorption' needs variable 'reference'"):
         absorption(make_capture(frames, frames).drop_vars("reference"))
 
