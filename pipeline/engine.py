@@ -182,6 +182,9 @@ def run_workflow(workflow: Workflow, *, scheduler: str | None = None, progress: 
     for name, out in workflow.outputs.items():
         if out.store in report.fresh:
             continue
+        if out.store in workflow.self_written:  # the stage filled it as it ran: record, never rewrite
+            pending.append((name, out, None))
+            continue
         data = _as_dataset(results[out.from_], name)
         kind = out.kind or data.attrs.get("selpath_kind")
         if kind is None:
@@ -189,7 +192,8 @@ def run_workflow(workflow: Workflow, *, scheduler: str | None = None, progress: 
                                      path=f"outputs.{name}", fix="set `kind:` on the output"))
         pending.append((name, out, to_store(data, out.store, kind, compute=False)))
     with scheduler_session(scheduler) as client:
-        compute([write for _, _, write in pending], scheduler=scheduler, client=client, progress=progress,
+        compute([write for _, _, write in pending if write is not None], scheduler=scheduler, client=client,
+                progress=progress,
                 description=f"{workflow.name}: writing {len(pending)} output(s)")
     now = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
     for name, out, _ in pending:

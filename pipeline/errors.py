@@ -72,4 +72,31 @@ class StageError(_ProblemsError):
 
 
 class DeviceError(SelpathError):
-    """An instrument timed out, answered garbage or went away; names port, command and reply."""
+    """An instrument timed out, answered garbage or went away; names port, command and reply.
+
+    ``port``, ``command`` and ``reply`` are kept as attributes so callers (and tests) can act on them.
+    """
+
+    def __init__(self, message: str, *, port: str = "", command: str = "", reply: str | bytes | None = None,
+                 fix: str = ""):
+        self.message, self.port, self.command, self.reply, self.fix = message, port, command, reply, fix
+        parts = [f"port {port}" if port else "", f"command {command!r}" if command else ""]
+        head = ", ".join(p for p in parts if p)
+        text = f"{head}: {message}" if head else message
+        if reply is not None:
+            text += f" (reply {reply!r})"
+        if fix:
+            text += f" (fix: {fix})"
+        super().__init__(text)
+
+
+class DeviceTimeout(DeviceError):
+    """No (complete) reply arrived in time."""
+
+
+class DeviceProtocolError(DeviceError):
+    """A reply arrived but is garbled, fails its checksum, or is an error from the firmware."""
+
+
+class DeviceDisconnected(DeviceError):
+    """The port went away (cable pulled, device reset, port closed)."""

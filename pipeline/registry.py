@@ -50,6 +50,9 @@ class Stage:
     precheck: Callable[[pydantic.BaseModel], list[str]] | None = None
     #: optional identity of external data the stage reads (e.g. an input store), for provenance
     identity: Callable[[pydantic.BaseModel], Any] | None = None
+    #: for stages that write their own store as they go (acquisitions): the store path from the settings.
+    #: The engine treats that store as the step's output and never rewrites it.
+    writes: Callable[[pydantic.BaseModel], str] | None = None
 
     @property
     def source(self) -> str:
@@ -80,7 +83,8 @@ def _param_docs(doc: str) -> dict[str, str]:
     return docs
 
 
-def _build_stage(name: str, func: Callable[..., Any], precheck: Callable | None, identity: Callable | None) -> Stage:
+def _build_stage(name: str, func: Callable[..., Any], precheck: Callable | None, identity: Callable | None,
+                 writes: Callable | None = None) -> Stage:
     if not _NAME.match(name):
         raise SelpathError(f"stage name {name!r} must be lower_snake_case")
     hints = typing.get_type_hints(func, include_extras=True)
@@ -111,15 +115,17 @@ def _build_stage(name: str, func: Callable[..., Any], precheck: Callable | None,
         **fields,
     )
     summary = inspect.cleandoc(func.__doc__ or "").split("\n\n")[0].replace("\n", " ")
-    return Stage(name, func, tuple(inputs), tuple(required), model, summary, docs, precheck, identity)
+    return Stage(name, func, tuple(inputs), tuple(required), model, summary, docs, precheck, identity, writes)
 
 
 def stage(name: str, *, precheck: Callable[[Any], list[str]] | None = None,
-          identity: Callable[[Any], Any] | None = None) -> Callable:
+          identity: Callable[[Any], Any] | None = None, writes: Callable[[Any], str] | None = None) -> Callable:
     """Mark ``func`` as the stage ``name``; the function itself is returned unchanged.
 
     ``precheck(settings)`` runs when a workflow is validated and returns problems as strings;
-    ``identity(settings)`` names external data the stage reads, so provenance changes with it.
+    ``identity(settings)`` names external data the stage reads, so provenance changes with it;
+    ``writes(settings)`` is the store a stage fills itself while it runs (an acquisition), which then
+    is the step's output: the engine records its provenance but never rewrites it.
 
     >>> import xarray as xr
     >>> @stage("double")
@@ -130,7 +136,7 @@ def stage(name: str, *, precheck: Callable[[Any], list[str]] | None = None,
     """
 
     def mark(func: Callable[..., Any]) -> Callable[..., Any]:
-        setattr(func, _MARK, _build_stage(name, func, precheck, identity))
+        setattr(func, _MARK, _build_stage(name, func, precheck, identity, writes))
         return func
 
     return mark

@@ -15,7 +15,7 @@ import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, TypeVar
 
 import pydantic
 import yaml
@@ -111,6 +111,8 @@ class Workflow:
     text: str
     source: str
     base_dir: Path
+    #: stores that a step's stage fills itself (acquisitions): outputs the engine must not rewrite
+    self_written: frozenset[str] = frozenset()
 
 
 # -- YAML with locations ---------------------------------------------------------------------------
@@ -149,20 +151,16 @@ class _Located:
         self.problems.append(Problem(message, f"{self.source}:{self.lines.get(probe, 1)}", _format_path(path), fix))
 
 
-def _read(path_or_text: str | os.PathLike, source: str | None) -> tuple[str, str, Path]:
+def _read(path_or_text: str | os.PathLike, source: str | None, what: str = "workflow") -> tuple[str, str, Path]:
     candidate = Path(path_or_text) if not isinstance(path_or_text, str) or "\n" not in path_or_text else None
     if candidate is not None:
         if not candidate.is_file():
-            raise SpecError(Problem("no such workflow file", where=str(candidate), fix="check the path"))
+            raise SpecError(Problem(f"no such {what} file", where=str(candidate), fix="check the path"))
         return candidate.read_text(), source or str(candidate), candidate.resolve().parent
-    return str(path_or_text), source or "<workflow>", Path.cwd()
+    return str(path_or_text), source or f"<{what}>", Path.cwd()
 
 
-def load_workflow(path_or_text: str | os.PathLike, registry: StageRegistry | None = None,
-                  *, source: str | None = None) -> Workflow:
-    """Read, validate and wire a workflow file (or YAML text). Raises one SpecError listing every problem."""
-    registry = default_registry() if registry is None else registry
-    text, source, base_dir = _read(path_or_text, source)
+def _parse(text: str, source: str) -> tuple[Any, _Located]:
     loader = yaml.SafeLoader(text)
     try:
         node = loader.get_single_node()
@@ -173,7 +171,33 @@ def load_workflow(path_or_text: str | os.PathLike, registry: StageRegistry | Non
         raise SpecError(Problem(f"not valid YAML: {getattr(exc, 'problem', exc)}", where=f"{source}{line}")) from exc
     finally:
         loader.dispose()
-    located = _Located(source, _locations(node) if node is not None else {})
+    return raw, _Located(source, _locations(node) if node is not None else {})
+
+
+M = TypeVar("M", bound=pydantic.BaseModel)
+
+
+def load_yaml_model(path_or_text: str | os.PathLike, model: type[M], *, what: str = "configuration") -> M:
+    """Read a YAML file (or text) into a pydantic ``model``; one SpecError lists every problem with file:line.
+
+    Used for every YAML file selpath reads besides workflows (scenes, rig configurations).
+    """
+    text, source, _ = _read(path_or_text, None, what)
+    raw, located = _parse(text, source)
+    try:
+        return model.model_validate(raw)
+    except pydantic.ValidationError as exc:
+        for err in exc.errors():
+            located.add(tuple(p for p in err["loc"] if not str(p).startswith("function-")), _pydantic_message(err))
+        raise SpecError(located.problems) from None
+
+
+def load_workflow(path_or_text: str | os.PathLike, registry: StageRegistry | None = None,
+                  *, source: str | None = None) -> Workflow:
+    """Read, validate and wire a workflow file (or YAML text). Raises one SpecError listing every problem."""
+    registry = default_registry() if registry is None else registry
+    text, source, base_dir = _read(path_or_text, source)
+    raw, located = _parse(text, source)
     if not isinstance(raw, dict):
         raise SpecError(Problem("a workflow file is a mapping with keys workflow, steps and outputs", f"{source}:1"))
     try:
@@ -185,10 +209,37 @@ def load_workflow(path_or_text: str | os.PathLike, registry: StageRegistry | Non
         raise SpecError(located.problems) from None
     steps = _check_steps(spec, raw, registry, located, base_dir)
     outputs = _check_outputs(spec, steps, located, base_dir)
+    self_written = _self_written_outputs(steps, outputs, located)
     order = _topological_order(steps, located)
     if located.problems:
         raise SpecError(located.problems)
-    return Workflow(spec.workflow, spec.scheduler, {i: steps[i] for i in order}, outputs, text, source, base_dir)
+    return Workflow(spec.workflow, spec.scheduler, {i: steps[i] for i in order}, outputs, text, source, base_dir,
+                    frozenset(self_written))
+
+
+def _self_written_outputs(steps: dict[str, Step], outputs: dict[str, OutputSpec], located: _Located) -> set[str]:
+    """Stages that fill their own store (acquisitions) make it an output, named after the step.
+
+    An explicit output of the same step and store is the same thing; any other output that names
+    that store would overwrite the capture and is refused.
+    """
+    written: set[str] = set()
+    for step in steps.values():
+        if step.stage.writes is None:
+            continue
+        store = step.stage.writes(step.settings)
+        store = store if "://" in store else str(Path(store).resolve())
+        clash = [n for n, o in outputs.items() if o.store == store and o.from_ != step.id]
+        for name in clash:
+            located.add(("outputs", name, "store"), f"store {store} is filled by step {step.id!r} "
+                        f"({step.stage.name}); output {name!r} would overwrite it", "give the output its own store")
+        if not any(o.store == store for o in outputs.values()):
+            if step.id in outputs:
+                located.add(("outputs", step.id), f"output name {step.id!r} is taken by step {step.id!r}'s own store",
+                            "rename the output")
+            outputs[step.id] = OutputSpec.model_validate({"from": step.id, "store": store})
+        written.add(store)
+    return written
 
 
 def _pydantic_message(err: dict) -> str:
@@ -196,7 +247,10 @@ def _pydantic_message(err: dict) -> str:
         return "is required but missing"
     if err["type"] == "extra_forbidden":
         return "is not a known field"
-    return f"{err['msg']} (got {err['input']!r})"
+    message = err["msg"].removeprefix("Value error, ")
+    if isinstance(err.get("input"), dict | list):
+        return message
+    return f"{message} (got {err['input']!r})"
 
 
 def _suggest(name: str, choices: list[str]) -> str:

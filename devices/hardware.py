@@ -1,0 +1,99 @@
+"""A real tomography rig described by a YAML file: serial rotary stage, OpenCV camera, manual lights.
+
+Example (``docs/devices.md``)::
+
+    stage: {url: /dev/ttyUSB0, move_timeout_s: 30}
+    camera: {source: 0, width: 1600, height: 1200}
+    geometry: {camera_model: perspective, light_angle_deg: 45, length_unit: mm, focal_length_px: 2400,
+               camera_distance: 400, light_distance: 300}
+    saturation_level: 4095
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Literal
+
+import pydantic
+
+from devices.acquire import TomographyRig
+from devices.manual import ManualLight, ManualSampleChanger
+from devices.opencv_camera import OpenCVCamera
+from devices.serial_stage import SerialRotaryStage
+from pipeline.spec import load_yaml_model
+
+
+class _Model(pydantic.BaseModel):
+    model_config = pydantic.ConfigDict(extra="forbid", frozen=True)
+
+
+class StageConfig(_Model):
+    url: str = pydantic.Field(description="serial.serial_for_url URL: /dev/ttyUSB0, socket://host:port, ...")
+    timeout_s: float = pydantic.Field(1.0, gt=0)
+    move_timeout_s: float = pydantic.Field(30.0, gt=0)
+    retries: int = pydantic.Field(2, ge=0, le=10)
+    tolerance_deg: float = pydantic.Field(0.01, gt=0)
+
+
+class CameraConfig(_Model):
+    source: int | str
+    width: int | None = None
+    height: int | None = None
+    exposure: float | None = None
+    discard: int = pydantic.Field(0, ge=0)
+
+
+class GeometryConfig(_Model):
+    """Rig geometry written into every capture (DESIGN §8); lengths in ``length_unit``."""
+
+    camera_model: Literal["perspective", "orthographic"]
+    light_angle_deg: float = pydantic.Field(ge=0, le=180)
+    length_unit: Literal["m", "cm", "mm", "um"]
+    light_kind: Literal["beam", "sheet"] = "beam"
+    beam_height: float = 0.0
+    focal_length_px: float | None = pydantic.Field(None, gt=0)
+    principal_point_px: tuple[float, float] | None = None
+    camera_distance: float | None = pydantic.Field(None, gt=0)
+    light_distance: float | None = pydantic.Field(None, gt=0)
+    pixel_size: float | None = pydantic.Field(None, gt=0)
+
+    @pydantic.model_validator(mode="after")
+    def _complete(self):
+        needed = {"perspective": ("focal_length_px", "camera_distance", "light_distance"),
+                  "orthographic": ("pixel_size",)}[self.camera_model]
+        missing = [n for n in needed if getattr(self, n) is None]
+        if missing:
+            raise ValueError(f"a {self.camera_model} camera needs {', '.join(missing)}")
+        return self
+
+
+class HardwareRigConfig(_Model):
+    stage: StageConfig
+    camera: CameraConfig
+    geometry: GeometryConfig
+    saturation_level: float = pydantic.Field(4095.0, gt=0, description="raw count at which the sensor saturates")
+
+
+def load_hardware(path: str | os.PathLike) -> HardwareRigConfig:
+    return load_yaml_model(path, HardwareRigConfig, what="rig")
+
+
+def hardware_rig(config: HardwareRigConfig) -> TomographyRig:
+    """Open the stage and the camera; lights and samples are switched by the operator."""
+    stage = SerialRotaryStage(config.stage.url, timeout_s=config.stage.timeout_s,
+                              move_timeout_s=config.stage.move_timeout_s, retries=config.stage.retries,
+                              tolerance_deg=config.stage.tolerance_deg)
+    try:
+        cam = config.camera
+        camera = OpenCVCamera(cam.source, width=cam.width, height=cam.height, exposure=cam.exposure,
+                              discard=cam.discard)
+    except BaseException:
+        stage.close()
+        raise
+    geometry = config.geometry.model_dump(exclude_none=True)
+    if "principal_point_px" not in geometry and config.geometry.camera_model == "perspective":
+        rows, cols = camera.shape
+        geometry["principal_point_px"] = [(cols - 1) / 2.0, (rows - 1) / 2.0]
+    attrs = geometry | {"saturation_level": config.saturation_level, "rig": "hardware"}
+    return TomographyRig(stage, camera, ManualLight("beam"), ManualLight("backlight"), ManualSampleChanger(),
+                         attrs, tolerance_deg=config.stage.tolerance_deg)

@@ -1,0 +1,265 @@
+"""Scene files of the tomography simulator (YAML under ``workflows/scenes/``), with units.
+
+Every length carries its unit (``"20 mm"``, ``"2 cm"``), every absorption or scattering coefficient
+its inverse length (``"0.15 /mm"``), every angle ``deg`` or ``rad``, pixel quantities ``px`` and times
+``s``/``ms``/``us``; a bare number where a unit is needed is an error naming the field. Internally
+everything is converted to mm, degrees and seconds. The simulator computes **only the effects a scene
+names** under ``effects:`` (``scattering``, ``noise``); an unknown effect is an error.
+
+>>> scene = Scene.model_validate({
+...     "scene": "disk", "object": {"shape": {"kind": "cylinder", "radius": "2 cm"}, "height": "40 mm"},
+...     "light": {"kind": "beam", "angle": "45 deg", "distance": "300 mm"},
+...     "camera": {"model": "orthographic", "rows": 8, "cols": 64, "pixel_size": "0.7 mm"}})
+>>> scene.object.shape.radius, scene.light.angle, scene.effects.names()
+(20.0, 45.0, ())
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from typing import Annotated, Any, Literal
+
+import numpy as np
+import pydantic
+
+from devices.geometry import RigGeometry
+from devices.sim.shapes import Ellipse, Polygon, Prism, convex_polygon
+from pipeline.spec import load_yaml_model
+
+_TO_MM = {"m": 1000.0, "cm": 10.0, "mm": 1.0, "um": 1e-3}
+_TO_DEG = {"deg": 1.0, "degree": 1.0, "rad": 180.0 / np.pi}
+_TO_S = {"s": 1.0, "ms": 1e-3, "us": 1e-6}
+_QUANTITY = re.compile(r"^\s*(?P<value>[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?)\s*(?P<unit>\S+)\s*$")
+
+
+def _parser(units: dict[str, float], example: str, what: str):
+    def parse(value: Any) -> float:
+        if isinstance(value, bool) or not isinstance(value, str | int | float):
+            raise ValueError(f"expected {what} such as {example!r}")
+        if not isinstance(value, str):
+            raise ValueError(f"{value} has no unit; write it as {what}, e.g. {example!r}")
+        match = _QUANTITY.match(value)
+        if not match or match["unit"] not in units:
+            raise ValueError(f"{value!r} is not {what}; write e.g. {example!r} (units: {', '.join(units)})")
+        return float(match["value"]) * units[match["unit"]]
+
+    return pydantic.BeforeValidator(parse)
+
+
+Length = Annotated[float, _parser(_TO_MM, "20 mm", "a length")]
+#: absorption or scattering coefficient, per mm
+InvLength = Annotated[float, _parser({f"/{u}": 1.0 / f for u, f in _TO_MM.items()}
+                                     | {f"1/{u}": 1.0 / f for u, f in _TO_MM.items()}, "0.1 /mm",
+                                     "a coefficient per length")]
+Angle = Annotated[float, _parser(_TO_DEG, "45 deg", "an angle")]
+Pixels = Annotated[float, _parser({"px": 1.0}, "800 px", "a pixel quantity")]
+Duration = Annotated[float, _parser(_TO_S, "50 ms", "a duration")]
+
+
+class _Model(pydantic.BaseModel):
+    model_config = pydantic.ConfigDict(extra="forbid", frozen=True)
+
+
+class Cylinder(_Model):
+    kind: Literal["cylinder"]
+    radius: Annotated[Length, pydantic.Field(gt=0)]
+    centre: tuple[Length, Length] = (0.0, 0.0)
+
+    def build(self) -> Ellipse:
+        return Ellipse(self.centre, (self.radius, self.radius))
+
+
+class EllipseSpec(_Model):
+    kind: Literal["ellipse"]
+    semi_axes: tuple[Length, Length]
+    angle: Angle = 0.0
+    centre: tuple[Length, Length] = (0.0, 0.0)
+
+    @pydantic.field_validator("semi_axes")
+    @classmethod
+    def _positive(cls, value):
+        if min(value) <= 0:
+            raise ValueError("semi-axes must be positive")
+        return value
+
+    def build(self) -> Ellipse:
+        return Ellipse(self.centre, self.semi_axes, np.deg2rad(self.angle))
+
+
+class PolygonSpec(_Model):
+    kind: Literal["polygon"]
+    vertices: list[tuple[Length, Length]]
+
+    @pydantic.field_validator("vertices")
+    @classmethod
+    def _convex(cls, value):
+        convex_polygon(value)  # raises ValueError naming the vertex where it is not convex
+        return value
+
+    def build(self) -> Polygon:
+        return convex_polygon(self.vertices)
+
+
+ShapeSpec = Annotated[Cylinder | EllipseSpec | PolygonSpec, pydantic.Field(discriminator="kind")]
+
+
+class Inclusion(_Model):
+    """A region whose absorption adds to the medium's (negative values allowed, as in Shepp–Logan)."""
+
+    name: str = ""
+    shape: ShapeSpec
+    sigma: InvLength
+    z_range: tuple[Length, Length] | None = pydantic.Field(None, description="default: the object's height")
+
+
+class Skin(_Model):
+    transmittance: float = pydantic.Field(0.8, gt=0, le=1, description="thin diffusing skin, crossed twice")
+
+
+class Medium(_Model):
+    sigma: Annotated[InvLength, pydantic.Field(ge=0)] = 0.0
+
+
+class SceneObject(_Model):
+    shape: ShapeSpec
+    height: Annotated[Length, pydantic.Field(gt=0)]
+    skin: Skin = Skin()
+    medium: Medium = Medium()
+    inclusions: list[Inclusion] = []
+
+    @pydantic.model_validator(mode="after")
+    def _inclusions_inside(self):
+        body = self.shape.build()
+        for i, inc in enumerate(self.inclusions):
+            if not body.contains(inc.shape.build().outline(64)).all():
+                raise ValueError(f"inclusions[{i}] ({inc.name or inc.shape.kind}) reaches outside the object")
+        if self.inclusions:  # the absorption field must be physical: sum of medium and inclusions >= 0
+            reach = body.reach()
+            grid = np.stack(np.meshgrid(*[np.linspace(-reach, reach, 201)] * 2), axis=-1).reshape(-1, 2)
+            grid = grid[body.contains(grid)]
+            total = np.full(len(grid), self.medium.sigma)
+            for inc in self.inclusions:
+                total += inc.sigma * inc.shape.build().contains(grid)
+            if total.min() < -1e-12:
+                raise ValueError(f"medium + inclusions give a negative absorption ({total.min():.3g} /mm)")
+        return self
+
+
+class Light(_Model):
+    kind: Literal["beam", "sheet"] = pydantic.Field(description="narrow collimated beam, or vertical light sheet")
+    angle: Annotated[Angle, pydantic.Field(ge=0, le=180)] = pydantic.Field(description="θ_l to the camera axis")
+    distance: Annotated[Length, pydantic.Field(gt=0)]
+    height: Length = pydantic.Field(0.0, description="z of the beam (beam only)")
+    intensity: float = pydantic.Field(3000.0, gt=0, description="counts of the brightest exit point, about")
+
+
+class PerspectiveCamera(_Model):
+    model: Literal["perspective"]
+    rows: int = pydantic.Field(gt=0)
+    cols: int = pydantic.Field(gt=0)
+    distance: Annotated[Length, pydantic.Field(gt=0)]
+    focal_length: Pixels | None = None
+    fov: Angle | None = pydantic.Field(None, description="horizontal field of view, instead of focal_length")
+    principal_point: tuple[Pixels, Pixels] | None = None
+
+    @pydantic.model_validator(mode="after")
+    def _one_focal(self):
+        if (self.focal_length is None) == (self.fov is None):
+            raise ValueError("give exactly one of focal_length (px) and fov (deg)")
+        return self
+
+    @property
+    def focal_length_px(self) -> float:
+        if self.focal_length is not None:
+            return self.focal_length
+        return (self.cols / 2.0) / np.tan(np.deg2rad(self.fov) / 2.0)
+
+
+class OrthographicCamera(_Model):
+    model: Literal["orthographic"]
+    rows: int = pydantic.Field(gt=0)
+    cols: int = pydantic.Field(gt=0)
+    pixel_size: Annotated[Length, pydantic.Field(gt=0)]
+
+
+class Sensor(_Model):
+    dark_level: float = pydantic.Field(64.0, ge=0, description="counts")
+    saturation_level: float = pydantic.Field(4095.0, gt=0, description="counts")
+    backlight: float = pydantic.Field(2000.0, ge=0, description="counts of the lit plane behind the object")
+    frame_interval: Duration = pydantic.Field(0.0, ge=0, description="simulated readout time per frame")
+
+
+class Scattering(_Model):
+    """Volumetric scattering with an isotropic phase function, by Monte Carlo (§4.4.4)."""
+
+    sigma_s: Annotated[InvLength, pydantic.Field(gt=0)]
+    photons: int = pydantic.Field(200_000, gt=0, description="photons per frame")
+    seed: int = 0
+    max_events: int = pydantic.Field(10_000, gt=0, description="scattering events before a photon is dropped")
+
+
+class Noise(_Model):
+    read_std: float = pydantic.Field(2.0, ge=0, description="Gaussian read noise, counts")
+    gain: float | None = pydantic.Field(1.0, gt=0, description="counts per photo-electron (shot noise); "
+                                        "null for none")
+    seed: int = 0
+
+
+class Effects(_Model):
+    scattering: Scattering | None = None
+    noise: Noise | None = None
+
+    @pydantic.model_validator(mode="before")
+    @classmethod
+    def _known(cls, value):
+        if isinstance(value, dict):
+            unknown = sorted(set(value) - set(cls.model_fields))
+            if unknown:
+                raise ValueError(f"unknown effect {', '.join(map(repr, unknown))}; the tomography simulator "
+                                 f"computes: {', '.join(cls.model_fields)}")
+        return value
+
+    def names(self) -> tuple[str, ...]:
+        return tuple(name for name in type(self).model_fields if getattr(self, name) is not None)
+
+
+class Scene(_Model):
+    """A tomography scene: object, light, camera, sensor and the effects to simulate."""
+
+    scene: str
+    description: str = ""
+    object: SceneObject
+    light: Light
+    camera: Annotated[PerspectiveCamera | OrthographicCamera, pydantic.Field(discriminator="model")]
+    sensor: Sensor = Sensor()
+    effects: Effects = Effects()
+
+    @pydantic.model_validator(mode="after")
+    def _scattering_needs_beam(self):
+        if self.effects.scattering is not None and self.light.kind != "beam":
+            raise ValueError("effects.scattering is simulated for light.kind 'beam' only (§4.4.4)")
+        return self
+
+    def geometry(self) -> RigGeometry:
+        """The rig geometry this scene's camera and light define (lengths in mm)."""
+        cam = self.camera
+        common = dict(rows=cam.rows, cols=cam.cols, light_angle_deg=self.light.angle, length_unit="mm",
+                      light_distance=self.light.distance, light_kind=self.light.kind, beam_height=self.light.height)
+        if isinstance(cam, PerspectiveCamera):
+            return RigGeometry("perspective", focal_length_px=cam.focal_length_px, camera_distance=cam.distance,
+                               principal_point_px=cam.principal_point, **common)
+        return RigGeometry("orthographic", pixel_size=cam.pixel_size, **common)
+
+    def body(self) -> Prism:
+        half = self.object.height / 2.0
+        return Prism(self.object.shape.build(), (-half, half))
+
+    def inclusions(self) -> tuple[tuple[Prism, float], ...]:
+        half = self.object.height / 2.0
+        return tuple((Prism(i.shape.build(), i.z_range or (-half, half)), i.sigma) for i in self.object.inclusions)
+
+
+def load_scene(path: str | os.PathLike) -> Scene:
+    """Read and check a scene file; one SpecError lists every problem with its file:line and field."""
+    return load_yaml_model(path, Scene, what="scene")

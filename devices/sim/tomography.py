@@ -1,0 +1,218 @@
+"""Frames of a tomography scene: straight paths (shortest-path model, §4.2.3) or Monte Carlo (§4.4.4).
+
+Light model, in the object frame at stage angle φ (conventions in :mod:`devices.geometry`):
+
+* The light's central ray enters the object at ``p_l`` (first crossing of the object's surface), where
+  the thin skin diffuses it (Lambertian, transmittance T). A **beam** enters at one point; a **sheet**
+  enters on a vertical line, and each slice is lit at its own height (the beam scanned in z).
+* Without scattering, light runs straight from ``p_l`` to every surface point ``p_c``, losing
+  ``exp(-∫σ)`` on the way (medium plus inclusions), and leaves through the skin again (Lambertian).
+  A camera pixel seeing ``p_c`` records the exit radiance::
+
+      E = I₀ T² cos ω_i cos ω_o (d/L)^k exp(-∫σ),   k = 2 (beam), 1 (sheet, per slice)
+
+  with L = |p_c − p_l|, ω_i, ω_o the angles to the inward normal at p_l and the outward normal at p_c,
+  and d the object's diameter (so I₀ is about the count of the exit point opposite the entry).
+  The reference object (no inclusions) shares every factor but the inclusions' absorption, so
+  ``log E_reference − log E_target`` is exactly the inclusions' line integral: the truth the
+  processing stages must recover.
+* With ``effects.scattering`` (σ_s > 0, isotropic phase function), photons are traced in 3-D by
+  Monte Carlo from the same entry point and the same Lambertian launch; absorption acts on photon
+  weights, so the target and reference frames of an angle use the *same* photon paths (common random
+  numbers: their ratio is far less noisy than either frame). As σ_s → 0 the estimate converges to the
+  straight-path E above (for a beam), which the tests check against its stated standard error.
+
+Only the effects a scene names run: a scene without ``scattering`` never enters :func:`monte_carlo`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from devices.geometry import RigGeometry, to_lab, to_object
+from devices.sim.scene import Scene
+from devices.sim.shapes import segment_length_inside
+
+SAMPLES = ("target", "reference")
+
+
+@dataclass(frozen=True)
+class ExitPoints:
+    """What each pixel sees at one stage angle: whether it hits the object, where, and the normal there."""
+
+    hit: np.ndarray  # (N,) bool
+    points: np.ndarray  # (N, 3) object frame
+    normals: np.ndarray  # (N, 3) object frame, outward
+
+
+def exit_points(scene: Scene, angle_deg: float, geometry: RigGeometry | None = None) -> ExitPoints:
+    geometry = geometry or scene.geometry()
+    origins, directions = geometry.pixel_rays()
+    o, d = to_object(origins, angle_deg), to_object(directions, angle_deg)
+    iv = scene.body().interval(o, d)
+    t = np.where(iv.hit, iv.t_in, 0.0)
+    return ExitPoints(iv.hit, o + t[:, None] * d, iv.normal_in)
+
+
+def entry_point(scene: Scene, angle_deg: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """Where the light's central ray enters the object (object frame) and the outward normal there."""
+    origin, direction = scene.geometry().beam()
+    o, d = to_object(origin[None], angle_deg), to_object(direction[None], angle_deg)
+    iv = scene.body().interval(o, d)
+    if not iv.hit[0]:
+        return None
+    return o[0] + iv.t_in[0] * d[0], iv.normal_in[0]
+
+
+def _diameter(scene: Scene) -> float:
+    return 2.0 * scene.object.shape.build().reach()
+
+
+def path_absorption(scene: Scene, start: np.ndarray, end: np.ndarray, *, reference: bool) -> np.ndarray:
+    """∫σ along segments inside the object: medium everywhere, inclusions unless ``reference``."""
+    total = scene.object.medium.sigma * np.linalg.norm(end - start, axis=1)
+    if not reference:
+        for prism, sigma in scene.inclusions():
+            total = total + sigma * segment_length_inside(prism, start, end)
+    return total
+
+
+def straight_path(scene: Scene, angle_deg: float, *, reference: bool) -> np.ndarray:
+    """Counts above dark of the lit frame at one angle under the shortest-path model, (rows, cols)."""
+    geometry = scene.geometry()
+    seen = exit_points(scene, angle_deg, geometry)
+    image = np.zeros(geometry.rows * geometry.cols)
+    entry = entry_point(scene, angle_deg)
+    if entry is None:
+        return image.reshape(geometry.rows, geometry.cols)
+    p_l, n_l = entry
+    p_c, n_c = seen.points[seen.hit], seen.normals[seen.hit]
+    start = np.tile(p_l, (len(p_c), 1))
+    power = 2
+    if scene.light.kind == "sheet":  # each slice lit at its own height: horizontal paths
+        start[:, 2] = p_c[:, 2]
+        power = 1
+    span = p_c - start
+    length = np.linalg.norm(span, axis=1)
+    safe = np.maximum(length, 1e-12)
+    u = span / safe[:, None]
+    cos_i = np.clip(-(u @ n_l), 0.0, None)
+    cos_o = np.clip(np.einsum("ij,ij->i", u, n_c), 0.0, None)
+    scale = scene.light.intensity * scene.object.skin.transmittance**2
+    absorbed = path_absorption(scene, start, p_c, reference=reference)
+    image[seen.hit] = scale * cos_i * cos_o * (_diameter(scene) / safe) ** power * np.exp(-absorbed)
+    return image.reshape(geometry.rows, geometry.cols)
+
+
+def silhouette(scene: Scene, angle_deg: float) -> np.ndarray:
+    """True where the object hides the lit plane behind it, (rows, cols)."""
+    geometry = scene.geometry()
+    return exit_points(scene, angle_deg, geometry).hit.reshape(geometry.rows, geometry.cols)
+
+
+def _cosine_hemisphere(normal: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+    """Lambertian directions about the unit ``normal`` (N, 3)."""
+    u1, u2 = rng.random(n), rng.random(n)
+    r, phi = np.sqrt(u1), 2 * np.pi * u2
+    local = np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(1 - u1)], axis=1)
+    helper = np.array([0.0, 0.0, 1.0]) if abs(normal[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    e1 = np.cross(normal, helper)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(normal, e1)
+    return local @ np.stack([e1, e2, normal])
+
+
+def _isotropic(n: int, rng: np.random.Generator) -> np.ndarray:
+    z = 2 * rng.random(n) - 1
+    phi = 2 * np.pi * rng.random(n)
+    r = np.sqrt(1 - z * z)
+    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
+
+
+@dataclass(frozen=True)
+class MonteCarloFrame:
+    """Monte Carlo estimate of a lit frame (counts above dark) and its standard error, (rows, cols)."""
+
+    image: np.ndarray
+    std_error: np.ndarray
+    photons: int
+    mean_events: float
+
+
+def monte_carlo(scene: Scene, angle_deg: float, *, reference: bool, batch: int = 1 << 17) -> MonteCarloFrame:
+    """Trace ``effects.scattering.photons`` photons in 3-D from the entry point; estimate the exit radiance.
+
+    Seeded by (scattering seed, angle), not by the sample: target and reference share their paths.
+    """
+    settings = scene.effects.scattering
+    if settings is None:
+        raise ValueError("the scene has no scattering effect; use straight_path")
+    geometry = scene.geometry()
+    n_pixels = geometry.rows * geometry.cols
+    sums, squares = np.zeros(n_pixels), np.zeros(n_pixels)
+    entry = entry_point(scene, angle_deg)
+    if entry is None:
+        zero = np.zeros((geometry.rows, geometry.cols))
+        return MonteCarloFrame(zero, zero, settings.photons, 0.0)
+    p_l, n_l = entry
+    body = scene.body()
+    rng = np.random.default_rng([settings.seed, int(round(angle_deg * 1000)) % 360_000])
+    events = 0
+    for first in range(0, settings.photons, batch):
+        n = min(batch, settings.photons - first)
+        pos = np.tile(p_l - 1e-9 * n_l, (n, 1))
+        direction = _cosine_hemisphere(-n_l, n, rng)
+        weight = np.ones(n)
+        for _ in range(settings.max_events):
+            if not len(pos):
+                break
+            iv = body.interval(pos, direction)
+            t_exit = np.maximum(iv.t_out, 0.0)
+            free = rng.exponential(1.0 / settings.sigma_s, len(pos))
+            leaving = free >= t_exit
+            step = np.where(leaving, t_exit, free)
+            end = pos + step[:, None] * direction
+            weight = weight * np.exp(-path_absorption(scene, pos, end, reference=reference))
+            _bin_exits(geometry, angle_deg, end[leaving], iv.normal_out[leaving], weight[leaving], sums, squares)
+            stay = ~leaving
+            events += int(stay.sum())
+            pos, weight = end[stay], weight[stay]
+            direction = _isotropic(len(pos), rng)
+    seen = exit_points(scene, angle_deg, geometry)
+    footprint = np.full(n_pixels, np.inf)
+    footprint[seen.hit] = geometry.pixel_footprint(to_lab(seen.points[seen.hit], angle_deg),
+                                                   to_lab(seen.normals[seen.hit], angle_deg))
+    scale = scene.light.intensity * scene.object.skin.transmittance**2 * np.pi * _diameter(scene) ** 2
+    per_photon = scale / (settings.photons * footprint)
+    shape = (geometry.rows, geometry.cols)
+    return MonteCarloFrame((sums * per_photon).reshape(shape), (np.sqrt(squares) * per_photon).reshape(shape),
+                           settings.photons, events / settings.photons)
+
+
+def _bin_exits(geometry: RigGeometry, angle_deg: float, points: np.ndarray, normals: np.ndarray,
+               weight: np.ndarray, sums: np.ndarray, squares: np.ndarray) -> None:
+    """Add exiting photons to the pixel that sees their exit point (front-facing points only)."""
+    q, n = to_lab(points, angle_deg), to_lab(normals, angle_deg)
+    if geometry.camera_model == "perspective":
+        facing = np.einsum("ij,ij->i", n, np.array([0.0, -float(geometry.camera_distance), 0.0]) - q) > 0
+    else:
+        facing = n[:, 1] < 0
+    row, col = geometry.project(q[facing])
+    r, c = np.rint(row).astype(np.int64), np.rint(col).astype(np.int64)
+    ok = (r >= 0) & (r < geometry.rows) & (c >= 0) & (c < geometry.cols)
+    index = r[ok] * geometry.cols + c[ok]
+    w = weight[facing][ok]
+    sums += np.bincount(index, w, minlength=len(sums))
+    squares += np.bincount(index, w * w, minlength=len(squares))
+
+
+def lit_frame(scene: Scene, angle_deg: float, sample: str) -> np.ndarray:
+    """Counts above dark with the light on: Monte Carlo only when the scene names scattering."""
+    if sample not in SAMPLES:
+        raise ValueError(f"sample must be one of {SAMPLES}, not {sample!r}")
+    reference = sample == "reference"
+    if scene.effects.scattering is not None:
+        return monte_carlo(scene, angle_deg, reference=reference).image
+    return straight_path(scene, angle_deg, reference=reference)
