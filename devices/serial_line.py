@@ -22,7 +22,7 @@ def checksum(body: str) -> str:
     """Two hex digits of the XOR of the bytes of ``body`` (NMEA 0183).
 
     >>> checksum("POS 12.500")
-    '3D'
+    '74'
     """
     value = 0
     for byte in body.encode("ascii"):

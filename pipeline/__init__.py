@@ -6,7 +6,7 @@ The public surface, for notebooks and plugins::
 """
 
 from pipeline.engine import RunReport, build, run_workflow
-from pipeline.errors import DeviceError, Problem, SelpathError, SpecError, StageError, StoreError
+from pipeline.errors import ConfigError, DeviceError, Problem, SelpathError, SpecError, StageError, StoreError
 from pipeline.registry import Stage, StageRegistry, default_registry, stage
 from pipeline.schema import FORMAT_VERSION, KINDS, check_dataset
 from pipeline.spec import StorePath, Workflow, load_workflow
@@ -23,6 +23,7 @@ from pipeline.store import (
 __all__ = [
     "FORMAT_VERSION",
     "KINDS",
+    "ConfigError",
     "DeviceError",
     "Problem",
     "RunReport",

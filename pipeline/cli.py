@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import json
 from pathlib import Path
 from typing import Annotated
@@ -24,7 +23,7 @@ console = Console()
 errors = Console(stderr=True)
 
 #: the workflow `selpath demo` runs on the built-in simulated rig (it grows with the project)
-DEMO_WORKFLOW = Path(__file__).resolve().parent.parent / "workflows" / "tomography-absorption-sim.yaml"
+DEMO_WORKFLOW = Path(__file__).resolve().parent.parent / "workflows" / "tomography-sim.yaml"
 
 
 def _fail(exc: SelpathError) -> None:
@@ -123,15 +122,12 @@ def demo(
     out: Annotated[Path, typer.Option(help="folder for the demo's stores")] = Path("selpath-demo"),
     scheduler: Annotated[str | None, typer.Option(help="override the scheduler")] = None,
 ) -> None:
-    """Run the main job on the built-in simulated rig (today: tomography capture -> absorption)."""
+    """Run the main job on the built-in simulated rig (today: acquisition of the gelatin bin -> absorption)."""
     try:
-        workflow = load_workflow(DEMO_WORKFLOW)
-        outputs = {n: o.model_copy(update={"store": str((out / Path(o.store).name).resolve())})
-                   for n, o in workflow.outputs.items()}
-        workflow = dataclasses.replace(workflow, outputs=outputs)
+        workflow = load_workflow(DEMO_WORKFLOW).rerooted(out)
         report = run_workflow(workflow, scheduler=scheduler, log=console.print)
         _print_report(report)
-        absorption = open_store(outputs["absorption"].store)
+        absorption = open_store(workflow.outputs["absorption"].store)
         valid = absorption["flags"] == 0
         console.print(
             f"absorption: {float(valid.mean()) * 100:.1f}% of pixels valid, "
@@ -143,3 +139,7 @@ def demo(
 
 def main() -> None:
     app()
+
+
+if __name__ == "__main__":
+    main()

@@ -59,6 +59,12 @@ class SpecError(_ProblemsError):
     title = "problems in the workflow"
 
 
+class ConfigError(SpecError):
+    """A YAML file other than a workflow (a scene, a rig) is invalid."""
+
+    title = "problems in the file"
+
+
 class StoreError(_ProblemsError):
     """A store is missing, corrupt, of a newer format, or breaks the schema of its cube kind."""
 

@@ -9,6 +9,7 @@ resolved against the workflow file's folder, so a workflow runs the same from an
 
 from __future__ import annotations
 
+import dataclasses
 import difflib
 import json
 import os
@@ -20,7 +21,7 @@ from typing import Annotated, Any, TypeVar
 import pydantic
 import yaml
 
-from pipeline.errors import Problem, SpecError
+from pipeline.errors import ConfigError, Problem, SpecError
 from pipeline.registry import Stage, StageRegistry, default_registry
 from pipeline.schema import KINDS
 
@@ -114,6 +115,19 @@ class Workflow:
     #: stores that a step's stage fills itself (acquisitions): outputs the engine must not rewrite
     self_written: frozenset[str] = frozenset()
 
+    def rerooted(self, folder: str | os.PathLike) -> Workflow:
+        """The same workflow with every output store (and the stores stages fill) moved into ``folder``."""
+        moved = {o.store: str((Path(folder) / Path(o.store).name).resolve()) for o in self.outputs.values()}
+        steps = {}
+        for step_id, step in self.steps.items():
+            update = {name: moved[value] for name in type(step.settings).model_fields
+                      if _is_path_setting(type(step.settings), name)
+                      and (value := getattr(step.settings, name)) in moved}
+            steps[step_id] = dataclasses.replace(step, settings=step.settings.model_copy(update=update))
+        outputs = {n: o.model_copy(update={"store": moved[o.store]}) for n, o in self.outputs.items()}
+        return dataclasses.replace(self, steps=steps, outputs=outputs,
+                                   self_written=frozenset(moved[s] for s in self.self_written))
+
 
 # -- YAML with locations ---------------------------------------------------------------------------
 
@@ -188,8 +202,26 @@ def load_yaml_model(path_or_text: str | os.PathLike, model: type[M], *, what: st
         return model.model_validate(raw)
     except pydantic.ValidationError as exc:
         for err in exc.errors():
-            located.add(tuple(p for p in err["loc"] if not str(p).startswith("function-")), _pydantic_message(err))
-        raise SpecError(located.problems) from None
+            located.add(_document_path(raw, err["loc"]), _pydantic_message(err))
+        raise ConfigError(located.problems) from None
+
+
+def _document_path(raw: Any, loc: tuple) -> tuple:
+    """A pydantic error location as a path in the document: union tags (``kind: cylinder``) dropped."""
+    path, node = [], raw
+    for part in loc:
+        if isinstance(node, dict) and part not in node and part in (node.get("kind"), node.get("model")):
+            continue  # a discriminated union's tag, not a key of the file
+        if str(part).startswith("function-"):
+            continue
+        path.append(part)
+        if isinstance(node, dict):
+            node = node.get(part)
+        elif isinstance(node, list) and isinstance(part, int) and part < len(node):
+            node = node[part]
+        else:
+            node = None
+    return tuple(path)
 
 
 def load_workflow(path_or_text: str | os.PathLike, registry: StageRegistry | None = None,

@@ -42,3 +42,15 @@ def test_stages_lists_settings_with_units():
     assert "min_signal" in listed.output and "[counts]" in listed.output and "float | None" in listed.output
     unknown = runner.invoke(app, ["stages", "nope"])
     assert unknown.exit_code == 2 and "unknown stage 'nope'" in unknown.output
+
+
+def test_demo_acquires_on_the_simulated_rig_into_its_own_folder(tmp_path):
+    """`selpath demo` end to end (about 40 s): every store lands under --out, a second run reuses them."""
+    out = tmp_path / "demo"
+    first = runner.invoke(app, ["demo", "--out", str(out)], env={"COLUMNS": "200"})
+    assert first.exit_code == 0, first.output
+    assert (out / "capture.zarr").is_dir() and (out / "absorption.zarr").is_dir()
+    match = re.search(r"absorption: ([\d.]+)% of pixels valid, max A = ([\d.]+)", first.output)
+    assert match and 50 < float(match[1]) < 100
+    second = runner.invoke(app, ["demo", "--out", str(out)], env={"COLUMNS": "200"})
+    assert second.exit_code == 0 and "computed" not in second.output

@@ -1,0 +1,66 @@
+"""Scene files: every shipped scene loads; a bad one fails naming file:line, field and fix."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from devices.sim.scene import load_scene
+from pipeline.errors import ConfigError
+
+SCENES = sorted((Path(__file__).parents[2] / "workflows" / "scenes").glob("*.yaml"))
+
+GOOD = """\
+scene: ok
+object:
+  shape: {kind: cylinder, radius: 20 mm}
+  height: 60 mm
+  inclusions:
+    - {shape: {kind: polygon, vertices: [[0 mm, 0 mm], [4 mm, 0 mm], [0 mm, 4 mm]]}, sigma: 0.1 /mm}
+light: {kind: beam, angle: 45 deg, distance: 300 mm}
+camera: {model: perspective, rows: 10, cols: 10, distance: 200 mm, fov: 20 deg}
+effects:
+  noise: {read_std: 2}
+"""
+
+
+def test_the_shipped_scenes_of_chapter_4_load():
+    names = {load_scene(p).scene for p in SCENES}
+    assert {"phantom-cylinder", "gelatin-bin", "triangle-prism"} <= names
+    assert {f"cylinder-in-cylinder-s{s}" for s in (1, 2, 3, 5)} <= names
+    sigma_s = {load_scene(p).effects.scattering.sigma_s for p in SCENES if "cylinder-in-cylinder" in p.name}
+    assert sigma_s == {1.0, 2.0, 3.0, 5.0}
+
+
+def test_units_are_converted():
+    scene = load_scene(GOOD.replace("radius: 20 mm", "radius: 2 cm"))
+    assert scene.object.shape.radius == pytest.approx(20.0)
+    assert scene.object.inclusions[0].sigma == pytest.approx(0.1)
+
+
+@pytest.mark.parametrize(("old", "new", "message"), [
+    ("noise: {read_std: 2}", "refraction: {index: 1.33}",
+     r"<scene>:9: effects: unknown effect 'refraction'; the tomography simulator computes: scattering, noise"),
+    ("[0 mm, 4 mm]]", "[1 mm, 1 mm], [0 mm, 4 mm]]",
+     r"<scene>:6: object.inclusions\[0\].shape.vertices: polygon is not convex: .* at vertex 2 \[1.0, 1.0\]"),
+    ("radius: 20 mm", "radius: 20",
+     r"<scene>:3: object.shape.radius: 20 has no unit; write it as a length, e.g. '20 mm'"),
+    ("angle: 45 deg", "angle: 45 degrees",
+     r"<scene>:7: light.angle: '45 degrees' is not an angle; write e.g. '45 deg' \(units: deg, degree, rad\)"),
+    ("fov: 20 deg", "focal_length: 800 px, fov: 20 deg",
+     r"<scene>:8: camera: give exactly one of focal_length \(px\) and fov \(deg\)"),
+    ("kind: cylinder, radius: 20 mm", "kind: sphere, radius: 20 mm",
+     r"<scene>:3: object.shape: Input tag 'sphere' found using 'kind' does not match"),
+    ("noise: {read_std: 2}", "scattering: {sigma_s: 0 /mm}",
+     r"<scene>:10: effects.scattering.sigma_s: Input should be greater than 0"),
+])
+def test_one_mistake_one_exact_error(old, new, message):
+    assert old in GOOD
+    with pytest.raises(ConfigError, match=message):
+        load_scene(GOOD.replace(old, new))
+
+
+def test_inclusion_outside_the_object_is_refused():
+    with pytest.raises(ConfigError, match=r"inclusions\[0\] .* reaches outside the object"):
+        load_scene(GOOD.replace("[4 mm, 0 mm]", "[40 mm, 0 mm]"))
