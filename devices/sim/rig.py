@@ -15,7 +15,7 @@ import numpy as np
 from devices.acquire import TomographyRig
 from devices.protocols import RotaryStage
 from devices.sim.scene import Scene
-from devices.sim.tomography import SAMPLES, lit_frame, silhouette
+from devices.sim.tomography import SAMPLES, ExitPoints, exit_points, lit_frame, silhouette
 from pipeline.errors import DeviceError
 
 
@@ -67,6 +67,12 @@ class SimCamera:
     def __init__(self, scene: Scene, stage: RotaryStage, beam: SimLight, backlight: SimLight,
                  samples: SimSampleChanger) -> None:
         self.scene, self.stage, self.beam, self.backlight, self.samples = scene, stage, beam, backlight, samples
+        self._seen: tuple[float, ExitPoints] | None = None  # what the pixels see at the last angle
+
+    def _exit_points(self, angle: float) -> ExitPoints:
+        if self._seen is None or self._seen[0] != angle:
+            self._seen = (angle, exit_points(self.scene, angle))
+        return self._seen[1]
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -77,9 +83,9 @@ class SimCamera:
         angle = self.stage.position()
         signal = np.zeros(self.shape)
         if self.beam.on:
-            signal += lit_frame(self.scene, angle, self.samples.sample)
+            signal += lit_frame(self.scene, angle, self.samples.sample, self._exit_points(angle))
         if self.backlight.on:
-            signal += sensor.backlight * ~silhouette(self.scene, angle)
+            signal += sensor.backlight * ~silhouette(self.scene, angle, self._exit_points(angle))
         noise = self.scene.effects.noise
         if noise is not None:
             state = [noise.seed, int(round(angle * 1000)) % 360_000, SAMPLES.index(self.samples.sample),

@@ -22,8 +22,8 @@ class Interval:
 
     t_in: np.ndarray
     t_out: np.ndarray
-    normal_in: np.ndarray
-    normal_out: np.ndarray
+    normal_in: np.ndarray | None  # None when asked for the parameters only
+    normal_out: np.ndarray | None
 
     @property
     def hit(self) -> np.ndarray:
@@ -46,7 +46,7 @@ class Ellipse:
         c, s = np.cos(self.angle_rad), np.sin(self.angle_rad)
         return np.diag(1.0 / np.asarray(self.semi_axes)) @ np.array([[c, s], [-s, c]])
 
-    def interval(self, origin: np.ndarray, direction: np.ndarray) -> Interval:
+    def interval(self, origin: np.ndarray, direction: np.ndarray, normals: bool = True) -> Interval:
         m = self._to_unit()
         o = (np.asarray(origin, float) - self.centre) @ m.T
         d = np.asarray(direction, float) @ m.T
@@ -63,6 +63,8 @@ class Ellipse:
             inside = c[still] <= 0
             t_in[still] = np.where(inside, -np.inf, _NO_HIT)
             t_out[still] = np.where(inside, np.inf, -_NO_HIT)
+        if not normals:
+            return Interval(t_in, t_out, None, None)
         return Interval(t_in, t_out, self._normal(origin, direction, t_in), self._normal(origin, direction, t_out))
 
     def _normal(self, origin: np.ndarray, direction: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -86,6 +88,9 @@ class Ellipse:
         """Largest distance of a point of the shape from the origin."""
         return float(np.hypot(*self.centre) + max(self.semi_axes))
 
+    def bounding_circle(self) -> tuple[np.ndarray, float]:
+        return np.asarray(self.centre, float), float(max(self.semi_axes))
+
 
 @dataclass(frozen=True)
 class Polygon:
@@ -103,7 +108,7 @@ class Polygon:
         object.__setattr__(self, "_normals", normals)
         object.__setattr__(self, "_offsets", np.einsum("ij,ij->i", normals, v))
 
-    def interval(self, origin: np.ndarray, direction: np.ndarray) -> Interval:
+    def interval(self, origin: np.ndarray, direction: np.ndarray, normals: bool = True) -> Interval:
         # Cyrus–Beck clipping: each edge is a half-plane n·p <= h
         o, d = np.asarray(origin, float), np.asarray(direction, float)
         along = d @ self._normals.T  # (N, K)
@@ -121,6 +126,8 @@ class Polygon:
         missed = parallel_out.any(axis=1)
         t_in = np.where(missed, _NO_HIT, t_in)
         t_out = np.where(missed, -_NO_HIT, t_out)
+        if not normals:
+            return Interval(t_in, t_out, None, None)
         return Interval(t_in, t_out, self._normals[i_in], self._normals[i_out])
 
     def contains(self, points: np.ndarray) -> np.ndarray:
@@ -131,6 +138,11 @@ class Polygon:
 
     def reach(self) -> float:
         return float(np.max(np.hypot(*np.asarray(self.vertices, float).T)))
+
+    def bounding_circle(self) -> tuple[np.ndarray, float]:
+        v = np.asarray(self.vertices, float)
+        centre = v.mean(axis=0)
+        return centre, float(np.max(np.linalg.norm(v - centre, axis=1)))
 
 
 Shape = Ellipse | Polygon
@@ -164,10 +176,10 @@ class Prism:
     shape: Shape
     z_range: tuple[float, float] = (-np.inf, np.inf)
 
-    def interval(self, origin: np.ndarray, direction: np.ndarray) -> Interval:
+    def interval(self, origin: np.ndarray, direction: np.ndarray, normals: bool = True) -> Interval:
         """Intervals of 3-D lines inside the prism, with 3-D outward normals (side walls or caps)."""
         o, d = np.asarray(origin, float), np.asarray(direction, float)
-        side = self.shape.interval(o[:, :2], d[:, :2])
+        side = self.shape.interval(o[:, :2], d[:, :2], normals)
         n = len(o)
         z0, z1 = self.z_range
         with np.errstate(divide="ignore", invalid="ignore"):
@@ -176,6 +188,9 @@ class Prism:
         inside_slab = (o[:, 2] >= z0) & (o[:, 2] <= z1)
         cap_in = np.where(flat, np.where(inside_slab, -np.inf, _NO_HIT), np.minimum(ta, tb))
         cap_out = np.where(flat, np.where(inside_slab, np.inf, -_NO_HIT), np.maximum(ta, tb))
+        t_in, t_out = np.maximum(side.t_in, cap_in), np.minimum(side.t_out, cap_out)
+        if not normals:
+            return Interval(t_in, t_out, None, None)
         up = np.sign(d[:, 2])  # entering through the bottom cap when going up
         side_in = side.t_in >= cap_in
         side_out = side.t_out <= cap_out
@@ -185,7 +200,7 @@ class Prism:
         normal_in[:, 2] = np.where(side_in, 0.0, -up)
         normal_out[:, :2] = np.where(side_out[:, None], side.normal_out, 0.0)
         normal_out[:, 2] = np.where(side_out, 0.0, up)
-        return Interval(np.maximum(side.t_in, cap_in), np.minimum(side.t_out, cap_out), normal_in, normal_out)
+        return Interval(t_in, t_out, normal_in, normal_out)
 
     def contains(self, points: np.ndarray) -> np.ndarray:
         p = np.asarray(points, float)
@@ -193,9 +208,23 @@ class Prism:
 
 
 def segment_length_inside(prism: Prism, start: np.ndarray, end: np.ndarray) -> np.ndarray:
-    """Length of each segment ``start[i] → end[i]`` that lies inside ``prism``."""
+    """Length of each segment ``start[i] → end[i]`` that lies inside ``prism``.
+
+    Segments whose x–y projection passes farther than the shape's bounding circle are skipped before
+    the exact clipping (small inclusions are missed by most rays of a frame).
+    """
     start, end = np.asarray(start, float), np.asarray(end, float)
     span = end - start
-    iv = prism.interval(start, span)
-    inside = np.clip(np.minimum(iv.t_out, 1.0) - np.maximum(iv.t_in, 0.0), 0.0, None)
-    return inside * np.linalg.norm(span, axis=1)
+    centre, radius = prism.shape.bounding_circle()
+    flat = span[:, :2]
+    to_centre = centre - start[:, :2]
+    t = np.clip(np.einsum("ij,ij->i", to_centre, flat) / np.maximum(np.einsum("ij,ij->i", flat, flat), 1e-300),
+                0.0, 1.0)
+    gap = to_centre - t[:, None] * flat
+    near = np.flatnonzero(np.einsum("ij,ij->i", gap, gap) <= radius * radius * (1 + 1e-9) + 1e-12)
+    out = np.zeros(len(start))
+    if len(near):
+        iv = prism.interval(start[near], span[near], normals=False)
+        inside = np.clip(np.minimum(iv.t_out, 1.0) - np.maximum(iv.t_in, 0.0), 0.0, None)
+        out[near] = inside * np.linalg.norm(span[near], axis=1)
+    return out

@@ -79,10 +79,13 @@ def path_absorption(scene: Scene, start: np.ndarray, end: np.ndarray, *, referen
     return total
 
 
-def straight_path(scene: Scene, angle_deg: float, *, reference: bool) -> np.ndarray:
-    """Counts above dark of the lit frame at one angle under the shortest-path model, (rows, cols)."""
+def straight_path(scene: Scene, angle_deg: float, *, reference: bool, seen: ExitPoints | None = None) -> np.ndarray:
+    """Counts above dark of the lit frame at one angle under the shortest-path model, (rows, cols).
+
+    ``seen`` may pass this angle's :func:`exit_points`, when the caller has them already.
+    """
     geometry = scene.geometry()
-    seen = exit_points(scene, angle_deg, geometry)
+    seen = seen or exit_points(scene, angle_deg, geometry)
     image = np.zeros(geometry.rows * geometry.cols)
     entry = entry_point(scene, angle_deg)
     if entry is None:
@@ -106,10 +109,10 @@ def straight_path(scene: Scene, angle_deg: float, *, reference: bool) -> np.ndar
     return image.reshape(geometry.rows, geometry.cols)
 
 
-def silhouette(scene: Scene, angle_deg: float) -> np.ndarray:
+def silhouette(scene: Scene, angle_deg: float, seen: ExitPoints | None = None) -> np.ndarray:
     """True where the object hides the lit plane behind it, (rows, cols)."""
     geometry = scene.geometry()
-    return exit_points(scene, angle_deg, geometry).hit.reshape(geometry.rows, geometry.cols)
+    return (seen or exit_points(scene, angle_deg, geometry)).hit.reshape(geometry.rows, geometry.cols)
 
 
 def _cosine_hemisphere(normal: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -141,7 +144,8 @@ class MonteCarloFrame:
     mean_events: float
 
 
-def monte_carlo(scene: Scene, angle_deg: float, *, reference: bool, batch: int = 1 << 17) -> MonteCarloFrame:
+def monte_carlo(scene: Scene, angle_deg: float, *, reference: bool, batch: int = 1 << 17,
+                seen: ExitPoints | None = None) -> MonteCarloFrame:
     """Trace ``effects.scattering.photons`` photons in 3-D from the entry point; estimate the exit radiance.
 
     Seeded by (scattering seed, angle), not by the sample: target and reference share their paths.
@@ -168,7 +172,7 @@ def monte_carlo(scene: Scene, angle_deg: float, *, reference: bool, batch: int =
         for _ in range(settings.max_events):
             if not len(pos):
                 break
-            iv = body.interval(pos, direction)
+            iv = body.interval(pos, direction)  # normals: where photons leave
             t_exit = np.maximum(iv.t_out, 0.0)
             free = rng.exponential(1.0 / settings.sigma_s, len(pos))
             leaving = free >= t_exit
@@ -180,7 +184,7 @@ def monte_carlo(scene: Scene, angle_deg: float, *, reference: bool, batch: int =
             events += int(stay.sum())
             pos, weight = end[stay], weight[stay]
             direction = _isotropic(len(pos), rng)
-    seen = exit_points(scene, angle_deg, geometry)
+    seen = seen or exit_points(scene, angle_deg, geometry)
     footprint = np.full(n_pixels, np.inf)
     footprint[seen.hit] = geometry.pixel_footprint(to_lab(seen.points[seen.hit], angle_deg),
                                                    to_lab(seen.normals[seen.hit], angle_deg))
@@ -208,11 +212,11 @@ def _bin_exits(geometry: RigGeometry, angle_deg: float, points: np.ndarray, norm
     squares += np.bincount(index, w * w, minlength=len(squares))
 
 
-def lit_frame(scene: Scene, angle_deg: float, sample: str) -> np.ndarray:
+def lit_frame(scene: Scene, angle_deg: float, sample: str, seen: ExitPoints | None = None) -> np.ndarray:
     """Counts above dark with the light on: Monte Carlo only when the scene names scattering."""
     if sample not in SAMPLES:
         raise ValueError(f"sample must be one of {SAMPLES}, not {sample!r}")
     reference = sample == "reference"
     if scene.effects.scattering is not None:
-        return monte_carlo(scene, angle_deg, reference=reference).image
-    return straight_path(scene, angle_deg, reference=reference)
+        return monte_carlo(scene, angle_deg, reference=reference, seen=seen).image
+    return straight_path(scene, angle_deg, reference=reference, seen=seen)
