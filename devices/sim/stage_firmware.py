@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import os
 import pty
+import select
 import threading
 import time
 import tty
@@ -71,8 +72,6 @@ class FakeStageFirmware:
         buffer = b""
         while not self._stop.is_set():
             try:
-                import select
-
                 ready, _, _ = select.select([self._master], [], [], 0.05)
                 if not ready:
                     continue
