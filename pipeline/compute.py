@@ -66,8 +66,11 @@ def compute(collections: Sequence[Any], *, scheduler: str, client: Any = None, p
     """Compute dask ``collections`` in one pass under ``scheduler`` (or on ``client``)."""
     if not collections:
         return ()
+    # dask 2026.8's joint optimisation of several collections that share layers can drop a shared key
+    # ("Missing dependency …" before anything runs; cf. dask/dask#12127): optimise only single outputs.
+    optimize = len(collections) == 1
     if client is not None:
-        futures = client.compute(list(collections))
+        futures = client.compute(list(collections), optimize_graph=optimize)
         if progress:
             from distributed import progress as distributed_progress
 
@@ -75,7 +78,7 @@ def compute(collections: Sequence[Any], *, scheduler: str, client: Any = None, p
         return tuple(client.gather(futures))
     local = scheduler if scheduler in ("synchronous", "threads") else "threads"
     if not progress:
-        return dask.compute(*collections, scheduler=local)
+        return dask.compute(*collections, scheduler=local, optimize_graph=optimize)
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
     with Progress(*columns, transient=False) as bar, _RichCallback(bar, description):
-        return dask.compute(*collections, scheduler=local)
+        return dask.compute(*collections, scheduler=local, optimize_graph=optimize)

@@ -195,6 +195,9 @@ def run_workflow(workflow: Workflow, *, scheduler: str | None = None, progress: 
         compute([write for _, _, write in pending if write is not None], scheduler=scheduler, client=client,
                 progress=progress,
                 description=f"{workflow.name}: writing {len(pending)} output(s)")
+    for name, out, _ in pending:
+        if (out.kind or "") == "figure" or _as_dataset(results[out.from_], name).attrs.get("selpath_kind") == "figure":
+            _save_png(out.store)
     now = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
     for name, out, _ in pending:
         chain = _ancestors(workflow, out.from_)
@@ -214,6 +217,14 @@ def run_workflow(workflow: Workflow, *, scheduler: str | None = None, progress: 
         report.written.append(out.store)
     report.seconds = time.perf_counter() - start
     return report
+
+
+def _save_png(store: str) -> None:
+    """A ``figure`` cube is also written as ``<store>.png`` beside its store, for people."""
+    import matplotlib.image
+
+    image = open_store(store, "figure")["image"].values
+    matplotlib.image.imsave(f"{store.removesuffix('.zarr')}.png", image)
 
 
 def _ancestors(workflow: Workflow, step_id: str) -> list[str]:

@@ -71,6 +71,11 @@ def _camera_model_check(attrs: Mapping) -> list[str]:
 
 
 _FRAME = ("row", "col")
+_GEOMETRY = {
+    "camera_model": "'perspective' or 'orthographic'",
+    "light_angle_deg": "light angle θ_l between the beam and the camera axis, degree",
+    "length_unit": "unit of every length attr and of sinogram x, e.g. 'mm'",
+}
 KINDS: dict[str, CubeKind] = {
     k.name: k
     for k in (
@@ -84,11 +89,7 @@ KINDS: dict[str, CubeKind] = {
                 "dark": Variable(_FRAME, False, "sensor offset with all lights off"),
             },
             coord_units={"angle": ANGLE_UNITS},
-            attrs={
-                "camera_model": "'perspective' or 'orthographic'",
-                "light_angle_deg": "light angle θ_l between the beam and the camera axis, degree",
-                "length_unit": "unit of every length attr and of sinogram x, e.g. 'mm'",
-            },
+            attrs=_GEOMETRY,
             attr_checks=(_camera_model_check,),
         ),
         CubeKind(
@@ -108,6 +109,51 @@ KINDS: dict[str, CubeKind] = {
                 "flags": Variable(("angle", *_FRAME), description="CF flag bits; 0 means valid"),
             },
             coord_units={"angle": ANGLE_UNITS},
+        ),
+        CubeKind(
+            name="silhouettes",
+            description="object masks per angle from backlit frames (§4.2.6)",
+            variables={"silhouette": Variable(("angle", *_FRAME), description="True where the object is")},
+            coord_units={"angle": ANGLE_UNITS},
+            attrs={"camera_model": _GEOMETRY["camera_model"], "length_unit": _GEOMETRY["length_unit"]},
+            attr_checks=(_camera_model_check,),
+        ),
+        CubeKind(
+            name="hull",
+            description="visual hull: the object's convex contour per slice (camera row), object frame",
+            variables={
+                "vertices": Variable(("row", "vertex", "xy"), description="counter-clockwise, NaN-padded"),
+                "n_vertices": Variable(("row",), description="vertices used per slice; 0: no contour"),
+            },
+            coord_units={},
+            attrs={"camera_model": _GEOMETRY["camera_model"], "length_unit": _GEOMETRY["length_unit"],
+                   "hull_resolution": "largest gap between the silhouette edge and the contour, length unit"},
+            attr_checks=(_camera_model_check,),
+        ),
+        CubeKind(
+            name="rays",
+            description="aligned light paths per pixel: sinogram coordinates and total absorption (§4.2.6)",
+            variables={
+                "theta": Variable(("angle", *_FRAME), description="normal angle of the ray, degree in [0, 180)"),
+                "x": Variable(("angle", *_FRAME), description="signed distance of the ray from the axis"),
+                "absorption": Variable(("angle", *_FRAME), description="total absorption; NaN where dropped"),
+                "reason": Variable(("angle", *_FRAME), description="0: ray kept; else why it was dropped"),
+            },
+            coord_units={"angle": ANGLE_UNITS},
+            attrs={"length_unit": _GEOMETRY["length_unit"], "light_angle_deg": _GEOMETRY["light_angle_deg"]},
+        ),
+        CubeKind(
+            name="coverage",
+            description="observation rate of a sinogram: measured and analytic d_min, d_max (§4.2.7)",
+            variables={"coverage": Variable(("slice",)), "d_min": Variable(("slice",)),
+                       "d_max": Variable(("slice",))},
+            coord_units={},
+        ),
+        CubeKind(
+            name="figure",
+            description="a rendered figure (RGBA); the engine also saves it as <store>.png",
+            variables={"image": Variable(("y", "x", "rgba"))},
+            coord_units={},
         ),
         CubeKind(
             name="plane_to_ray_capture",
@@ -148,6 +194,7 @@ KINDS: dict[str, CubeKind] = {
             variables={
                 "absorption": Variable(("theta", "x")),
                 "observed": Variable(("theta", "x"), description="True where a ray was measured"),
+                "count": Variable(("theta", "x"), False, "rays averaged into the bin"),
             },
             coord_units={"theta": ANGLE_UNITS, "x": LENGTH_UNITS},
         ),
@@ -239,7 +286,7 @@ def describe_kinds() -> str:
         variables = "<br>".join(
             f"`{n}`{'' if v.required else ' (optional)'}: ({', '.join(v.dims)})" for n, v in kind.variables.items()
         )
-        units = "<br>".join(f"{d}: {'/'.join(sorted(u))}" for d, u in kind.coord_units.items())
+        units = "<br>".join(f"{d}: {'/'.join(sorted(u))}" for d, u in kind.coord_units.items()) or "—"
         attrs = "<br>".join(f"`{a}`" for a in kind.attrs) or "—"
         rows.append(f"| `{kind.name}` | {kind.description or '—'} | {variables} | {units} | {attrs} |")
     return "\n".join(rows)

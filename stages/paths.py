@@ -1,0 +1,177 @@
+"""Light-path alignment (§4.2.6): every camera pixel on the far side becomes one straight ray.
+
+For each angle, slice (camera row) and pixel: the exit point ``p_c`` is where the pixel's ray first
+meets the slice's contour (visual hull), the entry point ``p_l`` where the light's central ray does.
+Under the shortest-path model the light ran straight from ``p_l`` to ``p_c``, so the pixel's total
+absorption is the line integral along that chord. The chord is written in sinogram coordinates
+(DESIGN §8): θ is the angle of its *normal* n = (cos θ, sin θ), X = p·n for any point p on it,
+θ folded into [0°, 180°) by flipping the sign of X. (Eq. 6–7 as printed use a direction angle; the
+convention here is the one the sinogram, the projector and scikit-image's ``radon`` agree on.)
+
+Rays that cannot be aligned are dropped and counted, never guessed (``reason``):
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import xarray as xr
+
+from devices.geometry import RigGeometry
+from devices.sim.shapes import convex_polygon
+from pipeline.errors import Problem, StageError
+from pipeline.registry import stage
+from stages.calibrate import _require
+from stages.hull import geometry_attrs
+
+#: why a pixel gave no ray (``reason`` variable; 0: a ray)
+REASONS = {
+    1: "camera ray misses the contour",
+    2: "camera ray grazes the contour",
+    3: "light ray misses the contour",
+    4: "exit point is the entry point",
+    5: "absorption is flagged or not finite",
+    6: "slice has no contour",
+}
+__doc__ += "\n".join(f"``{k}``: {v}; " for k, v in REASONS.items())
+
+
+def lit_rows(geometry: RigGeometry) -> np.ndarray:
+    """Camera rows whose slice the light reaches: all for a sheet, the beam's height for a beam."""
+    if geometry.light_kind == "sheet":
+        return np.arange(geometry.rows)
+    _, cy = geometry.centre_px
+    if geometry.camera_model == "perspective":
+        row = cy - geometry.beam_height * float(geometry.focal_length_px) / float(geometry.camera_distance)
+    else:
+        row = cy - geometry.beam_height / float(geometry.pixel_size)
+    rows = np.arange(int(np.floor(row)), int(np.ceil(row)) + 1)
+    rows = rows[(np.abs(rows - row) <= 0.5) & (rows >= 0) & (rows < geometry.rows)]
+    return rows
+
+
+def sinogram_coordinates(entry: np.ndarray, exit_: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(θ in degrees in [0, 180), X) of the lines through ``entry`` and ``exit_`` (…, 2).
+
+    >>> sinogram_coordinates(np.array([0.0, 1.0]), np.array([0.0, -1.0]))  # a vertical ray through 0
+    (array(0.), array(0.))
+    """
+    d = exit_ - entry
+    theta = np.arctan2(d[..., 0], -d[..., 1])  # d = (sin θ, −cos θ)  =>  n = (cos θ, sin θ)
+    x = entry[..., 0] * np.cos(theta) + entry[..., 1] * np.sin(theta)
+    flip = theta < 0
+    theta = np.where(flip, theta + np.pi, theta)
+    x = np.where(flip, -x, x)
+    theta_deg = np.rad2deg(theta)
+    wrap = theta_deg >= 180.0
+    return np.where(wrap, theta_deg - 180.0, theta_deg), np.where(wrap, -x, x)
+
+
+def _to_object(v: np.ndarray, phi: np.ndarray) -> np.ndarray:
+    """Lab vectors (N, 2) in the object frame at stage angles φ (N,) [rad]: R(−φ)·v."""
+    c, s = np.cos(phi), np.sin(phi)
+    return np.stack([c * v[:, 0] + s * v[:, 1], -s * v[:, 0] + c * v[:, 1]], axis=1)
+
+
+def _align_kernel(absorption, flags, angle, row, col, vertices, n_vertices, *, geometry: RigGeometry,
+                  min_exit_cos: float):
+    shape = np.broadcast_shapes(absorption.shape, angle.shape, row.shape, col.shape)
+    absorption = np.broadcast_to(absorption, shape)
+    angle, row, col = (np.broadcast_to(a, shape) for a in (angle, row, col))
+    flags = np.broadcast_to(flags, shape)
+    vertices = np.broadcast_to(vertices, (*shape, *vertices.shape[-2:]))
+    n_vertices = np.broadcast_to(n_vertices, shape)
+    theta, x = np.full(shape, np.nan), np.full(shape, np.nan)
+    reason = np.zeros(shape, dtype=np.int8)
+    cx, _ = geometry.centre_px
+    beam_origin, beam_direction = geometry.beam()
+    for r in np.unique(row):
+        sel = row == r
+        count = int(n_vertices[sel].flat[0])
+        if count < 3:
+            reason[sel] = 6
+            continue
+        polygon = convex_polygon(vertices[sel][0][:count])
+        phi = np.deg2rad(angle[sel])
+        pixel = col[sel].astype(float)
+        if geometry.camera_model == "perspective":
+            cam_o = np.tile([0.0, -float(geometry.camera_distance)], (len(pixel), 1))
+            cam_d = np.stack([(pixel - cx) / float(geometry.focal_length_px), np.ones_like(pixel)], axis=1)
+        else:
+            cam_o = np.stack([(pixel - cx) * float(geometry.pixel_size), np.zeros_like(pixel)], axis=1)
+            cam_d = np.tile([0.0, 1.0], (len(pixel), 1))
+        cam_d /= np.linalg.norm(cam_d, axis=1, keepdims=True)
+        o, d = _to_object(cam_o, phi), _to_object(cam_d, phi)
+        seen = polygon.interval(o, d)
+        p_c = o + np.where(seen.hit, seen.t_in, 0.0)[:, None] * d
+        cos_exit = np.abs(np.einsum("ij,ij->i", d, seen.normal_in))
+        light_o = _to_object(np.tile(beam_origin[:2], (len(pixel), 1)), phi)
+        light_d = _to_object(np.tile(beam_direction[:2], (len(pixel), 1)), phi)
+        light = polygon.interval(light_o, light_d)
+        p_l = light_o + np.where(light.hit, light.t_in, 0.0)[:, None] * light_d
+        length = np.linalg.norm(p_c - p_l, axis=1)
+        why = np.zeros(len(pixel), dtype=np.int8)
+        why[~np.isfinite(absorption[sel]) | (flags[sel] != 0)] = 5
+        why[length <= 1e-9 * max(polygon.reach(), 1.0)] = 4
+        why[~light.hit] = 3
+        why[seen.hit & (cos_exit < min_exit_cos)] = 2
+        why[~seen.hit] = 1
+        t, xx = sinogram_coordinates(p_l, p_c)
+        ok = why == 0
+        theta[sel] = np.where(ok, t, np.nan)
+        x[sel] = np.where(ok, xx, np.nan)
+        reason[sel] = why
+    return np.stack([theta, x, np.where(reason == 0, absorption, np.nan), reason], axis=-1)
+
+
+@stage("align_paths")
+def align_paths(absorption: xr.Dataset, hull: xr.Dataset, /, *, min_exit_cos: float = 0.02) -> xr.Dataset:
+    """Turn every lit pixel into a ray (θ, X) with its total absorption, on the lit slices only (lazy).
+
+    For a light sheet every camera row is a slice; for a narrow beam only the row(s) at the beam's
+    height are (other rows see light that left the slice). Geometry comes from the hull's attrs.
+
+    Parameters
+    ----------
+    min_exit_cos : float
+        Rays leaving the contour at a smaller |cos| to its normal graze it and are dropped [1].
+    """
+    _require(absorption, ("absorption",), "align_paths")
+    missing = [k for k in ("camera_model", "light_angle_deg", "length_unit") if k not in hull.attrs]
+    if missing:
+        raise StageError([Problem(f"hull attr {k!r} is missing; align_paths needs the rig geometry") for k in missing])
+    if absorption.sizes["row"] != hull.sizes["row"]:
+        raise StageError(Problem(f"absorption has {absorption.sizes['row']} rows, the hull {hull.sizes['row']}",
+                                 fix="compute both from the same capture"))
+    geometry = RigGeometry.from_attrs(hull.attrs, absorption.sizes["row"], absorption.sizes["col"])
+    rows = lit_rows(geometry)
+    if not len(rows):
+        raise StageError(Problem("no camera row sees the beam's height", fix="check beam_height and the camera"))
+    flags = absorption["flags"] if "flags" in absorption else xr.zeros_like(absorption["absorption"], dtype=np.int8)
+    data = absorption["absorption"].isel(row=rows).assign_coords(row=("row", rows))
+    flags = flags.isel(row=rows).assign_coords(row=("row", rows))
+    shell = hull.isel(row=rows).assign_coords(row=("row", rows))
+    angle = data["angle"]
+    row = data["row"]
+    col = xr.DataArray(np.arange(data.sizes["col"]), dims="col")
+    # one stacked output, split below (multi-output apply_ufunc graphs trip dask 2026.8 when computed
+    # together with their dependents: "Missing dependency transpose-…")
+    fields = xr.apply_ufunc(
+        _align_kernel, data, flags, angle, row, col, shell["vertices"], shell["n_vertices"],
+        input_core_dims=[[], [], [], [], [], ["vertex", "xy"], []], output_core_dims=[["field"]],
+        dask="parallelized", output_dtypes=[np.float64], dask_gufunc_kwargs={"output_sizes": {"field": 4}},
+        kwargs={"geometry": geometry, "min_exit_cos": min_exit_cos})
+    theta, x, total = (fields.isel(field=i, drop=True) for i in range(3))
+    reason = fields.isel(field=3, drop=True).astype(np.int8)
+    unit = hull.attrs["length_unit"]
+    half_width = (geometry.cols / 2) * (float(geometry.camera_distance) / float(geometry.focal_length_px)
+                                        if geometry.camera_model == "perspective" else float(geometry.pixel_size))
+    meanings = " ".join(f"{k}={v.replace(' ', '_')}" for k, v in REASONS.items())
+    out = xr.Dataset(
+        {"theta": theta.assign_attrs(units="degree", long_name="normal angle θ of the ray"),
+         "x": x.assign_attrs(units=unit, long_name="signed distance X of the ray from the axis"),
+         "absorption": total.assign_attrs(long_name="total absorption along the ray"),
+         "reason": reason.assign_attrs(flag_values=list(REASONS), flag_meanings=meanings)},
+        attrs=geometry_attrs(hull.attrs) | {"selpath_kind": "rays", "x_extent": half_width,
+                                            "min_exit_cos": min_exit_cos})
+    # (transpose only when needed: a no-op transpose layer trips dask 2026.8 when several outputs share it)
+    return out if tuple(out["theta"].dims) == ("angle", "row", "col") else out.transpose("angle", "row", "col")

@@ -1,0 +1,86 @@
+"""Figures as stages: rendered lazily into a ``figure`` cube (RGBA), saved by the engine as ``<store>.png``.
+
+A figure is data like any other output: it has provenance, is skipped when unchanged, and renders
+only when the workflow computes it (matplotlib's Agg canvas, inside one dask task).
+"""
+
+from __future__ import annotations
+
+import dask
+import dask.array as da
+import matplotlib
+
+matplotlib.use("Agg")  # headless: figures are files, never windows
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+import xarray as xr  # noqa: E402
+
+from pipeline.registry import stage  # noqa: E402
+from stages.calibrate import _require  # noqa: E402
+from stages.sinogram import coverage_model, optimal_light_angle  # noqa: E402
+
+_SIZE_IN, _DPI = (9.0, 4.0), 100
+
+
+def _as_figure(render, *args) -> xr.Dataset:
+    h, w = int(_SIZE_IN[1] * _DPI), int(_SIZE_IN[0] * _DPI)
+    image = da.from_delayed(dask.delayed(render)(*args), shape=(h, w, 4), dtype=np.uint8)
+    return xr.Dataset({"image": (("y", "x", "rgba"), image)}, attrs={"selpath_kind": "figure"})
+
+
+def _rgba(fig) -> np.ndarray:
+    fig.canvas.draw()
+    out = np.asarray(fig.canvas.buffer_rgba()).copy()
+    plt.close(fig)
+    return out
+
+
+def _draw_sinogram(absorption: np.ndarray, observed: np.ndarray, theta: np.ndarray, x: np.ndarray,
+                   unit: str, title: str) -> np.ndarray:
+    fig, (left, right) = plt.subplots(1, 2, figsize=_SIZE_IN, dpi=_DPI, constrained_layout=True)
+    extent = (x[0], x[-1], theta[-1], theta[0])
+    shown = left.imshow(np.where(observed, absorption, np.nan), aspect="auto", extent=extent, cmap="magma")
+    fig.colorbar(shown, ax=left, label="total absorption A")
+    left.set(xlabel=f"X [{unit}]", ylabel="θ [degree]", title=title)
+    right.imshow(observed, aspect="auto", extent=extent, cmap="gray", vmin=0, vmax=1)
+    right.set(xlabel=f"X [{unit}]", title=f"observed rays (white): {observed.mean() * 100:.1f}% of bins")
+    return _rgba(fig)
+
+
+@stage("sinogram_figure")
+def sinogram_figure(sinogram: xr.Dataset, /, *, slice_index: int = 0) -> xr.Dataset:
+    """The sinogram of one slice beside its mask of observed rays (the missing areas of Fig. 14 / 20).
+
+    Parameters
+    ----------
+    slice_index : int
+        Position along the sinogram's ``slice`` dim.
+    """
+    _require(sinogram, ("absorption", "observed"), "sinogram_figure")
+    one = sinogram.isel(slice=slice_index) if "slice" in sinogram.dims else sinogram
+    title = f"sinogram, θ_l = {sinogram.attrs.get('light_angle_deg', '?')}°"
+    return _as_figure(_draw_sinogram, one["absorption"].data, one["observed"].data, sinogram["theta"].values,
+                      sinogram["x"].values, sinogram["x"].attrs.get("units", ""), title)
+
+
+def _draw_coverage(measured: np.ndarray | None, light_angle: float | None) -> np.ndarray:
+    fig, ax = plt.subplots(figsize=_SIZE_IN, dpi=_DPI, constrained_layout=True)
+    angles = np.linspace(0, 180, 361)
+    for fov, style in ((None, "-"), (30.0, "--"), (60.0, ":")):
+        label = "orthographic" if fov is None else f"perspective, FOV = {fov:.0f}°"
+        ax.plot(angles, coverage_model(angles, fov)[2], style, label=label)
+        ax.axvline(optimal_light_angle(fov), color="0.8", lw=0.8)
+    if measured is not None and light_angle is not None:
+        ax.plot([light_angle] * len(measured), measured, "ko", label="measured")
+    ax.set(xlabel="light angle θ_l [degree]", ylabel="coverage d_max − d_min", ylim=(0, 1.05), xlim=(0, 180),
+           title="coverage of the sinogram versus θ_l (Eq. 8–19, thesis Fig. 16)")
+    ax.legend()
+    return _rgba(fig)
+
+
+@stage("coverage_figure")
+def coverage_figure(coverage: xr.Dataset | None = None, /) -> xr.Dataset:
+    """Coverage versus θ_l for orthographic and perspective (FOV 30°, 60°) cameras, with measured points."""
+    if coverage is None:
+        return _as_figure(_draw_coverage, None, None)
+    return _as_figure(_draw_coverage, coverage["coverage"].data, coverage.attrs.get("light_angle_deg"))

@@ -1,0 +1,173 @@
+"""Sinograms (§4.2.6) and the observation rate of light paths, the coverage (§4.2.7, Eq. 8–19).
+
+``bin_sinogram`` puts aligned rays on a regular (θ, X) grid per slice: bin centres θ_i = i·180°/n_theta
+and X_j evenly over [−x_extent, x_extent]; rays falling in one bin are averaged, ``count`` says how
+many, and ``observed`` marks bins holding at least one ray. ``coverage`` measures, per slice, which
+share of the object's sinogram is observed, and sets it beside the thesis's closed form for a cylinder.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import xarray as xr
+
+from pipeline.errors import Problem, StageError
+from pipeline.registry import stage
+from stages.calibrate import _require
+from stages.hull import geometry_attrs
+
+
+def _bin_kernel(theta, x, absorption, *, n_theta: int, n_x: int, extent: float):
+    # (slice block, angle, col) -> (slice block, n_theta, n_x) sums and counts
+    step_theta, step_x = 180.0 / n_theta, 2 * extent / (n_x - 1)
+    shifted = theta + step_theta / 2  # bin i spans [θ_i − Δ/2, θ_i + Δ/2); the last half-bin wraps to 0
+    wrap = shifted >= 180.0
+    shifted = np.where(wrap, shifted - 180.0, shifted)
+    x = np.where(wrap, -x, x)
+    finite = np.isfinite(theta) & np.isfinite(x) & np.isfinite(absorption)
+    i = np.floor(np.where(finite, shifted, 0.0) / step_theta).astype(np.int64)
+    j = np.rint((np.where(finite, x, 0.0) + extent) / step_x).astype(np.int64)
+    ok = finite & (j >= 0) & (j < n_x)
+    sums = np.zeros((theta.shape[0], n_theta * n_x))
+    counts = np.zeros((theta.shape[0], n_theta * n_x), dtype=np.int64)
+    for k in range(theta.shape[0]):
+        m = ok[k]
+        index = i[k][m] * n_x + j[k][m]
+        sums[k] = np.bincount(index, absorption[k][m], minlength=n_theta * n_x)
+        counts[k] = np.bincount(index, minlength=n_theta * n_x)
+    shape = (theta.shape[0], n_theta, n_x)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
+    return np.stack([mean.reshape(shape), counts.reshape(shape)], axis=-1)
+
+
+@stage("bin_sinogram")
+def bin_sinogram(rays: xr.Dataset, /, *, n_theta: int = 180, n_x: int = 256, x_extent: float | None = None
+                 ) -> xr.Dataset:
+    """Bin rays into a (θ, X) sinogram per slice, with the mask of observed bins (lazy, per slice).
+
+    Parameters
+    ----------
+    n_theta : int
+        Bins over [0°, 180°).
+    n_x : int
+        Bins over [−x_extent, x_extent].
+    x_extent : float or None
+        Half-width of the X grid [length unit]; None: the camera's view half-width at the axis.
+    """
+    _require(rays, ("theta", "x", "absorption"), "bin_sinogram")
+    if n_theta < 2 or n_x < 2:
+        raise StageError(Problem(f"n_theta = {n_theta}, n_x = {n_x}; both must be at least 2"))
+    extent = float(x_extent if x_extent is not None else rays.attrs.get("x_extent", np.nan))
+    if not np.isfinite(extent) or extent <= 0:
+        raise StageError(Problem("the X extent of the grid is unknown", fix="set x_extent"))
+    whole = {"angle": -1, "col": -1, "row": 1}
+    parts = [rays[v].chunk(whole) for v in ("theta", "x", "absorption")]
+    both = xr.apply_ufunc(  # one stacked output (see stages.paths on dask and multi-output graphs)
+        _bin_kernel, *parts, input_core_dims=[["angle", "col"]] * 3, output_core_dims=[["theta", "x", "field"]],
+        dask="parallelized", output_dtypes=[np.float64],
+        dask_gufunc_kwargs={"output_sizes": {"theta": n_theta, "x": n_x, "field": 2}},
+        kwargs={"n_theta": n_theta, "n_x": n_x, "extent": extent})
+    mean, count = both.isel(field=0, drop=True), both.isel(field=1, drop=True).astype(np.int64)
+    unit = rays.attrs.get("length_unit", "px")
+    coords = {"theta": ("theta", np.arange(n_theta) * 180.0 / n_theta, {"units": "degree"}),
+              "x": ("x", np.linspace(-extent, extent, n_x), {"units": unit})}
+    out = xr.Dataset({"absorption": mean, "observed": count > 0, "count": count}, coords=coords)
+    out = out.rename({"row": "slice"})
+    if tuple(out["absorption"].dims) != ("slice", "theta", "x"):
+        out = out.transpose("slice", "theta", "x")
+    return out.assign_attrs(geometry_attrs(rays.attrs) | {
+        "selpath_kind": "sinogram", "theta_step_deg": 180.0 / n_theta, "x_step": 2 * extent / (n_x - 1),
+        "x_extent": extent})
+
+
+def coverage_model(light_angle_deg, fov_deg=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """d_min, d_max and coverage d_max − d_min of a cylinder (Eq. 8–11 orthographic, 13–18 perspective).
+
+    ``fov_deg`` is the angle the cylinder subtends at the camera, 2·asin(R / D_c) (the camera's FOV when
+    the object fills it); None for an orthographic camera.
+
+    >>> [round(float(v), 4) for v in coverage_model(90.0)]
+    [0.0, 1.0, 1.0]
+    """
+    t = np.deg2rad(np.asarray(light_angle_deg, dtype=float))
+    if fov_deg is None:
+        low = t <= np.pi / 2
+        d_min = np.where(low, 0.0, np.sin(t / 2 - np.pi / 4))
+        d_max = np.where(low, np.cos(np.pi / 4 - t / 2), 1.0)
+    else:
+        f = np.deg2rad(fov_deg)
+        first, last = t <= (np.pi - f) / 2, t >= (np.pi + f) / 2
+        d_min = np.where(first, 0.0, np.cos(3 * np.pi / 4 - t / 2 - f / 4))
+        d_max = np.where(last, 1.0, np.cos(np.pi / 4 - t / 2 + f / 4))
+    return d_min, d_max, d_max - d_min
+
+
+def optimal_light_angle(fov_deg: float | None = None) -> float:
+    """θ_l of largest coverage that keeps the sinogram's centre (Eq. 12 and 19), degrees."""
+    return 90.0 if fov_deg is None else (180.0 - fov_deg) / 2
+
+
+def _support(vertices: np.ndarray, theta_deg: np.ndarray) -> np.ndarray:
+    """h(n) = max over the contour of p·n for the normals n(θ), (n_theta,)."""
+    n = np.stack([np.cos(np.deg2rad(theta_deg)), np.sin(np.deg2rad(theta_deg))], axis=1)
+    return np.max(vertices @ n.T, axis=0)
+
+
+def _coverage_kernel(observed, vertices, n_vertices, *, theta, x):
+    # (slice block, theta, x) observed; the slice's contour -> coverage and band edges in d = X / support
+    out = np.full((4, observed.shape[0]), np.nan)
+    for k in range(observed.shape[0]):
+        count = int(n_vertices[k])
+        if count < 3:
+            continue
+        v = vertices[k, :count]
+        plus, minus = _support(v, theta), _support(v, theta + 180.0)
+        d = np.where(x[None, :] >= 0, x[None, :] / plus[:, None], -x[None, :] / minus[:, None])
+        inside = d <= 1.0
+        seen = observed[k] & inside
+        out[0, k] = seen.sum() / max(inside.sum(), 1)
+        if seen.any():
+            out[1, k], out[2, k] = d[seen].min(), d[seen].max()
+        out[3, k] = np.mean(np.linalg.norm(v, axis=1))
+    return np.moveaxis(out, 0, -1)
+
+
+@stage("coverage")
+def coverage(sinogram: xr.Dataset, hull: xr.Dataset, /) -> xr.Dataset:
+    """Observed share of each slice's sinogram, with the band [d_min, d_max] it covers and Eq. 8–19.
+
+    d = X / h(θ) is a ray's distance from the axis relative to the contour's support on its side (|X|/R
+    for a cylinder); the coverage is the share of (θ, X) bins inside the object that hold a ray. The
+    closed form uses the cylinder of the contour's mean radius, and for a perspective camera the angle
+    it subtends, 2·asin(R / D_c). A global reduction per slice (lazy, small).
+    """
+    _require(sinogram, ("observed",), "coverage")
+    if "slice" not in sinogram.dims:
+        raise StageError(Problem("the sinogram has no slice dim", fix="bin it with bin_sinogram"))
+    rows = sinogram["slice"].values
+    shell = hull.isel(row=rows).rename({"row": "slice"}).assign_coords(slice=("slice", rows))
+    fields = xr.apply_ufunc(
+        _coverage_kernel, sinogram["observed"].chunk({"theta": -1, "x": -1}), shell["vertices"], shell["n_vertices"],
+        input_core_dims=[["theta", "x"], ["vertex", "xy"], []], output_core_dims=[["field"]],
+        dask="parallelized", output_dtypes=[np.float64], dask_gufunc_kwargs={"output_sizes": {"field": 4}},
+        kwargs={"theta": sinogram["theta"].values, "x": sinogram["x"].values})
+    measured, d_min, d_max, radius = (fields.isel(field=i, drop=True) for i in range(4))
+    theta_l = float(sinogram.attrs.get("light_angle_deg", hull.attrs.get("light_angle_deg")))
+    perspective = hull.attrs.get("camera_model") == "perspective"
+    distance = float(hull.attrs.get("camera_distance", np.inf))
+
+    def model(r):
+        fov = np.rad2deg(2 * np.arcsin(np.clip(r / distance, 0, 1))) if perspective else None
+        return coverage_model(theta_l, fov)
+
+    analytic = xr.apply_ufunc(lambda r: np.stack(model(r), axis=-1), radius, output_core_dims=[["bound"]],
+                              dask="parallelized", output_dtypes=[np.float64],
+                              dask_gufunc_kwargs={"output_sizes": {"bound": 3}})
+    return xr.Dataset(
+        {"coverage": measured, "d_min": d_min, "d_max": d_max,
+         "analytic_d_min": analytic.isel(bound=0, drop=True), "analytic_d_max": analytic.isel(bound=1, drop=True),
+         "analytic_coverage": analytic.isel(bound=2, drop=True),
+         "radius": radius.assign_attrs(units=hull.attrs.get("length_unit", ""), long_name="mean contour radius")},
+        attrs={"selpath_kind": "coverage", "light_angle_deg": theta_l,
+               "camera_model": hull.attrs.get("camera_model", "")})
