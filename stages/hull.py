@@ -15,6 +15,7 @@ import xarray as xr
 from scipy.optimize import linprog
 from scipy.spatial import ConvexHull, HalfspaceIntersection
 from skimage.filters import threshold_otsu
+from skimage.measure import label
 from skimage.morphology import remove_small_holes, remove_small_objects
 
 from devices.geometry import RigGeometry
@@ -41,9 +42,20 @@ def _silhouette_kernel(backlit: np.ndarray, dark: np.ndarray, *, threshold: floa
             level = threshold_otsu(values) if values.size and np.ptp(values) > 0 else np.inf
         mask = finite & (frame < level)  # the object blocks the lit plane
         if min_size > 0:
-            mask = remove_small_holes(remove_small_objects(mask, max_size=min_size), max_size=min_size)
+            mask = _fill_small_holes(remove_small_objects(mask, max_size=min_size), min_size)
         out.reshape(-1, *signal.shape[-2:])[i] = mask
     return out
+
+
+def _fill_small_holes(mask: np.ndarray, max_size: int) -> np.ndarray:
+    """Fill holes up to ``max_size`` pixels; background touching the image border is never a hole (a thin
+    strip of lit plane beside the object must stay background)."""
+    border = np.zeros_like(mask)
+    border[[0, -1], :] = border[:, [0, -1]] = True
+    labels = label(~mask, connectivity=1)
+    outside = np.unique(labels[border & ~mask])
+    filled = remove_small_holes(mask, max_size=max_size)
+    return filled & ~np.isin(labels, outside[outside > 0])
 
 
 @stage("silhouettes")
@@ -105,6 +117,9 @@ def intersect_half_planes(normals: np.ndarray, offsets: np.ndarray) -> np.ndarra
     """Vertices (counter-clockwise) of ``{p : normals·p ≤ offsets}``, or None if empty or unbounded."""
     if len(normals) < 3:
         return None
+    # opposite views give the same tangent line twice (orthographic φ and φ + 180°): qhull wants each once
+    _, unique = np.unique(np.round(np.column_stack([normals, offsets]), 9), axis=0, return_index=True)
+    normals, offsets = normals[np.sort(unique)], offsets[np.sort(unique)]
     # Chebyshev centre: the deepest interior point (linear programme), also proves the set is bounded
     norms = np.linalg.norm(normals, axis=1)
     result = linprog(c=[0, 0, -1], A_ub=np.column_stack([normals, norms]), b_ub=offsets,
@@ -114,7 +129,7 @@ def intersect_half_planes(normals: np.ndarray, offsets: np.ndarray) -> np.ndarra
     try:
         points = HalfspaceIntersection(np.column_stack([normals, -offsets]), result.x[:2]).intersections
         hull = ConvexHull(points)
-    except Exception:  # scipy's qhull: degenerate input (all constraints parallel)
+    except Exception:  # noqa: BLE001 - scipy's qhull raises its own QhullError for degenerate input
         return None
     return points[hull.vertices]
 
