@@ -1,4 +1,4 @@
-"""Running a validated workflow: one lazy graph, all outputs in one pass, provenance, reuse.
+"""Running a validated workflow: lazy graphs, outputs written upstream first, provenance, reuse.
 
 Every step gets a *step hash* from its stage, its settings, the hashes of the steps it reads and the
 identity of any external store it reads. A step with a stored output whose provenance carries the
@@ -124,46 +124,57 @@ def _call(step: Step, inputs: dict[str, Any]) -> xr.Dataset | xr.DataArray:
     return result
 
 
+class _Graph:
+    """The lazy results of a workflow's steps, built on demand, reusing stored outputs of the same provenance."""
+
+    def __init__(self, workflow: Workflow, *, reuse: bool, log: Callable[[str], None]):
+        self.workflow, self.reuse, self.log = workflow, reuse, log
+        self.records = step_records(workflow)
+        self.report = RunReport(workflow.name)
+        self.results: dict[str, Any] = {}
+        self._outputs_of: dict[str, list[OutputSpec]] = {}
+        self._stored: dict[str, dict | None] = {}
+        for out in workflow.outputs.values():
+            self._outputs_of.setdefault(out.from_, []).append(out)
+            self._stored[out.store] = read_provenance(out.store)  # once per output
+            if reuse and (self._stored[out.store] or {}).get("step_hash") == self.records[out.from_]["step_hash"]:
+                self.report.fresh.add(out.store)
+
+    def resolve(self, step_id: str) -> Any:
+        """The step's lazy result: read back from a fresh output, or its stage called on its inputs."""
+        if step_id in self.results:
+            return self.results[step_id]
+        step, record = self.workflow.steps[step_id], self.records[step_id]
+        reasons = []
+        for out in self._outputs_of.get(step_id, []):
+            if out.store in self.report.fresh:
+                self.results[step_id] = open_store(out.store)
+                self.report.steps[step_id] = StepReport(step_id, "reused", f"{out.store} has the same provenance")
+                self.log(f"[dim]skip[/] {step_id}: {out.store} is up to date")
+                return self.results[step_id]
+            reasons.append(_why_changed(self._stored[out.store], record, out.store) if self.reuse else "forced")
+        inputs = {name: _select(self.resolve(ref.step), ref, step) for name, ref in step.inputs.items()}
+        self.results[step_id] = _call(step, inputs)
+        reason = "; ".join(reasons) if reasons else "no stored output (intermediate step)"
+        self.report.steps[step_id] = StepReport(step_id, "computed", reason)
+        self.log(f"[bold]run[/]  {step_id} ({step.stage.name}): {reason}")
+        return self.results[step_id]
+
+    def finish(self) -> None:
+        for step_id in self.workflow.steps:
+            self.report.steps.setdefault(step_id, StepReport(step_id, "not needed", "no output depends on it"))
+
+
 def build(workflow: Workflow, *, reuse: bool = True, log: Callable[[str], None] = lambda _: None):
     """Build every output's lazy result, reusing stored outputs with the same provenance.
 
     Returns ``(results by step id, step records, RunReport)``; nothing is computed.
     """
-    records = step_records(workflow)
-    report = RunReport(workflow.name)
-    outputs_of: dict[str, list[OutputSpec]] = {}
-    stored: dict[str, dict | None] = {}
+    graph = _Graph(workflow, reuse=reuse, log=log)
     for out in workflow.outputs.values():
-        outputs_of.setdefault(out.from_, []).append(out)
-        stored[out.store] = read_provenance(out.store)  # once per output, shared with run_workflow
-        if reuse and (stored[out.store] or {}).get("step_hash") == records[out.from_]["step_hash"]:
-            report.fresh.add(out.store)
-    results: dict[str, Any] = {}
-
-    def resolve(step_id: str) -> Any:
-        if step_id in results:
-            return results[step_id]
-        step, record = workflow.steps[step_id], records[step_id]
-        reasons = []
-        for out in outputs_of.get(step_id, []):
-            if out.store in report.fresh:
-                results[step_id] = open_store(out.store)
-                report.steps[step_id] = StepReport(step_id, "reused", f"{out.store} has the same provenance")
-                log(f"[dim]skip[/] {step_id}: {out.store} is up to date")
-                return results[step_id]
-            reasons.append(_why_changed(stored[out.store], record, out.store) if reuse else "forced")
-        inputs = {name: _select(resolve(ref.step), ref, step) for name, ref in step.inputs.items()}
-        results[step_id] = _call(step, inputs)
-        reason = "; ".join(reasons) if reasons else "no stored output (intermediate step)"
-        report.steps[step_id] = StepReport(step_id, "computed", reason)
-        log(f"[bold]run[/]  {step_id} ({step.stage.name}): {reason}")
-        return results[step_id]
-
-    for out in workflow.outputs.values():
-        resolve(out.from_)
-    for step_id in workflow.steps:
-        report.steps.setdefault(step_id, StepReport(step_id, "not needed", "no output depends on it"))
-    return results, records, report
+        graph.resolve(out.from_)
+    graph.finish()
+    return graph.results, graph.records, graph.report
 
 
 def _as_dataset(result: xr.Dataset | xr.DataArray, name: str) -> xr.Dataset:
@@ -174,49 +185,59 @@ def _as_dataset(result: xr.Dataset | xr.DataArray, name: str) -> xr.Dataset:
 
 def run_workflow(workflow: Workflow, *, scheduler: str | None = None, progress: bool = True, reuse: bool = True,
                  log: Callable[[str], None] = lambda _: None) -> RunReport:
-    """Run ``workflow``: build one lazy graph, compute every stale output in one pass, record provenance."""
+    """Run ``workflow``: write every stale output, upstream first, and record its provenance.
+
+    Outputs are written one at a time in dependency order, and a written output is read back from its
+    store by the steps after it, so nothing stored is ever computed twice. (Writing all outputs in one
+    ``dask.compute`` does not share their common upstream: dask 2026.8 gives each ``to_zarr(compute=False)``
+    a private, optimised copy of its graph, ``ProhibitReuse``, so every output recomputed it.) An output's
+    provenance is written as soon as its data is complete, so a killed run keeps every finished output.
+    """
     start = time.perf_counter()
     scheduler = scheduler or workflow.scheduler
-    results, records, report = build(workflow, reuse=reuse, log=log)
-    pending = []
-    for name, out in workflow.outputs.items():
-        if out.store in report.fresh:
-            continue
-        if out.store in workflow.self_written:  # the stage filled it as it ran: record, never rewrite
-            pending.append((name, out, None))
-            continue
-        data = _as_dataset(results[out.from_], name)
-        kind = out.kind or data.attrs.get("selpath_kind")
-        if kind is None:
-            raise StageError(Problem(f"the result of step {out.from_!r} has no selpath_kind attr",
-                                     path=f"outputs.{name}", fix="set `kind:` on the output"))
-        pending.append((name, out, to_store(data, out.store, kind, compute=False)))
+    graph = _Graph(workflow, reuse=reuse, log=log)
+    order = list(workflow.steps)  # dependency order
+    outputs = sorted(workflow.outputs.items(), key=lambda item: order.index(item[1].from_))
     with scheduler_session(scheduler) as client:
-        compute([write for _, _, write in pending if write is not None], scheduler=scheduler, client=client,
-                progress=progress,
-                description=f"{workflow.name}: writing {len(pending)} output(s)")
-    for name, out, _ in pending:
-        if (out.kind or "") == "figure" or _as_dataset(results[out.from_], name).attrs.get("selpath_kind") == "figure":
-            _save_png(out.store)
-    now = _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
-    for name, out, _ in pending:
-        chain = _ancestors(workflow, out.from_)
-        write_provenance(out.store, {
-            "step_hash": records[out.from_]["step_hash"],
-            "step_record": records[out.from_],
-            "output": name,
-            "workflow": workflow.name,
-            "workflow_source": workflow.source,
-            "workflow_text": workflow.text,
-            "steps": {i: {"stage": records[i]["stage"], "settings": records[i]["settings"],
-                          "external": records[i]["external"]} for i in chain},
-            "versions": package_versions(),
-            "scheduler": scheduler,
-            "created": now,
-        })
-        report.written.append(out.store)
-    report.seconds = time.perf_counter() - start
-    return report
+        for number, (name, out) in enumerate(outputs, 1):
+            result = graph.resolve(out.from_)
+            if out.store in graph.report.fresh:
+                continue
+            data = _as_dataset(result, name)
+            if out.store not in workflow.self_written:  # else the stage filled it as it ran: record, never rewrite
+                kind = out.kind or data.attrs.get("selpath_kind")
+                if kind is None:
+                    raise StageError(Problem(f"the result of step {out.from_!r} has no selpath_kind attr",
+                                             path=f"outputs.{name}", fix="set `kind:` on the output"))
+                write = to_store(data, out.store, kind, compute=False)
+                compute([write], scheduler=scheduler, client=client, progress=progress,
+                        description=f"{workflow.name}: {name} ({number}/{len(outputs)})")
+                if kind == "figure":
+                    _save_png(out.store)
+            _record(workflow, graph.records, name, out, scheduler)
+            graph.report.written.append(out.store)
+            graph.results[out.from_] = open_store(out.store)  # the steps after it read the stored cube
+    graph.finish()
+    graph.report.seconds = time.perf_counter() - start
+    return graph.report
+
+
+def _record(workflow: Workflow, records: dict[str, dict[str, Any]], name: str, out: OutputSpec, scheduler: str):
+    """Write an output's provenance (only once its data is complete)."""
+    chain = _ancestors(workflow, out.from_)
+    write_provenance(out.store, {
+        "step_hash": records[out.from_]["step_hash"],
+        "step_record": records[out.from_],
+        "output": name,
+        "workflow": workflow.name,
+        "workflow_source": workflow.source,
+        "workflow_text": workflow.text,
+        "steps": {i: {"stage": records[i]["stage"], "settings": records[i]["settings"],
+                      "external": records[i]["external"]} for i in chain},
+        "versions": package_versions(),
+        "scheduler": scheduler,
+        "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+    })
 
 
 def _save_png(store: str) -> None:

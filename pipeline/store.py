@@ -20,6 +20,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import dask
 import numpy as np
 import xarray as xr
 import zarr
@@ -31,13 +32,20 @@ WRITTEN_PREFIX = "written__"
 PROVENANCE_GROUP = "_selpath"
 
 
+#: target size of the dask chunks a store is read in (a whole number of its on-disk chunks)
+PROCESSING_CHUNK = "16MiB"
+
+
 def _open_raw(path: str | os.PathLike) -> xr.Dataset:
     where = os.fspath(path)
     if not Path(where).exists() and "://" not in where:
         raise StoreError(Problem("no store at this path", where=where,
                                  fix="check the path, or run the step that writes it"))
     try:
-        return xr.open_zarr(where, consolidated=False, decode_timedelta=False)
+        # dask chunks: whole on-disk chunks grouped to about PROCESSING_CHUNK (a capture is stored one frame
+        # per chunk for resumable writes; one task per frame would drown the scheduler in overhead)
+        with dask.config.set({"array.chunk-size": PROCESSING_CHUNK}):
+            return xr.open_zarr(where, consolidated=False, decode_timedelta=False, chunks="auto")
     except Exception as exc:  # zarr/xarray raise many types for a corrupt store; name it, keep the cause
         raise StoreError(
             Problem(f"cannot be read as a zarr store ({type(exc).__name__}: {exc})", where=where,
