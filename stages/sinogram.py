@@ -108,7 +108,7 @@ def optimal_light_angle(fov_deg: float | None = None) -> float:
     return 90.0 if fov_deg is None else (180.0 - fov_deg) / 2
 
 
-def _support(vertices: np.ndarray, theta_deg: np.ndarray) -> np.ndarray:
+def support_function(vertices: np.ndarray, theta_deg: np.ndarray) -> np.ndarray:
     """h(n) = max over the contour of p·n for the normals n(θ), (n_theta,)."""
     n = np.stack([np.cos(np.deg2rad(theta_deg)), np.sin(np.deg2rad(theta_deg))], axis=1)
     return np.max(vertices @ n.T, axis=0)
@@ -122,7 +122,7 @@ def _coverage_kernel(observed, vertices, n_vertices, *, theta, x):
         if count < 3:
             continue
         v = vertices[k, :count]
-        plus, minus = _support(v, theta), _support(v, theta + 180.0)
+        plus, minus = support_function(v, theta), support_function(v, theta + 180.0)
         d = np.where(x[None, :] >= 0, x[None, :] / plus[:, None], -x[None, :] / minus[:, None])
         inside = d <= 1.0
         seen = observed[k] & inside
