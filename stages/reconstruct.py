@@ -89,10 +89,10 @@ def upper_bound(absorption: np.ndarray, observed: np.ndarray, geometry: Geometry
 
     A ray crossing a cell of size Δ over a length ℓ = Δ/|a| (|a| = max(|cos θ|, |sin θ|), the step of the
     projector; Δ for the binary r_ij) cannot absorb less than σ·ℓ there, so σ ≤ A/ℓ. At each θ the cell
-    lies between two X bins; it is bounded by the larger of their absorptions (both must be observed), so
-    a cell only partly covered by an inclusion is not clipped by a ray that misses the inclusion. The
-    thesis's r_ij = 1 is ℓ = 1 (σ per cell). ``slack`` [absorption] loosens the bound for noisy data.
-    Cells no pair of observed rays brackets are unbounded (inf).
+    is bounded by the largest absorption among the bins within its shadow (half-width Δ(|cos θ| + |sin θ|)/2)
+    widened by one bin, all of which must be observed: a cell only partly covered by an inclusion is then
+    never clipped by a ray that happens to miss the inclusion. The thesis's r_ij = 1 is ℓ = 1 (σ per
+    cell). ``slack`` [absorption] loosens the bound for noisy data. Cells without such rays are unbounded.
     """
     t = np.deg2rad(np.asarray(geometry.theta_deg))
     x = np.asarray(geometry.x)
@@ -101,12 +101,18 @@ def upper_bound(absorption: np.ndarray, observed: np.ndarray, geometry: Geometry
     data = np.where(observed, absorption + slack, np.inf)
     best = np.full((geometry.n, geometry.n), np.inf)
     for i, angle in enumerate(t):
-        length = cell if geometry.method == "binary" else cell / max(abs(np.cos(angle)), abs(np.sin(angle)))
+        cos, sin = abs(np.cos(angle)), abs(np.sin(angle))
+        length = cell if geometry.method == "binary" else cell / max(cos, sin)
+        reach = cell * (cos + sin) / 2 + step
         proj = c[None, :] * np.cos(angle) + c[:, None] * np.sin(angle)
-        j0 = np.floor((proj - x[0]) / step).astype(np.int64)
-        inside = (j0 >= 0) & (j0 + 1 < len(x))
-        j0 = np.clip(j0, 0, len(x) - 2)
-        best = np.minimum(best, np.where(inside, np.maximum(data[i, j0], data[i, j0 + 1]) / length, np.inf))
+        first = np.ceil((proj - reach - x[0]) / step - 1e-9).astype(np.int64)
+        last = np.floor((proj + reach - x[0]) / step + 1e-9).astype(np.int64)
+        inside = (first >= 0) & (last < len(x))
+        worst = np.zeros_like(proj)
+        for offset in range(int(np.ceil(2 * reach / step)) + 1):
+            j = np.clip(first + offset, 0, len(x) - 1)
+            worst = np.where(first + offset <= last, np.maximum(worst, data[i, j]), worst)
+        best = np.minimum(best, np.where(inside, worst / length, np.inf))
     return np.maximum(best, 0.0)
 
 

@@ -161,7 +161,10 @@ def coverage(sinogram: xr.Dataset, hull: xr.Dataset, /) -> xr.Dataset:
         fov = np.rad2deg(2 * np.arcsin(np.clip(r / distance, 0, 1))) if perspective else None
         return coverage_model(theta_l, fov)
 
-    analytic = xr.apply_ufunc(lambda r: np.stack(np.broadcast_arrays(*model(r), r)[:3], axis=-1), radius, output_core_dims=[["bound"]],
+    def bounds(r):
+        return np.stack(np.broadcast_arrays(*model(r), r)[:3], axis=-1)
+
+    analytic = xr.apply_ufunc(bounds, radius, output_core_dims=[["bound"]],
                               dask="parallelized", output_dtypes=[np.float64],
                               dask_gufunc_kwargs={"output_sizes": {"bound": 3}})
     return xr.Dataset(

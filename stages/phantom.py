@@ -1,0 +1,175 @@
+"""Synthetic sinograms and ground truths from scene files (§4.4.1: sinograms by the forward Radon transform).
+
+``simulate_sinogram`` is the study setting of §4.4.1: the exact line integrals of the scene's inclusions on
+a (θ, X) grid (chord lengths through each shape, no discretisation), with the ``observed`` mask the rig
+would produce at a light angle θ_l: for every stage angle and camera column of the slice z = 0, the chord
+from the light's entry point to the pixel's exit point is binned, exactly as ``align_paths`` +
+``bin_sinogram`` do with a measured contour. ``phantom_truth`` rasterises the same field (cell averages by
+supersampling) on the reconstruction grid, for error tables.
+
+What a capture measures is A = log I_reference − log I_target, the inclusions' absorption (the medium and
+the skin cancel), so both stages describe the inclusions' σ only.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import xarray as xr
+
+from devices.geometry import to_object
+from devices.sim import tomography as tomo
+from devices.sim.scene import Scene, load_scene
+from pipeline.errors import Problem, SelpathError, StageError
+from pipeline.registry import stage
+from pipeline.spec import StorePath
+from stages.paths import sinogram_coordinates
+from stages.simulate import AngleSweep
+
+
+def _precheck(settings) -> list[str]:
+    try:
+        load_scene(settings.scene)
+    except SelpathError as exc:
+        return [f"scene file: {p}" for p in getattr(exc, "problems", [exc])]
+    return []
+
+
+def scene_radon(scene: Scene, theta_deg: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """Exact ∫σ of the inclusions along the lines p·(cos θ, sin θ) = X in the slice z = 0, (θ, X)."""
+    t = np.deg2rad(np.asarray(theta_deg, float))[:, None]
+    x = np.asarray(x, float)[None, :]
+    reach = 2.0 * scene.object.shape.build().reach() + float(np.abs(x).max())
+    normal = np.stack(np.broadcast_arrays(np.cos(t), np.sin(t)), axis=-1)
+    direction = np.stack(np.broadcast_arrays(np.sin(t), -np.cos(t)), axis=-1)
+    centre = np.broadcast_to(x[..., None] * normal, (t.shape[0], x.shape[1], 2)).reshape(-1, 2)
+    d = np.broadcast_to(direction, (t.shape[0], x.shape[1], 2)).reshape(-1, 2)
+    zeros = np.zeros((len(centre), 1))
+    start = np.hstack([centre - reach * d, zeros])
+    end = np.hstack([centre + reach * d, zeros])
+    total = tomo.path_absorption(scene, start, end, reference=False) - tomo.path_absorption(
+        scene, start, end, reference=True)
+    return total.reshape(t.shape[0], x.shape[1])
+
+
+def observed_mask(scene: Scene, angles_deg: np.ndarray, theta_deg: np.ndarray, x: np.ndarray,
+                  min_exit_cos: float = 0.02) -> np.ndarray:
+    """Bins of the (θ, X) grid that the rig sees: entry-to-exit chords of the slice z = 0 over every angle."""
+    flat = scene.model_copy(update={"camera": scene.camera.model_copy(update={"rows": 1,
+                                                                               "principal_point": None})})
+    step_theta = 180.0 / len(theta_deg)
+    step_x = (x[-1] - x[0]) / (len(x) - 1)
+    seen = np.zeros((len(theta_deg), len(x)), dtype=bool)
+    for angle in angles_deg:
+        entry = tomo.entry_point(flat, angle)
+        if entry is None:
+            continue
+        exits = tomo.exit_points(flat, angle)
+        _, directions = flat.geometry().pixel_rays()
+        d = to_object(directions, angle)
+        d = d / np.linalg.norm(d, axis=1, keepdims=True)
+        grazing = np.abs(np.einsum("ij,ij->i", d, exits.normals)) < min_exit_cos
+        ok = exits.hit & ~grazing
+        p_c = exits.points[ok, :2]
+        p_l = np.broadcast_to(entry[0][:2], p_c.shape)
+        far = np.linalg.norm(p_c - p_l, axis=1) > 1e-9
+        theta, offset = sinogram_coordinates(p_l[far], p_c[far])
+        shifted = theta + step_theta / 2
+        wrap = shifted >= 180.0
+        i = np.floor(np.where(wrap, shifted - 180.0, shifted) / step_theta).astype(int)
+        j = np.rint((np.where(wrap, -offset, offset) - x[0]) / step_x).astype(int)
+        keep = (j >= 0) & (j < len(x))
+        seen[i[keep], j[keep]] = True
+    return seen
+
+
+@stage("simulate_sinogram", precheck=_precheck)
+def simulate_sinogram(*, scene: StorePath, light_angle_deg: float | None = None, n_theta: int = 180,
+                      n_x: int = 128, x_extent: float | None = None,
+                      angles: AngleSweep = AngleSweep(),  # noqa: B008 (a frozen model: immutable default)
+                      noise_std: float = 0.0, seed: int = 0) -> xr.Dataset:
+    """An exact sinogram of a scene's inclusions with the rig's mask of observed rays (§4.4.1).
+
+    Parameters
+    ----------
+    scene : str
+        Scene file (``workflows/scenes/*.yaml``).
+    light_angle_deg : float or None
+        θ_l [degree]; None: the scene's.
+    n_theta : int
+        Bins over [0°, 180°).
+    n_x : int
+        Bins over [−x_extent, x_extent].
+    x_extent : float or None
+        Half-width of the X grid [scene length unit, mm]; None: 1.02 × the object's reach.
+    angles : AngleSweep
+        Stage angles of the simulated sweep [degree].
+    noise_std : float
+        Gaussian noise added to the absorption of every bin [absorption].
+    seed : int
+        Noise seed.
+    """
+    spec = load_scene(scene)
+    if light_angle_deg is not None:
+        if not 0.0 <= light_angle_deg <= 180.0:
+            raise StageError(Problem(f"light_angle_deg = {light_angle_deg}; θ_l lies in [0, 180]"))
+        spec = spec.model_copy(update={"light": spec.light.model_copy(update={"angle": float(light_angle_deg)})})
+    extent = float(x_extent if x_extent is not None else 1.02 * spec.object.shape.build().reach())
+    theta = np.arange(n_theta) * 180.0 / n_theta
+    x = np.linspace(-extent, extent, n_x)
+    absorption = scene_radon(spec, theta, x)
+    if noise_std > 0:
+        absorption = absorption + np.random.default_rng(seed).normal(0.0, noise_std, absorption.shape)
+    observed = observed_mask(spec, angles.values(), theta, x)
+    dims = ("slice", "theta", "x")
+    geometry = spec.geometry().attrs()
+    return xr.Dataset(
+        {"absorption": (dims, absorption[None]), "observed": (dims, observed[None]),
+         "count": (dims, observed[None].astype(np.int64))},
+        coords={"slice": ("slice", [0]), "theta": ("theta", theta, {"units": "degree"}),
+                "x": ("x", x, {"units": "mm"})},
+        attrs=geometry | {"selpath_kind": "sinogram", "x_extent": extent, "theta_step_deg": 180.0 / n_theta,
+                          "x_step": 2 * extent / (n_x - 1), "scene": spec.scene, "noise_std": noise_std})
+
+
+def truth_raster(scene: Scene, n: int, extent: float, supersample: int = 4) -> np.ndarray:
+    """Cell averages (n, n) [(y, x)] of the inclusions' σ over [−extent, extent]², slice z = 0."""
+    cell = 2 * extent / n
+    centres = -extent + (np.arange(n) + 0.5) * cell
+    offsets = ((np.arange(supersample) + 0.5) / supersample - 0.5) * cell
+    fine = (centres[:, None] + offsets[None, :]).reshape(-1)
+    yy, xx = np.meshgrid(fine, fine, indexing="ij")
+    points = np.column_stack([xx.ravel(), yy.ravel(), np.zeros(xx.size)])
+    total = np.zeros(len(points))
+    for prism, sigma in scene.inclusions():
+        total += sigma * prism.contains(points)
+    return total.reshape(n, supersample, n, supersample).mean(axis=(1, 3))
+
+
+@stage("phantom_truth", precheck=_precheck)
+def phantom_truth(sinogram: xr.Dataset, /, *, scene: StorePath, n_pixels: int | None = None,
+                  supersample: int = 4) -> xr.Dataset:
+    """The scene's inclusion σ on the reconstruction grid of ``sinogram`` (the reference for error tables).
+
+    Parameters
+    ----------
+    scene : str
+        Scene file.
+    n_pixels : int or None
+        Image size n (as given to the reconstruction); None: the sinogram's number of X bins.
+    supersample : int
+        Samples per cell and axis.
+    """
+    spec = load_scene(scene)
+    x = sinogram["x"].values
+    extent = float(sinogram.attrs.get("x_extent", np.abs(x).max()))
+    n = int(n_pixels or len(x))
+    cell = 2 * extent / n
+    centres = -extent + (np.arange(n) + 0.5) * cell
+    unit = sinogram["x"].attrs.get("units", "mm")
+    image = truth_raster(spec, n, extent, supersample)
+    slices = sinogram["slice"].values
+    return xr.Dataset(
+        {"sigma": (("slice", "y", "x"), np.broadcast_to(image, (len(slices), n, n)).copy(), {"units": f"1/{unit}"})},
+        coords={"slice": ("slice", slices), "y": ("y", centres, {"units": unit}),
+                "x": ("x", centres, {"units": unit})},
+        attrs={"selpath_kind": "reconstruction", "method": "truth", "scene": spec.scene, "cell_size": cell})
