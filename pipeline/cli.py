@@ -13,6 +13,7 @@ from rich.table import Table
 
 from pipeline.engine import RunReport, run_workflow
 from pipeline.errors import SelpathError
+from pipeline.report import write_html
 from pipeline.registry import default_registry
 from pipeline.spec import load_workflow
 from pipeline.store import missing_frames, open_store, read_provenance
@@ -122,17 +123,32 @@ def demo(
     out: Annotated[Path, typer.Option(help="folder for the demo's stores")] = Path("selpath-demo"),
     scheduler: Annotated[str | None, typer.Option(help="override the scheduler")] = None,
 ) -> None:
-    """Run the main job on the built-in simulated rig (today: acquisition of the gelatin bin -> absorption)."""
+    """The main job on the built-in simulated rig: acquire the gelatin bin, process, reconstruct, report.
+
+    Writes every store and figure under ``--out`` and ``report.html`` beside them.
+    """
     try:
         workflow = load_workflow(DEMO_WORKFLOW).rerooted(out)
         report = run_workflow(workflow, scheduler=scheduler, log=console.print)
         _print_report(report)
         absorption = open_store(workflow.outputs["absorption"].store)
         valid = absorption["flags"] == 0
-        console.print(
-            f"absorption: {float(valid.mean()) * 100:.1f}% of pixels valid, "
-            f"max A = {float(absorption['absorption'].where(valid).max()):.4f}"
-        )
+        summary = [f"absorption: {float(valid.mean()) * 100:.1f}% of pixels valid, "
+                   f"max A = {float(absorption['absorption'].where(valid).max()):.4f}"]
+        truth = open_store(workflow.outputs["truth"].store)["sigma"].isel(slice=0)
+        for name in ("fbp", "optimised"):
+            recon = open_store(workflow.outputs[name].store)
+            error = recon["sigma"] - truth
+            line = (f"{name}: RMSE {float((error**2).mean() ** 0.5):.3e}, max |error| {float(abs(error).max()):.3e}"
+                    f" over {recon.sizes['slice']} slice(s)")
+            if "iterations" in recon:
+                line += (f"; ADMM iterations {recon['iterations'].values.tolist()}, converged "
+                         f"{recon['converged'].values.tolist()}")
+            summary.append(line)
+        page = write_html(workflow, report, Path(out) / "report.html", summary=summary)
+        for line in summary:
+            console.print(line)
+        console.print(f"report: {page}")
     except SelpathError as exc:
         _fail(exc)
 

@@ -84,3 +84,87 @@ def coverage_figure(coverage: xr.Dataset | None = None, /) -> xr.Dataset:
     if coverage is None:
         return _as_figure(_draw_coverage, None, None)
     return _as_figure(_draw_coverage, coverage["coverage"].data, coverage.attrs.get("light_angle_deg"))
+
+
+def _draw_capture(frame: np.ndarray, backlit: np.ndarray, angle: float) -> np.ndarray:
+    fig, (left, right) = plt.subplots(1, 2, figsize=_SIZE_IN, dpi=_DPI, constrained_layout=True)
+    shown = left.imshow(frame, cmap="gray")
+    fig.colorbar(shown, ax=left, label="counts")
+    left.set(title=f"target frame at stage angle {angle:g}° (beam exit glow)", xlabel="col", ylabel="row")
+    right.imshow(backlit, cmap="gray")
+    right.set(title="backlit frame (silhouette)", xlabel="col")
+    return _rgba(fig)
+
+
+@stage("capture_figure")
+def capture_figure(capture: xr.Dataset, /, *, angle_index: int = 0) -> xr.Dataset:
+    """One target frame beside its backlit frame.
+
+    Parameters
+    ----------
+    angle_index : int
+        Position along the capture's ``angle`` dim.
+    """
+    _require(capture, ("target", "backlit"), "capture_figure")
+    one = capture.isel(angle=angle_index)
+    return _as_figure(_draw_capture, one["target"].data, one["backlit"].data, float(one["angle"]))
+
+
+def _draw_reconstructions(images: list[np.ndarray], titles: list[str], truth: np.ndarray | None,
+                          extent: tuple[float, float, float, float], unit: str) -> np.ndarray:
+    panels = len(images) + (truth is not None)
+    fig, axes = plt.subplots(1, panels, figsize=_SIZE_IN, dpi=_DPI, constrained_layout=True)
+    top = max(float(np.nanmax(truth)) if truth is not None else 0.0, *(float(np.nanpercentile(i, 99.5))
+                                                                      for i in images))
+    for ax, image, title in zip(axes, ([truth] if truth is not None else []) + images,
+                                (["truth"] if truth is not None else []) + titles, strict=True):
+        shown = ax.imshow(image, origin="lower", extent=extent, cmap="magma", vmin=0, vmax=top)
+        if truth is not None and title != "truth":
+            rmse = float(np.sqrt(np.nanmean((image - truth) ** 2)))
+            title = f"{title}\nRMSE {rmse:.2e}, max |err| {float(np.nanmax(np.abs(image - truth))):.2e}"
+        ax.set_title(title, fontsize=8)
+        ax.set(xlabel=f"x [{unit}]")
+    axes[0].set(ylabel=f"y [{unit}]")
+    fig.colorbar(shown, ax=axes, label=f"σ [1/{unit}]", shrink=0.8)
+    return _rgba(fig)
+
+
+@stage("reconstruction_figure")
+def reconstruction_figure(fbp: xr.Dataset, optimised: xr.Dataset, truth: xr.Dataset | None = None, /, *,
+                          slice_index: int = 0) -> xr.Dataset:
+    """FBP beside the constrained optimisation (and the truth, with errors, when given), as in Fig. 18/21.
+
+    Parameters
+    ----------
+    slice_index : int
+        Position along the reconstructions' ``slice`` dim.
+    """
+    images = [r["sigma"].isel(slice=slice_index).data for r in (fbp, optimised)]
+    centres = fbp["x"].values
+    half = (centres[1] - centres[0]) / 2
+    extent = (centres[0] - half, centres[-1] + half, centres[0] - half, centres[-1] + half)
+    reference = truth["sigma"].isel(slice=0 if truth.sizes.get("slice", 1) == 1 else slice_index).data \
+        if truth is not None else None
+    return _as_figure(_draw_reconstructions, images, ["FBP", "optimisation (box + TV, ADMM)"], reference, extent,
+                      fbp["x"].attrs.get("units", ""))
+
+
+def _draw_convergence(objective: np.ndarray, primal: np.ndarray, dual: np.ndarray) -> np.ndarray:
+    fig, (left, right) = plt.subplots(1, 2, figsize=_SIZE_IN, dpi=_DPI, constrained_layout=True)
+    for k in range(objective.shape[0]):
+        left.semilogy(objective[k], label=f"slice {k}")
+        right.semilogy(primal[k], "-", label=f"primal, slice {k}")
+        right.semilogy(dual[k], "--", label=f"dual, slice {k}")
+    left.set(xlabel="ADMM iteration", ylabel="objective ½‖M(Rσ−A)‖² + λ TV(σ)", title="objective")
+    right.set(xlabel="ADMM iteration", ylabel="relative residual", title="residuals (stop at tol)")
+    left.legend(fontsize=7)
+    right.legend(fontsize=7)
+    return _rgba(fig)
+
+
+@stage("convergence_figure")
+def convergence_figure(optimised: xr.Dataset, /) -> xr.Dataset:
+    """Objective and relative primal/dual residuals per ADMM iteration, every slice."""
+    _require(optimised, ("objective", "primal_residual", "dual_residual"), "convergence_figure")
+    return _as_figure(_draw_convergence, optimised["objective"].data, optimised["primal_residual"].data,
+                      optimised["dual_residual"].data)
