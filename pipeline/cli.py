@@ -13,8 +13,8 @@ from rich.table import Table
 
 from pipeline.engine import RunReport, run_workflow
 from pipeline.errors import SelpathError
-from pipeline.report import write_html
 from pipeline.registry import default_registry
+from pipeline.report import write_html
 from pipeline.spec import load_workflow
 from pipeline.store import missing_frames, open_store, read_provenance
 

@@ -199,6 +199,14 @@ KINDS: dict[str, CubeKind] = {
             coord_units={"theta": ANGLE_UNITS, "x": LENGTH_UNITS},
         ),
         CubeKind(
+            name="light_angle_study",
+            description="reconstructions and their errors versus the light angle θ_l (§4.4.1, Table 1)",
+            variables={"rmse": Variable(("light_angle", "method")),
+                       "max_abs_error": Variable(("light_angle", "method")),
+                       "sigma": Variable(("light_angle", "method", "y", "x"))},
+            coord_units={"light_angle": ANGLE_UNITS, "y": LENGTH_UNITS, "x": LENGTH_UNITS},
+        ),
+        CubeKind(
             name="reconstruction",
             description="absorption coefficient σ per slice",
             variables={"sigma": Variable(("y", "x"), description="absorption coefficient per unit length")},
