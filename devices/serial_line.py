@@ -15,6 +15,13 @@ from __future__ import annotations
 
 import serial
 
+try:  # a pty or tty closing under pyserial's flush() raises termios.error, which is not an OSError
+    import termios
+
+    PORT_ERRORS: tuple[type[BaseException], ...] = (serial.SerialException, OSError, termios.error)
+except ImportError:  # Windows
+    PORT_ERRORS = (serial.SerialException, OSError)
+
 from pipeline.errors import DeviceDisconnected, DeviceError, DeviceProtocolError, DeviceTimeout
 
 
@@ -42,14 +49,14 @@ class SerialLine:
         self.url, self.timeout_s = url, timeout_s
         try:
             self._port = serial.serial_for_url(url, baudrate=baudrate, timeout=timeout_s, write_timeout=timeout_s)
-        except (serial.SerialException, OSError, ValueError) as exc:
+        except (*PORT_ERRORS, ValueError) as exc:
             raise DeviceError(f"cannot open the port ({exc})", port=url,
                               fix="check the cable, the port name and that no other program holds it") from exc
 
     def close(self) -> None:
         try:
             self._port.close()
-        except (serial.SerialException, OSError):
+        except PORT_ERRORS:
             pass  # closing a port that already went away is not an error
 
     def exchange(self, command: str, *, timeout_s: float | None = None) -> str:
@@ -63,7 +70,7 @@ class SerialLine:
         except serial.SerialTimeoutException as exc:
             raise DeviceTimeout("the port did not accept the command in time", port=self.url,
                                 command=command) from exc
-        except (serial.SerialException, OSError) as exc:
+        except PORT_ERRORS as exc:
             raise DeviceDisconnected(f"the port went away ({exc})", port=self.url, command=command,
                                      fix="reconnect the device, then run the acquisition again to resume") from exc
         if not raw.endswith(b"\n"):
