@@ -18,6 +18,7 @@ from __future__ import annotations
 from functools import lru_cache
 from typing import Literal
 
+import dask.array as da
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -193,8 +194,6 @@ def _template(sinogram: xr.Dataset, geometry: Geometry, variables: dict[str, tup
               extra: dict[str, int] | None = None) -> xr.Dataset:
     sizes = {"slice": sinogram.sizes["slice"], "y": geometry.n, "x": geometry.n} | (extra or {})
     chunks = sinogram["absorption"].chunksizes.get("slice", (sizes["slice"],))
-    import dask.array as da
-
     data = {name: (dims, da.zeros(tuple(sizes[d] for d in dims), dtype=dtype,
                                   chunks=tuple(chunks if d == "slice" else sizes[d] for d in dims)))
             for name, (dims, dtype) in variables.items()}
