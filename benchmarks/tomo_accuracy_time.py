@@ -131,11 +131,12 @@ def astra_peers(geometry, sinogram, observed, truth, iterations):
                 pid = astra.create_projector("linear", proj, vol)
                 _, forward = astra.create_sino(np.flipud(truth) if updown else truth, pid)
                 ours_ = _to_detector(sinogram, geometry, flip).T  # noisy data: only the relative fit matters
-                candidates[(shift, flip, updown)] = (np.mean((forward * geometry.cell - ours_) ** 2), proj, pid)
+                candidates[(shift, flip, updown)] = (np.mean((forward - ours_) ** 2), proj, pid)
     (shift, flip, updown), (error, proj, pid) = min(candidates.items(), key=lambda kv: kv[1][0])
     print(f"ASTRA mapping: angle + {np.rad2deg(shift):g}°, detector flip {flip}, image flipud {updown} "
           f"(relative fit {np.sqrt(error) / np.sqrt(np.mean(sinogram**2)):.3f})")
-    data = _to_detector(np.where(observed, sinogram, 0.0), geometry, flip).T / geometry.cell
+    # the volume geometry is in physical units, so ASTRA's line integrals are too: no pixel scaling
+    data = _to_detector(np.where(observed, sinogram, 0.0), geometry, flip).T
     mask = (_to_detector(observed.astype(float), geometry, flip).T > 0.5).astype(np.float32)
     rows = []
 

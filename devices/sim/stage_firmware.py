@@ -18,97 +18,30 @@ Use it as a context manager; it runs in a daemon thread. Also usable by hand:
 
 from __future__ import annotations
 
-import os
-import pty
-import select
-import threading
 import time
-import tty
 from collections.abc import Mapping
 
-from devices.serial_line import checksum, frame_reply
+from devices.serial_line import checksum
+from devices.sim.firmware import LINE_FAULTS, FakeFirmware
 
-FAULTS = ("silent", "garble", "partial", "noise", "disconnect", "slip", "lost-move")
+FAULTS = (*LINE_FAULTS, "slip", "lost-move")
 
 
-class FakeStageFirmware:
+class FakeStageFirmware(FakeFirmware):
     """A stage at 0°, not homed, answering on a pseudo-terminal."""
 
+    DEVICE_FAULTS = ("slip",)
+    ALIASES = {"lost-move": "lost-reply"}
+    NAME = "fake-stage-firmware"
+
     def __init__(self, faults: Mapping[int, str] | None = None, *, move_s_per_deg: float = 0.0):
-        unknown = sorted(set((faults or {}).values()) - set(FAULTS))
-        if unknown:
-            raise ValueError(f"unknown faults {unknown}; known: {FAULTS}")
-        self.faults = dict(faults or {})
+        super().__init__(faults)
         self.move_s_per_deg = move_s_per_deg
         self.position = 0.0
         self.homed = False
-        self.received: list[str] = []
-        self._master, self._slave = pty.openpty()
-        tty.setraw(self._slave)
-        self.port = os.ttyname(self._slave)
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._serve, name="fake-stage-firmware", daemon=True)
-        self._lock = threading.Lock()
 
-    def __enter__(self) -> FakeStageFirmware:
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=2)
-        for fd in (self._master, self._slave):
-            try:
-                os.close(fd)
-            except OSError:
-                pass  # already closed by a "disconnect" fault
-
-    # -- the firmware loop -------------------------------------------------------------------------
-
-    def _serve(self) -> None:
-        buffer = b""
-        while not self._stop.is_set():
-            try:
-                ready, _, _ = select.select([self._master], [], [], 0.05)
-                if not ready:
-                    continue
-                chunk = os.read(self._master, 1024)
-            except OSError:
-                return  # the line is closed
-            buffer += chunk
-            while b"\n" in buffer:
-                line, buffer = buffer.split(b"\n", 1)
-                if not self._answer(line.decode("ascii", "replace").strip()):
-                    return
-
-    def _send(self, data: bytes) -> None:
-        os.write(self._master, data)
-
-    def _answer(self, command: str) -> bool:
-        number = len(self.received)
-        self.received.append(command)
-        fault = self.faults.get(number)
-        if fault == "disconnect":
-            os.close(self._master)
-            return False
-        body = self._execute(command, slip=fault == "slip")
-        if fault in ("silent", "lost-move"):
-            return True
-        reply = frame_reply(body)
-        if fault == "garble":
-            i = min(len(reply) - 5, len(body) // 2)
-            reply = reply[:i] + bytes([reply[i] ^ 0x01]) + reply[i + 1:]
-        elif fault == "partial":
-            reply = reply[: len(reply) // 2]
-        elif fault == "noise":
-            reply = b"\xff\xfe\x00garbage\n"
-        self._send(reply)
-        return True
-
-    def _execute(self, command: str, *, slip: bool = False) -> str:
+    def execute(self, command: str, fault: str | None) -> str:
+        slip = fault == "slip"
         name, _, argument = command.partition(" ")
         if name == "*IDN?":
             return "IDN selpath,fake-stage,1.0"
