@@ -1,0 +1,63 @@
+"""Projector patterns as arrays in [0, 1], shape (projector rows, cols) (§5.3, §5.4.6).
+
+Edges fall on fractional positions and are integrated over each projector pixel, so a line of width
+l_w = 40.5 px at l_p = 100.25 px carries exactly 40.5 px of light. Gray codes come from OpenCV contrib's
+``cv2.structured_light`` (the well-kept implementation; we only convert its uint8 images).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def _coverage(n: int, low: float, high: float) -> np.ndarray:
+    """Fraction of each pixel cell [i, i+1) covered by [low, high) (pixel i's centre is at i + ½)."""
+    edges = np.arange(n, dtype=float)
+    return np.clip(np.minimum(edges + 1, high) - np.maximum(edges, low), 0.0, 1.0)
+
+
+def white(shape: tuple[int, int]) -> np.ndarray:
+    return np.ones(shape)
+
+
+def vertical_line(shape: tuple[int, int], position: float, width: float) -> np.ndarray:
+    """A vertical line centred at projector column ``position`` (l_p, pixel-centre coordinates) of ``width`` l_w."""
+    if width <= 0:
+        raise ValueError(f"line width must be positive, got {width}")
+    rows, cols = shape
+    centre = position + 0.5  # pixel i covers [i, i+1): its centre is i + ½
+    return np.broadcast_to(_coverage(cols, centre - width / 2, centre + width / 2), (rows, cols)).copy()
+
+
+def horizontal_line(shape: tuple[int, int], position: float, width: float = 1.0) -> np.ndarray:
+    """A horizontal line at projector row ``position`` (for the v_p calibration of §5.3.2)."""
+    rows, cols = shape
+    centre = position + 0.5
+    return np.broadcast_to(_coverage(rows, centre - width / 2, centre + width / 2)[:, None], (rows, cols)).copy()
+
+
+def checkerboard(shape: tuple[int, int], square: int, shift: tuple[int, int] = (0, 0)) -> np.ndarray:
+    """A checkerboard of ``square``-pixel squares shifted by (rows, cols) pixels (the §5.4.6 shifted boards)."""
+    rows, cols = shape
+    r = (np.arange(rows) + shift[0]) // square
+    c = (np.arange(cols) + shift[1]) // square
+    return ((r[:, None] + c[None, :]) % 2).astype(float)
+
+
+def gray_codes(shape: tuple[int, int], *, columns_only: bool = False) -> np.ndarray:
+    """The Gray-code patterns (and their inverses) of ``cv2.structured_light``: (n, rows, cols) in {0, 1}.
+
+    ``columns_only`` keeps the patterns that code the column (constant along rows), which is what a
+    rolling-shutter rig with row-wise illumination can project without tearing.
+    """
+    import cv2
+
+    rows, cols = shape
+    generator = cv2.structured_light.GrayCodePattern.create(cols, rows)
+    ok, patterns = generator.generate()
+    if not ok:
+        raise RuntimeError("cv2.structured_light could not generate Gray codes for this projector size")
+    stack = np.stack([np.asarray(p, dtype=float) / 255.0 for p in patterns])
+    if columns_only:
+        stack = stack[np.ptp(stack, axis=1).max(axis=1) == 0]
+    return stack

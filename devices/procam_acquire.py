@@ -1,0 +1,154 @@
+"""Delay–exposure sweeps of the synchronised projector–camera rig, written frame by frame (§5.2.3, §5.3).
+
+``acquire_plane_to_ray``: the white pattern, every (delay, exposure) → a ``(delay, exposure, row, col)``
+store. ``acquire_full_transport``: a vertical line at each position l_p (width l_w) × every (delay,
+exposure) → ``(delay, exposure, line, row, col)``. Like the tomography sweep (``devices.acquire``), the store
+is pre-allocated, each frame is a region write followed by its ``written__`` flag, and running the same
+sweep again captures only what is missing. A sweep the controller cannot do is refused before anything
+moves, naming the limit. Order: exposure (slowest), line, delay, so settings change as little as possible.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import dask.array as da
+import numpy as np
+import xarray as xr
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+from devices.patterns import vertical_line, white
+from devices.protocols import Camera, Projector, SyncController
+from pipeline.errors import DeviceError, Problem, SpecError
+from pipeline.store import create_capture, missing_frames, open_store, write_frame
+
+
+@dataclass
+class ProcamInstruments:
+    """The instruments of a delay–exposure sweep and the attrs (v_p, t_p, …) its captures carry."""
+
+    sync: SyncController
+    projector: Projector
+    camera: Camera
+    attrs: Mapping[str, Any] = field(default_factory=dict)
+
+    def close(self) -> None:
+        for device in (self.sync, self.projector, self.camera):
+            device.close()
+
+
+@dataclass(frozen=True)
+class SweepPlan:
+    """How many captures a sweep needs, and what scanning one projector block at a time would need (§5.2.4)."""
+
+    delays: int
+    exposures: int
+    lines: int
+    pixel_to_pixel: int
+
+    @property
+    def captures(self) -> int:
+        return self.delays * self.exposures * self.lines
+
+    def describe(self) -> str:
+        shape = f"{self.delays} delays × {self.exposures} exposures"
+        if self.lines > 1:
+            shape += f" × {self.lines} lines"
+        return (f"{self.captures} captures ({shape}) versus {self.pixel_to_pixel} for pixel-to-pixel scanning "
+                f"of the same range and resolution ({self.pixel_to_pixel / max(self.captures, 1):.1f}×)")
+
+
+def plan_sweep(delays: Sequence[float], exposures: Sequence[float], lines: Sequence[float] | None = None, *,
+               row_block: float, row_span: float) -> SweepPlan:
+    """Captures of a sweep versus pixel-to-pixel scanning (one block of ``row_block`` projector rows — and,
+    for the full transport, one ``row_block``-wide column block per line position — lit at a time, stepped
+    over ``row_span`` rows).
+
+    The thesis's §5.4.2 arithmetic: 46 line positions (0…900 px every 20) × 11 delays = 506 captures, versus
+    46 × 81 blocks of 20 px = 3,726 for pixel-to-pixel scanning.
+    """
+    n_lines = len(lines) if lines is not None else 1
+    return SweepPlan(len(delays), len(exposures), n_lines, n_lines * math.ceil(row_span / row_block))
+
+
+def refuse_impossible(instruments: ProcamInstruments, delays, exposures) -> None:
+    problems = instruments.sync.limits.problems(delays, exposures)
+    if problems:
+        raise SpecError([Problem(p, fix="narrow the sweep to what the sync controller can do") for p in problems])
+
+
+def _template(instruments: ProcamInstruments, kind: str, delays, exposures, lines=None, extra_attrs=None) -> xr.Dataset:
+    rows, cols = instruments.camera.shape
+    coords = {"delay": ("delay", np.asarray(delays, float), {"units": "us", "long_name": "sync delay t_d"}),
+              "exposure": ("exposure", np.asarray(exposures, float), {"units": "us", "long_name": "exposure t_e"})}
+    dims = ["delay", "exposure"]
+    if lines is not None:
+        coords["line"] = ("line", np.asarray(lines, float), {"units": "px", "long_name": "line centre l_p"})
+        dims.append("line")
+    shape = tuple(len(coords[d][1]) for d in dims) + (rows, cols)
+    stack = da.zeros(shape, dtype=np.float32, chunks=(1,) * len(dims) + (rows, cols))
+    return xr.Dataset({"image": ((*dims, "row", "col"), stack, {"units": "counts"})}, coords=coords,
+                      attrs={"selpath_kind": kind, **instruments.attrs, **(extra_attrs or {})})
+
+
+def _sweep(instruments: ProcamInstruments, store, template: xr.Dataset, kind: str, pattern_of: Callable,
+           progress: bool, log: Callable[[str], None]) -> xr.Dataset:
+    refuse_impossible(instruments, template["delay"].values, template["exposure"].values)
+    create_capture(store, template, kind)
+    todo = missing_frames(store)["image"]
+    if not todo:
+        log(f"{store}: every frame is already captured")
+        return open_store(store)
+    dims = [d for d in ("delay", "exposure", "line") if d in template.dims]
+    index = {d: {float(v): i for i, v in enumerate(template[d].values)} for d in dims}
+    todo = sorted(todo, key=lambda f: (f["exposure"], f.get("line", 0.0), f["delay"]))
+    log(f"{store}: capturing {len(todo)} frame(s)" + (" (resuming)" if len(todo) < template["image"].shape[0] *
+                                                       int(np.prod(template["image"].shape[1:len(dims)])) else ""))
+    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
+    current: dict[str, Any] = {}
+    with Progress(*columns, disable=not progress) as bar:
+        task = bar.add_task(kind, total=len(todo))
+        for frame in todo:
+            if current.get("line", object()) != frame.get("line"):
+                instruments.projector.show(pattern_of(frame.get("line")))
+                current["line"] = frame.get("line")
+            if current.get("exposure") != frame["exposure"]:
+                _verified(instruments.sync.set_exposure(frame["exposure"]), frame["exposure"], "exposure", instruments)
+                current["exposure"] = frame["exposure"]
+            _verified(instruments.sync.set_delay(frame["delay"]), frame["delay"], "delay", instruments)
+            instruments.sync.arm()
+            image = instruments.camera.capture()
+            write_frame(store, "image", {d: index[d][float(frame[d])] for d in dims}, image)
+            bar.update(task, advance=1, description=f"{kind} t_d={frame['delay']:g} µs t_e={frame['exposure']:g} µs"
+                       + (f" l_p={frame['line']:g} px" if "line" in frame else ""))
+    return open_store(store)
+
+
+def _verified(actual: float, wanted: float, name: str, instruments: ProcamInstruments) -> None:
+    if abs(actual - wanted) > instruments.sync.limits.step / 2:
+        raise DeviceError(f"controller holds {name} {actual:g} µs, the sweep asked {wanted:g} µs",
+                          command=f"set_{name}({wanted})", fix="check the controller, then run the sweep again")
+
+
+def acquire_plane_to_ray(instruments: ProcamInstruments, store: str | os.PathLike, delays: Sequence[float],
+                         exposures: Sequence[float], *, progress: bool = True,
+                         log: Callable[[str], None] = lambda _: None) -> xr.Dataset:
+    """White pattern, every (delay, exposure): a ``plane_to_ray_capture`` store, resumable."""
+    template = _template(instruments, "plane_to_ray_capture", delays, exposures)
+    pattern = white(instruments.projector.shape)
+    return _sweep(instruments, store, template, "plane_to_ray_capture", lambda _: pattern, progress, log)
+
+
+def acquire_full_transport(instruments: ProcamInstruments, store: str | os.PathLike, delays: Sequence[float],
+                           exposures: Sequence[float], lines: Sequence[float], line_width: float, *,
+                           progress: bool = True, log: Callable[[str], None] = lambda _: None) -> xr.Dataset:
+    """A vertical line at each l_p (width l_w) × every (delay, exposure): a ``full_transport_capture`` store."""
+    template = _template(instruments, "full_transport_capture", delays, exposures, lines,
+                         {"line_width_px": float(line_width)})
+    shape = instruments.projector.shape
+    return _sweep(instruments, store, template, "full_transport_capture",
+                  lambda position: vertical_line(shape, position, line_width), progress, log)

@@ -1,0 +1,115 @@
+"""The simulated projector–camera rig: sync controller, projector and rolling-shutter camera on top of the
+transport simulator (``devices.sim.transport``), behind the protocols of :mod:`devices.protocols`.
+
+The camera renders what the rig's state says: the delay and exposure the controller holds (plus the
+rig's true sync offset, which only a calibration reveals) and the pattern on the projector. Like the
+real circuit, a frame needs the trigger armed, and a new setting disarms it. Frames are deterministic for
+a given state, so a resumed sweep writes the same frames as an uninterrupted one.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from devices.protocols import SyncLimits, SyncStatus
+from devices.sim.procam_scene import ProcamScene
+from devices.sim.sync_firmware import DEFAULT_LIMITS
+from devices.sim.transport import render_frame
+from pipeline.errors import DeviceError
+
+
+class SimSyncController:
+    def __init__(self, limits: SyncLimits = DEFAULT_LIMITS) -> None:
+        self._limits = limits
+        self._status = SyncStatus(0.0, 1000.0, False)
+
+    @property
+    def limits(self) -> SyncLimits:
+        return self._limits
+
+    def _check(self, name: str, value: float, low: float, high: float) -> float:
+        if not low <= value <= high:
+            raise DeviceError(f"{name} {value:g} µs is outside [{low:g}, {high:g}] µs", port="sim",
+                              command=f"{name.upper()} {value:.1f}", reply="ERR 2 OUT OF RANGE")
+        return round(value / self._limits.step) * self._limits.step
+
+    def set_delay(self, delay_us: float) -> float:
+        value = self._check("delay", float(delay_us), self._limits.delay_min, self._limits.delay_max)
+        self._status = SyncStatus(value, self._status.exposure_us, False)
+        return value
+
+    def set_exposure(self, exposure_us: float) -> float:
+        value = self._check("exposure", float(exposure_us), self._limits.exposure_min, self._limits.exposure_max)
+        self._status = SyncStatus(self._status.delay_us, value, False)
+        return value
+
+    def arm(self) -> None:
+        self._status = SyncStatus(self._status.delay_us, self._status.exposure_us, True)
+
+    def disarm(self) -> None:
+        self._status = SyncStatus(self._status.delay_us, self._status.exposure_us, False)
+
+    def status(self) -> SyncStatus:
+        return self._status
+
+    def close(self) -> None:
+        pass
+
+
+class SimProjector:
+    def __init__(self, shape: tuple[int, int]) -> None:
+        self._shape = shape
+        self.pattern: np.ndarray | None = None  # None: white
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self._shape
+
+    def show(self, pattern: np.ndarray) -> None:
+        pattern = np.asarray(pattern, dtype=float)
+        if pattern.shape != self._shape:
+            raise DeviceError(f"pattern is {pattern.shape}; the projector is {self._shape}", port="sim",
+                              command="show")
+        self.pattern = None if np.all(pattern == 1.0) else pattern
+
+    def close(self) -> None:
+        pass
+
+
+class SimRollingShutterCamera:
+    """A rolling-shutter camera triggered by the sync controller, rendering ``scene`` by time integration."""
+
+    def __init__(self, scene: ProcamScene, sync: SimSyncController, projector: SimProjector) -> None:
+        self.scene, self.sync, self.projector = scene, sync, projector
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (self.scene.rig.camera_rows, self.scene.rig.camera_cols)
+
+    def capture(self) -> np.ndarray:
+        status = self.sync.status()
+        if not status.armed:
+            raise DeviceError("capture without an armed trigger: the frame would not be synchronised", port="sim",
+                              command="capture", fix="arm the sync controller after setting delay and exposure")
+        frame = render_frame(self.scene, status.delay_us, status.exposure_us, self.projector.pattern)
+        self.sync.disarm()  # one frame per trigger
+        if self.scene.rig.frame_interval:
+            time.sleep(self.scene.rig.frame_interval * 1e-6)
+        return frame
+
+    def close(self) -> None:
+        pass
+
+
+def simulated_procam_rig(scene: ProcamScene, limits: SyncLimits = DEFAULT_LIMITS):
+    """A :class:`~devices.procam_acquire.ProcamInstruments` of simulated devices showing ``scene``."""
+    from devices.procam_acquire import ProcamInstruments
+
+    rig = scene.rig
+    sync = SimSyncController(limits)
+    projector = SimProjector((rig.projector_rows, rig.projector_cols))
+    camera = SimRollingShutterCamera(scene, sync, projector)
+    attrs = rig.attrs() | {"rig": "simulated", "scene": scene.scene, "effects": list(scene.effect_names())}
+    return ProcamInstruments(sync, projector, camera, attrs)

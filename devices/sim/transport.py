@@ -1,0 +1,365 @@
+"""The projector–camera transport simulator: ground-truth transport from a scene's effects, and images
+formed by integrating the raster scan and the rolling shutter over time (§5.2.2, §5.3.1).
+
+**Ground truth.** Each pixel's transport is a sum of separable *lobes* in offset space, one or more per
+effect its object names (``devices.sim.procam_scene``): weight · k_u(du) · k_v(dv), with du in projector
+columns from the pixel's direct correspondence u_d and dv = projector row − camera row. Kernels are
+integrated over each unit offset cell, so a lobe's mass on the integer grid is exactly its weight (hat:
+linear interpolation of a delta; gauss; exp: a Laplace lobe). Only the named effects' code runs.
+
+**Images.** Nothing here uses the demultiplexing's illumination matrix. A frame is formed by integrating
+over time: projector row v is lit during [vτ + j_v, vτ + j_v + t_p] (τ = 1/v_p the row period, j_v the
+laser jitter when the rig names it), camera row s exposes during t_e centred at sτ + t_p/2 + t_d (t_d the
+commanded delay plus the rig's true sync offset); the light row v sends to row s is the overlap of the two
+intervals over t_p. The pattern's column profile weights du. Sensor noise (shot, read), quantisation and
+saturation apply only when named. Frames are rendered in row tiles, so memory stays bounded at any
+sensor size.
+"""
+
+from __future__ import annotations
+
+import zlib
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.special import ndtr
+
+from devices.sim.procam_scene import Effects, ProcamRig, ProcamScene
+
+#: rows rendered at a time (bounded memory at any sensor width)
+TILE_ROWS = 64
+
+
+@dataclass(frozen=True)
+class Lobe:
+    """One separable lobe for a set of pixels (``index`` into the tile's flattened pixels)."""
+
+    index: np.ndarray
+    weight: np.ndarray
+    du: np.ndarray
+    dv: np.ndarray
+    width_u: np.ndarray
+    width_v: np.ndarray
+    shape_u: str  # "hat" | "gauss" | "exp"
+    shape_v: str
+
+
+def cell_kernel(offsets: np.ndarray, centre: np.ndarray, width: np.ndarray, shape: str) -> np.ndarray:
+    """Mass of a unit lobe in each unit offset cell [o − ½, o + ½); broadcasts ``offsets`` against centre/width.
+
+    ``hat`` is the linear interpolation of a delta at ``centre`` (width ignored); ``gauss`` has standard
+    deviation ``width``; ``exp`` is the Laplace density with scale ``width``. Each sums to 1 over all
+    integers.
+    """
+    x = offsets - centre
+    if shape == "hat":
+        return np.clip(1.0 - np.abs(x), 0.0, None)
+    if shape == "gauss":
+        return ndtr((x + 0.5) / width) - ndtr((x - 0.5) / width)
+    if shape == "exp":
+        def cdf(y):
+            return np.where(y < 0, 0.5 * np.exp(np.minimum(y, 0) / width),
+                            1.0 - 0.5 * np.exp(-np.maximum(y, 0) / width))
+        return cdf(x + 0.5) - cdf(x - 0.5)
+    raise ValueError(f"unknown lobe shape {shape!r}")
+
+
+def _reach(width: np.ndarray, shape: str) -> int:
+    """Half-width of the offset window that holds a lobe's mass to below 1e-9."""
+    if shape == "hat" or width.size == 0:
+        return 1
+    factor = 6.5 if shape == "gauss" else 21.0  # Laplace tail: exp(−21) ≈ 8e-10
+    return int(np.ceil(factor * float(width.max()))) + 1
+
+
+# -- the tile of pixels ----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Tile:
+    """Pixels rows[r0:r1] × all columns, with fractional coordinates and the object each shows."""
+
+    rows: np.ndarray  # (P,) camera row of each pixel
+    cols: np.ndarray
+    fx: np.ndarray  # fractions of width / height, pixel centres
+    fy: np.ndarray
+    aspect: float  # width / height: fraction-x times aspect is in height units
+    label: np.ndarray  # −1 background, else index into scene.objects
+    shape: tuple[int, int]
+
+    @classmethod
+    def of(cls, scene: ProcamScene, r0: int, r1: int) -> Tile:
+        rig = scene.rig
+        rr, cc = np.meshgrid(np.arange(r0, r1), np.arange(rig.camera_cols), indexing="ij")
+        rows, cols = rr.ravel(), cc.ravel()
+        fx, fy = (cols + 0.5) / rig.camera_cols, (rows + 0.5) / rig.camera_rows
+        aspect = rig.camera_cols / rig.camera_rows
+        label = np.full(rows.shape, -1)
+        for i, obj in enumerate(scene.objects):
+            region = obj.region
+            inside = region.mask(fx, fy) if region.kind == "rectangle" else region.mask(fx, fy, aspect)
+            label[inside] = i
+        return cls(rows, cols, fx, fy, aspect, label, (r1 - r0, rig.camera_cols))
+
+
+def _surfaces(scene: ProcamScene, tile: Tile):
+    """(index, albedo, disparity, effects) for the background and each object present in the tile."""
+    for i, surface in [(-1, scene.background), *enumerate(scene.objects)]:
+        index = np.flatnonzero(tile.label == i)
+        if index.size:
+            yield index, surface.albedo, surface.disparity, surface.effects
+
+
+# -- effects: each returns the lobes of its pixels; only named effects are called -----------------------
+
+
+def _full(index: np.ndarray, value: float) -> np.ndarray:
+    return np.full(index.shape, float(value))
+
+
+def direct_lobes(index, albedo, effects: Effects, tile: Tile, rig: ProcamRig) -> list[Lobe]:
+    share = 1.0 - (effects.subsurface.fraction if effects.subsurface else 0.0)
+    zero = _full(index, 0.0)
+    return [Lobe(index, _full(index, albedo * share), zero, zero, zero, zero, "hat", "hat")]
+
+
+def subsurface_lobes(index, albedo, effects: Effects, tile: Tile, rig: ProcamRig) -> list[Lobe]:
+    spec = effects.subsurface
+    zero, width = _full(index, 0.0), _full(index, spec.width)
+    return [Lobe(index, _full(index, albedo * spec.fraction), zero, zero, width, width, "exp", "exp")]
+
+
+def diffuse_interreflection_lobes(index, albedo, effects: Effects, tile: Tile, rig: ProcamRig) -> list[Lobe]:
+    spec = effects.diffuse_interreflection
+    d = tile.fx[index] - spec.corner_x
+    weight = spec.strength * albedo * np.exp(-np.abs(d) / spec.falloff)
+    du = -2.0 * d * rig.projector_cols  # light from the facing page, mirrored across the corner
+    return [Lobe(index, weight, du, _full(index, 0.0), np.maximum(2.0, np.abs(du) / 2), _full(index, spec.width_v),
+                 "gauss", "exp")]
+
+
+def specular_interreflection_lobes(index, albedo, effects: Effects, tile: Tile, rig: ProcamRig) -> list[Lobe]:
+    spec = effects.specular_interreflection
+    x = (tile.fx[index] - spec.centre[0]) * tile.aspect
+    y = tile.fy[index] - spec.centre[1]
+    pool = np.exp(-(x**2 + y**2) / (2 * (spec.reach / 2) ** 2)) * (np.hypot(x, y) < spec.reach)
+    weight = spec.strength * albedo * pool
+    if spec.facets is not None:
+        weight = weight * ((np.cos(2 * np.pi * x / spec.facets) * np.cos(2 * np.pi * y / spec.facets)) > 0.5)
+    du = spec.displacement[0] + spec.gain * x / tile.aspect * rig.projector_cols
+    dv = spec.displacement[1] + spec.gain * y * rig.camera_rows
+    width = _full(index, spec.width)
+    keep = weight > 0
+    return [Lobe(index[keep], weight[keep], du[keep], dv[keep], width[keep], width[keep], "gauss", "gauss")]
+
+
+def refraction_lobes(index, albedo, effects: Effects, tile: Tile, rig: ProcamRig) -> list[Lobe]:
+    spec = effects.refraction
+    du = -2.0 * (tile.fx[index] - spec.centre[0]) * rig.projector_cols  # entering high, leaving low (Fig. 46)
+    dv = -2.0 * (tile.fy[index] - spec.centre[1]) * rig.camera_rows
+    width = _full(index, spec.width)
+    return [Lobe(index, _full(index, spec.transmittance), du, dv, width, width, "gauss", "gauss")]
+
+
+#: effect name → lobe builder (a constant table; tests wrap entries to count calls)
+EFFECTS: dict[str, Callable[..., list[Lobe]]] = {
+    "subsurface": subsurface_lobes,
+    "diffuse_interreflection": diffuse_interreflection_lobes,
+    "specular_interreflection": specular_interreflection_lobes,
+    "refraction": refraction_lobes,
+}
+
+
+def tile_lobes(scene: ProcamScene, tile: Tile,
+               effects: dict[str, Callable] | None = None) -> tuple[list[Lobe], np.ndarray]:
+    """The lobes of every pixel in ``tile`` and each pixel's direct correspondence column u_d."""
+    table = EFFECTS if effects is None else effects
+    rig = scene.rig
+    u_direct = np.zeros(tile.rows.shape, dtype=np.int64)
+    lobes: list[Lobe] = []
+    for index, albedo, disparity, named in _surfaces(scene, tile):
+        u_direct[index] = np.round(tile.fx[index] * rig.projector_cols - 0.5 + disparity).astype(np.int64)
+        if albedo > 0:
+            lobes += direct_lobes(index, albedo, named, tile, rig)
+        for name in named.names():
+            lobes += table[name](index, albedo, named, tile, rig)
+    return [lobe for lobe in lobes if lobe.index.size], u_direct
+
+
+# -- time integration ----------------------------------------------------------------------------------
+
+
+def frame_key(delay: float, exposure: float, pattern: np.ndarray | None) -> int:
+    """A deterministic seed for one capture's random effects (resumed sweeps reproduce the same frames)."""
+    digest = zlib.crc32(np.ascontiguousarray(pattern).tobytes()) if pattern is not None else 0
+    return zlib.crc32(np.array([delay, exposure], dtype=np.float64).tobytes(), digest)
+
+
+def row_jitter(rig: ProcamRig, key: int, first: int, last: int) -> np.ndarray | None:
+    """Laser timing jitter j_v [µs] of projector rows first..last (inclusive), or None when not simulated."""
+    if rig.jitter is None or rig.jitter.std == 0:
+        return None
+    rng = np.random.default_rng([rig.jitter.seed, key])
+    full = rng.normal(0.0, rig.jitter.std, rig.camera_rows + 2 * 4096)  # rows −4096 … R+4095, one draw per row
+    return full[np.clip(np.arange(first, last + 1) + 4096, 0, full.size - 1)]
+
+
+def exposure_overlap(rig: ProcamRig, camera_row, projector_row, delay: float, exposure: float,
+                     jitter: np.ndarray | None = None, jitter_first: int = 0) -> np.ndarray:
+    """Fraction of projector row v's lit time t_p that falls in camera row s's exposure (broadcasting).
+
+    The two intervals on the time axis: lit [vτ + j_v, vτ + j_v + t_p]; exposed t_e wide, centred at
+    sτ + t_p/2 + t_d + t_o (t_o the rig's true sync offset).
+    """
+    tau, tp = rig.row_period, rig.line_time
+    start = projector_row * tau
+    if jitter is not None:
+        start = start + jitter[np.asarray(projector_row) - jitter_first]
+    centre = camera_row * tau + tp / 2 + delay + rig.sync_offset
+    overlap = np.minimum(start + tp, centre + exposure / 2) - np.maximum(start, centre - exposure / 2)
+    return np.clip(overlap, 0.0, None) / tp
+
+
+def _delay_window(rig: ProcamRig, delay: float, exposure: float, margin: float) -> tuple[int, int]:
+    """Offsets o (projector − camera row) that can receive light at this delay/exposure."""
+    tau, tp = rig.row_period, rig.line_time
+    low = (delay + rig.sync_offset - exposure / 2 - tp / 2 - margin) / tau - 1
+    high = (delay + rig.sync_offset + exposure / 2 + tp / 2 + margin) / tau + 1
+    return int(np.floor(low)), int(np.ceil(high))
+
+
+def render_tile(scene: ProcamScene, tile: Tile, delay: float, exposure: float,
+                profiles: tuple[np.ndarray, np.ndarray], key: int,
+                effects: dict[str, Callable] | None = None) -> np.ndarray:
+    """Signal [counts, before noise] of ``tile`` for one capture, by time integration.
+
+    ``profiles``: the pattern's (row profile on camera rows, column profile on projector columns), from
+    :func:`separable`.
+    """
+    row_profile, column_profile = profiles
+    rig = scene.rig
+    lobes, u_direct = tile_lobes(scene, tile, effects)
+    margin = 6 * rig.jitter.std if rig.jitter is not None else 0.0
+    o_low, o_high = _delay_window(rig, delay, exposure, margin)
+    r_first, r_last = int(tile.rows.min()), int(tile.rows.max())
+    jitter = row_jitter(rig, key, r_first + o_low - 1, r_last + o_high + 1)
+    signal = np.zeros(tile.rows.shape)
+    n_cols = column_profile.shape[0]
+    for lobe in lobes:
+        rows = tile.rows[lobe.index][:, None]
+        # vertical: Σ_o exposure_overlap(s, s+o) · k_v(o), over the lobe's window ∩ the delay window
+        reach = _reach(lobe.width_v, lobe.shape_v)
+        lo = max(int(np.floor(lobe.dv.min())) - reach, o_low)
+        hi = min(int(np.ceil(lobe.dv.max())) + reach, o_high)
+        if hi < lo:
+            continue
+        o = np.arange(lo, hi + 1)[None, :]
+        k_v = cell_kernel(o, lobe.dv[:, None], lobe.width_v[:, None], lobe.shape_v)
+        light = exposure_overlap(rig, rows, rows + o, delay, exposure, jitter, r_first + o_low - 1)
+        v = rows + o
+        inside = (v >= 0) & (v < row_profile.size)
+        light = light * np.where(inside, row_profile[np.clip(v, 0, row_profile.size - 1)], 0.0)
+        vertical = np.einsum("pk,pk->p", k_v, light)
+        # horizontal: Σ_du pattern[u_d + du] · k_u(du)
+        reach = _reach(lobe.width_u, lobe.shape_u)
+        j = np.arange(-reach, reach + 1)[None, :] + np.round(lobe.du)[:, None].astype(np.int64)
+        k_u = cell_kernel(j, lobe.du[:, None], lobe.width_u[:, None], lobe.shape_u)
+        u = u_direct[lobe.index][:, None] + j
+        lit = np.where((u >= 0) & (u < n_cols), column_profile[np.clip(u, 0, n_cols - 1)], 0.0)
+        horizontal = np.einsum("pk,pk->p", k_u, lit)
+        np.add.at(signal, lobe.index, lobe.weight * vertical * horizontal)
+    return rig.intensity * signal
+
+
+def sensor(rig: ProcamRig, signal: np.ndarray, key: int, where: int) -> np.ndarray:
+    """Noise (when named), dark level, quantisation and saturation: raw float32 counts."""
+    if rig.noise is not None:
+        rng = np.random.default_rng([rig.noise.seed, key, where])
+        if rig.noise.gain is not None:
+            signal = rng.poisson(np.clip(signal, 0, None) / rig.noise.gain) * rig.noise.gain
+        signal = signal + rng.normal(0.0, rig.noise.read_std, signal.shape)
+    raw = rig.dark_level + signal
+    if rig.bits is not None:
+        raw = np.round(raw)
+    return np.clip(raw, 0.0, rig.saturation_level).astype(np.float32)
+
+
+def tiles(scene: ProcamScene, tile_rows: int = TILE_ROWS) -> Iterator[Tile]:
+    for r0 in range(0, scene.rig.camera_rows, tile_rows):
+        yield Tile.of(scene, r0, min(r0 + tile_rows, scene.rig.camera_rows))
+
+
+def render_frame(scene: ProcamScene, delay: float, exposure: float, pattern: np.ndarray | None = None, *,
+                 effects: dict[str, Callable] | None = None) -> np.ndarray:
+    """One raw frame (float32 counts, camera shape) for a capture at ``delay``, ``exposure`` [µs].
+
+    ``pattern``: (projector rows, cols) in [0, 1], separable (:func:`separable`); None: white.
+    """
+    rig = scene.rig
+    profile = separable(rig, pattern)
+    key = frame_key(delay, exposure, pattern)
+    out = np.empty((rig.camera_rows, rig.camera_cols), dtype=np.float32)
+    for tile in tiles(scene):
+        r0 = int(tile.rows[0])
+        signal = render_tile(scene, tile, delay, exposure, profile, key, effects)
+        out[r0:r0 + tile.shape[0]] = sensor(rig, signal, key, r0).reshape(tile.shape)
+    return out
+
+
+def separable(rig: ProcamRig, pattern: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """A pattern as (row profile on camera rows, column profile on projector columns), P = b(v) · a(u).
+
+    Rows are rectified onto camera rows (projector row ⌊s · P_rows / C_rows⌋ lights camera row s). White,
+    vertical and horizontal lines, vertical stripes and column Gray codes are separable; a pattern that is
+    not (a checkerboard) is refused, naming why.
+    """
+    if pattern is None:
+        return np.ones(rig.camera_rows), np.ones(rig.projector_cols)
+    pattern = np.asarray(pattern, dtype=float)
+    if pattern.shape != (rig.projector_rows, rig.projector_cols):
+        raise ValueError(f"pattern is {pattern.shape}; the projector is {(rig.projector_rows, rig.projector_cols)}")
+    if not np.all(np.isfinite(pattern)) or pattern.min() < 0 or pattern.max() > 1:
+        raise ValueError("pattern values must be finite and in [0, 1]")
+    r, c = np.unravel_index(np.argmax(pattern), pattern.shape)
+    peak = pattern[r, c]
+    rows, cols = (pattern[:, c] / peak, pattern[r, :]) if peak > 0 else (np.zeros(pattern.shape[0]), pattern[0])
+    if not np.allclose(np.outer(rows, cols), pattern, atol=1e-9):
+        raise ValueError("the simulated rolling-shutter rig renders separable patterns b(v)·a(u) (white, lines, "
+                         "stripes, column Gray codes); this one is not (a checkerboard?)")
+    camera_to_projector = (np.arange(rig.camera_rows) * rig.projector_rows) // rig.camera_rows
+    return rows[camera_to_projector], cols
+
+
+# -- ground truth on the offset grid --------------------------------------------------------------------
+
+
+def truth_tile(scene: ProcamScene, tile: Tile, dv: np.ndarray, du: np.ndarray | None = None,
+               effects: dict[str, Callable] | None = None) -> np.ndarray:
+    """Ground-truth transport of ``tile`` on the offset grid: (len(dv), P) plane-to-ray (the white pattern's
+    sum over the projector's columns), or (len(du), len(dv), P) full transport. Offsets that point outside
+    the projector carry nothing."""
+    rig = scene.rig
+    lobes, u_direct = tile_lobes(scene, tile, effects)
+    n = tile.rows.size
+    out = np.zeros((len(dv), n) if du is None else (len(du), len(dv), n))
+    white = np.ones(rig.projector_cols)
+    for lobe in lobes:
+        k_v = cell_kernel(np.asarray(dv)[None, :], lobe.dv[:, None], lobe.width_v[:, None], lobe.shape_v)
+        v = tile.rows[lobe.index][:, None] + np.asarray(dv)[None, :]
+        k_v = k_v * ((v >= 0) & (v < rig.camera_rows))  # no light from rows the projector does not have
+        if du is None:
+            reach = _reach(lobe.width_u, lobe.shape_u)
+            j = np.arange(-reach, reach + 1)[None, :] + np.round(lobe.du)[:, None].astype(np.int64)
+            u = u_direct[lobe.index][:, None] + j
+            lit = np.where((u >= 0) & (u < rig.projector_cols), white[np.clip(u, 0, rig.projector_cols - 1)], 0.0)
+            k_u = cell_kernel(j, lobe.du[:, None], lobe.width_u[:, None], lobe.shape_u)
+            mass_u = np.einsum("pk,pk->p", k_u, lit)
+            np.add.at(out.T, lobe.index, (lobe.weight * mass_u)[:, None] * k_v)
+        else:
+            k_u = cell_kernel(np.asarray(du)[None, :], lobe.du[:, None], lobe.width_u[:, None], lobe.shape_u)
+            inside = (u_direct[lobe.index][:, None] + np.asarray(du)[None, :] >= 0) & \
+                     (u_direct[lobe.index][:, None] + np.asarray(du)[None, :] < rig.projector_cols)
+            np.add.at(out.transpose(2, 0, 1), lobe.index,
+                      lobe.weight[:, None, None] * (k_u * inside)[:, :, None] * k_v[:, None, :])
+    return out
