@@ -81,7 +81,7 @@ def refuse_impossible(instruments: ProcamInstruments, delays, exposures) -> None
         raise SpecError([Problem(p, fix="narrow the sweep to what the sync controller can do") for p in problems])
 
 
-def _template(instruments: ProcamInstruments, kind: str, delays, exposures, lines=None, extra_attrs=None) -> xr.Dataset:
+def capture_template(instruments: ProcamInstruments, kind: str, delays, exposures, lines=None, extra_attrs=None) -> xr.Dataset:
     rows, cols = instruments.camera.shape
     coords = {"delay": ("delay", np.asarray(delays, float), {"units": "us", "long_name": "sync delay t_d"}),
               "exposure": ("exposure", np.asarray(exposures, float), {"units": "us", "long_name": "exposure t_e"})}
@@ -95,7 +95,7 @@ def _template(instruments: ProcamInstruments, kind: str, delays, exposures, line
                       attrs={"selpath_kind": kind, **instruments.attrs, **(extra_attrs or {})})
 
 
-def _sweep(instruments: ProcamInstruments, store, template: xr.Dataset, kind: str, pattern_of: Callable,
+def sweep_frames(instruments: ProcamInstruments, store, template: xr.Dataset, kind: str, pattern_of: Callable,
            progress: bool, log: Callable[[str], None]) -> xr.Dataset:
     refuse_impossible(instruments, template["delay"].values, template["exposure"].values)
     create_capture(store, template, kind)
@@ -138,17 +138,17 @@ def acquire_plane_to_ray(instruments: ProcamInstruments, store: str | os.PathLik
                          exposures: Sequence[float], *, progress: bool = True,
                          log: Callable[[str], None] = lambda _: None) -> xr.Dataset:
     """White pattern, every (delay, exposure): a ``plane_to_ray_capture`` store, resumable."""
-    template = _template(instruments, "plane_to_ray_capture", delays, exposures)
+    template = capture_template(instruments, "plane_to_ray_capture", delays, exposures)
     pattern = white(instruments.projector.shape)
-    return _sweep(instruments, store, template, "plane_to_ray_capture", lambda _: pattern, progress, log)
+    return sweep_frames(instruments, store, template, "plane_to_ray_capture", lambda _: pattern, progress, log)
 
 
 def acquire_full_transport(instruments: ProcamInstruments, store: str | os.PathLike, delays: Sequence[float],
                            exposures: Sequence[float], lines: Sequence[float], line_width: float, *,
                            progress: bool = True, log: Callable[[str], None] = lambda _: None) -> xr.Dataset:
     """A vertical line at each l_p (width l_w) × every (delay, exposure): a ``full_transport_capture`` store."""
-    template = _template(instruments, "full_transport_capture", delays, exposures, lines,
+    template = capture_template(instruments, "full_transport_capture", delays, exposures, lines,
                          {"line_width_px": float(line_width)})
     shape = instruments.projector.shape
-    return _sweep(instruments, store, template, "full_transport_capture",
+    return sweep_frames(instruments, store, template, "full_transport_capture",
                   lambda position: vertical_line(shape, position, line_width), progress, log)

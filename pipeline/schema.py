@@ -150,6 +150,17 @@ KINDS: dict[str, CubeKind] = {
             coord_units={},
         ),
         CubeKind(
+            name="scan_calibration",
+            description="projector scan speed v_p and sync offset t_o fitted from a horizontal-line sweep (§5.3.2)",
+            variables={
+                "count": Variable(("delay", "exposure"), description="illuminated rows counted per frame"),
+                "centroid": Variable(("delay", "exposure"), description="row centroid of the lit band"),
+            },
+            coord_units={"delay": TIME_UNITS, "exposure": TIME_UNITS},
+            attrs={"scan_speed_px_per_us": "fitted v_p, camera rows per µs", "scan_speed_std": "its standard error",
+                   "sync_offset_us": "fitted t_o, µs", "sync_offset_std": "its standard error"},
+        ),
+        CubeKind(
             name="figure",
             description="a rendered figure (RGBA); the engine also saves it as <store>.png",
             variables={"image": Variable(("y", "x", "rgba"))},

@@ -83,6 +83,14 @@ class SimRollingShutterCamera:
 
     def __init__(self, scene: ProcamScene, sync: SimSyncController, projector: SimProjector) -> None:
         self.scene, self.sync, self.projector = scene, sync, projector
+        self.shutter = "rolling"
+
+    def set_shutter(self, mode: str) -> None:
+        """``rolling`` (synchronised to the scan) or ``global`` (all rows expose t_e after VSYNC + delay:
+        the mode of the v_p calibration, §5.3.2)."""
+        if mode not in ("rolling", "global"):
+            raise DeviceError(f"unknown shutter mode {mode!r}", port="sim", command="set_shutter")
+        self.shutter = mode
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -93,7 +101,8 @@ class SimRollingShutterCamera:
         if not status.armed:
             raise DeviceError("capture without an armed trigger: the frame would not be synchronised", port="sim",
                               command="capture", fix="arm the sync controller after setting delay and exposure")
-        frame = render_frame(self.scene, status.delay_us, status.exposure_us, self.projector.pattern)
+        frame = render_frame(self.scene, status.delay_us, status.exposure_us, self.projector.pattern,
+                             shutter=self.shutter)
         self.sync.disarm()  # one frame per trigger
         if self.scene.rig.frame_interval:
             time.sleep(self.scene.rig.frame_interval * 1e-6)

@@ -196,27 +196,35 @@ def frame_key(delay: float, exposure: float, pattern: np.ndarray | None) -> int:
     return zlib.crc32(np.array([delay, exposure], dtype=np.float64).tobytes(), digest)
 
 
-def row_jitter(rig: ProcamRig, key: int, first: int, last: int) -> np.ndarray | None:
-    """Laser timing jitter j_v [µs] of projector rows first..last (inclusive), or None when not simulated."""
+#: the jitter vector starts at this (virtual) projector row; rows beyond the vector's ends reuse its ends
+JITTER_FIRST = -4096
+
+
+def row_jitter(rig: ProcamRig, key: int) -> np.ndarray | None:
+    """Laser timing jitter j_v [µs] of projector rows JITTER_FIRST … R − JITTER_FIRST − 1 for one capture,
+    or None when the rig does not name jitter. One draw per row, the same for every tile."""
     if rig.jitter is None or rig.jitter.std == 0:
         return None
     rng = np.random.default_rng([rig.jitter.seed, key])
-    full = rng.normal(0.0, rig.jitter.std, rig.camera_rows + 2 * 4096)  # rows −4096 … R+4095, one draw per row
-    return full[np.clip(np.arange(first, last + 1) + 4096, 0, full.size - 1)]
+    return rng.normal(0.0, rig.jitter.std, rig.camera_rows - 2 * JITTER_FIRST)
 
 
 def exposure_overlap(rig: ProcamRig, camera_row, projector_row, delay: float, exposure: float,
-                     jitter: np.ndarray | None = None, jitter_first: int = 0) -> np.ndarray:
+                     jitter: np.ndarray | None = None, jitter_first: int = 0, shutter: str = "rolling") -> np.ndarray:
     """Fraction of projector row v's lit time t_p that falls in camera row s's exposure (broadcasting).
 
     The two intervals on the time axis: lit [vτ + j_v, vτ + j_v + t_p]; exposed t_e wide, centred at
-    sτ + t_p/2 + t_d + t_o (t_o the rig's true sync offset).
+    sτ + t_p/2 + t_d + t_o (t_o the rig's true sync offset) with the synchronised rolling shutter, or
+    [t_d + t_o, t_d + t_o + t_e] after VSYNC for every row with a global shutter (the v_p calibration).
     """
     tau, tp = rig.row_period, rig.line_time
     start = projector_row * tau
     if jitter is not None:
-        start = start + jitter[np.asarray(projector_row) - jitter_first]
-    centre = camera_row * tau + tp / 2 + delay + rig.sync_offset
+        start = start + jitter[np.clip(np.asarray(projector_row) - jitter_first, 0, jitter.size - 1)]
+    if shutter == "global":
+        centre = delay + rig.sync_offset + exposure / 2 + 0 * np.asarray(camera_row)
+    else:
+        centre = camera_row * tau + tp / 2 + delay + rig.sync_offset
     overlap = np.minimum(start + tp, centre + exposure / 2) - np.maximum(start, centre - exposure / 2)
     return np.clip(overlap, 0.0, None) / tp
 
@@ -229,9 +237,23 @@ def _delay_window(rig: ProcamRig, delay: float, exposure: float, margin: float) 
     return int(np.floor(low)), int(np.ceil(high))
 
 
+def _distinct(*columns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Distinct tuples of equal-length columns, (len(columns), n_distinct), and each row's tuple index.
+
+    Each column is coded by a 1-D ``np.unique`` and the codes are combined into one int64 key: much faster
+    than ``np.unique(axis=1)``, which sorts a structured view.
+    """
+    key = np.zeros(columns[0].shape, dtype=np.int64)
+    for column in columns:
+        values, codes = np.unique(column, return_inverse=True)
+        key = key * len(values) + codes.ravel()
+    _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
+    return np.stack([c[first] for c in columns]), inverse.ravel()
+
+
 def render_tile(scene: ProcamScene, tile: Tile, delay: float, exposure: float,
                 profiles: tuple[np.ndarray, np.ndarray], key: int,
-                effects: dict[str, Callable] | None = None) -> np.ndarray:
+                effects: dict[str, Callable] | None = None, shutter: str = "rolling") -> np.ndarray:
     """Signal [counts, before noise] of ``tile`` for one capture, by time integration.
 
     ``profiles``: the pattern's (row profile on camera rows, column profile on projector columns), from
@@ -241,34 +263,39 @@ def render_tile(scene: ProcamScene, tile: Tile, delay: float, exposure: float,
     rig = scene.rig
     lobes, u_direct = tile_lobes(scene, tile, effects)
     margin = 6 * rig.jitter.std if rig.jitter is not None else 0.0
-    o_low, o_high = _delay_window(rig, delay, exposure, margin)
-    r_first, r_last = int(tile.rows.min()), int(tile.rows.max())
-    jitter = row_jitter(rig, key, r_first + o_low - 1, r_last + o_high + 1)
+    if shutter == "global":  # every row exposes at once: any offset can be lit
+        o_low, o_high = -rig.camera_rows - 1, rig.camera_rows + 1
+    else:
+        o_low, o_high = _delay_window(rig, delay, exposure, margin)
+    jitter = row_jitter(rig, key)
     signal = np.zeros(tile.rows.shape)
     n_cols = column_profile.shape[0]
     for lobe in lobes:
-        rows = tile.rows[lobe.index][:, None]
-        # vertical: Σ_o exposure_overlap(s, s+o) · k_v(o), over the lobe's window ∩ the delay window
-        reach = _reach(lobe.width_v, lobe.shape_v)
-        lo = max(int(np.floor(lobe.dv.min())) - reach, o_low)
-        hi = min(int(np.ceil(lobe.dv.max())) + reach, o_high)
-        if hi < lo:
-            continue
-        o = np.arange(lo, hi + 1)[None, :]
-        k_v = cell_kernel(o, lobe.dv[:, None], lobe.width_v[:, None], lobe.shape_v)
-        light = exposure_overlap(rig, rows, rows + o, delay, exposure, jitter, r_first + o_low - 1)
+        # Both sums depend on a pixel only through a few parameters (its row and the lobe's dv and width; its
+        # u_d and the lobe's du and width), so they are evaluated once per distinct parameter tuple: an
+        # object's direct or subsurface lobe costs per row and per column, not per pixel.
+        unique, inverse = _distinct(tile.rows[lobe.index].astype(float), lobe.dv, lobe.width_v)
+        rows, dv, width = unique[0].astype(np.int64)[:, None], unique[1][:, None], unique[2][:, None]
+        reach = _reach(unique[2], lobe.shape_v)
+        if o_high - o_low < 2 * reach:  # the exposure band is narrower than the lobe: sum over the band
+            o = np.arange(o_low, o_high + 1)[None, :]
+        else:  # sum over the lobe's window around its centre (the band cuts it by zero overlap)
+            o = np.round(dv).astype(np.int64) + np.arange(-reach, reach + 1)[None, :]
+        k_v = cell_kernel(o, dv, width, lobe.shape_v)
         v = rows + o
+        light = exposure_overlap(rig, rows, v, delay, exposure, jitter, JITTER_FIRST, shutter)
         inside = (v >= 0) & (v < row_profile.size)
         light = light * np.where(inside, row_profile[np.clip(v, 0, row_profile.size - 1)], 0.0)
-        vertical = np.einsum("pk,pk->p", k_v, light)
+        vertical = np.einsum("pk,pk->p", k_v, light)[inverse.ravel()]
         # horizontal: Σ_du pattern[u_d + du] · k_u(du)
-        reach = _reach(lobe.width_u, lobe.shape_u)
-        j = np.arange(-reach, reach + 1)[None, :] + np.round(lobe.du)[:, None].astype(np.int64)
-        k_u = cell_kernel(j, lobe.du[:, None], lobe.width_u[:, None], lobe.shape_u)
-        u = u_direct[lobe.index][:, None] + j
+        unique, inverse = _distinct(u_direct[lobe.index].astype(float), lobe.du, lobe.width_u)
+        reach = _reach(unique[2], lobe.shape_u)
+        j = np.arange(-reach, reach + 1)[None, :] + np.round(unique[1])[:, None].astype(np.int64)
+        k_u = cell_kernel(j, unique[1][:, None], unique[2][:, None], lobe.shape_u)
+        u = unique[0].astype(np.int64)[:, None] + j
         lit = np.where((u >= 0) & (u < n_cols), column_profile[np.clip(u, 0, n_cols - 1)], 0.0)
-        horizontal = np.einsum("pk,pk->p", k_u, lit)
-        np.add.at(signal, lobe.index, lobe.weight * vertical * horizontal)
+        horizontal = np.einsum("pk,pk->p", k_u, lit)[inverse.ravel()]
+        signal[lobe.index] += lobe.weight * vertical * horizontal  # a lobe's pixels are distinct
     return rig.intensity * signal
 
 
@@ -291,18 +318,18 @@ def tiles(scene: ProcamScene, tile_rows: int = TILE_ROWS) -> Iterator[Tile]:
 
 
 def render_frame(scene: ProcamScene, delay: float, exposure: float, pattern: np.ndarray | None = None, *,
-                 effects: dict[str, Callable] | None = None) -> np.ndarray:
+                 effects: dict[str, Callable] | None = None, shutter: str = "rolling") -> np.ndarray:
     """One raw frame (float32 counts, camera shape) for a capture at ``delay``, ``exposure`` [µs].
 
     ``pattern``: (projector rows, cols) in [0, 1], separable (:func:`separable`); None: white.
     """
     rig = scene.rig
     profile = separable(rig, pattern)
-    key = frame_key(delay, exposure, pattern)
+    key = frame_key(delay, exposure, pattern) ^ (1 if shutter == "global" else 0)
     out = np.empty((rig.camera_rows, rig.camera_cols), dtype=np.float32)
     for tile in tiles(scene):
         r0 = int(tile.rows[0])
-        signal = render_tile(scene, tile, delay, exposure, profile, key, effects)
+        signal = render_tile(scene, tile, delay, exposure, profile, key, effects, shutter)
         out[r0:r0 + tile.shape[0]] = sensor(rig, signal, key, r0).reshape(tile.shape)
     return out
 

@@ -1,0 +1,310 @@
+"""Projector–camera acquisition and calibration as workflow steps (§5.2.3, §5.3, §5.3.2).
+
+``acquire_plane_to_ray`` and ``acquire_full_transport`` drive the simulated rig (``rig: sim``, a scene from
+``workflows/scenes/``) through a delay–exposure sweep, frame by frame and resumably, like
+``acquire_tomography``. ``acquire_scan_calibration`` projects a horizontal line at several exposures and
+delays; ``calibrate_scan_speed`` counts the illuminated rows of those frames and fits the scan speed v_p
+and the sync offset t_o by least squares (optimistix), with standard uncertainties.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+from typing import Literal
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+import pydantic
+import xarray as xr
+
+from devices.patterns import white
+from devices.procam_acquire import (
+    ProcamInstruments,
+    acquire_full_transport as full_sweep,
+    acquire_plane_to_ray as plane_sweep,
+    plan_sweep,
+    refuse_impossible,
+    sweep_frames,
+    capture_template,
+)
+from devices.sim.procam_rig import simulated_procam_rig
+from devices.sim.procam_scene import ProcamScene, load_procam_scene
+from devices.sim.sync_firmware import DEFAULT_LIMITS
+from pipeline.errors import SelpathError
+from pipeline.registry import stage
+from pipeline.spec import StorePath
+
+
+class TimeSweep(pydantic.BaseModel):
+    """Times start, start+step, …, up to and including stop [µs]."""
+
+    model_config = pydantic.ConfigDict(extra="forbid", frozen=True)
+    start: float
+    stop: float
+    step: float = pydantic.Field(gt=0, description="µs")
+
+    def values(self) -> np.ndarray:
+        return np.round(np.arange(self.start, self.stop + 1e-9 * self.step, self.step), 6)
+
+
+class PixelSweep(TimeSweep):
+    """Projector columns start, start+step, …, up to and including stop [px]."""
+
+
+def _scene(settings) -> ProcamScene:
+    scene = load_procam_scene(settings.scene)
+    if settings.sensor is not None:
+        scene = scene.with_rig(camera_rows=settings.sensor[0], camera_cols=settings.sensor[1])
+    return scene
+
+
+def _precheck(settings) -> list[str]:
+    if settings.rig != "sim":
+        return ["only rig 'sim' drives a projector–camera sweep so far; the serial sync controller exists "
+                "(devices.serial_sync) but no projector/camera pairing for hardware yet"]
+    try:
+        _scene(settings)
+    except SelpathError as exc:
+        return [f"scene file: {p}" for p in getattr(exc, "problems", [exc])]
+    exposures = getattr(settings, "exposures", ())
+    return DEFAULT_LIMITS.problems(settings.delays.values(), exposures)
+
+
+def _identity(settings) -> dict:
+    source = Path(settings.scene)
+    digest = hashlib.sha256(source.read_bytes()).hexdigest() if source.is_file() else None
+    return {"rig": settings.rig, "file": str(source), "sha256": digest, "sensor": settings.sensor}
+
+
+def _instruments(settings) -> ProcamInstruments:
+    return simulated_procam_rig(_scene(settings))
+
+
+@stage("acquire_plane_to_ray", precheck=_precheck, identity=_identity, writes=lambda settings: settings.store)
+def acquire_plane_to_ray(
+    *,
+    store: StorePath,
+    scene: StorePath,
+    delays: TimeSweep,
+    exposures: tuple[float, ...],
+    rig: Literal["sim"] = "sim",
+    sensor: tuple[int, int] | None = None,
+    progress: bool = True,
+) -> xr.Dataset:
+    """White pattern, every (delay, exposure) → a ``(delay, exposure, row, col)`` store, frame by frame, resumable.
+
+    Parameters
+    ----------
+    store : str
+        Zarr store the frames land in; an existing store of the same sweep resumes.
+    scene : str
+        Projector–camera scene file (``workflows/scenes/*.yaml``).
+    delays : TimeSweep
+        Sync delays t_d {start, stop, step} [µs], stop included.
+    exposures : list of float
+        Exposures t_e [µs].
+    rig : str
+        ``sim``: the transport simulator.
+    sensor : [rows, cols] or None
+        Render at this sensor size instead of the scene rig's (scenes are drawn in fractions of the image).
+    progress : bool
+        Show a progress bar.
+    """
+    instruments = _instruments(_Settings(scene=scene, sensor=sensor))
+    try:
+        return plane_sweep(instruments, store, delays.values(), exposures, progress=progress)
+    finally:
+        instruments.close()
+
+
+@stage("acquire_full_transport", precheck=_precheck, identity=_identity, writes=lambda settings: settings.store)
+def acquire_full_transport(
+    *,
+    store: StorePath,
+    scene: StorePath,
+    delays: TimeSweep,
+    exposures: tuple[float, ...],
+    lines: PixelSweep,
+    line_width: float,
+    rig: Literal["sim"] = "sim",
+    sensor: tuple[int, int] | None = None,
+    progress: bool = True,
+) -> xr.Dataset:
+    """A vertical line at each l_p × every (delay, exposure) → ``(delay, exposure, line, row, col)``, resumable.
+
+    Parameters
+    ----------
+    store : str
+        Zarr store the frames land in; an existing store of the same sweep resumes.
+    scene : str
+        Projector–camera scene file.
+    delays : TimeSweep
+        Sync delays t_d [µs], stop included.
+    exposures : list of float
+        Exposures t_e [µs].
+    lines : PixelSweep
+        Line centres l_p {start, stop, step} [px], stop included.
+    line_width : float
+        Line width l_w [px].
+    rig : str
+        ``sim``: the transport simulator.
+    sensor : [rows, cols] or None
+        Render at this sensor size instead of the scene rig's.
+    progress : bool
+        Show a progress bar.
+    """
+    instruments = _instruments(_Settings(scene=scene, sensor=sensor))
+    try:
+        return full_sweep(instruments, store, delays.values(), exposures, lines.values(), line_width,
+                          progress=progress)
+    finally:
+        instruments.close()
+
+
+@stage("acquire_scan_calibration", precheck=_precheck, identity=_identity, writes=lambda settings: settings.store)
+def acquire_scan_calibration(
+    *,
+    store: StorePath,
+    scene: StorePath,
+    delays: TimeSweep,
+    exposures: tuple[float, ...],
+    rig: Literal["sim"] = "sim",
+    sensor: tuple[int, int] | None = None,
+    progress: bool = True,
+) -> xr.Dataset:
+    """White pattern with the camera in global-shutter mode at every (delay, exposure), for
+    :func:`calibrate_scan_speed` (§5.3.2): each frame shows the band of rows the scan lit during t_e.
+
+    Parameters
+    ----------
+    store : str
+        Zarr store the frames land in.
+    scene : str
+        Scene file (a flat white target is best).
+    delays : TimeSweep
+        Trigger delays after VSYNC [µs], stop included; the band must stay inside the sensor.
+    exposures : list of float
+        Exposures [µs]; each must exceed t_p plus one row period for a fully lit row.
+    rig : str
+        ``sim``: the transport simulator.
+    sensor : [rows, cols] or None
+        Render at this sensor size instead of the scene rig's.
+    progress : bool
+        Show a progress bar.
+    """
+    instruments = _instruments(_Settings(scene=scene, sensor=sensor))
+    if not hasattr(instruments.camera, "set_shutter"):
+        raise SelpathError("the scan calibration needs a camera with a global-shutter mode (set_shutter)")
+    instruments.camera.set_shutter("global")
+    template = capture_template(instruments, "plane_to_ray_capture", delays.values(), exposures,
+                                extra_attrs={"shutter": "global"})
+    pattern = white(instruments.projector.shape)
+    try:
+        return sweep_frames(instruments, store, template, "plane_to_ray_capture", lambda _: pattern, progress,
+                            lambda _: None)
+    finally:
+        instruments.close()
+
+
+class _Settings(pydantic.BaseModel):
+    scene: str
+    sensor: tuple[int, int] | None = None
+
+
+# -- v_p calibration (§5.3.2) ----------------------------------------------------------------------------
+
+
+def row_profile_statistics(image: np.ndarray) -> tuple[float, float]:
+    """(illuminated rows, centroid row) of one global-shutter frame.
+
+    The column-averaged row profile, less its median (the dark rows: the band must cover under half the
+    sensor), is divided by its plateau (the median of the rows above ¾ of the peak, robust to noise where
+    the peak is not), so a fully lit row counts 1 and a partly lit row its fraction; rows below 2 % of the
+    plateau are dark (clipped read noise would otherwise pull the centroid towards the sensor's middle).
+    """
+    profile = np.nanmean(np.asarray(image, float), axis=1)
+    profile = profile - np.median(profile)
+    peak = profile.max()
+    if not np.isfinite(peak) or peak <= 0:
+        return float("nan"), float("nan")
+    plateau = float(np.median(profile[profile >= 0.75 * peak]))
+    profile = np.where(profile >= 0.02 * plateau, profile, 0.0)
+    rows = np.arange(profile.size)
+    return float(profile.sum() / plateau), float((rows * profile).sum() / profile.sum())
+
+
+@stage("calibrate_scan_speed")
+def calibrate_scan_speed(capture: xr.Dataset, /, *, min_rows: float = 2.0) -> xr.Dataset:
+    """Fit the projector scan speed v_p and the sync offset t_o from a global-shutter capture (§5.3.2).
+
+    Model, per frame at commanded delay t_d and exposure t_e: the scan lights v_p · t_e rows during the
+    exposure (counted as the row profile's sum over its peak), centred at row v_p · (t_d + t_o + t_e/2 − t_p/2)
+    (row s is lit during [s/v_p, s/v_p + t_p]; t_p from the store's ``line_time_us``).
+    Both residuals are in rows; the fit is least squares (optimistix Levenberg–Marquardt) and the standard
+    uncertainties are s²(JᵀJ)⁻¹ with s² the residual variance.
+
+    Parameters
+    ----------
+    min_rows : float
+        Frames counting fewer illuminated rows are left out (the peak row is not fully exposed there).
+    """
+    images = capture["image"].transpose("delay", "exposure", "row", "col")
+    delays, exposures = capture["delay"].values, capture["exposure"].values
+    stats = np.array([[row_profile_statistics(images.isel(delay=i, exposure=j).values)
+                       for j in range(len(exposures))] for i in range(len(delays))])
+    count, centroid = stats[..., 0], stats[..., 1]
+    td, te = np.meshgrid(delays, exposures, indexing="ij")
+    use = np.isfinite(count) & (count >= min_rows)
+    if use.sum() < 3:
+        raise ValueError(f"only {int(use.sum())} frames show at least {min_rows} illuminated rows; capture longer "
+                         "exposures or a brighter line")
+    line_time = float(capture.attrs["line_time_us"])
+    def residuals(theta, _):
+        speed, offset = theta[0] * 1e-2, theta[1] * 1e2  # scaled to O(1) unknowns
+        model = jnp.concatenate([speed * t_e, speed * (t_d + offset + t_e / 2 - line_time / 2)])
+        return model - data
+
+    nominal = float(capture.attrs.get("scan_speed_px_per_us", 1 / 17))
+    with jax.enable_x64(True):  # a two-parameter fit: float64 costs nothing and keeps the covariance honest
+        data = jnp.asarray(np.concatenate([count[use], centroid[use]]), jnp.float64)
+        t_d, t_e = jnp.asarray(td[use], jnp.float64), jnp.asarray(te[use], jnp.float64)
+        start = jnp.array([nominal * 1e2, 0.0], jnp.float64)
+        solution = optx.least_squares(residuals, optx.LevenbergMarquardt(rtol=1e-10, atol=1e-12),
+                                      start, max_steps=200, throw=False)
+        theta = solution.value
+        jac = jax.jacfwd(lambda t: residuals(t, None))(theta)
+        r = residuals(theta, None)
+        dof = max(int(r.size) - 2, 1)
+        s2 = float(r @ r) / dof
+        cov = s2 * np.linalg.pinv(np.asarray(jac.T @ jac))
+        fitted = np.asarray(r) + np.asarray(data)
+        converged = bool(solution.result == optx.RESULTS.successful)
+    scale = np.array([1e-2, 1e2])
+    value = np.asarray(theta) * scale
+    std = np.sqrt(np.clip(np.diag(cov), 0, None)) * scale
+    n = int(use.sum())
+    full = np.full(count.shape, np.nan)
+    fitted_count, fitted_centroid = full.copy(), full.copy()
+    fitted_count[use], fitted_centroid[use] = fitted[:n], fitted[n:]
+    coords = {"delay": capture["delay"], "exposure": capture["exposure"]}
+    rows = {"units": "px"}
+    return xr.Dataset(
+        {"count": (("delay", "exposure"), count, rows), "centroid": (("delay", "exposure"), centroid, rows),
+         "fitted_count": (("delay", "exposure"), fitted_count, rows),
+         "fitted_centroid": (("delay", "exposure"), fitted_centroid, rows),
+         "used": (("delay", "exposure"), use)},
+        coords=coords,
+        attrs={"selpath_kind": "scan_calibration", "scan_speed_px_per_us": float(value[0]),
+               "scan_speed_std": float(std[0]), "sync_offset_us": float(value[1]), "sync_offset_std": float(std[1]),
+               "residual_rms_px": float(np.sqrt(s2)), "frames_used": n,
+               "converged": converged},
+    )
+
+
+def sweep_plan(delays: TimeSweep, exposures, lines: PixelSweep | None, row_block: float, row_span: float) -> str:
+    """The planner's sentence for a sweep (``selpath plan``)."""
+    return plan_sweep(delays.values(), exposures, lines.values() if lines else None, row_block=row_block,
+                      row_span=row_span).describe()
