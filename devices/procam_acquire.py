@@ -81,7 +81,8 @@ def refuse_impossible(instruments: ProcamInstruments, delays, exposures) -> None
         raise SpecError([Problem(p, fix="narrow the sweep to what the sync controller can do") for p in problems])
 
 
-def capture_template(instruments: ProcamInstruments, kind: str, delays, exposures, lines=None, extra_attrs=None) -> xr.Dataset:
+def capture_template(instruments: ProcamInstruments, kind: str, delays, exposures, lines=None,
+                     extra_attrs=None) -> xr.Dataset:
     rows, cols = instruments.camera.shape
     coords = {"delay": ("delay", np.asarray(delays, float), {"units": "us", "long_name": "sync delay t_d"}),
               "exposure": ("exposure", np.asarray(exposures, float), {"units": "us", "long_name": "exposure t_e"})}
@@ -97,7 +98,14 @@ def capture_template(instruments: ProcamInstruments, kind: str, delays, exposure
 
 def sweep_frames(instruments: ProcamInstruments, store, template: xr.Dataset, kind: str, pattern_of: Callable,
            progress: bool, log: Callable[[str], None]) -> xr.Dataset:
-    refuse_impossible(instruments, template["delay"].values, template["exposure"].values)
+    delays, exposures = template["delay"].values, template["exposure"].values
+    refuse_impossible(instruments, delays, exposures)
+    speed = float(instruments.attrs.get("scan_speed_px_per_us", 0.0))
+    if speed > 0 and len(delays) > 1:  # the §5.2.4 comparison: lighting one block of rows at a time instead
+        step = float(np.min(np.diff(np.sort(delays))))
+        lines = template["line"].values if "line" in template.dims else None
+        log("plan: " + plan_sweep(delays, exposures, lines, row_block=max(speed * step, 1.0),
+                                  row_span=instruments.camera.shape[0]).describe())
     create_capture(store, template, kind)
     todo = missing_frames(store)["image"]
     if not todo:

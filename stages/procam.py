@@ -23,12 +23,14 @@ import xarray as xr
 from devices.patterns import white
 from devices.procam_acquire import (
     ProcamInstruments,
-    acquire_full_transport as full_sweep,
-    acquire_plane_to_ray as plane_sweep,
-    plan_sweep,
-    refuse_impossible,
-    sweep_frames,
     capture_template,
+    sweep_frames,
+)
+from devices.procam_acquire import (
+    acquire_full_transport as full_sweep,
+)
+from devices.procam_acquire import (
+    acquire_plane_to_ray as plane_sweep,
 )
 from devices.sim.procam_rig import simulated_procam_rig
 from devices.sim.procam_scene import ProcamScene, load_procam_scene
@@ -79,6 +81,15 @@ def _identity(settings) -> dict:
     return {"rig": settings.rig, "file": str(source), "sha256": digest, "sensor": settings.sensor}
 
 
+def _log(progress: bool):
+    """Where a sweep's messages (its plan, resuming) go: the terminal's stderr when showing progress."""
+    if not progress:
+        return lambda _: None
+    from rich.console import Console
+
+    return Console(stderr=True).print
+
+
 def _instruments(settings) -> ProcamInstruments:
     return simulated_procam_rig(_scene(settings))
 
@@ -115,7 +126,7 @@ def acquire_plane_to_ray(
     """
     instruments = _instruments(_Settings(scene=scene, sensor=sensor))
     try:
-        return plane_sweep(instruments, store, delays.values(), exposures, progress=progress)
+        return plane_sweep(instruments, store, delays.values(), exposures, progress=progress, log=_log(progress))
     finally:
         instruments.close()
 
@@ -159,7 +170,7 @@ def acquire_full_transport(
     instruments = _instruments(_Settings(scene=scene, sensor=sensor))
     try:
         return full_sweep(instruments, store, delays.values(), exposures, lines.values(), line_width,
-                          progress=progress)
+                          progress=progress, log=_log(progress))
     finally:
         instruments.close()
 
@@ -204,7 +215,7 @@ def acquire_scan_calibration(
     pattern = white(instruments.projector.shape)
     try:
         return sweep_frames(instruments, store, template, "plane_to_ray_capture", lambda _: pattern, progress,
-                            lambda _: None)
+                            _log(progress))
     finally:
         instruments.close()
 
@@ -302,9 +313,3 @@ def calibrate_scan_speed(capture: xr.Dataset, /, *, min_rows: float = 2.0) -> xr
                "residual_rms_px": float(np.sqrt(s2)), "frames_used": n,
                "converged": converged},
     )
-
-
-def sweep_plan(delays: TimeSweep, exposures, lines: PixelSweep | None, row_block: float, row_span: float) -> str:
-    """The planner's sentence for a sweep (``selpath plan``)."""
-    return plan_sweep(delays.values(), exposures, lines.values() if lines else None, row_block=row_block,
-                      row_span=row_span).describe()
