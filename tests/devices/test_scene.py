@@ -25,8 +25,11 @@ effects:
 """
 
 
+PROCAM_SCENES = {"book-candle-mirrorball", "white-materials", "arm-vein", "disco-glass-marble", "flat-white"}
+
+
 def test_the_shipped_scenes_of_chapter_4_load():
-    names = {load_scene(p).scene for p in SCENES}
+    names = {load_scene(p).scene for p in SCENES if p.stem not in PROCAM_SCENES}
     assert {"phantom-cylinder", "gelatin-bin", "triangle-prism"} <= names
     assert {f"cylinder-in-cylinder-s{s}" for s in (1, 2, 3, 5)} <= names
     sigma_s = {load_scene(p).effects.scattering.sigma_s for p in SCENES if "cylinder-in-cylinder" in p.name}
@@ -64,3 +67,15 @@ def test_one_mistake_one_exact_error(old, new, message):
 def test_inclusion_outside_the_object_is_refused():
     with pytest.raises(ConfigError, match=r"inclusions\[0\] .* reaches outside the object"):
         load_scene(GOOD.replace("[4 mm, 0 mm]", "[40 mm, 0 mm]"))
+
+
+def test_the_shipped_projector_camera_scenes_of_chapter_5_load():
+    from devices.sim.procam_scene import load_procam_scene
+
+    scenes = {p.stem: load_procam_scene(p) for p in SCENES if p.stem in PROCAM_SCENES}
+    assert set(scenes) == PROCAM_SCENES
+    assert set(scenes["book-candle-mirrorball"].effect_names()) == {
+        "subsurface", "diffuse_interreflection", "specular_interreflection"}
+    assert set(scenes["disco-glass-marble"].effect_names()) == {"subsurface", "specular_interreflection",
+                                                               "refraction"}
+    assert scenes["book-candle-mirrorball"].rig.camera_rows == 1200  # the default rig: 1600 × 1200 camera
