@@ -222,7 +222,7 @@ def exposure_overlap(rig: ProcamRig, camera_row, projector_row, delay: float, ex
     if jitter is not None:
         start = start + jitter[np.clip(np.asarray(projector_row) - jitter_first, 0, jitter.size - 1)]
     if shutter == "global":
-        centre = delay + rig.sync_offset + exposure / 2 + 0 * np.asarray(camera_row)
+        centre = delay + rig.sync_offset + exposure / 2
     else:
         centre = camera_row * tau + tp / 2 + delay + rig.sync_offset
     overlap = np.minimum(start + tp, centre + exposure / 2) - np.maximum(start, centre - exposure / 2)
@@ -251,6 +251,19 @@ def _distinct(*columns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.stack([c[first] for c in columns]), inverse.ravel()
 
 
+def _horizontal(lobe: Lobe, u_direct: np.ndarray, column_profile: np.ndarray) -> np.ndarray:
+    """Σ_du pattern[u_d + du] · k_u(du) for each of the lobe's pixels (columns outside the projector are dark),
+    once per distinct (u_d, du, width)."""
+    unique, inverse = _distinct(u_direct[lobe.index].astype(float), lobe.du, lobe.width_u)
+    reach = _reach(unique[2], lobe.shape_u)
+    j = np.arange(-reach, reach + 1)[None, :] + np.round(unique[1])[:, None].astype(np.int64)
+    k_u = cell_kernel(j, unique[1][:, None], unique[2][:, None], lobe.shape_u)
+    u = unique[0].astype(np.int64)[:, None] + j
+    n_cols = column_profile.shape[0]
+    lit = np.where((u >= 0) & (u < n_cols), column_profile[np.clip(u, 0, n_cols - 1)], 0.0)
+    return np.einsum("pk,pk->p", k_u, lit)[inverse]
+
+
 def render_tile(scene: ProcamScene, tile: Tile, delay: float, exposure: float,
                 profiles: tuple[np.ndarray, np.ndarray], key: int,
                 effects: dict[str, Callable] | None = None, shutter: str = "rolling") -> np.ndarray:
@@ -269,7 +282,6 @@ def render_tile(scene: ProcamScene, tile: Tile, delay: float, exposure: float,
         o_low, o_high = _delay_window(rig, delay, exposure, margin)
     jitter = row_jitter(rig, key)
     signal = np.zeros(tile.rows.shape)
-    n_cols = column_profile.shape[0]
     for lobe in lobes:
         # Both sums depend on a pixel only through a few parameters (its row and the lobe's dv and width; its
         # u_d and the lobe's du and width), so they are evaluated once per distinct parameter tuple: an
@@ -286,15 +298,8 @@ def render_tile(scene: ProcamScene, tile: Tile, delay: float, exposure: float,
         light = exposure_overlap(rig, rows, v, delay, exposure, jitter, JITTER_FIRST, shutter)
         inside = (v >= 0) & (v < row_profile.size)
         light = light * np.where(inside, row_profile[np.clip(v, 0, row_profile.size - 1)], 0.0)
-        vertical = np.einsum("pk,pk->p", k_v, light)[inverse.ravel()]
-        # horizontal: Σ_du pattern[u_d + du] · k_u(du)
-        unique, inverse = _distinct(u_direct[lobe.index].astype(float), lobe.du, lobe.width_u)
-        reach = _reach(unique[2], lobe.shape_u)
-        j = np.arange(-reach, reach + 1)[None, :] + np.round(unique[1])[:, None].astype(np.int64)
-        k_u = cell_kernel(j, unique[1][:, None], unique[2][:, None], lobe.shape_u)
-        u = unique[0].astype(np.int64)[:, None] + j
-        lit = np.where((u >= 0) & (u < n_cols), column_profile[np.clip(u, 0, n_cols - 1)], 0.0)
-        horizontal = np.einsum("pk,pk->p", k_u, lit)[inverse.ravel()]
+        vertical = np.einsum("pk,pk->p", k_v, light)[inverse]
+        horizontal = _horizontal(lobe, u_direct, column_profile)
         signal[lobe.index] += lobe.weight * vertical * horizontal  # a lobe's pixels are distinct
     return rig.intensity * signal
 
@@ -375,18 +380,11 @@ def truth_tile(scene: ProcamScene, tile: Tile, dv: np.ndarray, du: np.ndarray | 
         k_v = cell_kernel(np.asarray(dv)[None, :], lobe.dv[:, None], lobe.width_v[:, None], lobe.shape_v)
         v = tile.rows[lobe.index][:, None] + np.asarray(dv)[None, :]
         k_v = k_v * ((v >= 0) & (v < rig.camera_rows))  # no light from rows the projector does not have
-        if du is None:
-            reach = _reach(lobe.width_u, lobe.shape_u)
-            j = np.arange(-reach, reach + 1)[None, :] + np.round(lobe.du)[:, None].astype(np.int64)
-            u = u_direct[lobe.index][:, None] + j
-            lit = np.where((u >= 0) & (u < rig.projector_cols), white[np.clip(u, 0, rig.projector_cols - 1)], 0.0)
-            k_u = cell_kernel(j, lobe.du[:, None], lobe.width_u[:, None], lobe.shape_u)
-            mass_u = np.einsum("pk,pk->p", k_u, lit)
-            np.add.at(out.T, lobe.index, (lobe.weight * mass_u)[:, None] * k_v)
+        if du is None:  # the white pattern's sum over the projector's columns
+            out.T[lobe.index] += (lobe.weight * _horizontal(lobe, u_direct, white))[:, None] * k_v
         else:
             k_u = cell_kernel(np.asarray(du)[None, :], lobe.du[:, None], lobe.width_u[:, None], lobe.shape_u)
-            inside = (u_direct[lobe.index][:, None] + np.asarray(du)[None, :] >= 0) & \
-                     (u_direct[lobe.index][:, None] + np.asarray(du)[None, :] < rig.projector_cols)
-            np.add.at(out.transpose(2, 0, 1), lobe.index,
-                      lobe.weight[:, None, None] * (k_u * inside)[:, :, None] * k_v[:, None, :])
+            u = u_direct[lobe.index][:, None] + np.asarray(du)[None, :]
+            k_u = k_u * ((u >= 0) & (u < rig.projector_cols))
+            out.transpose(2, 0, 1)[lobe.index] += lobe.weight[:, None, None] * k_u[:, :, None] * k_v[:, None, :]
     return out
