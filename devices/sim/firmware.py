@@ -22,6 +22,7 @@ import os
 import pty
 import select
 import threading
+import time
 import tty
 from collections.abc import Mapping
 
@@ -114,3 +115,14 @@ class FakeFirmware:
             reply = b"\xff\xfe\x00garbage\n"
         self._send(reply)
         return True
+
+
+def serve_by_hand(firmware: FakeFirmware, what: str, hint: str = "") -> None:  # pragma: no cover - interactive
+    """Run ``firmware`` until Ctrl-C, printing the port a real driver can open."""
+    with firmware:
+        print(f"{what} on {firmware.port}{hint}; Ctrl-C to stop")
+        try:
+            while True:
+                time.sleep(1)
+        except KeyboardInterrupt:
+            pass

@@ -13,49 +13,11 @@ import time
 
 import numpy as np
 
-from devices.protocols import SyncLimits, SyncStatus
+from devices.protocols import SyncLimits
 from devices.sim.procam_scene import ProcamScene
-from devices.sim.sync_firmware import DEFAULT_LIMITS
+from devices.sim.sync_firmware import DEFAULT_LIMITS, SimSyncController
 from devices.sim.transport import render_frame
 from pipeline.errors import DeviceError
-
-
-class SimSyncController:
-    def __init__(self, limits: SyncLimits = DEFAULT_LIMITS) -> None:
-        self._limits = limits
-        self._status = SyncStatus(0.0, 1000.0, False)
-
-    @property
-    def limits(self) -> SyncLimits:
-        return self._limits
-
-    def _check(self, name: str, value: float, low: float, high: float) -> float:
-        if not low <= value <= high:
-            raise DeviceError(f"{name} {value:g} µs is outside [{low:g}, {high:g}] µs", port="sim",
-                              command=f"{name.upper()} {value:.1f}", reply="ERR 2 OUT OF RANGE")
-        return round(value / self._limits.step) * self._limits.step
-
-    def set_delay(self, delay_us: float) -> float:
-        value = self._check("delay", float(delay_us), self._limits.delay_min, self._limits.delay_max)
-        self._status = SyncStatus(value, self._status.exposure_us, False)
-        return value
-
-    def set_exposure(self, exposure_us: float) -> float:
-        value = self._check("exposure", float(exposure_us), self._limits.exposure_min, self._limits.exposure_max)
-        self._status = SyncStatus(self._status.delay_us, value, False)
-        return value
-
-    def arm(self) -> None:
-        self._status = SyncStatus(self._status.delay_us, self._status.exposure_us, True)
-
-    def disarm(self) -> None:
-        self._status = SyncStatus(self._status.delay_us, self._status.exposure_us, False)
-
-    def status(self) -> SyncStatus:
-        return self._status
-
-    def close(self) -> None:
-        pass
 
 
 class SimProjector:

@@ -22,7 +22,7 @@ import time
 from collections.abc import Mapping
 
 from devices.serial_line import checksum
-from devices.sim.firmware import LINE_FAULTS, FakeFirmware
+from devices.sim.firmware import LINE_FAULTS, FakeFirmware, serve_by_hand
 
 FAULTS = (*LINE_FAULTS, "slip", "lost-move")
 
@@ -71,16 +71,5 @@ class FakeStageFirmware(FakeFirmware):
             self.position = target
 
 
-def main() -> None:  # pragma: no cover - interactive helper
-    with FakeStageFirmware() as firmware:
-        print(f"fake stage firmware on {firmware.port} (checksum of 'POS 0.000' is {checksum('POS 0.000')}); "
-              "Ctrl-C to stop")
-        try:
-            while True:
-                time.sleep(1)
-        except KeyboardInterrupt:
-            pass
-
-
 if __name__ == "__main__":  # pragma: no cover
-    main()
+    serve_by_hand(FakeStageFirmware(), "fake stage firmware", f" (checksum of 'POS 0.000' is {checksum('POS 0.000')})")

@@ -1,78 +1,109 @@
-"""A fake sync-controller firmware on a pseudo-terminal, speaking the protocol of ``docs/devices.md``.
+"""The sync controller's behaviour, simulated: :class:`SimSyncController` (what the simulated rig drives
+directly) and :class:`FakeSyncFirmware`, the same state machine speaking the protocol of ``docs/devices.md``
+on a pseudo-terminal for the serial driver's tests.
 
 The line faults of :mod:`devices.sim.firmware` apply, plus one of the device's own:
 
-``drift``  apply a ``DELAY``/``EXPO`` three steps off the value asked for, but answer as if it were exact
-           (a controller whose counter clock is off); only the read-back catches it.
+``drift``  apply a ``DELAY``/``EXPO`` three steps off the value asked for (within the limits), but answer as
+           if it were exact (a controller whose counter clock is off); only the read-back catches it.
 
 ``python -m devices.sim.sync_firmware`` prints a port a real driver can open.
 """
 
 from __future__ import annotations
 
-import time
 from collections.abc import Mapping
 
-from devices.protocols import SyncLimits
-from devices.sim.firmware import FakeFirmware
+from devices.protocols import SyncLimits, SyncStatus
+from devices.sim.firmware import FakeFirmware, serve_by_hand
+from pipeline.errors import DeviceError
 
-#: the limits of the fake controller: ±10 ms delay, 10 µs … 20 ms exposure (one 50 Hz frame), 1 µs step
+#: the limits of the simulated controller: ±10 ms delay, 10 µs … 20 ms exposure (one 50 Hz frame), 1 µs step
 DEFAULT_LIMITS = SyncLimits(delay_min=-10_000.0, delay_max=10_000.0, exposure_min=10.0, exposure_max=20_000.0,
                             step=1.0)
 
 
+class SimSyncController:
+    """A sync controller that holds exactly what it is set to (rounded to its step), refuses settings outside
+    its limits, and disarms on every new setting, as the circuit does."""
+
+    def __init__(self, limits: SyncLimits = DEFAULT_LIMITS) -> None:
+        self._limits = limits
+        self._status = SyncStatus(0.0, 1000.0, False)
+
+    @property
+    def limits(self) -> SyncLimits:
+        return self._limits
+
+    def _check(self, name: str, value: float, low: float, high: float) -> float:
+        if not low <= value <= high:
+            raise DeviceError(f"{name} {value:g} µs is outside [{low:g}, {high:g}] µs", port="sim",
+                              command=f"{name.upper()} {value:.1f}", reply="ERR 2 OUT OF RANGE")
+        return round(value / self._limits.step) * self._limits.step
+
+    def set_delay(self, delay_us: float) -> float:
+        value = self._check("delay", float(delay_us), self._limits.delay_min, self._limits.delay_max)
+        self._status = SyncStatus(value, self._status.exposure_us, False)
+        return value
+
+    def set_exposure(self, exposure_us: float) -> float:
+        value = self._check("exposure", float(exposure_us), self._limits.exposure_min, self._limits.exposure_max)
+        self._status = SyncStatus(self._status.delay_us, value, False)
+        return value
+
+    def arm(self) -> None:
+        self._status = SyncStatus(self._status.delay_us, self._status.exposure_us, True)
+
+    def disarm(self) -> None:
+        self._status = SyncStatus(self._status.delay_us, self._status.exposure_us, False)
+
+    def status(self) -> SyncStatus:
+        return self._status
+
+    def close(self) -> None:
+        pass
+
+
 class FakeSyncFirmware(FakeFirmware):
-    """A controller at delay 0 µs, exposure 1000 µs, not armed."""
+    """A :class:`SimSyncController` (delay 0 µs, exposure 1000 µs, not armed) answering on a pseudo-terminal."""
 
     DEVICE_FAULTS = ("drift",)
     NAME = "fake-sync-firmware"
 
     def __init__(self, faults: Mapping[int, str] | None = None, *, limits: SyncLimits = DEFAULT_LIMITS):
         super().__init__(faults)
-        self.limits = limits
-        self.delay, self.exposure, self.armed = 0.0, 1000.0, False
+        self.controller = SimSyncController(limits)
 
     def execute(self, command: str, fault: str | None) -> str:
         name, _, argument = command.partition(" ")
-        lim = self.limits
+        lim = self.controller.limits
         if name == "*IDN?":
             return "IDN selpath,fake-sync,1.0"
         if name == "LIM?":
             return f"LIM {lim.delay_min:.1f} {lim.delay_max:.1f} {lim.exposure_min:.1f} {lim.exposure_max:.1f} " \
                    f"{lim.step:.1f}"
         if name == "STAT?":
-            return f"STAT {self.delay:.1f} {self.exposure:.1f} {'ARMED' if self.armed else 'IDLE'}"
+            status = self.controller.status()
+            return f"STAT {status.delay_us:.1f} {status.exposure_us:.1f} {'ARMED' if status.armed else 'IDLE'}"
         if name == "ARM":
-            self.armed = True
+            self.controller.arm()
             return "OK ARM"
         if name in ("DELAY", "EXPO"):
             try:
                 value = float(argument)
             except ValueError:
                 return "ERR 2 BAD ARGUMENT"
-            low, high = (lim.delay_min, lim.delay_max) if name == "DELAY" else (lim.exposure_min, lim.exposure_max)
-            if not low <= value <= high:
+            setter = self.controller.set_delay if name == "DELAY" else self.controller.set_exposure
+            try:
+                with self._lock:
+                    setter(value)
+                    if fault == "drift":
+                        setter(value + 3 * lim.step)
+            except DeviceError:
                 return "ERR 2 OUT OF RANGE"
-            applied = round(value / lim.step) * lim.step + (3 * lim.step if fault == "drift" else 0.0)
-            with self._lock:
-                if name == "DELAY":
-                    self.delay = applied
-                else:
-                    self.exposure = applied
-                self.armed = False  # a new setting disarms, as the real circuit does
             return f"OK {name} {value:.1f}"
         return "ERR 1 UNKNOWN COMMAND"
 
 
-def main() -> None:  # pragma: no cover - interactive helper
-    with FakeSyncFirmware() as firmware:
-        print(f"fake sync firmware on {firmware.port}; Ctrl-C to stop")
-        try:
-            while True:
-                time.sleep(1)
-        except KeyboardInterrupt:
-            pass
-
-
 if __name__ == "__main__":  # pragma: no cover
-    main()
+    serve_by_hand(FakeSyncFirmware(), "fake sync firmware")
