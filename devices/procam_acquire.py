@@ -97,7 +97,9 @@ def capture_template(instruments: ProcamInstruments, kind: str, delays, exposure
 
 
 def sweep_frames(instruments: ProcamInstruments, store, template: xr.Dataset, kind: str, pattern_of: Callable,
-           progress: bool, log: Callable[[str], None]) -> xr.Dataset:
+                 progress: bool, log: Callable[[str], None]) -> xr.Dataset:
+    """Capture every missing frame of ``template`` into ``store`` (created or resumed), showing
+    ``pattern_of(line)`` (line None for sweeps without lines)."""
     delays, exposures = template["delay"].values, template["exposure"].values
     refuse_impossible(instruments, delays, exposures)
     speed = float(instruments.attrs.get("scan_speed_px_per_us", 0.0))
@@ -114,8 +116,8 @@ def sweep_frames(instruments: ProcamInstruments, store, template: xr.Dataset, ki
     dims = [d for d in ("delay", "exposure", "line") if d in template.dims]
     index = {d: {float(v): i for i, v in enumerate(template[d].values)} for d in dims}
     todo = sorted(todo, key=lambda f: (f["exposure"], f.get("line", 0.0), f["delay"]))
-    log(f"{store}: capturing {len(todo)} frame(s)" + (" (resuming)" if len(todo) < template["image"].shape[0] *
-                                                       int(np.prod(template["image"].shape[1:len(dims)])) else ""))
+    total = int(np.prod([template.sizes[d] for d in dims]))
+    log(f"{store}: capturing {len(todo)} frame(s)" + (" (resuming)" if len(todo) < total else ""))
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
     current: dict[str, Any] = {}
     with Progress(*columns, disable=not progress) as bar:
@@ -156,7 +158,7 @@ def acquire_full_transport(instruments: ProcamInstruments, store: str | os.PathL
                            progress: bool = True, log: Callable[[str], None] = lambda _: None) -> xr.Dataset:
     """A vertical line at each l_p (width l_w) × every (delay, exposure): a ``full_transport_capture`` store."""
     template = capture_template(instruments, "full_transport_capture", delays, exposures, lines,
-                         {"line_width_px": float(line_width)})
+                                {"line_width_px": float(line_width)})
     shape = instruments.projector.shape
     return sweep_frames(instruments, store, template, "full_transport_capture",
-                  lambda position: vertical_line(shape, position, line_width), progress, log)
+                        lambda position: vertical_line(shape, position, line_width), progress, log)

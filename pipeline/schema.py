@@ -151,7 +151,7 @@ KINDS: dict[str, CubeKind] = {
         ),
         CubeKind(
             name="scan_calibration",
-            description="projector scan speed v_p and sync offset t_o fitted from a horizontal-line sweep (§5.3.2)",
+            description="scan speed v_p and sync offset t_o from global-shutter frames of a white target (§5.3.2)",
             variables={
                 "count": Variable(("delay", "exposure"), description="illuminated rows counted per frame"),
                 "centroid": Variable(("delay", "exposure"), description="row centroid of the lit band"),

@@ -2,14 +2,17 @@
 
 ``acquire_plane_to_ray`` and ``acquire_full_transport`` drive the simulated rig (``rig: sim``, a scene from
 ``workflows/scenes/``) through a delay–exposure sweep, frame by frame and resumably, like
-``acquire_tomography``. ``acquire_scan_calibration`` projects a horizontal line at several exposures and
-delays; ``calibrate_scan_speed`` counts the illuminated rows of those frames and fits the scan speed v_p
-and the sync offset t_o by least squares (optimistix), with standard uncertainties.
+``acquire_tomography``. ``acquire_scan_calibration`` films a white target with the camera in global-shutter
+mode at several exposures and delays; ``calibrate_scan_speed`` counts the illuminated rows of those frames
+and fits the scan speed v_p and the sync offset t_o by least squares (optimistix), with standard
+uncertainties.
 """
 
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Literal
 
@@ -21,17 +24,9 @@ import pydantic
 import xarray as xr
 
 from devices.patterns import white
-from devices.procam_acquire import (
-    ProcamInstruments,
-    capture_template,
-    sweep_frames,
-)
-from devices.procam_acquire import (
-    acquire_full_transport as full_sweep,
-)
-from devices.procam_acquire import (
-    acquire_plane_to_ray as plane_sweep,
-)
+from devices.procam_acquire import ProcamInstruments, capture_template, sweep_frames
+from devices.procam_acquire import acquire_full_transport as full_sweep
+from devices.procam_acquire import acquire_plane_to_ray as plane_sweep
 from devices.sim.procam_rig import simulated_procam_rig
 from devices.sim.procam_scene import ProcamScene, load_procam_scene
 from devices.sim.sync_firmware import DEFAULT_LIMITS
@@ -56,23 +51,18 @@ class PixelSweep(TimeSweep):
     """Projector columns start, start+step, …, up to and including stop [px]."""
 
 
-def _scene(settings) -> ProcamScene:
-    scene = load_procam_scene(settings.scene)
-    if settings.sensor is not None:
-        scene = scene.with_rig(camera_rows=settings.sensor[0], camera_cols=settings.sensor[1])
-    return scene
+def _scene(scene: StorePath, sensor: tuple[int, int] | None) -> ProcamScene:
+    spec = load_procam_scene(scene)
+    return spec if sensor is None else spec.with_rig(camera_rows=sensor[0], camera_cols=sensor[1])
 
 
 def _precheck(settings) -> list[str]:
-    if settings.rig != "sim":
-        return ["only rig 'sim' drives a projector–camera sweep so far; the serial sync controller exists "
-                "(devices.serial_sync) but no projector/camera pairing for hardware yet"]
+    """Read the scene and check the sweep against the controller's limits at validation time."""
     try:
-        _scene(settings)
+        _scene(settings.scene, settings.sensor)
     except SelpathError as exc:
         return [f"scene file: {p}" for p in getattr(exc, "problems", [exc])]
-    exposures = getattr(settings, "exposures", ())
-    return DEFAULT_LIMITS.problems(settings.delays.values(), exposures)
+    return DEFAULT_LIMITS.problems(settings.delays.values(), settings.exposures)
 
 
 def _identity(settings) -> dict:
@@ -90,8 +80,14 @@ def _log(progress: bool):
     return Console(stderr=True).print
 
 
-def _instruments(settings) -> ProcamInstruments:
-    return simulated_procam_rig(_scene(settings))
+@contextmanager
+def _simulated_rig(scene: StorePath, sensor: tuple[int, int] | None) -> Iterator[ProcamInstruments]:
+    """The simulated rig showing ``scene`` (at ``sensor`` size when given), closed when the sweep ends."""
+    instruments = simulated_procam_rig(_scene(scene, sensor))
+    try:
+        yield instruments
+    finally:
+        instruments.close()
 
 
 @stage("acquire_plane_to_ray", precheck=_precheck, identity=_identity, writes=lambda settings: settings.store)
@@ -124,11 +120,8 @@ def acquire_plane_to_ray(
     progress : bool
         Show a progress bar.
     """
-    instruments = _instruments(_Settings(scene=scene, sensor=sensor))
-    try:
+    with _simulated_rig(scene, sensor) as instruments:
         return plane_sweep(instruments, store, delays.values(), exposures, progress=progress, log=_log(progress))
-    finally:
-        instruments.close()
 
 
 @stage("acquire_full_transport", precheck=_precheck, identity=_identity, writes=lambda settings: settings.store)
@@ -167,12 +160,9 @@ def acquire_full_transport(
     progress : bool
         Show a progress bar.
     """
-    instruments = _instruments(_Settings(scene=scene, sensor=sensor))
-    try:
+    with _simulated_rig(scene, sensor) as instruments:
         return full_sweep(instruments, store, delays.values(), exposures, lines.values(), line_width,
                           progress=progress, log=_log(progress))
-    finally:
-        instruments.close()
 
 
 @stage("acquire_scan_calibration", precheck=_precheck, identity=_identity, writes=lambda settings: settings.store)
@@ -206,38 +196,29 @@ def acquire_scan_calibration(
     progress : bool
         Show a progress bar.
     """
-    instruments = _instruments(_Settings(scene=scene, sensor=sensor))
-    if not hasattr(instruments.camera, "set_shutter"):
-        raise SelpathError("the scan calibration needs a camera with a global-shutter mode (set_shutter)")
-    instruments.camera.set_shutter("global")
-    template = capture_template(instruments, "plane_to_ray_capture", delays.values(), exposures,
-                                extra_attrs={"shutter": "global"})
-    pattern = white(instruments.projector.shape)
-    try:
+    with _simulated_rig(scene, sensor) as instruments:
+        if not hasattr(instruments.camera, "set_shutter"):
+            raise SelpathError("the scan calibration needs a camera with a global-shutter mode (set_shutter)")
+        instruments.camera.set_shutter("global")
+        template = capture_template(instruments, "plane_to_ray_capture", delays.values(), exposures,
+                                    extra_attrs={"shutter": "global"})
+        pattern = white(instruments.projector.shape)
         return sweep_frames(instruments, store, template, "plane_to_ray_capture", lambda _: pattern, progress,
                             _log(progress))
-    finally:
-        instruments.close()
-
-
-class _Settings(pydantic.BaseModel):
-    scene: str
-    sensor: tuple[int, int] | None = None
 
 
 # -- v_p calibration (§5.3.2) ----------------------------------------------------------------------------
 
 
-def row_profile_statistics(image: np.ndarray) -> tuple[float, float]:
-    """(illuminated rows, centroid row) of one global-shutter frame.
+def row_profile_statistics(profile: np.ndarray) -> tuple[float, float]:
+    """(illuminated rows, centroid row) of one global-shutter frame's row profile (its column average).
 
-    The column-averaged row profile, less its median (the dark rows: the band must cover under half the
+    The profile, less its median (the dark rows: the band must cover under half the
     sensor), is divided by its plateau (the median of the rows above ¾ of the peak, robust to noise where
     the peak is not), so a fully lit row counts 1 and a partly lit row its fraction; rows below 2 % of the
     plateau are dark (clipped read noise would otherwise pull the centroid towards the sensor's middle).
     """
-    profile = np.nanmean(np.asarray(image, float), axis=1)
-    profile = profile - np.median(profile)
+    profile = np.asarray(profile, float) - np.median(profile)
     peak = profile.max()
     if not np.isfinite(peak) or peak <= 0:
         return float("nan"), float("nan")
@@ -262,10 +243,10 @@ def calibrate_scan_speed(capture: xr.Dataset, /, *, min_rows: float = 2.0) -> xr
     min_rows : float
         Frames counting fewer illuminated rows are left out (the peak row is not fully exposed there).
     """
-    images = capture["image"].transpose("delay", "exposure", "row", "col")
+    # one pass over the frames: the column average of every frame, (delay, exposure, row)
+    profiles = capture["image"].mean("col").transpose("delay", "exposure", "row").values
     delays, exposures = capture["delay"].values, capture["exposure"].values
-    stats = np.array([[row_profile_statistics(images.isel(delay=i, exposure=j).values)
-                       for j in range(len(exposures))] for i in range(len(delays))])
+    stats = np.array([[row_profile_statistics(p) for p in row] for row in profiles])
     count, centroid = stats[..., 0], stats[..., 1]
     td, te = np.meshgrid(delays, exposures, indexing="ij")
     use = np.isfinite(count) & (count >= min_rows)
@@ -273,6 +254,7 @@ def calibrate_scan_speed(capture: xr.Dataset, /, *, min_rows: float = 2.0) -> xr
         raise ValueError(f"only {int(use.sum())} frames show at least {min_rows} illuminated rows; capture longer "
                          "exposures or a brighter line")
     line_time = float(capture.attrs["line_time_us"])
+
     def residuals(theta, _):
         speed, offset = theta[0] * 1e-2, theta[1] * 1e2  # scaled to O(1) unknowns
         model = jnp.concatenate([speed * t_e, speed * (t_d + offset + t_e / 2 - line_time / 2)])
