@@ -2,18 +2,12 @@
 
 from __future__ import annotations
 
-import os
-import signal
-import subprocess
-import sys
 import textwrap
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import xarray as xr
-import zarr
 
 from devices.acquire import acquire_tomography
 from devices.sim.rig import simulated_rig
@@ -56,14 +50,7 @@ def make_workflow(folder: Path, frame_interval: str = "0 s") -> Path:
     return folder / "workflow.yaml"
 
 
-def written(store: Path) -> int:
-    try:
-        return int(np.sum(zarr.open_group(str(store), mode="r")["written__target"][:]))
-    except Exception:  # not created yet
-        return 0
-
-
-def test_sigkill_mid_sweep_then_rerun_gives_the_uninterrupted_store(tmp_path):
+def test_sigkill_mid_sweep_then_rerun_gives_the_uninterrupted_store(tmp_path, kill_mid_sweep):
     """A real SIGKILL of `selpath run` mid-sweep; running the workflow again resumes (not restarts) and the
     store equals an uninterrupted run's: every frame, no frame lost or duplicated, same flags."""
     reference_run = make_workflow(tmp_path / "uninterrupted")
@@ -72,14 +59,7 @@ def test_sigkill_mid_sweep_then_rerun_gives_the_uninterrupted_store(tmp_path):
 
     killed = make_workflow(tmp_path / "killed", frame_interval="40 ms")
     store = tmp_path / "killed" / "capture.zarr"
-    process = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "run", str(killed), "--no-progress"],
-                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    deadline = time.monotonic() + 120
-    while written(store) < 5 and process.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.05)
-    os.kill(process.pid, signal.SIGKILL)
-    process.wait()
-    done_before = written(store)
+    done_before = kill_mid_sweep(killed, store, "written__target", 5)
     assert 5 <= done_before < 24, "the kill must land mid-sweep"
     assert read_provenance(store) is None  # unfinished: no provenance, so the engine will run the step again
 

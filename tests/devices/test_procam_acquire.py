@@ -3,17 +3,11 @@ before starting when the controller cannot do them, the planner's arithmetic, an
 
 from __future__ import annotations
 
-import os
-import signal
-import subprocess
-import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import xarray as xr
-import zarr
 
 from devices.procam_acquire import acquire_full_transport, acquire_plane_to_ray, plan_sweep
 from devices.sim.procam_rig import simulated_procam_rig
@@ -52,27 +46,13 @@ def make_workflow(folder: Path, frame_interval: str = "0 us") -> Path:
     return folder / "workflow.yaml"
 
 
-def written(store: Path) -> int:
-    try:
-        return int(np.sum(zarr.open_group(str(store), mode="r")["written__image"][:]))
-    except Exception:  # not created yet
-        return 0
-
-
-def test_sigkill_mid_sweep_then_rerun_gives_the_uninterrupted_store(tmp_path):
+def test_sigkill_mid_sweep_then_rerun_gives_the_uninterrupted_store(tmp_path, kill_mid_sweep):
     run_workflow(load_workflow(make_workflow(tmp_path / "uninterrupted")), progress=False)
     want = open_store(tmp_path / "uninterrupted" / "capture.zarr", keep_flags=True).load()
 
     killed = make_workflow(tmp_path / "killed", frame_interval="60 ms")
     store = tmp_path / "killed" / "capture.zarr"
-    process = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "run", str(killed), "--no-progress"],
-                               stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    deadline = time.monotonic() + 120
-    while written(store) < 4 and process.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.02)
-    os.kill(process.pid, signal.SIGKILL)
-    process.wait()
-    done_before = written(store)
+    done_before = kill_mid_sweep(killed, store, "written__image", 4)
     assert 4 <= done_before < 22, "the kill must land mid-sweep"
     assert read_provenance(store) is None
 
