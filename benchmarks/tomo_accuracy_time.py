@@ -29,10 +29,9 @@ import numpy as np
 
 from devices.sim.scene import load_scene
 from stages.admm import TVADMM
-from stages.filters import ramp_filter
 from stages.phantom import observed_mask, scene_radon, truth_raster
-from stages.projector import Geometry, backproject, operator_norm
-from stages.reconstruct import known_zero, support_mask, upper_bound
+from stages.projector import Geometry, operator_norm
+from stages.reconstruct import fbp_slice, known_zero, support_mask, upper_bound
 
 ROOT = Path(__file__).resolve().parent
 SCENE = ROOT.parent / "workflows" / "scenes" / "phantom-cylinder.yaml"
@@ -69,8 +68,7 @@ def ours(geometry, sinogram, observed, truth, polygon, caps, weights):
     support = support_mask(polygon, geometry)
 
     def run_fbp():
-        filtered = ramp_filter(np.where(known, sinogram, 0.0).astype(np.float32), geometry.x[1] - geometry.x[0])
-        return np.where(support, np.asarray(backproject(geometry, jnp.asarray(filtered))), 0.0)
+        return fbp_slice(sinogram, known, support, geometry)
 
     run_fbp()
     image, seconds = timed(run_fbp)

@@ -173,17 +173,24 @@ def _output(sinogram: xr.Dataset, geometry: Geometry, variables: dict, attrs: di
                                                               "cell_size": geometry.cell} | attrs)
 
 
+def fbp_slice(absorption: np.ndarray, known: np.ndarray, support: np.ndarray, geometry: Geometry, *,
+              filter_name: str = "ram-lak", fill: str = "zero", dtype: str = "float32") -> np.ndarray:
+    """FBP of one slice's (θ, X) sinogram: unknown bins filled (``fill``), ramp-filtered, back-projected,
+    and zero outside ``support``."""
+    values = _fill_missing(absorption, known, fill)
+    filtered = ramp_filter(values, float(geometry.x[1] - geometry.x[0]), filter_name)
+    return np.where(support, np.asarray(backproject(geometry, jnp.asarray(filtered, dtype))), 0.0)
+
+
 def _fbp_block(block: xr.Dataset, *, geometry: Geometry, filter_name: str, fill: str, dtype: str) -> xr.Dataset:
     hull = block if "vertices" in block else None
     sigma, reliable = [], []
     with jax.enable_x64(dtype == "float64"):
         for absorption, observed, polygon in _slice_inputs(block, hull, geometry):
             known = observed | known_zero(polygon, geometry)
-            values = _fill_missing(absorption, known, fill)
-            filtered = ramp_filter(values, float(geometry.x[1] - geometry.x[0]), filter_name)
-            image = np.asarray(backproject(geometry, jnp.asarray(filtered, dtype)))
             support = support_mask(polygon, geometry)
-            sigma.append(np.where(support, image, 0.0))
+            sigma.append(fbp_slice(absorption, known, support, geometry, filter_name=filter_name, fill=fill,
+                                   dtype=dtype))
             reliable.append(reliable_cells(known, geometry) & support)
     dims = ("slice", "y", "x")
     return xr.Dataset({"sigma": (dims, np.array(sigma, dtype=dtype)), "reliable": (dims, np.array(reliable))},
