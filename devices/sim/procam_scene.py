@@ -30,10 +30,10 @@ from typing import Annotated, Literal
 import numpy as np
 import pydantic
 
-from devices.sim.scene import Pixels, _parser
+from devices.sim.scene import Pixels, unit_parser
 from pipeline.spec import load_yaml_model
 
-Micros = Annotated[float, _parser({"us": 1.0, "ms": 1e3, "s": 1e6}, "170 us", "a duration")]
+Micros = Annotated[float, unit_parser({"us": 1.0, "ms": 1e3, "s": 1e6}, "170 us", "a duration")]
 Fraction = Annotated[float, pydantic.Field(ge=0.0, le=1.0)]
 
 

@@ -33,7 +33,7 @@ _TO_S = {"s": 1.0, "ms": 1e-3, "us": 1e-6}
 _QUANTITY = re.compile(r"^\s*(?P<value>[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?)\s*(?P<unit>\S+)\s*$")
 
 
-def _parser(units: dict[str, float], example: str, what: str):
+def unit_parser(units: dict[str, float], example: str, what: str):
     def parse(value: Any) -> float:
         if isinstance(value, bool) or not isinstance(value, str | int | float):
             raise ValueError(f"expected {what} such as {example!r}")
@@ -47,14 +47,14 @@ def _parser(units: dict[str, float], example: str, what: str):
     return pydantic.BeforeValidator(parse)
 
 
-Length = Annotated[float, _parser(_TO_MM, "20 mm", "a length")]
+Length = Annotated[float, unit_parser(_TO_MM, "20 mm", "a length")]
 #: absorption or scattering coefficient, per mm
-InvLength = Annotated[float, _parser({f"/{u}": 1.0 / f for u, f in _TO_MM.items()}
+InvLength = Annotated[float, unit_parser({f"/{u}": 1.0 / f for u, f in _TO_MM.items()}
                                      | {f"1/{u}": 1.0 / f for u, f in _TO_MM.items()}, "0.1 /mm",
                                      "a coefficient per length")]
-Angle = Annotated[float, _parser(_TO_DEG, "45 deg", "an angle")]
-Pixels = Annotated[float, _parser({"px": 1.0}, "800 px", "a pixel quantity")]
-Duration = Annotated[float, _parser(_TO_S, "50 ms", "a duration")]
+Angle = Annotated[float, unit_parser(_TO_DEG, "45 deg", "an angle")]
+Pixels = Annotated[float, unit_parser({"px": 1.0}, "800 px", "a pixel quantity")]
+Duration = Annotated[float, unit_parser(_TO_S, "50 ms", "a duration")]
 
 
 class _Model(pydantic.BaseModel):
