@@ -30,7 +30,7 @@ from devices.procam_acquire import acquire_plane_to_ray as plane_sweep
 from devices.sim.procam_rig import simulated_procam_rig
 from devices.sim.procam_scene import ProcamScene, load_procam_scene
 from devices.sim.sync_firmware import DEFAULT_LIMITS
-from pipeline.errors import SelpathError
+from pipeline.errors import Problem, SelpathError, StageError
 from pipeline.registry import stage
 from pipeline.spec import StorePath
 
@@ -251,8 +251,9 @@ def calibrate_scan_speed(capture: xr.Dataset, /, *, min_rows: float = 2.0) -> xr
     td, te = np.meshgrid(delays, exposures, indexing="ij")
     use = np.isfinite(count) & (count >= min_rows)
     if use.sum() < 3:
-        raise ValueError(f"only {int(use.sum())} frames show at least {min_rows} illuminated rows; capture longer "
-                         "exposures or a brighter line")
+        raise StageError(Problem(f"calibrate_scan_speed: only {int(use.sum())} of {use.size} frames show at least "
+                                 f"{min_rows} illuminated rows (counts per frame: {np.round(count, 1).tolist()})",
+                                 fix="capture longer exposures, or delays that keep the band on the sensor"))
     line_time = float(capture.attrs["line_time_us"])
 
     def residuals(theta, _):

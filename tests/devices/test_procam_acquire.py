@@ -143,3 +143,13 @@ outputs:
     assert abs(fit["scan_speed_px_per_us"] - 1 / 16.5) < 3 * fit["scan_speed_std"]
     assert abs(fit["sync_offset_us"] - 23.0) < 3 * fit["sync_offset_std"]
     assert fit["scan_speed_std"] < 0.01 / 16.5 and fit["sync_offset_std"] < 16.5
+
+
+def test_calibration_without_a_visible_band_names_the_frames_and_the_fix():
+    from pipeline.errors import StageError
+    from stages.procam import calibrate_scan_speed
+
+    dark = xr.Dataset({"image": (("delay", "exposure", "row", "col"), np.zeros((2, 2, 8, 4)))},
+                      coords={"delay": [0.0, 170.0], "exposure": [170.0, 340.0]}, attrs={"line_time_us": 17.0})
+    with pytest.raises(StageError, match=r"only 0 of 4 frames show at least 2.0 illuminated rows.*longer exposures"):
+        calibrate_scan_speed(dark)
