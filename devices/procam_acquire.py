@@ -27,6 +27,10 @@ from pipeline.errors import DeviceError, Problem, SpecError
 from pipeline.store import create_capture, missing_frames, open_store, write_frame
 
 
+#: camera rows per stored chunk of a capture
+CAPTURE_BAND_ROWS = 64
+
+
 @dataclass
 class ProcamInstruments:
     """The instruments of a delay–exposure sweep and the attrs (v_p, t_p, …) its captures carry."""
@@ -91,7 +95,8 @@ def capture_template(instruments: ProcamInstruments, kind: str, delays, exposure
         coords["line"] = ("line", np.asarray(lines, float), {"units": "px", "long_name": "line centre l_p"})
         dims.append("line")
     shape = tuple(len(coords[d][1]) for d in dims) + (rows, cols)
-    stack = da.zeros(shape, dtype=np.float32, chunks=(1,) * len(dims) + (rows, cols))
+    # stored in bands of rows, so per-pixel work (demultiplexing) reads a band of every frame, not whole frames
+    stack = da.zeros(shape, dtype=np.float32, chunks=(1,) * len(dims) + (min(rows, CAPTURE_BAND_ROWS), cols))
     return xr.Dataset({"image": ((*dims, "row", "col"), stack, {"units": "counts"})}, coords=coords,
                       attrs={"selpath_kind": kind, **instruments.attrs, **(extra_attrs or {})})
 

@@ -169,7 +169,8 @@ class ProcamRig(_Model):
     def attrs(self) -> dict:
         """What a capture store records about the rig (docs/format.md)."""
         return {"scan_speed_px_per_us": self.scan_speed, "line_time_us": self.line_time,
-                "projector_shape": [self.projector_rows, self.projector_cols]}
+                "projector_shape": [self.projector_rows, self.projector_cols],
+                "dark_level_counts": self.dark_level, "saturation_counts": self.saturation_level}
 
 
 class ProcamScene(_Model):

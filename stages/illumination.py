@@ -1,0 +1,86 @@
+"""The illumination model of the synchronised projector–camera rig (Eq. 32–33, 37–38), on the offset grid.
+
+A frame at delay t_d and exposure t_e lights camera row s with projector row s + o for the part of the row's
+line time t_p that falls inside the row's exposure. Projector row v is lit during [v/v_p, v/v_p + t_p]; camera
+row s is exposed for t_e centred at s/v_p + t_p/2 + t_d + t_o (t_o the calibrated sync offset, §5.3.2), so the
+weight of offset o is
+
+    w(o; t_d, t_e) = |[o/v_p − t_p/2, o/v_p + t_p/2] ∩ [t_d + t_o − t_e/2, t_d + t_o + t_e/2]| / t_p,
+
+the box of Eq. 33 (centre I_d = v_p t_d, width I_w = v_p t_e) with fractional edges and widened by t_p. It
+depends only on the sweep, never on the pixel: the one matrix every pixel's demultiplexing shares (DESIGN §6).
+The vertical line of the full transport (Eq. 38) adds a box in u: column u₀ + du is lit by the fraction of its
+width inside [l_p − l_w/2, l_p + l_w/2].
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def box_overlap(low_a, high_a, low_b, high_b) -> np.ndarray:
+    """Length of the intersection of intervals [low_a, high_a] and [low_b, high_b] (broadcasting), ≥ 0."""
+    return np.clip(np.minimum(high_a, high_b) - np.maximum(low_a, low_b), 0.0, None)
+
+
+def offset_cells(offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The integer offsets each cell of an evenly spaced offset grid covers: (cell index, offset) pairs.
+
+    A grid of step h > 1 treats the transport as constant over h neighbouring rows (cell k covers the
+    integer offsets o with |o − o_k| < h/2, and half of each offset at exactly h/2 when h is even).
+    """
+    offsets = np.asarray(offsets, dtype=float)
+    step = float(np.min(np.diff(offsets))) if offsets.size > 1 else 1.0
+    half = int(np.floor(step / 2))
+    cells, rows, share = [], [], []
+    for k, centre in enumerate(offsets):
+        for j in range(-half, half + 1):
+            weight = 0.5 if 2 * abs(j) == step else 1.0
+            cells.append(k), rows.append(centre + j), share.append(weight)
+    return np.array(cells), np.array(rows), np.array(share)
+
+
+def plane_to_ray_illumination(delays, exposures, offsets, *, scan_speed: float, line_time: float,
+                              sync_offset: float = 0.0) -> np.ndarray:
+    """Illumination matrix L[i, k] of frames i = (delays[i], exposures[i]) [µs] on the offset grid ``offsets``
+    [rows]: the (N, K) matrix of Eq. 34 in the image's own units (1 = a row lit for its whole t_p).
+
+    ``scan_speed`` v_p [rows per µs], ``line_time`` t_p [µs], ``sync_offset`` t_o [µs].
+    """
+    delays = np.asarray(delays, dtype=float)[:, None]
+    exposures = np.asarray(exposures, dtype=float)[:, None]
+    if delays.shape != exposures.shape:
+        raise ValueError(f"{delays.shape[0]} delays but {exposures.shape[0]} exposures: one of each per frame")
+    cells, rows, share = offset_cells(offsets)
+    lit = rows[None, :] / scan_speed
+    centre = delays + sync_offset
+    weight = box_overlap(lit - line_time / 2, lit + line_time / 2, centre - exposures / 2, centre + exposures / 2)
+    weight = weight / line_time * share[None, :]
+    out = np.zeros((delays.shape[0], len(offsets)))
+    np.add.at(out.T, cells, weight.T)
+    return out
+
+
+def line_illumination(lines, du, *, line_width: float, direct_column: float) -> np.ndarray:
+    """Horizontal factor of Eq. 38: (lines, du) fraction of projector column u₀ + du (one column wide, centred
+    on it) inside the line [l_p − l_w/2, l_p + l_w/2], for a pixel whose direct correspondence is column
+    ``direct_column`` (u₀)."""
+    u = direct_column + np.asarray(du, dtype=float)[None, :]
+    lines = np.asarray(lines, dtype=float)[:, None]
+    return box_overlap(u - 0.5, u + 0.5, lines - line_width / 2, lines + line_width / 2)
+
+
+def epipolar_boundary(delays, exposures, *, sync_offset: float = 0.0, margin: float) -> np.ndarray:
+    """True for frames whose exposure edge passes within ``margin`` [µs] of the epipolar row (t_d ≈ ±t_e/2).
+
+    There the direct light — the strongest path — is cut by the edge of the exposure, so the slightest
+    timing jitter or sync error moves a large share of it in or out of the frame (the thesis drops these
+    frames: "significant horizontal artifacts due to synchronization problems", §5.2.2).
+    """
+    delays = np.asarray(delays, dtype=float) + sync_offset
+    return np.abs(np.abs(delays) - np.asarray(exposures, dtype=float) / 2) < margin
+
+
+def difference_operator(size: int) -> np.ndarray:
+    """First differences along the offset axis, (K − 1, K): the ∂T/∂v of the smoothness term E_c."""
+    return np.diff(np.eye(size), axis=0)
