@@ -26,7 +26,6 @@ from devices.protocols import Camera, Projector, SyncController
 from pipeline.errors import DeviceError, Problem, SpecError
 from pipeline.store import create_capture, missing_frames, open_store, write_frame
 
-
 #: camera rows per stored chunk of a capture
 CAPTURE_BAND_ROWS = 64
 

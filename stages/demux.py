@@ -142,7 +142,8 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
     polish_iter : int
         Conjugate-gradient steps of the final support polish (0: none).
     boundary_margin_us : float or None
-        Drop frames whose exposure edge is within this many µs of the epipolar row; None: t_p.
+        Drop frames whose exposure edge is within this many µs of the epipolar row; None: t_p/2 (the edge
+        cuts the epipolar row's own line time; widen it by the laser jitter of a real rig).
     sync_offset_us : float or None
         Sync offset t_o [µs]; None: the scan calibration's when wired in, else 0.
     full_scale : float or None
@@ -158,7 +159,7 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
     timing = _rig_timing(capture, scan_calibration, sync_offset_us)
     dark, scale, saturation = _levels(capture, full_scale)
     delays, exposures = np.meshgrid(capture["delay"].values, capture["exposure"].values, indexing="ij")
-    margin = timing["line_time"] if boundary_margin_us is None else boundary_margin_us
+    margin = timing["line_time"] / 2 if boundary_margin_us is None else boundary_margin_us
     keep = ~epipolar_boundary(delays, exposures, sync_offset=timing["sync_offset"], margin=margin)
     if keep.sum() == 0:
         raise StageError(Problem(f"every frame lies within {margin} µs of the epipolar boundary",

@@ -12,8 +12,10 @@ detour was slow, DESIGN §6), so this is a batched ADMM in plain JAX:
 * splitting T = Z with Z ≥ 0 carrying the L1 term: the T-update is (2G + ρI)⁻¹(2Aᵀỹ + ρ(Z − U)) with
   G = AᵀA + αDᵀD, one shared K × K inverse, so a tile of P pixels costs one (P × K)·(K × K) product per
   iteration; the Z-update max(0, ·− β/ρ) is exact;
-* over-relaxation (1.7) and ρ = ``rho_factor`` · λ_max(2G) (0.01: the fastest of the grid measured in
-  ``benchmarks/demux_throughput.py``);
+* a warm start at the unconstrained minimiser, clipped at 0, and Goldstein et al.'s fast ADMM with restart
+  (Nesterov momentum per pixel while the combined residual falls): measured against plain and
+  over-relaxed ADMM, 4–10× fewer iterations to a 1e-4 objective gap; ρ = ``rho_factor`` · λ_max(2G)
+  (0.01, the best of 0.003–0.3 on a Fig. 38-like sweep);
 * masked frames by majorisation: a masked observation is replaced by the current prediction (ỹ = w y +
   (1 − w) A Z), whose fixed points are exactly the masked problem's optima, so unmasked tiles keep the
   cheapest path and masked ones pay two more products per iteration;

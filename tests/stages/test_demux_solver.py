@@ -13,7 +13,8 @@ from stages.demux_solver import DemuxProblem, solve
 from stages.illumination import epipolar_boundary, plane_to_ray_illumination
 
 
-def cvxpy_optimum(problem: DemuxProblem, data: np.ndarray, weight: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+def cvxpy_optimum(problem: DemuxProblem, data: np.ndarray,
+                  weight: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The thesis's per-pixel CVXPY problem, solved to Clarabel's default accuracy, one pixel at a time."""
     n, k = problem.illumination.shape
     t, y, w = cp.Variable(k), cp.Parameter(n), cp.Parameter(n, nonneg=True)

@@ -1,0 +1,92 @@
+"""Demultiplexing on hard inputs: finite, non-negative, honest convergence flags (float32 unless stated)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from stages.demux_solver import DemuxProblem, solve
+from stages.illumination import plane_to_ray_illumination
+
+OFFSETS = np.arange(-32, 33)
+
+
+def matrix(delays, exposures, offsets=OFFSETS):
+    d, e = np.meshgrid(delays, exposures, indexing="ij")
+    return plane_to_ray_illumination(d.ravel(), e.ravel(), offsets, scan_speed=1 / 17, line_time=17)
+
+
+def pixels(a, rng, n=64):
+    o = OFFSETS[None, :]
+    truth = rng.uniform(0.1, 1, (n, 1)) * (o == 0) + rng.uniform(0, 0.2, (n, 1)) * np.exp(-np.abs(o) / 3)
+    return truth, truth @ a.T
+
+
+def check(result, max_iter):
+    assert np.isfinite(result.transport).all() and (result.transport >= 0).all()
+    assert np.isfinite(result.objective).all()
+    # honest flags: a pixel flagged converged stopped before the cap; one that hit the cap is not flagged
+    assert np.all(result.iterations[result.converged] <= max_iter)
+    assert not np.any(result.converged & (result.iterations > max_iter))
+
+
+def test_rank_deficient_sweep_n_below_k():
+    a = matrix([-170.0, 0.0, 170.0], [340.0])  # N = 3 frames, K = 65 offsets
+    _, data = pixels(a, np.random.default_rng(0))
+    result = solve(DemuxProblem.build(a), data, tol=1e-3, max_iter=500)
+    check(result, 500)
+    assert result.converged.mean() >= 0.95
+    np.testing.assert_allclose(result.transport @ a.T, data, rtol=0, atol=1e-2 * data.max())
+
+
+def test_exposures_much_wider_than_the_delay_step():
+    a = matrix(np.arange(-340.0, 341.0, 17.0), [1020.0])  # 60-row boxes stepped by 1 row
+    truth, data = pixels(a, np.random.default_rng(1))
+    result = solve(DemuxProblem.build(a), data, tol=1e-3, max_iter=500)
+    check(result, 500)
+    np.testing.assert_allclose(result.transport.sum(1), truth.sum(1), rtol=0.05)  # total light is determined
+
+
+def test_all_zero_and_saturated_pixels():
+    a = matrix(np.arange(-340.0, 341.0, 85.0), [170.0, 510.0])
+    _, data = pixels(a, np.random.default_rng(2), n=8)
+    data[0] = 0.0  # a black pixel: T = 0 exactly, converged at once
+    weight = np.ones_like(data, bool)
+    weight[1] = False  # every frame saturated: no information, T = 0 (the prior's minimum), flagged by frames
+    weight[2, ::2] = False  # half saturated
+    result = solve(DemuxProblem.build(a), data, weight, tol=1e-3, max_iter=300)
+    check(result, 300)
+    assert np.all(result.transport[0] == 0) and result.converged[0]
+    assert np.all(result.transport[1] == 0)
+
+
+def test_nan_frames_are_masked():
+    a = matrix(np.arange(-340.0, 341.0, 85.0), [170.0, 510.0])
+    _, data = pixels(a, np.random.default_rng(3), n=16)
+    clean = solve(DemuxProblem.build(a), data, tol=1e-4, max_iter=500)
+    data[:, 3] = np.nan
+    data[5, :] = np.inf  # one pixel with nothing finite
+    result = solve(DemuxProblem.build(a), data, tol=1e-4, max_iter=500)
+    check(result, 500)
+    assert np.all(result.transport[5] == 0)
+    keep = np.arange(16) != 5
+    np.testing.assert_allclose(result.transport[keep] @ a.T, clean.transport[keep] @ a.T, rtol=0,
+                               atol=0.05 * np.nanmax(data[keep]))
+
+
+@pytest.mark.parametrize("scale", [1e-8, 1e8])
+def test_data_scaled_by_1e_minus_8_and_1e8_in_float32(scale):
+    """Per-pixel scaling inside the solver: scaled data with β scaled alike is the same problem times
+    scale² (β enters linearly). Objectives agree to 1e-4 relative; iterates to 2 % of the largest value
+    (both stop at tol 1e-4 on an ill-conditioned problem, where flat directions move freely)."""
+    a = matrix(np.arange(-340.0, 341.0, 85.0), [170.0, 510.0])
+    _, data = pixels(a, np.random.default_rng(4))
+    base = solve(DemuxProblem.build(a, beta=0.01), data, tol=1e-4, max_iter=400)
+    scaled = solve(DemuxProblem.build(a, beta=0.01 * scale), data * scale, tol=1e-4, max_iter=400)
+    check(scaled, 400)
+    assert scaled.transport.dtype == np.float32
+    problem = DemuxProblem.build(a, beta=0.01)
+    np.testing.assert_allclose(problem.objective(scaled.transport / scale, data),
+                               problem.objective(base.transport, data), rtol=1e-4)
+    np.testing.assert_allclose(scaled.transport / scale, base.transport, rtol=0, atol=2e-2 * base.transport.max())
+    assert (scaled.converged == base.converged).mean() >= 0.95
