@@ -1,0 +1,166 @@
+"""What plane-to-ray transport is for (§5.4.1, §5.4.2, §5.4.5): delay profiles, relighting under any row
+pattern, epipolar, non-epipolar and sharpened epipolar images (Eq. 35–36), and their figures.
+
+The functions are lazy on ``T(offset, row, col)`` (xarray/dask); the figure stages render them.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import xarray as xr
+
+from pipeline.errors import Problem, StageError
+from pipeline.registry import stage
+from stages.report import _SIZE_IN, _DPI, _as_figure, _rgba, plt
+
+
+def relight(transport: xr.DataArray, row_pattern: np.ndarray) -> xr.DataArray:
+    """The image under a virtual pattern of projector rows b(v) (rectified onto camera rows, 1 = lit for a
+    whole line time): I(s, t) = Σ_o T(o, s, t) · b(s + o); rows outside the pattern are dark."""
+    rows = transport.sizes["row"]
+    row_pattern = np.asarray(row_pattern, dtype=float)
+    if row_pattern.shape != (rows,):
+        raise ValueError(f"row pattern has shape {row_pattern.shape}; expected ({rows},) camera-rectified rows")
+    v = np.arange(rows)[None, :] + transport["offset"].values[:, None]
+    lit = np.where((v >= 0) & (v < rows), row_pattern[np.clip(v, 0, rows - 1)], 0.0)
+    weights = xr.DataArray(lit.astype(transport.dtype), dims=("offset", "row"))
+    return (transport * weights).sum("offset")
+
+
+def epipolar_image(transport: xr.DataArray, half_width: int = 0) -> xr.DataArray:
+    """Light from the pixel's own epipolar plane (Eq. 35), or from the 2·half_width + 1 planes around it:
+    the *sharpened* epipolar image of §5.4.5, as narrow as the transport's resolution allows."""
+    return transport.where(abs(transport["offset"]) <= half_width, 0).sum("offset")
+
+
+def non_epipolar_image(transport: xr.DataArray) -> xr.DataArray:
+    """Light from every other plane (Eq. 36)."""
+    return transport.where(transport["offset"] != 0, 0).sum("offset")
+
+
+def _pixel(ds: xr.Dataset, where: tuple[float, float]) -> tuple[int, int]:
+    x, y = where
+    if not (0 <= x <= 1 and 0 <= y <= 1):
+        raise StageError(Problem(f"pixel {where} is not in image fractions [0, 1]", fix="give [x, y] fractions"))
+    return (min(int(y * ds.sizes["row"]), ds.sizes["row"] - 1), min(int(x * ds.sizes["col"]), ds.sizes["col"] - 1))
+
+
+def _draw_profiles(delays, measured: dict, offsets, recovered: dict, exposure: float) -> np.ndarray:
+    fig, (left, right) = plt.subplots(1, 2, figsize=_SIZE_IN, dpi=_DPI, constrained_layout=True)
+    for name, values in measured.items():
+        left.plot(delays, values / max(values.max(), 1e-12), marker=".", label=name)
+    left.set(xlabel="delay t_d [µs]", ylabel="intensity / its peak", title=f"delay profiles, t_e = {exposure:g} µs")
+    left.legend(fontsize="small")
+    for name, values in recovered.items():
+        right.plot(offsets, values, label=name)
+    right.set(xlabel="offset v − s [rows]", ylabel="T [counts]", yscale="symlog",
+              title="demultiplexed transport T(v) at the same pixels")
+    return _rgba(fig)
+
+
+@stage("delay_profile_figure")
+def delay_profile_figure(capture: xr.Dataset, transport: xr.Dataset, /, *,
+                         pixels: dict[str, tuple[float, float]], exposure: float | None = None) -> xr.Dataset:
+    """Fig. 38: measured delay profiles I(t_d) and the demultiplexed T(offset) at named pixels.
+
+    Parameters
+    ----------
+    pixels : dict
+        name → [x, y] in image fractions (the scene files' units).
+    exposure : float or None
+        Exposure whose delay sweep is drawn [µs]; None: the shortest.
+    """
+    exposure = float(capture["exposure"].min()) if exposure is None else exposure
+    if exposure not in capture["exposure"].values:
+        raise StageError(Problem(f"exposure {exposure} µs is not in the capture",
+                                 fix=f"choose one of {capture['exposure'].values.tolist()}"))
+    at = {name: _pixel(capture, where) for name, where in pixels.items()}
+    measured = {name: capture["image"].sel(exposure=exposure).isel(row=r, col=c) for name, (r, c) in at.items()}
+    recovered = {name: transport["transport"].isel(row=r, col=c) for name, (r, c) in at.items()}
+
+    def render(delays, offsets, measured, recovered):
+        return _draw_profiles(delays, {k: np.asarray(v) for k, v in measured.items()}, offsets,
+                              {k: np.asarray(v) for k, v in recovered.items()}, exposure)
+
+    return _as_figure(render, capture["delay"].values, transport["offset"].values,
+                      {k: v.data for k, v in measured.items()}, {k: v.data for k, v in recovered.items()})
+
+
+def _draw_relit(images: list[np.ndarray], titles: list[str]) -> np.ndarray:
+    fig, axes = plt.subplots(1, len(images), figsize=_SIZE_IN, dpi=_DPI, constrained_layout=True)
+    for ax, image, title in zip(np.atleast_1d(axes), images, titles, strict=True):
+        ax.imshow(image, cmap="gray", vmin=0, vmax=max(float(np.percentile(image, 99.5)), 1e-12))
+        ax.set(title=title, xticks=[], yticks=[])
+    return _rgba(fig)
+
+
+@stage("relighting_figure")
+def relighting_figure(transport: xr.Dataset, /, *, lines: tuple[float, ...] = (0.2, 0.4, 0.6, 0.8),
+                      line_rows: int = 5) -> xr.Dataset:
+    """Fig. 40: the scene relit by single virtual lines sweeping down, and under white (the regular image).
+
+    Parameters
+    ----------
+    lines : list of float
+        Line centres as fractions of the image height.
+    line_rows : int
+        Line width in projector rows.
+    """
+    t = transport["transport"]
+    rows = t.sizes["row"]
+    images, titles = [], []
+    for centre in lines:
+        pattern = (np.abs(np.arange(rows) - centre * rows) < line_rows / 2).astype(float)
+        images.append(relight(t, pattern).data)
+        titles.append(f"line at {centre:.0%} height")
+    images.append(relight(t, np.ones(rows)).data)
+    titles.append("white (regular image)")
+
+    def render(*arrays):
+        return _draw_relit([np.asarray(a) for a in arrays], titles)
+
+    return _as_figure(render, *images)
+
+
+def _draw_epipolar(regular, sharpened, row: int, exposure: float, half_width: int) -> np.ndarray:
+    fig, axes = plt.subplots(1, 3, figsize=_SIZE_IN, dpi=_DPI, constrained_layout=True)
+    top = max(float(np.percentile(regular, 99.5)), 1e-12)
+    for ax, image, title in ((axes[0], regular, f"epipolar frame, t_e = {exposure:g} µs"),
+                             (axes[1], sharpened, f"sharpened from T (|offset| ≤ {half_width})")):
+        ax.imshow(image, cmap="gray", vmin=0, vmax=top)
+        ax.axhline(row, color="tab:red", lw=0.8)
+        ax.set(title=title, xticks=[], yticks=[])
+    axes[2].plot(regular[row], label="epipolar frame")
+    axes[2].plot(sharpened[row], label="sharpened")
+    axes[2].set(xlabel="column", ylabel="counts", title=f"row {row}")
+    axes[2].legend(fontsize="small")
+    return _rgba(fig)
+
+
+@stage("epipolar_figure")
+def epipolar_figure(capture: xr.Dataset, transport: xr.Dataset, /, *, exposure: float | None = None,
+                    half_width: int = 0, row: float = 0.5) -> xr.Dataset:
+    """Fig. 47: the captured epipolar frame (t_d = 0) at a long exposure against the sharpened epipolar image
+    synthesised from T, with a cross-section.
+
+    Parameters
+    ----------
+    exposure : float or None
+        Exposure of the captured epipolar frame [µs]; None: the longest.
+    half_width : int
+        Offsets kept by the sharpened image: |offset| ≤ half_width rows.
+    row : float
+        Cross-section row, as a fraction of the image height.
+    """
+    if 0.0 not in capture["delay"].values:
+        raise StageError(Problem("the capture has no frame at delay 0 (the epipolar frame)",
+                                 fix="sweep delays through 0"))
+    exposure = float(capture["exposure"].max()) if exposure is None else exposure
+    regular = capture["image"].sel(delay=0.0, exposure=exposure).data
+    sharpened = epipolar_image(transport["transport"], half_width).data
+    at = min(int(row * capture.sizes["row"]), capture.sizes["row"] - 1)
+
+    def render(regular, sharpened):
+        return _draw_epipolar(np.asarray(regular), np.asarray(sharpened), at, exposure, half_width)
+
+    return _as_figure(render, regular, sharpened)
