@@ -186,7 +186,8 @@ def main() -> None:
         print(f"{row['max_iter']:>10}{row['polish']:>8}{row['gap_median']:>12.1e}{row['gap_p90']:>10.1e}"
               f"{row['s_per_px'] * 1e6:>8.1f}{1 / row['s_per_px']:>10.0f}")
     print(f"stage defaults (max_iter {args.max_iter}, tol {args.tol:g}): gap median {curve['gap_median']:.1e}, "
-          f"p90 {curve['gap_p90']:.1e}; converged {curve['converged']:.0%}, median {curve['iterations_median']:.0f} its")
+          f"p90 {curve['gap_p90']:.1e}; converged {curve['converged']:.0%}, "
+          f"median {curve['iterations_median']:.0f} its")
     generate = _run("generate", argv, k=128)
     print(f"\n{'run':<34}{'seconds':>9}{'px/s':>10}{'peak RSS GB':>13}")
     print(f"{'generate the stack (K=128)':<34}{generate['seconds']:>9.1f}{'':>10}{generate['peak_rss_gb']:>13.2f}")

@@ -11,7 +11,7 @@ import xarray as xr
 
 from pipeline.errors import Problem, StageError
 from pipeline.registry import stage
-from stages.report import _SIZE_IN, _DPI, _as_figure, _rgba, plt
+from stages.report import _DPI, _SIZE_IN, _as_figure, _rgba, plt
 
 
 def relight(transport: xr.DataArray, row_pattern: np.ndarray) -> xr.DataArray:
