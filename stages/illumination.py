@@ -9,8 +9,6 @@ weight of offset o is
 
 the box of Eq. 33 (centre I_d = v_p t_d, width I_w = v_p t_e) with fractional edges and widened by t_p. It
 depends only on the sweep, never on the pixel: the one matrix every pixel's demultiplexing shares (DESIGN §6).
-The vertical line of the full transport (Eq. 38) adds a box in u: column u₀ + du is lit by the fraction of its
-width inside [l_p − l_w/2, l_p + l_w/2].
 """
 
 from __future__ import annotations
@@ -23,21 +21,20 @@ def box_overlap(low_a, high_a, low_b, high_b) -> np.ndarray:
     return np.clip(np.minimum(high_a, high_b) - np.maximum(low_a, low_b), 0.0, None)
 
 
-def offset_cells(offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The integer offsets each cell of an evenly spaced offset grid covers: (cell index, offset) pairs.
+def offset_cells(offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The integer offsets each cell of an evenly spaced offset grid covers: (cell index, offset, share)
+    triples, share the part of that offset's row the cell holds.
 
     A grid of step h > 1 treats the transport as constant over h neighbouring rows (cell k covers the
     integer offsets o with |o − o_k| < h/2, and half of each offset at exactly h/2 when h is even).
     """
     offsets = np.asarray(offsets, dtype=float)
     step = float(np.min(np.diff(offsets))) if offsets.size > 1 else 1.0
-    half = int(np.floor(step / 2))
-    cells, rows, share = [], [], []
-    for k, centre in enumerate(offsets):
-        for j in range(-half, half + 1):
-            weight = 0.5 if 2 * abs(j) == step else 1.0
-            cells.append(k), rows.append(centre + j), share.append(weight)
-    return np.array(cells), np.array(rows), np.array(share)
+    j = np.arange(-int(np.floor(step / 2)), int(np.floor(step / 2)) + 1)
+    cells = np.repeat(np.arange(offsets.size), j.size)
+    rows = (offsets[:, None] + j[None, :]).ravel()
+    share = np.tile(np.where(2 * np.abs(j) == step, 0.5, 1.0), offsets.size)
+    return cells, rows, share
 
 
 def plane_to_ray_illumination(delays, exposures, offsets, *, scan_speed: float, line_time: float,
@@ -59,15 +56,6 @@ def plane_to_ray_illumination(delays, exposures, offsets, *, scan_speed: float, 
     out = np.zeros((delays.shape[0], len(offsets)))
     np.add.at(out.T, cells, weight.T)
     return out
-
-
-def line_illumination(lines, du, *, line_width: float, direct_column: float) -> np.ndarray:
-    """Horizontal factor of Eq. 38: (lines, du) fraction of projector column u₀ + du (one column wide, centred
-    on it) inside the line [l_p − l_w/2, l_p + l_w/2], for a pixel whose direct correspondence is column
-    ``direct_column`` (u₀)."""
-    u = direct_column + np.asarray(du, dtype=float)[None, :]
-    lines = np.asarray(lines, dtype=float)[:, None]
-    return box_overlap(u - 0.5, u + 0.5, lines - line_width / 2, lines + line_width / 2)
 
 
 def epipolar_boundary(delays, exposures, *, sync_offset: float = 0.0, margin: float) -> np.ndarray:
