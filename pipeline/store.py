@@ -16,6 +16,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import warnings
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -30,6 +31,10 @@ from pipeline.schema import FORMAT_VERSION, KINDS, MIGRATIONS, check_dataset
 
 WRITTEN_PREFIX = "written__"
 PROVENANCE_GROUP = "_selpath"
+
+
+class IncompleteCaptureWarning(UserWarning):
+    """A capture store opened for processing still misses frames."""
 
 
 #: target size of the dask chunks a store is read in (a whole number of its on-disk chunks)
@@ -79,7 +84,8 @@ def open_store(path: str | os.PathLike, kind: str | None = None, *, keep_flags: 
 
     ``kind`` defaults to the store's ``selpath_kind`` attr; when both are given they must agree.
     Every problem is reported at once in one :class:`StoreError`. The ``written__*`` frame flags
-    are dropped unless ``keep_flags``.
+    are dropped unless ``keep_flags``; dropping them from an unfinished capture warns, naming how many
+    frames of which variable are missing (they read as the fill value, NaN, and would pass unnoticed).
     """
     where = os.fspath(path)
     ds = _migrate(_open_raw(path), where)
@@ -98,7 +104,15 @@ def open_store(path: str | os.PathLike, kind: str | None = None, *, keep_flags: 
     if problems:
         raise StoreError(problems)
     if not keep_flags:
-        ds = ds.drop_vars([v for v in ds.data_vars if str(v).startswith(WRITTEN_PREFIX)])
+        flags = [v for v in ds.data_vars if str(v).startswith(WRITTEN_PREFIX)]
+        for name in flags:
+            written = ds[name].values
+            if not written.all():
+                warnings.warn(f"{where}: {int((~written).sum())} of {written.size} frames of "
+                              f"{str(name)[len(WRITTEN_PREFIX):]!r} were never captured and read as NaN; run the "
+                              "acquisition again to capture them (it resumes)", IncompleteCaptureWarning,
+                              stacklevel=2)
+        ds = ds.drop_vars(flags)
     return ds
 
 

@@ -129,6 +129,21 @@ def test_region_written_capture_reports_missing_frames_and_resumes(tmp_path):
     assert "written__target" not in open_store(path)
 
 
+def test_opening_an_unfinished_capture_for_processing_warns_with_the_count(tmp_path):
+    """Unwritten frames read as NaN; without the flags nothing else would tell (a demultiplexing that masks
+    NaN frames would silently run on fewer frames)."""
+    from pipeline.store import IncompleteCaptureWarning
+
+    path = tmp_path / "cap.zarr"
+    create_capture(path, capture(n_angles=5, lazy=True), "tomography_capture")
+    write_frame(path, "target", {"angle": 0}, np.ones((4, 5), np.float32))
+    for i in range(5):
+        write_frame(path, "reference", {"angle": i}, np.ones((4, 5), np.float32))
+    with pytest.warns(IncompleteCaptureWarning, match=r"4 of 5 frames of 'target'.*run the acquisition again"):
+        open_store(path)
+    open_store(path, keep_flags=True)  # asking for the flags is how to see them: no warning
+
+
 def test_resume_refuses_a_different_sweep_and_bad_frames(tmp_path):
     path = tmp_path / "cap.zarr"
     create_capture(path, capture(n_angles=5, lazy=True), "tomography_capture")
