@@ -18,12 +18,19 @@ import xarray as xr
 
 from pipeline.errors import Problem, StageError
 from pipeline.registry import stage
-from stages.demux_solver import DemuxProblem, solve
-from stages.illumination import epipolar_boundary, plane_to_ray_illumination
+from stages.demux_solver import DemuxProblem, SeparableDemuxProblem, solve
+from stages.illumination import epipolar_boundary, line_cells, line_illumination, plane_to_ray_illumination
 from stages.reconstruct import Dtype
 
-#: pixels per solver call: one compiled shape (the last call is padded), ~100 MB of solver state in float32
-PIXELS_PER_CALL = 16384
+#: pixels × offsets per solver call: the solver's ~8 (P × K) state arrays then stay in a core's L2/L3 cache.
+#: Measured (K = 128, 2 cores, two bands at once): 1024 pixels per call run 49k px/s at 40 iterations, 16384
+#: pixels 18k px/s (memory-bound elementwise work between the products); below 512 the per-call cost dominates.
+CALL_ELEMENTS = 1024 * 128
+
+
+def pixels_per_call(offsets: int) -> int:
+    """Pixels per solver call for K offsets: a power of two near CALL_ELEMENTS / K, within [256, 16384]."""
+    return int(np.clip(2 ** np.round(np.log2(CALL_ELEMENTS / max(offsets, 1))), 256, 16384))
 
 
 class OffsetGrid(pydantic.BaseModel):
@@ -75,11 +82,25 @@ def _levels(capture: xr.Dataset, full_scale: float | None) -> tuple[float, float
     return dark, float(full_scale), saturation
 
 
-def solve_pixels(problem: DemuxProblem, data: np.ndarray, weight: np.ndarray, *, dtype: str, **options):
-    """``solve`` over (P, N) pixels in calls of PIXELS_PER_CALL (the last one padded with empty pixels)."""
-    p = data.shape[0]
-    calls = max(1, -(-p // PIXELS_PER_CALL))
-    size = min(PIXELS_PER_CALL, p) if calls == 1 else PIXELS_PER_CALL
+def _frames(capture: xr.Dataset, timing: dict, boundary_margin_us: float | None, offsets: OffsetGrid | None):
+    """(delays, exposures, kept frames, margin, offset grid, illumination matrix) of a delay–exposure sweep."""
+    delays, exposures = np.meshgrid(capture["delay"].values, capture["exposure"].values, indexing="ij")
+    margin = timing["line_time"] / 2 if boundary_margin_us is None else boundary_margin_us
+    keep = ~epipolar_boundary(delays, exposures, sync_offset=timing["sync_offset"], margin=margin)
+    if keep.sum() == 0:
+        raise StageError(Problem(f"every frame lies within {margin} µs of the epipolar boundary",
+                                 fix="lower boundary_margin_us, or sweep delays away from ±t_e/2"))
+    grid = offsets.values() if offsets is not None else sweep_offsets(delays[keep], exposures[keep], **timing)
+    matrix = plane_to_ray_illumination(delays[keep], exposures[keep], grid, **timing)
+    return delays, exposures, keep, margin, grid, matrix
+
+
+def solve_pixels(problem: DemuxProblem | SeparableDemuxProblem, data: np.ndarray, weight: np.ndarray, *,
+                 dtype: str, **options):
+    """``solve`` over (P, N) pixels in calls of :func:`pixels_per_call` (the last one padded with empty pixels)."""
+    p, per_call = data.shape[0], pixels_per_call(problem.offsets)
+    calls = max(1, -(-p // per_call))
+    size = min(per_call, p) if calls == 1 else per_call
     parts = []
     for c in range(calls):
         chunk_data = data[c * size:(c + 1) * size]
@@ -158,14 +179,7 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
                                  fix="use demux_full for (delay, exposure, line, row, col) captures"))
     timing = _rig_timing(capture, scan_calibration, sync_offset_us)
     dark, scale, saturation = _levels(capture, full_scale)
-    delays, exposures = np.meshgrid(capture["delay"].values, capture["exposure"].values, indexing="ij")
-    margin = timing["line_time"] / 2 if boundary_margin_us is None else boundary_margin_us
-    keep = ~epipolar_boundary(delays, exposures, sync_offset=timing["sync_offset"], margin=margin)
-    if keep.sum() == 0:
-        raise StageError(Problem(f"every frame lies within {margin} µs of the epipolar boundary",
-                                 fix="lower boundary_margin_us, or sweep delays away from ±t_e/2"))
-    grid = offsets.values() if offsets is not None else sweep_offsets(delays[keep], exposures[keep], **timing)
-    matrix = plane_to_ray_illumination(delays[keep], exposures[keep], grid, **timing)
+    delays, exposures, keep, margin, grid, matrix = _frames(capture, timing, boundary_margin_us, offsets)
     problem = DemuxProblem.build(matrix, alpha=alpha, beta=beta)
     stack = capture[["image"]].chunk({"delay": -1, "exposure": -1, "row": rows_per_tile, "col": -1})
     rows, cols = capture.sizes["row"], capture.sizes["col"]
@@ -194,3 +208,134 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
         "scan_speed_px_per_us": timing["scan_speed"], "line_time_us": timing["line_time"],
         "sync_offset_us": timing["sync_offset"], "full_scale_counts": scale,
         "frames_dropped": dropped, "boundary_margin_us": margin, "dtype": dtype})
+
+
+#: bytes of full transport one dask task may hold (the default rows_per_tile of demux_full follows from it)
+FULL_TILE_BYTES = 64 * 2**20
+
+
+def _band_full(block: xr.Dataset, *, problem: SeparableDemuxProblem, keep: np.ndarray, dark: float,
+               full_scale: float, saturation: float, dtype: str, options: dict, reach: int, centre_v: int,
+               cells: np.ndarray) -> xr.Dataset:
+    image = block["image"].transpose("line", "delay", "exposure", "row", "col").values
+    n_lines, rows, cols = image.shape[0], *image.shape[-2:]
+    frames = image.reshape(n_lines, -1, rows * cols)[:, keep.ravel()].reshape(-1, rows * cols).T  # line-major
+    weight = np.isfinite(frames) & (frames < saturation)
+    data = np.where(weight, (frames - dark) / full_scale, 0.0)
+    transport, iterations, converged, objective = solve_pixels(problem, data, weight, dtype=dtype, **options)
+    k_u, k_v = problem.cells
+    absolute = transport.reshape(-1, k_u, k_v)  # (P, u-cell, dv)
+    # the direct correspondence u₀: the brightest u-cell on the epipolar row (dv = 0)
+    epipolar = absolute[:, :, centre_v]
+    peak = np.argmax(epipolar, axis=1)
+    lit = epipolar.max(axis=1) > 0
+    du = np.arange(-reach, reach + 1)
+    index = peak[:, None] + du[None, :]
+    inside = (index >= 0) & (index < k_u)
+    relative = np.take_along_axis(absolute, np.clip(index, 0, k_u - 1)[:, :, None], axis=1)
+    relative = np.where(inside[:, :, None], relative, np.nan)  # columns the sweep never lit: unobserved
+    relative[~lit] = np.where(inside[~lit, :, None], 0.0, np.nan)
+    shape = (rows, cols)
+    return xr.Dataset({
+        "transport": (("du", "dv", "row", "col"),
+                      (relative.transpose(1, 2, 0) * full_scale).reshape(du.size, k_v, *shape).astype(dtype)),
+        "u_direct": (("row", "col"), np.where(lit, cells[peak], np.nan).reshape(shape).astype(np.float32)),
+        "iterations": (("row", "col"), iterations.reshape(shape).astype(np.int32)),
+        "converged": (("row", "col"), converged.reshape(shape)),
+        "objective": (("row", "col"), objective.reshape(shape).astype(np.float32)),
+        "frames_used": (("row", "col"), weight.sum(-1).reshape(shape).astype(np.int32)),
+    }, coords={name: block[name] for name in ("row", "col") if name in block.coords})
+
+
+@stage("demux_full")
+def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, /, *,
+               offsets: OffsetGrid | None = None, cell_width_px: float | None = None,
+               du_reach_px: float | None = None, alpha: float = 0.01, beta: float = 0.01, tol: float = 1e-3,
+               max_iter: int = 40, polish_iter: int = 0, boundary_margin_us: float | None = None,
+               sync_offset_us: float | None = None, full_scale: float | None = None,
+               rows_per_tile: int | None = None, dtype: Dtype = "float32") -> xr.Dataset:
+    """Full transport T(du, dv, row, col) from a ``(delay, exposure, line, row, col)`` capture (§5.3.1).
+
+    Per pixel the thesis's problem (Eq. 40 with the α, β and T ≥ 0 of plane-to-ray) over u-cells × offsets,
+    with the separable illumination L_u ⊗ L (Eq. 38): the lines' boxes on cells of ``cell_width_px``
+    projector columns, and the delay–exposure boxes of Eq. 32–33 on the offset grid. It is solved on
+    absolute u-cells, then each pixel is re-indexed from its direct correspondence u₀ (the brightest cell on
+    its epipolar row, stored as ``u_direct``), so du = 0 is the direct light. Cells the sweep never lit
+    are NaN; pixels with no epipolar light keep du relative to cell 0 and ``u_direct`` NaN.
+
+    Parameters
+    ----------
+    offsets : {start, stop, step} or None
+        dv grid [rows]; None: every offset some frame of the sweep lights.
+    cell_width_px : float or None
+        Width of a u-cell [projector columns]; None: the spacing of the lines (the thesis's 20 px).
+    du_reach_px : float or None
+        Keep |du| up to this [px]; None: every offset the sweep can express (2 K_u − 1 cells).
+    alpha, beta : float
+        Smoothness along dv and sparsity weights (thesis: 0.01), on images scaled to [0, 1].
+    tol, max_iter, polish_iter, boundary_margin_us, sync_offset_us, full_scale, dtype
+        As for ``demux_plane_to_ray``.
+    rows_per_tile : int or None
+        Camera rows per dask task; None: as many as keep a task's transport within 64 MiB.
+    """
+    if "line" not in capture.dims:
+        raise StageError(Problem("this capture has no line dimension (a plane-to-ray sweep)",
+                                 fix="use demux_plane_to_ray for (delay, exposure, row, col) captures"))
+    if "line_width_px" not in capture.attrs:
+        raise StageError(Problem("the capture has no attr 'line_width_px'", where="capture",
+                                 fix="acquire with acquire_full_transport, or add the attr (docs/format.md)"))
+    timing = _rig_timing(capture, scan_calibration, sync_offset_us)
+    dark, scale, saturation = _levels(capture, full_scale)
+    delays, exposures, keep, margin, grid, frame_matrix = _frames(capture, timing, boundary_margin_us, offsets)
+    lines, width = capture["line"].values, float(capture.attrs["line_width_px"])
+    if lines.size > 1 and not np.allclose(np.diff(lines), np.diff(lines)[0]) and cell_width_px is None:
+        raise StageError(Problem("the line positions are not evenly spaced, so the u-cell width is ambiguous",
+                                 fix="set cell_width_px"))
+    try:
+        cells, step = line_cells(lines, width, cell_width_px)
+    except ValueError as error:
+        raise StageError(Problem(str(error), where="capture line sweep", fix="set cell_width_px > 0")) from None
+    problem = SeparableDemuxProblem.build(line_illumination(lines, width, cells, step), frame_matrix,
+                                          alpha=alpha, beta=beta)
+    k_u = cells.size
+    reach = k_u - 1 if du_reach_px is None else min(int(np.floor(du_reach_px / step)), k_u - 1)
+    rows, cols = capture.sizes["row"], capture.sizes["col"]
+    if rows_per_tile is None:
+        per_row = cols * (2 * reach + 1 + k_u) * grid.size * 4
+        rows_per_tile = int(np.clip(FULL_TILE_BYTES // max(per_row, 1), 1, 64))
+    stack = capture[["image"]].chunk({"delay": -1, "exposure": -1, "line": -1, "row": rows_per_tile, "col": -1})
+    row_chunks = stack.chunksizes["row"]
+    n_du = 2 * reach + 1
+
+    def lazy(shape, chunks, dt):
+        return da.zeros(shape, dtype=dt, chunks=chunks)
+
+    flat = ((rows, cols), (row_chunks, cols))
+    template = xr.Dataset({
+        "transport": (("du", "dv", "row", "col"),
+                      lazy((n_du, grid.size, rows, cols), (n_du, grid.size, row_chunks, cols), dtype)),
+        "u_direct": (("row", "col"), lazy(*flat, np.float32)),
+        "iterations": (("row", "col"), lazy(*flat, np.int32)),
+        "converged": (("row", "col"), lazy(*flat, bool)),
+        "objective": (("row", "col"), lazy(*flat, np.float32)),
+        "frames_used": (("row", "col"), lazy(*flat, np.int32)),
+    }, coords={name: capture[name] for name in ("row", "col") if name in capture.coords})
+    centre_v = int(np.argmin(np.abs(grid)))
+    out = xr.map_blocks(_band_full, stack.assign_attrs({}), kwargs={
+        "problem": problem, "keep": keep, "dark": dark, "full_scale": scale, "saturation": saturation,
+        "dtype": dtype, "options": {"tol": tol, "max_iter": max_iter, "polish_iter": polish_iter},
+        "reach": reach, "centre_v": centre_v, "cells": cells}, template=template)
+    out = out.assign_coords(
+        du=("du", np.arange(-reach, reach + 1) * step, {"units": "px", "long_name": "projector column − u₀"}),
+        dv=("dv", grid, {"units": "px", "long_name": "projector row − camera row"}))
+    out["transport"].attrs = {"units": "counts", "long_name": "full transport T(u, v, s, t)",
+                              "description": f"light from a {step:g}-column u-cell; NaN where no line reached"}
+    out["u_direct"].attrs = {"units": "px", "long_name": "direct correspondence u₀ (centre of the brightest cell)"}
+    out["objective"].attrs = {"long_name": "objective at T (images scaled to [0, 1])"}
+    dropped = [[float(d), float(e)] for d, e in zip(delays[~keep], exposures[~keep], strict=True)]
+    return out.assign_attrs({
+        "selpath_kind": "full_transport", "alpha": alpha, "beta": beta, "tol": tol, "max_iter": max_iter,
+        "scan_speed_px_per_us": timing["scan_speed"], "line_time_us": timing["line_time"],
+        "sync_offset_us": timing["sync_offset"], "full_scale_counts": scale, "line_width_px": width,
+        "cell_width_px": step, "cells_px": cells.tolist(), "frames_dropped": dropped,
+        "boundary_margin_us": margin, "dtype": dtype})

@@ -23,6 +23,13 @@ detour was slow, DESIGN §6), so this is a batched ADMM in plain JAX:
 * a final polish: conjugate gradients on the KKT system of the support ADMM found (the free offsets), kept
   per pixel only where it lowers the objective (OSQP's "solution polishing", batched).
 
+The full transport (§5.3.1) has the same problem over (du, dv) cells with A = L_u ⊗ L: the frames form a
+full (line × delay–exposure) grid and the illumination of Eq. 38 is separable. :class:`SeparableDemuxProblem`
+never forms A or G: with L_uᵀL_u = QΛQᵀ, 2G + ρI = (Q ⊗ I)·blockdiag_i(2λ_i LᵀL + 2αDᵀD + ρI)·(Q ⊗ I)ᵀ,
+so the T-update is two (K_u × K_u) products and K_u small (K_v × K_v) ones per pixel — for the thesis's
+sweep (47 × 21 cells) 9× fewer operations than the dense (987 × 987) inverse, and ~100 kB instead of 4 MB
+of shared matrices. The smoothness α acts along dv only (the thesis's ∂T/∂v); du is left to β and T ≥ 0.
+
 Per pixel it returns the iterations to convergence (primal and dual residuals ≤ ``tol`` relative) and an
 honest flag; a tile stops when every pixel has converged or at ``max_iter``.
 """
@@ -31,6 +38,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import partial
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -67,6 +75,8 @@ class DemuxProblem:
         update = np.linalg.inv(gram2 + rho * np.eye(k))
         return cls(illumination, float(alpha), float(beta), float(rho), gram2, update, np.linalg.pinv(gram2))
 
+    kind: ClassVar[str] = "dense"
+
     @property
     def frames(self) -> int:
         return self.illumination.shape[0]
@@ -74,6 +84,10 @@ class DemuxProblem:
     @property
     def offsets(self) -> int:
         return self.illumination.shape[1]
+
+    def arrays(self) -> tuple[np.ndarray, ...]:
+        """The shared matrices the batched solver uses (order fixed by :func:`_operators`)."""
+        return self.illumination, self.gram2, self.update, self.inverse
 
     def objective(self, transport: np.ndarray, data: np.ndarray, weight: np.ndarray | None = None) -> np.ndarray:
         """The thesis's objective per pixel, in float64 (reference for tests and benchmarks)."""
@@ -83,6 +97,78 @@ class DemuxProblem:
             residual = residual * weight
         smooth = np.diff(transport, axis=-1)
         return (residual**2).sum(-1) + self.alpha * (smooth**2).sum(-1) + self.beta * transport.sum(-1)
+
+
+@dataclass(frozen=True)
+class SeparableDemuxProblem:
+    """The full transport's shared part: A = L_u ⊗ L over (K_u, K_v) cells, u-major (index k_u·K_v + k_v).
+
+    Data per pixel are ordered line-major: observation j_u·N_v + j_v is line j_u at delay–exposure j_v.
+    """
+
+    line_matrix: np.ndarray  # L_u, (N_u lines, K_u cells)
+    frame_matrix: np.ndarray  # L, (N_v delay–exposure frames, K_v offsets)
+    alpha: float
+    beta: float
+    rho: float
+    basis: np.ndarray  # Q, (K_u, K_u): eigenvectors of L_uᵀL_u
+    update_blocks: np.ndarray  # (K_u, K_v, K_v): (2λ_i LᵀL + 2αDᵀD + ρI)⁻¹
+    inverse_blocks: np.ndarray  # (K_u, K_v, K_v): (2λ_i LᵀL + 2αDᵀD)⁺
+    smooth: np.ndarray  # DᵀD, (K_v, K_v)
+
+    kind: ClassVar[str] = "separable"
+
+    @classmethod
+    def build(cls, line_matrix: np.ndarray, frame_matrix: np.ndarray, *, alpha: float = 0.01, beta: float = 0.01,
+              rho_factor: float = 0.01) -> SeparableDemuxProblem:
+        line_matrix = np.asarray(line_matrix, dtype=np.float64)
+        frame_matrix = np.asarray(frame_matrix, dtype=np.float64)
+        for name, m in (("line", line_matrix), ("frame", frame_matrix)):
+            if m.ndim != 2 or not np.all(np.isfinite(m)):
+                raise ValueError(f"the {name} illumination matrix must be a finite 2-D array")
+        if alpha < 0 or beta < 0 or rho_factor <= 0:
+            raise ValueError(f"need alpha ≥ 0, beta ≥ 0, rho_factor > 0 (got {alpha}, {beta}, {rho_factor})")
+        k_v = frame_matrix.shape[1]
+        d = difference_operator(k_v)
+        smooth = d.T @ d
+        lam, basis = np.linalg.eigh(line_matrix.T @ line_matrix)
+        lam = np.clip(lam, 0.0, None)
+        blocks = 2.0 * (lam[:, None, None] * (frame_matrix.T @ frame_matrix)[None] + alpha * smooth[None])
+        top = max(float(np.linalg.eigvalsh(blocks)[:, -1].max()) if blocks.size else 1.0, np.finfo(float).tiny)
+        rho = rho_factor * top
+        update = np.linalg.inv(blocks + rho * np.eye(k_v)[None])
+        inverse = np.linalg.pinv(blocks, hermitian=True)
+        return cls(line_matrix, frame_matrix, float(alpha), float(beta), float(rho), basis, update, inverse, smooth)
+
+    @property
+    def frames(self) -> int:
+        return self.line_matrix.shape[0] * self.frame_matrix.shape[0]
+
+    @property
+    def offsets(self) -> int:
+        return self.line_matrix.shape[1] * self.frame_matrix.shape[1]
+
+    @property
+    def cells(self) -> tuple[int, int]:
+        return self.line_matrix.shape[1], self.frame_matrix.shape[1]
+
+    def arrays(self) -> tuple[np.ndarray, ...]:
+        return self.line_matrix, self.frame_matrix, self.basis, self.update_blocks, self.inverse_blocks, self.smooth
+
+    def forward(self, transport: np.ndarray) -> np.ndarray:
+        """(P, K_u·K_v) transport → (P, N_u·N_v) predicted observations, in float64."""
+        t = np.asarray(transport, np.float64).reshape(-1, *self.cells)
+        out = np.einsum("ju,puv,nv->pjn", self.line_matrix, t, self.frame_matrix)
+        return out.reshape(t.shape[0], -1)
+
+    def objective(self, transport: np.ndarray, data: np.ndarray, weight: np.ndarray | None = None) -> np.ndarray:
+        """The thesis's objective per pixel (smoothness along dv), in float64."""
+        transport = np.asarray(transport, np.float64)
+        residual = self.forward(transport) - np.nan_to_num(np.asarray(data, np.float64))
+        if weight is not None:
+            residual = residual * weight
+        smooth = np.diff(transport.reshape(-1, *self.cells), axis=-1)
+        return (residual**2).sum(-1) + self.alpha * (smooth**2).sum((-2, -1)) + self.beta * transport.sum(-1)
 
 
 @dataclass(frozen=True)
@@ -97,9 +183,44 @@ def _sq(x):
     return jnp.sum(x * x, axis=-1)
 
 
-@partial(jax.jit, static_argnames=("max_iter", "check_every", "polish_iter", "masked"))
-def _solve(a, gram2, update, inverse, rho, alpha, beta, data, weight, tol, *, max_iter: int, check_every: int,
+def _operators(kind: str, arrays, alpha):
+    """(forward, adjoint, update, inverse, gram2, smoothness²) for a problem kind, on flat (P, K) iterates."""
+    if kind == "dense":
+        a, gram2, update, inverse = arrays
+        return (lambda t: t @ a.T, lambda r: r @ a, lambda v: v @ update, lambda v: v @ inverse,
+                lambda v: v @ gram2, lambda t: _sq(jnp.diff(t, axis=-1)))
+    line, frame, basis, update, inverse, smooth = arrays
+    k_u, k_v, n_u = line.shape[1], frame.shape[1], line.shape[0]
+
+    def cells(v):
+        return v.reshape(v.shape[0], k_u, k_v)
+
+    def forward(t):
+        return jnp.einsum("ju,pun->pjn", line, cells(t) @ frame.T).reshape(t.shape[0], -1)
+
+    def adjoint(r):
+        return jnp.einsum("ju,pjv->puv", line, r.reshape(r.shape[0], n_u, -1) @ frame).reshape(r.shape[0], -1)
+
+    def blockwise(blocks):
+        def apply(v):  # (Q ⊗ I) blockdiag (Q ⊗ I)ᵀ v
+            y = jnp.einsum("ui,puv->piv", basis, cells(v))
+            y = jnp.einsum("piv,ivw->piw", y, blocks)
+            return jnp.einsum("ui,piw->puw", basis, y).reshape(v.shape[0], -1)
+        return apply
+
+    def gram2(v):
+        return 2.0 * (adjoint(forward(v)) + alpha * (cells(v) @ smooth).reshape(v.shape[0], -1))
+
+    def smoothness(t):
+        return jnp.sum(jnp.diff(cells(t), axis=-1) ** 2, axis=(-2, -1))
+
+    return forward, adjoint, blockwise(update), blockwise(inverse), gram2, smoothness
+
+
+@partial(jax.jit, static_argnames=("kind", "max_iter", "check_every", "polish_iter", "masked"))
+def _solve(arrays, rho, alpha, beta, data, weight, tol, *, kind: str, max_iter: int, check_every: int,
            polish_iter: int, masked: bool):
+    forward, adjoint, apply_update, apply_inverse, apply_gram2, smoothness = _operators(kind, arrays, alpha)
     dtype = data.dtype
     # per-pixel scale: the objective at (s x; s y, β) is s² times the one at (x; y, β/s)
     scale = jnp.max(jnp.abs(data) * weight, axis=-1, keepdims=True)
@@ -107,41 +228,44 @@ def _solve(a, gram2, update, inverse, rho, alpha, beta, data, weight, tol, *, ma
     y = data / scale
     b_pixel = beta / scale  # (P, 1)
     shrink = b_pixel / rho
-    p, k = y.shape[0], a.shape[1]
+    p, k = y.shape[0], arrays[2].shape[0] if kind == "dense" else arrays[0].shape[1] * arrays[1].shape[1]
 
     def rhs(z):
         if masked:  # majorisation: masked frames observe the current prediction
-            filled = weight * y + (1 - weight) * (z @ a.T)
-            return 2.0 * (filled @ a)
+            filled = weight * y + (1 - weight) * forward(z)
+            return 2.0 * adjoint(filled)
         return two_aty
 
-    two_aty = 2.0 * ((weight * y) @ a)
+    two_aty = 2.0 * adjoint(weight * y)
 
-    def step(state):
+    def step(state, check=False):
         # Goldstein et al.'s fast ADMM with restart, per pixel: Nesterov momentum on (Z, U) while the
-        # combined residual c falls by the factor η, else back to the last iterate without momentum
-        z_hat, u_hat, z_old, u_old, momentum, c_old, _ = state
-        x = (rhs(z_hat) + rho * (z_hat - u_hat)) @ update
+        # combined residual c falls by the factor η, else back to the last iterate without momentum.
+        # Only the four (P, K) iterates are carried (the loop is memory-bound between the products); the
+        # residuals are formed on the last iteration of each check block.
+        z_hat, u_hat, z_old, u_old, momentum, c_old = state
+        x = apply_update(rhs(z_hat) + rho * (z_hat - u_hat))
         z = jnp.maximum(x + u_hat - shrink, 0.0)
         u = u_hat + x - z
         c = _sq(u - u_hat)[:, None] + _sq(z - z_hat)[:, None]
         ok = c < eta * c_old
         grown = jnp.where(ok, (1 + jnp.sqrt(1 + 4 * momentum * momentum)) / 2, 1.0)
         weight_m = jnp.where(ok, (momentum - 1) / grown, 0.0)
-        z_hat = jnp.where(ok, z + weight_m * (z - z_old), z_old)
-        u_hat = jnp.where(ok, u + weight_m * (u - u_old), u_old)
-        z_keep, u_keep = jnp.where(ok, z, z_old), jnp.where(ok, u, u_old)
-        return z_hat, u_hat, z_keep, u_keep, grown, jnp.where(ok, c, c_old / eta), (x, z, u, z_old)
+        new = (jnp.where(ok, z + weight_m * (z - z_old), z_old), jnp.where(ok, u + weight_m * (u - u_old), u_old),
+               jnp.where(ok, z, z_old), jnp.where(ok, u, u_old), grown, jnp.where(ok, c, c_old / eta))
+        if not check:
+            return new
+        primal = jnp.sqrt(_sq(x - z))
+        dual = rho * jnp.sqrt(_sq(z - z_old))
+        size = jnp.maximum(jnp.sqrt(jnp.maximum(_sq(x), _sq(z))), 1e-6)
+        now = (primal <= tol * size) & (dual <= tol * jnp.maximum(rho * jnp.sqrt(_sq(u)), 1e-6))
+        return new, now
 
     def block(carry):
         state, iters, done, it = carry
-        state = jax.lax.fori_loop(0, check_every, lambda _, s: step(s), state)
-        x, z, u, z_prev = state[-1]
+        state = jax.lax.fori_loop(0, check_every - 1, lambda _, s: step(s), state)
+        state, now = step(state, check=True)
         it = it + check_every
-        primal = jnp.sqrt(_sq(x - z))
-        dual = rho * jnp.sqrt(_sq(z - z_prev))
-        size = jnp.maximum(jnp.sqrt(jnp.maximum(_sq(x), _sq(z))), 1e-6)
-        now = (primal <= tol * size) & (dual <= tol * jnp.maximum(rho * jnp.sqrt(_sq(u)), 1e-6))
         iters = jnp.where(done | ~now, iters, it)
         return state, iters, done | now, it
 
@@ -150,24 +274,22 @@ def _solve(a, gram2, update, inverse, rho, alpha, beta, data, weight, tol, *, ma
 
     eta = jnp.asarray(0.999, dtype)
     # warm start: the unconstrained minimiser, clipped (worth ~5× fewer iterations on Fig. 38-like pixels)
-    z0 = jnp.maximum((rhs(jnp.zeros((p, k), dtype)) - b_pixel) @ inverse, 0.0)
+    z0 = jnp.maximum(apply_inverse(rhs(jnp.zeros((p, k), dtype)) - b_pixel), 0.0)
     u0 = jnp.zeros_like(z0)
-    state = (z0, u0, z0, u0, jnp.ones((p, 1), dtype), jnp.full((p, 1), jnp.inf, dtype), (z0, z0, u0, z0))
+    state = (z0, u0, z0, u0, jnp.ones((p, 1), dtype), jnp.full((p, 1), jnp.inf, dtype))
     state, iters, done, _ = jax.lax.while_loop(
         keep_going, block, (state, jnp.full((p,), max_iter, jnp.int32), jnp.zeros((p,), bool), 0))
     z = state[2]
 
     def objective(t):
-        r = (t @ a.T - y) * weight
-        return _sq(r) + alpha * _sq(jnp.diff(t, axis=-1)) + b_pixel[:, 0] * jnp.sum(t, axis=-1)
+        r = (forward(t) - y) * weight
+        return _sq(r) + alpha * smoothness(t) + b_pixel[:, 0] * jnp.sum(t, axis=-1)
 
     if polish_iter:
         free = (z > 0).astype(dtype)
         target = free * (0.5 * rhs(z) - b_pixel / 2)
-        half = gram2 / 2
-
         def mv(v):
-            return free * (v @ half)
+            return free * apply_gram2(v) / 2
 
         r0 = target - mv(z)
 
@@ -187,8 +309,8 @@ def _solve(a, gram2, update, inverse, rho, alpha, beta, data, weight, tol, *, ma
     return z * scale, iters, done, objective(z) * scale[:, 0] ** 2
 
 
-def solve(problem: DemuxProblem, data: np.ndarray, weight: np.ndarray | None = None, *, tol: float = 1e-3,
-          max_iter: int = 200, check_every: int = 10, polish_iter: int = 20,
+def solve(problem: DemuxProblem | SeparableDemuxProblem, data: np.ndarray, weight: np.ndarray | None = None, *,
+          tol: float = 1e-3, max_iter: int = 200, check_every: int = 10, polish_iter: int = 20,
           dtype=np.float32) -> DemuxResult:
     """Solve every pixel's problem: ``data`` (P, N) observations, ``weight`` (P, N) 0/1 (None: all 1).
 
@@ -205,7 +327,7 @@ def solve(problem: DemuxProblem, data: np.ndarray, weight: np.ndarray | None = N
         raise ValueError("float64 demultiplexing needs x64: call inside `with jax.enable_x64(True):`")
     cast = partial(jnp.asarray, dtype=jdtype)
     z, iters, done, objective = _solve(
-        cast(problem.illumination), cast(problem.gram2), cast(problem.update), cast(problem.inverse), cast(problem.rho),
-        cast(problem.alpha), cast(problem.beta), cast(np.where(weight, data, 0.0)), cast(weight), cast(tol),
-        max_iter=int(max_iter), check_every=int(check_every), polish_iter=int(polish_iter), masked=masked)
+        tuple(cast(m) for m in problem.arrays()), cast(problem.rho), cast(problem.alpha), cast(problem.beta),
+        cast(np.where(weight, data, 0.0)), cast(weight), cast(tol), kind=problem.kind, max_iter=int(max_iter),
+        check_every=int(check_every), polish_iter=int(polish_iter), masked=masked)
     return DemuxResult(np.asarray(z), np.asarray(iters), np.asarray(done), np.asarray(objective))

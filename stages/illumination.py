@@ -72,3 +72,30 @@ def epipolar_boundary(delays, exposures, *, sync_offset: float = 0.0, margin: fl
 def difference_operator(size: int) -> np.ndarray:
     """First differences along the offset axis, (K − 1, K): the ∂T/∂v of the smoothness term E_c."""
     return np.diff(np.eye(size), axis=0)
+
+
+def line_cells(lines, line_width: float, step: float | None = None) -> tuple[np.ndarray, float]:
+    """(centres [projector columns], width) of the u-cells a line sweep resolves: cells of width ``step``
+    (None: the spacing of the lines) tiling every column some line lights, from the first line's left edge."""
+    lines = np.sort(np.asarray(lines, dtype=float))
+    if lines.size == 0 or line_width <= 0:
+        raise ValueError("a line sweep needs at least one line and a positive line width")
+    if step is None:
+        step = float(np.min(np.diff(lines))) if lines.size > 1 else float(line_width)
+    if not step > 0:
+        raise ValueError(f"the u-cell width must be positive, got {step}")
+    low, high = lines[0] - line_width / 2, lines[-1] + line_width / 2
+    count = int(np.ceil((high - low) / step - 1e-9))
+    return low + step * (np.arange(count) + 0.5), float(step)
+
+
+def line_illumination(lines, line_width: float, cells, step: float) -> np.ndarray:
+    """Illumination matrix L_u[j, k] of vertical lines centred at ``lines[j]`` of width l_w on the u-cells of
+    width ``step`` centred at ``cells`` (Eq. 38's box in u): the share of cell k the line covers (1 = all).
+
+    With the frames forming a full (line × delay–exposure) grid, a full-transport frame's weights are the
+    Kronecker product L_u ⊗ L (the box of Eq. 38 is separable); the demultiplexing never forms it.
+    """
+    lines, cells = np.asarray(lines, dtype=float)[:, None], np.asarray(cells, dtype=float)[None, :]
+    covered = box_overlap(lines - line_width / 2, lines + line_width / 2, cells - step / 2, cells + step / 2)
+    return covered / step
