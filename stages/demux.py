@@ -138,7 +138,7 @@ def _band(block: xr.Dataset, *, problem: DemuxProblem, keep: np.ndarray, dark: f
 @stage("demux_plane_to_ray")
 def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, /, *,
                        offsets: OffsetGrid | None = None, alpha: float = 0.01, beta: float = 0.01,
-                       tol: float = 1e-3, max_iter: int = 40, polish_iter: int = 0,
+                       tol: float = 1e-2, max_iter: int = 200, polish_iter: int = 0,
                        boundary_margin_us: float | None = None, sync_offset_us: float | None = None,
                        full_scale: float | None = None, rows_per_tile: int = 32,
                        dtype: Dtype = "float32") -> xr.Dataset:
@@ -157,9 +157,12 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
     beta : float
         Sparsity weight β (thesis: 0.01).
     tol : float
-        Relative primal and dual residual at which a pixel counts as converged.
+        Relative primal and dual residual at which a pixel counts as converged. Measured on the Fig. 38
+        stack (K = 253 offsets): tol 1e-2 converges every pixel in 61 iterations on average at a median
+        objective gap of 2.7e-5 (p90 1.2e-4) to a 3000-iteration solve; tol 1e-3 takes 107 (gap 2.8e-6).
     max_iter : int
-        Iteration cap (ADMM iterations, checked every 10).
+        Iteration cap (ADMM iterations, checked every 10); a solver call of ~1000 pixels runs until all of
+        them converged or the cap (40 left 100 % of that stack's pixels unconverged at a 4.6e-3 gap).
     polish_iter : int
         Conjugate-gradient steps of the final support polish (0: none).
     boundary_margin_us : float or None
@@ -250,8 +253,8 @@ def _band_full(block: xr.Dataset, *, problem: SeparableDemuxProblem, keep: np.nd
 @stage("demux_full")
 def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, /, *,
                offsets: OffsetGrid | None = None, cell_width_px: float | None = None,
-               du_reach_px: float | None = None, alpha: float = 0.01, beta: float = 0.01, tol: float = 1e-3,
-               max_iter: int = 40, polish_iter: int = 0, boundary_margin_us: float | None = None,
+               du_reach_px: float | None = None, alpha: float = 0.01, beta: float = 0.01, tol: float = 1e-2,
+               max_iter: int = 200, polish_iter: int = 0, boundary_margin_us: float | None = None,
                sync_offset_us: float | None = None, full_scale: float | None = None,
                rows_per_tile: int | None = None, dtype: Dtype = "float32") -> xr.Dataset:
     """Full transport T(du, dv, row, col) from a ``(delay, exposure, line, row, col)`` capture (§5.3.1).
