@@ -117,22 +117,55 @@ def solve_pixels(problem: DemuxProblem | SeparableDemuxProblem, data: np.ndarray
     return [np.concatenate(column) for column in zip(*parts, strict=True)]
 
 
-def _band(block: xr.Dataset, *, problem: DemuxProblem, keep: np.ndarray, dark: float, full_scale: float,
-          saturation: float, dtype: str, options: dict) -> xr.Dataset:
-    image = block["image"].transpose("delay", "exposure", "row", "col").values
-    rows, cols = image.shape[-2:]
-    frames = image.reshape(-1, rows * cols)[keep.ravel()].T  # (P, N kept)
+def _solve_band(problem: DemuxProblem | SeparableDemuxProblem, frames: np.ndarray, shape: tuple[int, int], *,
+                dark: float, full_scale: float, saturation: float, dtype: str, options: dict
+                ) -> tuple[np.ndarray, dict]:
+    """Solve a band's (P, N) raw frames: (T (P, K) in counts, the per-pixel variables beside it)."""
     weight = np.isfinite(frames) & (frames < saturation)
     data = np.where(weight, (frames - dark) / full_scale, 0.0)
     transport, iterations, converged, objective = solve_pixels(problem, data, weight, dtype=dtype, **options)
-    shape = (rows, cols)
-    return xr.Dataset({
-        "transport": (("offset", "row", "col"), (transport.T * full_scale).reshape(-1, *shape).astype(dtype)),
+    return transport * full_scale, {
         "iterations": (("row", "col"), iterations.reshape(shape).astype(np.int32)),
         "converged": (("row", "col"), converged.reshape(shape)),
         "objective": (("row", "col"), objective.reshape(shape).astype(np.float32)),
         "frames_used": (("row", "col"), weight.sum(-1).reshape(shape).astype(np.int32)),
-    }, coords={name: block[name] for name in ("row", "col") if name in block.coords})
+    }
+
+
+#: per-pixel variables every transport store holds beside T (see _solve_band), with their dtypes
+_PER_PIXEL = {"iterations": np.int32, "converged": bool, "objective": np.float32, "frames_used": np.int32}
+
+
+def _template(capture: xr.Dataset, transport_dims: tuple[str, ...], transport_sizes: tuple[int, ...],
+              row_chunks: tuple[int, ...], dtype: str, **per_pixel) -> xr.Dataset:
+    """The lazy template of a transport store: T over ``transport_dims`` + (row, col), and per-pixel maps."""
+    rows, cols = capture.sizes["row"], capture.sizes["col"]
+
+    def lazy(dims, sizes, dt):
+        return dims, da.zeros((*sizes, rows, cols), dtype=dt, chunks=(*sizes, row_chunks, cols))
+
+    variables = {"transport": lazy((*transport_dims, "row", "col"), transport_sizes, dtype)}
+    variables |= {name: lazy(("row", "col"), (), dt) for name, dt in (per_pixel | _PER_PIXEL).items()}
+    return xr.Dataset(variables, coords={name: capture[name] for name in ("row", "col") if name in capture.coords})
+
+
+def _transport_attrs(kind: str, *, timing: dict, delays, exposures, keep, margin: float, full_scale: float,
+                     **settings) -> dict:
+    """The attrs every transport store records: its settings, the timing used and the frames dropped."""
+    dropped = [[float(d), float(e)] for d, e in zip(delays[~keep], exposures[~keep], strict=True)]
+    return {"selpath_kind": kind, **settings, "scan_speed_px_per_us": timing["scan_speed"],
+            "line_time_us": timing["line_time"], "sync_offset_us": timing["sync_offset"],
+            "full_scale_counts": full_scale, "frames_dropped": dropped, "boundary_margin_us": margin}
+
+
+def _band(block: xr.Dataset, *, problem: DemuxProblem, keep: np.ndarray, levels: dict, dtype: str,
+          options: dict) -> xr.Dataset:
+    image = block["image"].transpose("delay", "exposure", "row", "col").values
+    shape = image.shape[-2:]
+    frames = image.reshape(-1, shape[0] * shape[1])[keep.ravel()].T  # (P, N kept)
+    transport, per_pixel = _solve_band(problem, frames, shape, dtype=dtype, options=options, **levels)
+    return xr.Dataset({"transport": (("offset", "row", "col"), transport.T.reshape(-1, *shape).astype(dtype)),
+                       **per_pixel}, coords={name: block[name] for name in ("row", "col") if name in block.coords})
 
 
 @stage("demux_plane_to_ray")
@@ -185,47 +218,30 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
     delays, exposures, keep, margin, grid, matrix = _frames(capture, timing, boundary_margin_us, offsets)
     problem = DemuxProblem.build(matrix, alpha=alpha, beta=beta)
     stack = capture[["image"]].chunk({"delay": -1, "exposure": -1, "row": rows_per_tile, "col": -1})
-    rows, cols = capture.sizes["row"], capture.sizes["col"]
-    row_chunks = stack.chunksizes["row"]
-
-    def lazy(shape, chunks, dt):
-        return da.zeros(shape, dtype=dt, chunks=chunks)
-
-    template = xr.Dataset({
-        "transport": (("offset", "row", "col"), lazy((grid.size, rows, cols), (grid.size, row_chunks, cols), dtype)),
-        "iterations": (("row", "col"), lazy((rows, cols), (row_chunks, cols), np.int32)),
-        "converged": (("row", "col"), lazy((rows, cols), (row_chunks, cols), bool)),
-        "objective": (("row", "col"), lazy((rows, cols), (row_chunks, cols), np.float32)),
-        "frames_used": (("row", "col"), lazy((rows, cols), (row_chunks, cols), np.int32)),
-    }, coords={name: capture[name] for name in ("row", "col") if name in capture.coords})
+    template = _template(capture, ("offset",), (grid.size,), stack.chunksizes["row"], dtype)
+    levels = {"dark": dark, "full_scale": scale, "saturation": saturation}
     options = {"tol": tol, "max_iter": max_iter, "polish_iter": polish_iter}
     out = xr.map_blocks(_band, stack.assign_attrs({}), kwargs={
-        "problem": problem, "keep": keep, "dark": dark, "full_scale": scale, "saturation": saturation,
-        "dtype": dtype, "options": options}, template=template)
+        "problem": problem, "keep": keep, "levels": levels, "dtype": dtype, "options": options}, template=template)
     out = out.assign_coords(offset=("offset", grid, {"units": "px", "long_name": "projector row − camera row"}))
     out["transport"].attrs = {"units": "counts", "long_name": "plane-to-ray transport T(v, s, t)"}
     out["objective"].attrs = {"long_name": "objective at T (images scaled to [0, 1])"}
-    dropped = [[float(d), float(e)] for d, e in zip(delays[~keep], exposures[~keep], strict=True)]
-    return out.assign_attrs({
-        "selpath_kind": "plane_to_ray_transport", "alpha": alpha, "beta": beta, "tol": tol, "max_iter": max_iter,
-        "scan_speed_px_per_us": timing["scan_speed"], "line_time_us": timing["line_time"],
-        "sync_offset_us": timing["sync_offset"], "full_scale_counts": scale,
-        "frames_dropped": dropped, "boundary_margin_us": margin, "dtype": dtype})
+    return out.assign_attrs(_transport_attrs(
+        "plane_to_ray_transport", timing=timing, delays=delays, exposures=exposures, keep=keep, margin=margin,
+        full_scale=scale, alpha=alpha, beta=beta, tol=tol, max_iter=max_iter, dtype=dtype))
 
 
 #: bytes of full transport one dask task may hold (the default rows_per_tile of demux_full follows from it)
 FULL_TILE_BYTES = 64 * 2**20
 
 
-def _band_full(block: xr.Dataset, *, problem: SeparableDemuxProblem, keep: np.ndarray, dark: float,
-               full_scale: float, saturation: float, dtype: str, options: dict, reach: int, centre_v: int,
-               cells: np.ndarray) -> xr.Dataset:
+def _band_full(block: xr.Dataset, *, problem: SeparableDemuxProblem, keep: np.ndarray, levels: dict, dtype: str,
+               options: dict, reach: int, centre_v: int, cells: np.ndarray) -> xr.Dataset:
     image = block["image"].transpose("line", "delay", "exposure", "row", "col").values
     n_lines, rows, cols = image.shape[0], *image.shape[-2:]
     frames = image.reshape(n_lines, -1, rows * cols)[:, keep.ravel()].reshape(-1, rows * cols).T  # line-major
-    weight = np.isfinite(frames) & (frames < saturation)
-    data = np.where(weight, (frames - dark) / full_scale, 0.0)
-    transport, iterations, converged, objective = solve_pixels(problem, data, weight, dtype=dtype, **options)
+    shape = (rows, cols)
+    transport, per_pixel = _solve_band(problem, frames, shape, dtype=dtype, options=options, **levels)
     k_u, k_v = problem.cells
     absolute = transport.reshape(-1, k_u, k_v)  # (P, u-cell, dv)
     # the direct correspondence u₀: the brightest u-cell on the epipolar row (dv = 0)
@@ -238,15 +254,11 @@ def _band_full(block: xr.Dataset, *, problem: SeparableDemuxProblem, keep: np.nd
     relative = np.take_along_axis(absolute, np.clip(index, 0, k_u - 1)[:, :, None], axis=1)
     relative = np.where(inside[:, :, None], relative, np.nan)  # columns the sweep never lit: unobserved
     relative[~lit] = np.where(inside[~lit, :, None], 0.0, np.nan)
-    shape = (rows, cols)
     return xr.Dataset({
-        "transport": (("du", "dv", "row", "col"),
-                      (relative.transpose(1, 2, 0) * full_scale).reshape(du.size, k_v, *shape).astype(dtype)),
+        "transport": (("du", "dv", "row", "col"), relative.transpose(1, 2, 0).reshape(du.size, k_v, *shape)
+                      .astype(dtype)),
         "u_direct": (("row", "col"), np.where(lit, cells[peak], np.nan).reshape(shape).astype(np.float32)),
-        "iterations": (("row", "col"), iterations.reshape(shape).astype(np.int32)),
-        "converged": (("row", "col"), converged.reshape(shape)),
-        "objective": (("row", "col"), objective.reshape(shape).astype(np.float32)),
-        "frames_used": (("row", "col"), weight.sum(-1).reshape(shape).astype(np.int32)),
+        **per_pixel,
     }, coords={name: block[name] for name in ("row", "col") if name in block.coords})
 
 
@@ -302,32 +314,17 @@ def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, 
                                           alpha=alpha, beta=beta)
     k_u = cells.size
     reach = k_u - 1 if du_reach_px is None else min(int(np.floor(du_reach_px / step)), k_u - 1)
-    rows, cols = capture.sizes["row"], capture.sizes["col"]
+    cols = capture.sizes["col"]
     if rows_per_tile is None:
         per_row = cols * (2 * reach + 1 + k_u) * grid.size * 4
         rows_per_tile = int(np.clip(FULL_TILE_BYTES // max(per_row, 1), 1, 64))
     stack = capture[["image"]].chunk({"delay": -1, "exposure": -1, "line": -1, "row": rows_per_tile, "col": -1})
-    row_chunks = stack.chunksizes["row"]
-    n_du = 2 * reach + 1
-
-    def lazy(shape, chunks, dt):
-        return da.zeros(shape, dtype=dt, chunks=chunks)
-
-    flat = ((rows, cols), (row_chunks, cols))
-    template = xr.Dataset({
-        "transport": (("du", "dv", "row", "col"),
-                      lazy((n_du, grid.size, rows, cols), (n_du, grid.size, row_chunks, cols), dtype)),
-        "u_direct": (("row", "col"), lazy(*flat, np.float32)),
-        "iterations": (("row", "col"), lazy(*flat, np.int32)),
-        "converged": (("row", "col"), lazy(*flat, bool)),
-        "objective": (("row", "col"), lazy(*flat, np.float32)),
-        "frames_used": (("row", "col"), lazy(*flat, np.int32)),
-    }, coords={name: capture[name] for name in ("row", "col") if name in capture.coords})
-    centre_v = int(np.argmin(np.abs(grid)))
+    template = _template(capture, ("du", "dv"), (2 * reach + 1, grid.size), stack.chunksizes["row"], dtype,
+                         u_direct=np.float32)
     out = xr.map_blocks(_band_full, stack.assign_attrs({}), kwargs={
-        "problem": problem, "keep": keep, "dark": dark, "full_scale": scale, "saturation": saturation,
+        "problem": problem, "keep": keep, "levels": {"dark": dark, "full_scale": scale, "saturation": saturation},
         "dtype": dtype, "options": {"tol": tol, "max_iter": max_iter, "polish_iter": polish_iter},
-        "reach": reach, "centre_v": centre_v, "cells": cells}, template=template)
+        "reach": reach, "centre_v": int(np.argmin(np.abs(grid))), "cells": cells}, template=template)
     out = out.assign_coords(
         du=("du", np.arange(-reach, reach + 1) * step, {"units": "px", "long_name": "projector column − u₀"}),
         dv=("dv", grid, {"units": "px", "long_name": "projector row − camera row"}))
@@ -335,10 +332,7 @@ def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, 
                               "description": f"light from a {step:g}-column u-cell; NaN where no line reached"}
     out["u_direct"].attrs = {"units": "px", "long_name": "direct correspondence u₀ (centre of the brightest cell)"}
     out["objective"].attrs = {"long_name": "objective at T (images scaled to [0, 1])"}
-    dropped = [[float(d), float(e)] for d, e in zip(delays[~keep], exposures[~keep], strict=True)]
-    return out.assign_attrs({
-        "selpath_kind": "full_transport", "alpha": alpha, "beta": beta, "tol": tol, "max_iter": max_iter,
-        "scan_speed_px_per_us": timing["scan_speed"], "line_time_us": timing["line_time"],
-        "sync_offset_us": timing["sync_offset"], "full_scale_counts": scale, "line_width_px": width,
-        "cell_width_px": step, "cells_px": cells.tolist(), "frames_dropped": dropped,
-        "boundary_margin_us": margin, "dtype": dtype})
+    return out.assign_attrs(_transport_attrs(
+        "full_transport", timing=timing, delays=delays, exposures=exposures, keep=keep, margin=margin,
+        full_scale=scale, alpha=alpha, beta=beta, tol=tol, max_iter=max_iter, dtype=dtype, line_width_px=width,
+        cell_width_px=step, cells_px=cells.tolist()))
