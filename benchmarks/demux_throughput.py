@@ -25,7 +25,14 @@ import sys
 import tempfile
 import time
 
-DELAYS_US = [-1020.0 + 85.0 * i for i in range(25)]  # 5 rows apart: K = 128 spans ±64 rows
+
+def _delays(k: int) -> list[float]:
+    """25 delays [µs], K/25.6 rows apart: K = 128 spans ±60 rows (±85 with the exposures), so every offset is
+    lit (an unlit offset is held only by α and β, and its pixels crawl to convergence)."""
+    step = 85.0 * k / 128
+    return [step * (i - 12) for i in range(25)]
+
+
 EXPOSURES_US = [170.0, 510.0, 850.0]
 SPEED, LINE_TIME = 1 / 17, 17.0  # the default rig: v_p = 1 row per 17 µs, t_p = 17 µs
 
@@ -40,13 +47,13 @@ def _offsets(k: int):
     return np.arange(-k // 2, k // 2)
 
 
-def _kept():
+def _kept(k: int):
     """The frames the stage keeps: its default rule drops the 6 whose exposure edge cuts the epipolar row."""
     import numpy as np
 
     from stages.illumination import epipolar_boundary
 
-    d, e = np.meshgrid(DELAYS_US, EXPOSURES_US, indexing="ij")
+    d, e = np.meshgrid(_delays(k), EXPOSURES_US, indexing="ij")
     return ~epipolar_boundary(d.ravel(), e.ravel(), sync_offset=0.0, margin=LINE_TIME / 2)
 
 
@@ -55,9 +62,9 @@ def _matrix(k: int, kept: bool = False):
 
     from stages.illumination import plane_to_ray_illumination
 
-    d, e = np.meshgrid(DELAYS_US, EXPOSURES_US, indexing="ij")
+    d, e = np.meshgrid(_delays(k), EXPOSURES_US, indexing="ij")
     a = plane_to_ray_illumination(d.ravel(), e.ravel(), _offsets(k), scan_speed=SPEED, line_time=LINE_TIME)
-    return a[_kept()] if kept else a
+    return a[_kept(k)] if kept else a
 
 
 def _sample(k: int, n: int, rows: int, cols: int, band: int = 64):
@@ -65,7 +72,7 @@ def _sample(k: int, n: int, rows: int, cols: int, band: int = 64):
     import numpy as np
 
     _, images = _pixels(k, min(band, rows) * cols, seed=0)  # the first band: row 0, col 0, 1, … come first
-    counts = (images[:n] * 4095).astype(np.float32)[:, _kept()]
+    counts = (images[:n] * 4095).astype(np.float32)[:, _kept(k)]
     return counts / np.float32(4095), (counts < 4095).astype(float)
 
 
@@ -79,7 +86,7 @@ def _pixels(k: int, n: int, seed: int):
              + rng.uniform(0, 0.05, (n, 1)) * np.exp(-np.abs(o) / rng.uniform(1, 8, (n, 1)))
              + rng.uniform(0, 0.1, (n, 1)) * (rng.random((n, 1)) < 0.3)
              * np.exp(-(o - rng.uniform(-50, 50, (n, 1))) ** 2 / 8))
-    counts = rng.poisson(truth @ _matrix(k).T * 1000) + rng.normal(0, 2, (n, len(DELAYS_US) * len(EXPOSURES_US)))
+    counts = rng.poisson(truth @ _matrix(k).T * 1000) + rng.normal(0, 2, (n, 25 * len(EXPOSURES_US)))
     return truth, np.clip(counts, 0, 4095) / 4095
 
 
@@ -89,7 +96,7 @@ def _capture(k: int, rows: int, cols: int, band: int = 64):  # _sample relies on
     import numpy as np
     import xarray as xr
 
-    n_d, n_e = len(DELAYS_US), len(EXPOSURES_US)
+    n_d, n_e = 25, len(EXPOSURES_US)
 
     def band_of(block_id=None):
         r0 = block_id[2] * band
@@ -100,10 +107,15 @@ def _capture(k: int, rows: int, cols: int, band: int = 64):  # _sample relies on
     chunks = ((n_d,), (n_e,), tuple(min(band, rows - r) for r in range(0, rows, band)), (cols,))
     stack = da.map_blocks(band_of, dtype=np.float32, chunks=chunks)
     return xr.Dataset({"image": (("delay", "exposure", "row", "col"), stack, {"units": "counts"})},
-                      coords={"delay": ("delay", DELAYS_US, {"units": "us"}),
+                      coords={"delay": ("delay", _delays(k), {"units": "us"}),
                               "exposure": ("exposure", EXPOSURES_US, {"units": "us"})},
                       attrs={"selpath_kind": "plane_to_ray_capture", "scan_speed_px_per_us": SPEED,
                              "line_time_us": LINE_TIME, "dark_level_counts": 0.0, "saturation_counts": 4095.0})
+
+
+def _options(args) -> dict:
+    """The solver settings given on the command line; the rest stay at the stage's defaults."""
+    return {name: getattr(args, name) for name in ("tol", "max_iter", "polish_iter") if getattr(args, name) is not None}
 
 
 def measure(mode: str, args) -> dict:
@@ -122,7 +134,7 @@ def measure(mode: str, args) -> dict:
                 capture["image"].sum().compute()
             else:
                 out = demux_plane_to_ray(capture, offsets=OffsetGrid(start=-k // 2, stop=k // 2 - 1),
-                                         max_iter=args.max_iter, tol=args.tol, polish_iter=args.polish_iter)
+                                         **_options(args))
                 out.to_zarr(f"{tmp}/t.zarr", consolidated=False)
             seconds = time.perf_counter() - start
             result = {"seconds": seconds, "pixels": pixels, "peak_rss_gb": _peak_rss_gb()}
@@ -138,7 +150,8 @@ def measure(mode: str, args) -> dict:
                 objective = DemuxProblem.build(_matrix(k, kept=True)).objective(transport, images, weight)
                 result |= {"objective": objective.tolist(),
                            "converged": float(stored["converged"].mean()),
-                           "iterations_mean": float(stored["iterations"].mean())}
+                           "iterations_mean": float(stored["iterations"].mean()),
+                           "settings": {name: stored.attrs[name] for name in ("tol", "max_iter", "polish_iter")}}
         return result
     if mode == "curve":  # accuracy versus iterations and time, against Clarabel's optimum
         from concurrent.futures import ThreadPoolExecutor
@@ -211,20 +224,19 @@ def main() -> None:
     parser.add_argument("--k", type=int, default=128)
     parser.add_argument("--workers", type=int, default=2)
     parser.add_argument("--sample", type=int, default=200)
-    parser.add_argument("--max-iter", type=int, default=40)
-    parser.add_argument("--polish-iter", type=int, default=0)
-    parser.add_argument("--tol", type=float, default=1e-2)
+    parser.add_argument("--max-iter", type=int, help="default: the stage's")
+    parser.add_argument("--polish-iter", type=int, help="default: the stage's")
+    parser.add_argument("--tol", type=float, help="default: the stage's")
     parser.add_argument("--quick", action="store_true", help="a 240×320 sensor and a 60-pixel sample")
     parser.add_argument("--measure", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.measure:
         print(json.dumps(measure(args.measure, args)))
         return
-    argv = [f"--rows={args.rows}", f"--cols={args.cols}", f"--sample={args.sample}", f"--max-iter={args.max_iter}",
-            f"--tol={args.tol}", f"--polish-iter={args.polish_iter}"]
+    settings = [f"--{name.replace('_', '-')}={value}" for name, value in _options(args).items()]
+    argv = [f"--rows={args.rows}", f"--cols={args.cols}", f"--sample={args.sample}", *settings]
     if args.quick:
-        argv = ["--rows=240", "--cols=320", "--sample=60", f"--max-iter={args.max_iter}", f"--tol={args.tol}",
-                f"--polish-iter={args.polish_iter}"]
+        argv = ["--rows=240", "--cols=320", "--sample=60", *settings]
     curve = _run("curve", argv, k=128)
     print(f"per-pixel CVXPY at K = 128: default solver {curve['default_s_per_px'] * 1e3:.1f} ms, "
           f"parametrised Clarabel {curve['clarabel_s_per_px'] * 1e3:.1f} ms")
@@ -235,7 +247,7 @@ def main() -> None:
         print(f"{row['max_iter']:>10}{row['polish']:>8}{row['gap_median']:>12.1e}{row['gap_p90']:>10.1e}"
               f"{row['s_per_px'] * 1e6:>8.1f}{1 / row['s_per_px']:>10.0f}")
     generate = _run("generate", argv, k=128)
-    print(f"\n{'run':<34}{'seconds':>9}{'px/s':>10}{'peak RSS GB':>13}")
+    print(f"\n{'run':<34}{'seconds':>9}{'px/s':>10}{'peak RSS GB':>13}{'converged':>11}{'iterations':>12}")
     print(f"{'generate the stack (K=128)':<34}{generate['seconds']:>9.1f}{'':>10}{generate['peak_rss_gb']:>13.2f}")
     results = {}
     for k, workers in ((128, 2), (128, 1), (256, 2)):
@@ -243,12 +255,13 @@ def main() -> None:
         seconds = max(run["seconds"] - (generate["seconds"] if k == 128 else 0.0), 1e-9)
         results[(k, workers)] = run | {"px_per_s": run["pixels"] / seconds}
         print(f"{f'demux K={k}, {workers} worker(s)':<34}{run['seconds']:>9.1f}{run['pixels'] / seconds:>10.0f}"
-              f"{run['peak_rss_gb']:>13.2f}")
+              f"{run['peak_rss_gb']:>13.2f}{run['converged']:>11.1%}{run['iterations_mean']:>12.1f}")
     main_run = results[(128, 2)]
     import numpy as np
 
     gap = (np.array(main_run["objective"]) - curve["optimum"]) / np.abs(curve["optimum"])
-    print(f"the stage's output (max_iter {args.max_iter}, tol {args.tol:g}, polish {args.polish_iter}) on "
+    used = main_run["settings"]
+    print(f"the stage's output (tol {used['tol']:g}, max_iter {used['max_iter']}, polish {used['polish_iter']}) on "
           f"{gap.size} pixels of row 0: gap median {np.median(gap):.1e}, p90 {np.percentile(gap, 90):.1e}; "
           f"whole frame converged {main_run['converged']:.0%}, mean {main_run['iterations_mean']:.0f} iterations")
     print(f"scaling 1 → 2 workers: {main_run['px_per_s'] / results[(128, 1)]['px_per_s']:.2f}×; "

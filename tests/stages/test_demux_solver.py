@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from stages.demux_solver import DemuxProblem, solve
+from stages.demux_solver import MIN_BATCH, DemuxProblem, solve
 from stages.illumination import epipolar_boundary, plane_to_ray_illumination
 
 
@@ -104,6 +104,30 @@ def test_masked_frames_solve_the_masked_problem():
     _, optimum = cvxpy_optimum(problem, np.where(weight, data, 0.0), weight)
     value = problem.objective(ours.transport, np.where(weight, data, 0.0), weight)
     assert np.all((value - optimum) / np.abs(optimum) <= 1e-4)
+
+
+def test_compacting_the_unconverged_pixels_changes_no_pixel():
+    """A batch of 400 pixels, compacted as its pixels converge, against the same pixels in batches too small to
+    compact: each pixel's iterations and flag are its own (the iteration is per pixel), its objective equal."""
+    delays, exposures, offsets = CASES["rank-deficient"]
+    matrix = sweep_matrix(delays, exposures, offsets)
+    rng = np.random.default_rng(5)
+    data = sparse_transport(rng, 400, offsets) @ matrix.T + rng.normal(0, 0.01, (400, matrix.shape[0]))
+    data[:100] = 0.0  # converged at the first check
+    data[100:200] *= rng.uniform(1e-3, 1e3, (100, 1))
+    problem = DemuxProblem.build(matrix)
+    with jax.enable_x64(True):
+        big = solve(problem, data, tol=1e-5, max_iter=2000, dtype=np.float64)
+        small = [solve(problem, data[i:i + MIN_BATCH], tol=1e-5, max_iter=2000, dtype=np.float64)
+                 for i in range(0, 400, MIN_BATCH)]
+    iterations = np.concatenate([s.iterations for s in small])
+    assert len(np.unique(iterations)) >= 5  # the batch did shrink several times
+    np.testing.assert_array_equal(big.iterations, iterations)
+    np.testing.assert_array_equal(big.converged, np.concatenate([s.converged for s in small]))
+    # objective: both converged to tol 1e-5; they differ by the extra iterations the big batch's early
+    # pixels ran before it was compacted (relative 1e-6 here)
+    value = problem.objective(np.concatenate([s.transport for s in small]), data)
+    np.testing.assert_allclose(problem.objective(big.transport, data), value, rtol=1e-5, atol=1e-12)
 
 
 def test_illumination_is_the_time_overlap_of_line_and_exposure():
