@@ -1,7 +1,8 @@
-"""What plane-to-ray transport is for (§5.4.1, §5.4.2, §5.4.5): delay profiles, relighting under any row
-pattern, epipolar, non-epipolar and sharpened epipolar images (Eq. 35–36), and their figures.
+"""What transport is for (§5.4.1, §5.4.2, §5.4.5): delay profiles, relighting under any row pattern,
+epipolar, non-epipolar and sharpened epipolar images (Eq. 35–36) from plane-to-ray ``T(offset, row, col)``;
+2-D profiles and relighting under any 2-D pattern from full ``T(du, dv, row, col)``; and their figures.
 
-The functions are lazy on ``T(offset, row, col)`` (xarray/dask); the figure stages render them.
+The functions are lazy (xarray/dask); the figure stages render them.
 """
 
 from __future__ import annotations
@@ -75,7 +76,7 @@ def relight_full(transport: xr.Dataset, pattern: np.ndarray) -> xr.DataArray:
     table = cell_average(pattern, first + step * ks, step)  # (rows, cells)
     dv = transport["dv"].values.astype(int)
 
-    def band(block: xr.Dataset) -> xr.DataArray:
+    def band(block: xr.Dataset, table: np.ndarray) -> xr.DataArray:
         t, r = block["transport"].values, block["row"].values  # (du, dv, r, c), the block's camera rows
         k0 = np.round((block["u_direct"].values - first) / step)  # (r, c), NaN where unknown
         known = np.isfinite(k0)
@@ -88,8 +89,12 @@ def relight_full(transport: xr.Dataset, pattern: np.ndarray) -> xr.DataArray:
         return xr.DataArray(image.astype(t.dtype), dims=("row", "col"), coords=block["u_direct"].coords)
 
     ds = transport[["transport", "u_direct"]].assign_coords(row=np.arange(rows))
+    # one task per band of T's rows, u_direct cut alike (a store may chunk the two differently)
+    bands = ds["transport"].chunksizes.get("row", -1) if ds["transport"].chunks else -1
+    ds = ds.chunk({"du": -1, "dv": -1, "row": bands, "col": -1})
     template = ds["u_direct"].astype(ds["transport"].dtype)
-    return xr.map_blocks(band, ds, template=template)
+    # the table goes in as an argument, so dask's task names depend on the pattern (a closure's would not)
+    return xr.map_blocks(band, ds, kwargs={"table": table}, template=template)
 
 
 def _pixel(ds: xr.Dataset, where: tuple[float, float]) -> tuple[int, int]:
@@ -218,3 +223,109 @@ def epipolar_figure(capture: xr.Dataset, transport: xr.Dataset, /, *, exposure: 
         return _draw_epipolar(np.asarray(regular), np.asarray(sharpened), at, exposure, half_width)
 
     return _as_figure(render, regular, sharpened)
+
+
+def _full(transport: xr.Dataset) -> xr.Dataset:
+    if not {"du", "dv"} <= set(transport.dims):
+        raise StageError(Problem(f"this transport has dims {tuple(transport.dims)}, not full transport (du, dv, …)",
+                                 where="transport", fix="wire in the output of demux_full"))
+    return transport
+
+
+def _draw_profiles_2d(du, dv, step: float, overview, profiles: dict, at: dict) -> np.ndarray:
+    fig, axes = plt.subplots(1, len(profiles) + 1, figsize=_SIZE_IN, dpi=_DPI, constrained_layout=True)
+    axes[0].imshow(overview, cmap="gray", vmin=0, vmax=max(float(np.nanpercentile(overview, 99.5)), 1e-12))
+    for i, (name, (r, c)) in enumerate(at.items()):
+        axes[0].plot(c, r, "o", mfc="none", color=f"C{i}", label=name)
+    axes[0].set(title="white (Σ T)", xticks=[], yticks=[])
+    axes[0].legend(fontsize="x-small", loc="lower left")
+    # the window where any shown profile holds ≥ 1 % of its peak, two cells/rows wider
+    lit = np.zeros((du.size, dv.size), bool)
+    for t in profiles.values():
+        top = np.nanmax(t) if np.isfinite(t).any() else 0.0
+        lit |= np.nan_to_num(t) >= 0.01 * top if top > 0 else False
+    i_u, i_v = (np.flatnonzero(lit.any(axis)) for axis in (1, 0))
+    u_sl = slice(max(i_u.min() - 2, 0), i_u.max() + 3) if i_u.size else slice(None)
+    v_sl = slice(max(i_v.min() - 2, 0), i_v.max() + 3) if i_v.size else slice(None)
+    du, dv = du[u_sl], dv[v_sl]
+    extent = (du[0] - step / 2, du[-1] + step / 2, dv[-1] + 0.5, dv[0] - 0.5)
+    for i, (ax, (name, t)) in enumerate(zip(axes[1:], profiles.items(), strict=True)):
+        t = t[u_sl, v_sl]
+        top = float(np.nanmax(t)) if np.isfinite(t).any() and np.nanmax(t) > 0 else 1.0
+        ax.imshow(t.T / top, extent=extent, aspect="auto", cmap="magma", vmin=0, vmax=1, interpolation="nearest")
+        ax.set(title=name, xlabel="du [px]", ylabel="dv [rows]" if i == 0 else None)
+        for spine in ax.spines.values():
+            spine.set(color=f"C{i}", linewidth=2)
+    return _rgba(fig)
+
+
+@stage("profile_2d_figure")
+def profile_2d_figure(transport: xr.Dataset, /, *, pixels: dict[str, tuple[float, float]]) -> xr.Dataset:
+    """Fig. 39: the 2-D profile T(du, dv) of full transport at named pixels, each scaled to its peak, beside
+    the white image Σ T with the pixels marked. du is projector columns from the direct correspondence u₀,
+    dv projector rows from the camera row; cells the sweep never lit are blank.
+
+    Parameters
+    ----------
+    pixels : dict
+        name → [x, y] in image fractions (the scene files' units).
+    """
+    t = _full(transport)["transport"]
+    at = {name: _pixel(transport, where) for name, where in pixels.items()}
+    profiles = {name: t.isel(row=r, col=c).transpose("du", "dv").data for name, (r, c) in at.items()}
+    overview = t.sum(("du", "dv"), skipna=True).data
+
+    def render(overview, profiles):
+        return _draw_profiles_2d(transport["du"].values, transport["dv"].values,
+                                 float(transport.attrs["cell_width_px"]), np.asarray(overview),
+                                 {k: np.asarray(v) for k, v in profiles.items()}, at)
+
+    return _as_figure(render, overview, profiles)
+
+
+def checkerboard_relight(transport: xr.Dataset, square_px: int, projector_cols: int,
+                         square_rows: int | None = None) -> xr.Dataset:
+    """The scene relit from full transport under a checkerboard of ``square_px`` projector columns ×
+    ``square_rows`` camera-rectified rows (None: square_px) over ``projector_cols`` columns, its complement and
+    white (the two boards sum to it); lazy."""
+    rows = transport.sizes["row"]
+    square_rows = square_px if square_rows is None else square_rows
+    board = ((np.arange(rows)[:, None] // square_rows + np.arange(projector_cols)[None] // square_px) % 2)
+    board = board.astype(float)
+    return xr.Dataset({name: relight_full(transport, pattern) for name, pattern in
+                       (("checkerboard", board), ("complement", 1.0 - board), ("white", np.ones_like(board)))},
+                      attrs={"square_px": square_px, "square_rows": square_rows, "projector_cols": projector_cols})
+
+
+@stage("relighting_full_figure")
+def relighting_full_figure(transport: xr.Dataset, /, *, square_px: int | None = None,
+                           projector_cols: int | None = None) -> xr.Dataset:
+    """Fig. 41: the scene relit from full transport under a virtual checkerboard, its complement, and white
+    (:func:`checkerboard_relight`).
+
+    Parameters
+    ----------
+    square_px : int or None
+        Checkerboard square [projector px]; None: four u-cells (T resolves a pattern only to a cell).
+    projector_cols : int or None
+        Projector columns; None: the capture's projector_shape, else up to the last u-cell's edge.
+    """
+    _full(transport)
+    step, cells = float(transport.attrs["cell_width_px"]), transport.attrs["cells_px"]
+    shape = transport.attrs.get("projector_shape")
+    if projector_cols is None:
+        projector_cols = int(shape[1]) if shape is not None else int(np.ceil(cells[-1] + step / 2))
+    square = max(1, round(4 * step)) if square_px is None else square_px
+    if square < 1 or projector_cols < 1:
+        raise StageError(Problem(f"square_px {square} and projector_cols {projector_cols} must be ≥ 1",
+                                 fix="give positive sizes"))
+    # squares look square on the image: rows scaled as the camera samples the projector's columns
+    per_col = transport.sizes["col"] / projector_cols
+    square_rows = max(1, round(square * per_col)) if shape is not None else square
+    relit = checkerboard_relight(transport, square, projector_cols, square_rows)
+    titles = [f"checkerboard, {square} px squares", "its complement", "white"]
+
+    def render(*arrays):
+        return _draw_relit([np.asarray(a) for a in arrays], titles)
+
+    return _as_figure(render, *(relit[name].data for name in ("checkerboard", "complement", "white")))

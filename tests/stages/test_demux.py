@@ -52,7 +52,7 @@ def forward(transport: xr.Dataset, capture: xr.Dataset) -> np.ndarray:
 def noise_free():
     s = scene()
     capture = capture_of(s)
-    return s, capture, demux_plane_to_ray(capture, beta=1e-4, alpha=1e-3, max_iter=400, tol=1e-4).compute()
+    return s, capture, demux_plane_to_ray(capture, beta=1e-4, alpha=1e-3, max_iter=600, tol=1e-4).compute()
 
 
 def test_round_trip_reproduces_the_images(noise_free):
