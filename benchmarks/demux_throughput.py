@@ -141,7 +141,7 @@ def measure(mode: str, args) -> dict:
             if mode == "selpath":  # the stage's own output on the sample pixels, for the objective gap
                 import xarray as xr
 
-                from stages.demux_solver import DemuxProblem
+                from stages.demux_problem import DemuxProblem
 
                 stored = xr.open_zarr(f"{tmp}/t.zarr", consolidated=False)
                 n = min(args.sample, args.cols)
@@ -159,7 +159,8 @@ def measure(mode: str, args) -> dict:
         import cvxpy as cp
 
         from stages.demux import solve_pixels
-        from stages.demux_solver import DemuxProblem, solve
+        from stages.demux_problem import DemuxProblem
+        from stages.demux_solver import solve
 
         matrix = _matrix(k, kept=True)
         problem = DemuxProblem.build(matrix)

@@ -36,11 +36,14 @@ def horizontal_line(shape: tuple[int, int], position: float, width: float = 1.0)
     return np.broadcast_to(_coverage(rows, centre - width / 2, centre + width / 2)[:, None], (rows, cols)).copy()
 
 
-def checkerboard(shape: tuple[int, int], square: int, shift: tuple[int, int] = (0, 0)) -> np.ndarray:
-    """A checkerboard of ``square``-pixel squares shifted by (rows, cols) pixels (the §5.4.6 shifted boards)."""
+def checkerboard(shape: tuple[int, int], square: int | tuple[int, int],
+                 shift: tuple[int, int] = (0, 0)) -> np.ndarray:
+    """A checkerboard of ``square``-pixel squares (or (rows, cols) rectangles) shifted by (rows, cols) pixels
+    (the §5.4.6 shifted boards)."""
     rows, cols = shape
-    r = (np.arange(rows) + shift[0]) // square
-    c = (np.arange(cols) + shift[1]) // square
+    square_rows, square_cols = (square, square) if np.isscalar(square) else square
+    r = (np.arange(rows) + shift[0]) // square_rows
+    c = (np.arange(cols) + shift[1]) // square_cols
     return ((r[:, None] + c[None, :]) % 2).astype(float)
 
 

@@ -18,7 +18,8 @@ import xarray as xr
 
 from pipeline.errors import Problem, StageError
 from pipeline.registry import stage
-from stages.demux_solver import DemuxProblem, SeparableDemuxProblem, solve
+from stages.demux_problem import DemuxProblem, SeparableDemuxProblem
+from stages.demux_solver import solve
 from stages.illumination import epipolar_boundary, line_cells, line_illumination, plane_to_ray_illumination
 from stages.reconstruct import Dtype
 

@@ -23,12 +23,8 @@ detour was slow, DESIGN §6), so this is a batched ADMM in plain JAX:
 * a final polish: conjugate gradients on the KKT system of the support ADMM found (the free offsets), kept
   per pixel only where it lowers the objective (OSQP's "solution polishing", batched).
 
-The full transport (§5.3.1) has the same problem over (du, dv) cells with A = L_u ⊗ L: the frames form a
-full (line × delay–exposure) grid and the illumination of Eq. 38 is separable. :class:`SeparableDemuxProblem`
-never forms A or G: with L_uᵀL_u = QΛQᵀ, 2G + ρI = (Q ⊗ I)·blockdiag_i(2λ_i LᵀL + 2αDᵀD + ρI)·(Q ⊗ I)ᵀ,
-so the T-update is two (K_u × K_u) products and K_u small (K_v × K_v) ones per pixel — for the thesis's
-sweep (47 × 21 cells) 9× fewer operations than the dense (987 × 987) inverse, and ~100 kB instead of 4 MB
-of shared matrices. The smoothness α acts along dv only (the thesis's ∂T/∂v); du is left to β and T ≥ 0.
+The full transport (§5.3.1) uses the same iteration with the Kronecker-factored operators of
+:class:`~stages.demux_problem.SeparableDemuxProblem` (A = L_u ⊗ L, never formed).
 
 Per pixel it returns the iterations to convergence (primal and dual residuals ≤ ``tol`` relative, checked
 every ``check_every`` iterations) and an honest flag. A call stops when every pixel has converged or at
@@ -40,137 +36,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import partial
-from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from stages.illumination import difference_operator
-
-
-@dataclass(frozen=True)
-class DemuxProblem:
-    """The shared part of every pixel's problem: A, the regularisation, and the factorised T-update."""
-
-    illumination: np.ndarray  # A, (N, K)
-    alpha: float
-    beta: float
-    rho: float
-    gram2: np.ndarray  # 2G = 2(AᵀA + αDᵀD), (K, K)
-    update: np.ndarray  # (2G + ρI)⁻¹, (K, K)
-    inverse: np.ndarray  # (2G)⁺, (K, K): the warm start's unconstrained solve
-
-    @classmethod
-    def build(cls, illumination: np.ndarray, *, alpha: float = 0.01, beta: float = 0.01,
-              rho_factor: float = 0.01) -> DemuxProblem:
-        illumination = np.asarray(illumination, dtype=np.float64)
-        if illumination.ndim != 2 or not np.all(np.isfinite(illumination)):
-            raise ValueError("the illumination matrix must be a finite (frames, offsets) array")
-        if alpha < 0 or beta < 0 or rho_factor <= 0:
-            raise ValueError(f"need alpha ≥ 0, beta ≥ 0, rho_factor > 0 (got {alpha}, {beta}, {rho_factor})")
-        k = illumination.shape[1]
-        d = difference_operator(k)
-        gram2 = 2.0 * (illumination.T @ illumination + alpha * d.T @ d)
-        top = float(np.linalg.eigvalsh(gram2)[-1]) if k else 1.0
-        rho = rho_factor * max(top, np.finfo(float).tiny)
-        update = np.linalg.inv(gram2 + rho * np.eye(k))
-        return cls(illumination, float(alpha), float(beta), float(rho), gram2, update, np.linalg.pinv(gram2))
-
-    kind: ClassVar[str] = "dense"
-
-    @property
-    def frames(self) -> int:
-        return self.illumination.shape[0]
-
-    @property
-    def offsets(self) -> int:
-        return self.illumination.shape[1]
-
-    def arrays(self) -> tuple[np.ndarray, ...]:
-        """The shared matrices the batched solver uses (order fixed by :func:`_operators`)."""
-        return self.illumination, self.gram2, self.update, self.inverse
-
-    def objective(self, transport: np.ndarray, data: np.ndarray, weight: np.ndarray | None = None) -> np.ndarray:
-        """The thesis's objective per pixel, in float64 (reference for tests and benchmarks)."""
-        transport, data = np.asarray(transport, np.float64), np.asarray(data, np.float64)
-        residual = transport @ self.illumination.T - np.nan_to_num(data)
-        if weight is not None:
-            residual = residual * weight
-        smooth = np.diff(transport, axis=-1)
-        return (residual**2).sum(-1) + self.alpha * (smooth**2).sum(-1) + self.beta * transport.sum(-1)
-
-
-@dataclass(frozen=True)
-class SeparableDemuxProblem:
-    """The full transport's shared part: A = L_u ⊗ L over (K_u, K_v) cells, u-major (index k_u·K_v + k_v).
-
-    Data per pixel are ordered line-major: observation j_u·N_v + j_v is line j_u at delay–exposure j_v.
-    """
-
-    line_matrix: np.ndarray  # L_u, (N_u lines, K_u cells)
-    frame_matrix: np.ndarray  # L, (N_v delay–exposure frames, K_v offsets)
-    alpha: float
-    beta: float
-    rho: float
-    basis: np.ndarray  # Q, (K_u, K_u): eigenvectors of L_uᵀL_u
-    update_blocks: np.ndarray  # (K_u, K_v, K_v): (2λ_i LᵀL + 2αDᵀD + ρI)⁻¹
-    inverse_blocks: np.ndarray  # (K_u, K_v, K_v): (2λ_i LᵀL + 2αDᵀD)⁺
-    smooth: np.ndarray  # DᵀD, (K_v, K_v)
-
-    kind: ClassVar[str] = "separable"
-
-    @classmethod
-    def build(cls, line_matrix: np.ndarray, frame_matrix: np.ndarray, *, alpha: float = 0.01, beta: float = 0.01,
-              rho_factor: float = 0.01) -> SeparableDemuxProblem:
-        line_matrix = np.asarray(line_matrix, dtype=np.float64)
-        frame_matrix = np.asarray(frame_matrix, dtype=np.float64)
-        for name, m in (("line", line_matrix), ("frame", frame_matrix)):
-            if m.ndim != 2 or not np.all(np.isfinite(m)):
-                raise ValueError(f"the {name} illumination matrix must be a finite 2-D array")
-        if alpha < 0 or beta < 0 or rho_factor <= 0:
-            raise ValueError(f"need alpha ≥ 0, beta ≥ 0, rho_factor > 0 (got {alpha}, {beta}, {rho_factor})")
-        k_v = frame_matrix.shape[1]
-        d = difference_operator(k_v)
-        smooth = d.T @ d
-        lam, basis = np.linalg.eigh(line_matrix.T @ line_matrix)
-        lam = np.clip(lam, 0.0, None)
-        blocks = 2.0 * (lam[:, None, None] * (frame_matrix.T @ frame_matrix)[None] + alpha * smooth[None])
-        top = max(float(np.linalg.eigvalsh(blocks)[:, -1].max()) if blocks.size else 1.0, np.finfo(float).tiny)
-        rho = rho_factor * top
-        update = np.linalg.inv(blocks + rho * np.eye(k_v)[None])
-        inverse = np.linalg.pinv(blocks, hermitian=True)
-        return cls(line_matrix, frame_matrix, float(alpha), float(beta), float(rho), basis, update, inverse, smooth)
-
-    @property
-    def frames(self) -> int:
-        return self.line_matrix.shape[0] * self.frame_matrix.shape[0]
-
-    @property
-    def offsets(self) -> int:
-        return self.line_matrix.shape[1] * self.frame_matrix.shape[1]
-
-    @property
-    def cells(self) -> tuple[int, int]:
-        return self.line_matrix.shape[1], self.frame_matrix.shape[1]
-
-    def arrays(self) -> tuple[np.ndarray, ...]:
-        return self.line_matrix, self.frame_matrix, self.basis, self.update_blocks, self.inverse_blocks, self.smooth
-
-    def forward(self, transport: np.ndarray) -> np.ndarray:
-        """(P, K_u·K_v) transport → (P, N_u·N_v) predicted observations, in float64."""
-        t = np.asarray(transport, np.float64).reshape(-1, *self.cells)
-        out = np.einsum("ju,puv,nv->pjn", self.line_matrix, t, self.frame_matrix)
-        return out.reshape(t.shape[0], -1)
-
-    def objective(self, transport: np.ndarray, data: np.ndarray, weight: np.ndarray | None = None) -> np.ndarray:
-        """The thesis's objective per pixel (smoothness along dv), in float64."""
-        transport = np.asarray(transport, np.float64)
-        residual = self.forward(transport) - np.nan_to_num(np.asarray(data, np.float64))
-        if weight is not None:
-            residual = residual * weight
-        smooth = np.diff(transport.reshape(-1, *self.cells), axis=-1)
-        return (residual**2).sum(-1) + self.alpha * (smooth**2).sum((-2, -1)) + self.beta * transport.sum(-1)
+from stages.demux_problem import DemuxProblem, SeparableDemuxProblem
 
 
 @dataclass(frozen=True)
@@ -343,6 +214,11 @@ def _finish(arrays, alpha, y, weight, two_aty, b_pixel, scale, z, *, kind: str, 
 MIN_BATCH = 64
 
 
+def _stop_at(size: int) -> int:
+    """Unconverged pixels at which a batch of ``size`` is compacted (never below MIN_BATCH: run to the end)."""
+    return size // 2 if size > MIN_BATCH else 0
+
+
 def _batch_size(active: int) -> int:
     """The power of two the unconverged pixels are packed into."""
     return max(MIN_BATCH, 1 << max(int(active) - 1, 0).bit_length())
@@ -363,7 +239,7 @@ def _solve(arrays, rho, alpha, beta, data, weight, tol, *, kind: str, max_iter: 
     limits = (tol, jnp.asarray(max_iter, jnp.int32))
     iters, done = jnp.full((p,), max_iter, jnp.int32), jnp.zeros((p,), bool)
     state, iters, done, it = _iterate(arrays, rho, alpha, *per_pixel, state, iters, done, jnp.asarray(0, jnp.int32),
-                                      jnp.asarray(p // 2 if p > MIN_BATCH else 0, jnp.int32), *limits, **options)
+                                      jnp.asarray(_stop_at(p), jnp.int32), *limits, **options)
     if int(it) < max_iter and not bool(jnp.all(done)):
         # compaction, in numpy between the jitted calls (index bookkeeping no jit does cheaply)
         state, iters, done = [np.array(a) for a in state], np.array(iters), np.array(done)
@@ -376,9 +252,7 @@ def _solve(arrays, rho, alpha, beta, data, weight, tol, *, kind: str, max_iter: 
             pad_done = np.arange(size) >= n  # padding rows count as converged and are never written back
             out_state, out_iters, out_done, it = _iterate(
                 arrays, rho, alpha, *(a[padded] for a in per_pixel), tuple(a[padded] for a in state),
-                iters[padded], done[padded] | pad_done, it,
-                jnp.asarray(size // 2 if size > MIN_BATCH else 0, jnp.int32),
-                *limits, **options)
+                iters[padded], done[padded] | pad_done, it, jnp.asarray(_stop_at(size), jnp.int32), *limits, **options)
             for full, part in zip(state, out_state, strict=True):
                 full[index] = np.asarray(part)[:n]
             iters[index], done[index] = np.asarray(out_iters)[:n], np.asarray(out_done)[:n]

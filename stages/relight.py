@@ -10,6 +10,7 @@ from __future__ import annotations
 import numpy as np
 import xarray as xr
 
+from devices.patterns import checkerboard
 from pipeline.errors import Problem, StageError
 from pipeline.registry import stage
 from stages.report import _DPI, _SIZE_IN, _as_figure, _rgba, plt
@@ -288,10 +289,8 @@ def checkerboard_relight(transport: xr.Dataset, square_px: int, projector_cols: 
     """The scene relit from full transport under a checkerboard of ``square_px`` projector columns ×
     ``square_rows`` camera-rectified rows (None: square_px) over ``projector_cols`` columns, its complement and
     white (the two boards sum to it); lazy."""
-    rows = transport.sizes["row"]
     square_rows = square_px if square_rows is None else square_rows
-    board = ((np.arange(rows)[:, None] // square_rows + np.arange(projector_cols)[None] // square_px) % 2)
-    board = board.astype(float)
+    board = checkerboard((transport.sizes["row"], projector_cols), (square_rows, square_px))
     return xr.Dataset({name: relight_full(transport, pattern) for name, pattern in
                        (("checkerboard", board), ("complement", 1.0 - board), ("white", np.ones_like(board)))},
                       attrs={"square_px": square_px, "square_rows": square_rows, "projector_cols": projector_cols})

@@ -14,7 +14,8 @@ from devices.sim import transport as tr
 from devices.sim.procam_scene import ProcamScene
 from pipeline.errors import StageError
 from stages.demux import OffsetGrid, demux_full
-from stages.demux_solver import SeparableDemuxProblem, solve
+from stages.demux_problem import SeparableDemuxProblem
+from stages.demux_solver import solve
 from stages.illumination import box_overlap, line_cells, line_illumination, plane_to_ray_illumination
 from stages.relight import cell_average, checkerboard_relight, profile_2d_figure, relight_full, relighting_full_figure
 

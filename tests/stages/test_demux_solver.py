@@ -9,7 +9,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from stages.demux_solver import MIN_BATCH, DemuxProblem, solve
+from stages.demux_problem import DemuxProblem
+from stages.demux_solver import MIN_BATCH, solve
 from stages.illumination import epipolar_boundary, plane_to_ray_illumination
 
 
