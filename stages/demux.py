@@ -19,19 +19,21 @@ import xarray as xr
 from pipeline.errors import Problem, StageError
 from pipeline.registry import stage
 from stages.demux_problem import DemuxProblem, SeparableDemuxProblem
-from stages.demux_solver import solve
+from stages.demux_solver import batch_slots, solve
 from stages.illumination import epipolar_boundary, line_cells, line_illumination, plane_to_ray_illumination
 from stages.reconstruct import Dtype
 
-#: pixels × offsets per solver call: the solver's ~8 (P × K) state arrays then stay in a core's L2/L3 cache.
-#: Measured (K = 128, 2 cores, two bands at once): 1024 pixels per call run 49k px/s at 40 iterations, 16384
-#: pixels 18k px/s (memory-bound elementwise work between the products); below 512 the per-call cost dominates.
-CALL_ELEMENTS = 1024 * 128
+#: streaming batches per solver call: a call's pool (data, warm starts, results: ~8 (P × K) arrays, 64 MB at
+#: K = 128) is bounded while the batch's tail (its last, slowest pixels) is paid once per 16 batches of pixels
+POOL_BATCHES = 16
 
 
-def pixels_per_call(offsets: int) -> int:
-    """Pixels per solver call for K offsets: a power of two near CALL_ELEMENTS / K, within [256, 16384]."""
-    return int(np.clip(2 ** np.round(np.log2(CALL_ELEMENTS / max(offsets, 1))), 256, 16384))
+def pixels_per_call(pixels: int, offsets: int) -> int:
+    """Pixels per solver call: at most POOL_BATCHES streaming batches, the calls of ``pixels`` equal in size
+    (a multiple of the batch, so a band's calls share one compiled shape and little is padding)."""
+    slots = batch_slots(offsets)
+    calls = -(-pixels // (POOL_BATCHES * slots))
+    return slots * -(-pixels // (calls * slots))
 
 
 class OffsetGrid(pydantic.BaseModel):
@@ -99,7 +101,7 @@ def _frames(capture: xr.Dataset, timing: dict, boundary_margin_us: float | None,
 def solve_pixels(problem: DemuxProblem | SeparableDemuxProblem, data: np.ndarray, weight: np.ndarray, *,
                  dtype: str, **options):
     """``solve`` over (P, N) pixels in calls of :func:`pixels_per_call` (the last one padded with empty pixels)."""
-    p, per_call = data.shape[0], pixels_per_call(problem.offsets)
+    p, per_call = data.shape[0], pixels_per_call(data.shape[0], problem.offsets)
     calls = max(1, -(-p // per_call))
     size = min(per_call, p) if calls == 1 else per_call
     parts = []
@@ -192,14 +194,15 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
         Sparsity weight β (thesis: 0.01).
     tol : float
         Relative primal and dual residual at which a pixel counts as converged (checked every 5 iterations).
-        Measured on 6400 pixels of the Fig. 38 stack (K = 253 offsets, N = 63), gap = relative objective gap
-        to a float64 solve at tol 1e-7: tol 1e-2 stops at 51 iterations on average at a median gap of 7.9e-4;
-        5e-3 with the 5-step polish at 62 (gap 8.2e-5, p90 5.7e-4); 3e-3 with it at 75 (1.3e-5, p90 1.5e-4);
-        1e-3 at 109 (1.9e-5). The default is the cheapest that meets the issue's 1e-4 median there and on
-        the benchmark's stack (5.6e-5).
+        Measured against a float64 solve at tol 1e-7, gap = relative objective gap (median, p90), mean
+        iterations in brackets. Benchmark stack (K = 128, 4096 px): 5e-3 → 7.0e-5 [20]. Fig. 38 stack (rows
+        140–156 of the procam workflow's capture, K = 253, N = 63, 6400 px): 1e-2 → 6.0e-4 [19]; 5e-3 →
+        2.7e-4, p90 6.2e-4 [38]; 3e-3 → 1.2e-4 [55]; 2e-3 → 6.1e-5, p90 2.3e-4 [72]; 1e-3 → 1.5e-5 [114,
+        4.5 % at the cap]. The default meets the issue's 1e-4 median on the benchmark's stack at K = 128; many
+        offsets per pixel (Fig. 38) need 2e-3 for it, at about twice the time.
     max_iter : int
-        Iteration cap; a pixel that reaches it is flagged unconverged. A solver call of ~1000 pixels
-        compacts its unconverged pixels as the others converge, so the cap bounds only the slow ones.
+        Iteration cap; a pixel that reaches it is flagged unconverged. A solver call streams its pixels
+        through a batch refilled as they converge, so the cap bounds only the slow ones.
     polish_iter : int
         Conjugate-gradient steps of the final support polish (0: none); it costs about as many products as
         iterations and is kept per pixel only where it lowers the objective.

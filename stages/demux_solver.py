@@ -27,9 +27,11 @@ The full transport (§5.3.1) uses the same iteration with the Kronecker-factored
 :class:`~stages.demux_problem.SeparableDemuxProblem` (A = L_u ⊗ L, never formed).
 
 Per pixel it returns the iterations to convergence (primal and dual residuals ≤ ``tol`` relative, checked
-every ``check_every`` iterations) and an honest flag. A call stops when every pixel has converged or at
-``max_iter``; as its pixels converge, the rest are compacted into smaller batches (:func:`_solve`), so a call
-costs about its pixels' mean iterations, not its slowest pixel's.
+every ``check_every`` iterations) and an honest flag. A call's pixels stream through one batch whose rows are
+written out and refilled as their pixels converge or reach ``max_iter`` (:func:`_stream`), and the batch's
+tail is compacted into smaller batches (:func:`_solve`), so a call costs about its pixels' mean iterations,
+not its slowest pixel's. A pixel stops at the check where it meets ``tol``: it is not iterated further while
+slower pixels finish (an earlier version did, for free accuracy at the same recorded iterations).
 """
 
 from __future__ import annotations
@@ -109,45 +111,64 @@ def _rhs(forward, adjoint, y, weight, two_aty, z, masked: bool):
     return two_aty
 
 
-@partial(jax.jit, static_argnames=("kind", "masked"))
-def _start(arrays, alpha, beta, data, weight, *, kind: str, masked: bool):
-    """(scaled data, β per pixel, 2Aᵀwy, scale) and the first ADMM state. The warm start is the unconstrained
+def _in_chunks(fn, rows: int, *arrays):
+    """``fn`` over ``rows``-row chunks of the (P, …) arrays (``lax.map``; the last chunk padded with zero rows).
+
+    On a whole pool (P = 16384, K = 128: 8 MB per array) every elementwise pass streams from memory; on
+    chunks of the batch size the temporaries stay in cache (start and polish ~3× cheaper).
+    """
+    p = arrays[0].shape[0]
+    if p <= rows:
+        return fn(*arrays)
+    count = -(-p // rows)
+    chunks = tuple(jnp.pad(a, [(0, count * rows - p)] + [(0, 0)] * (a.ndim - 1)).reshape(count, rows, *a.shape[1:])
+                   for a in arrays)
+    out = jax.lax.map(lambda xs: fn(*xs), chunks)
+    return jax.tree.map(lambda o: o.reshape(count * rows, *o.shape[2:])[:p], out)
+
+
+@partial(jax.jit, static_argnames=("kind", "masked", "chunk"))
+def _start(arrays, alpha, beta, data, weight, *, kind: str, masked: bool, chunk: int):
+    """(scaled data, weight, 2Aᵀwy, β per pixel), scale and the warm start. The warm start is the unconstrained
     minimiser (2G)⁺(2Aᵀỹ − β), clipped (worth ~5× fewer iterations on Fig. 38-like pixels), or, where its
     objective is over twice as high, the same with β through the ρ-damped (2G + ρI)⁻¹. Along G's weak directions (those
     only α holds, e.g. a u-cell no line separates from its neighbour in the full transport) (2G)⁺β is huge
     (1e5 on the Fig. 39 sweep) while Aᵀy has no component there: that start left every pixel unconverged."""
     forward, adjoint, apply_update, apply_inverse, _, smoothness = _operators(kind, arrays, alpha)
-    y, b_pixel, scale = _scaled(data, weight, beta)
-    two_aty = 2.0 * adjoint(weight * y)
-    least_squares = apply_inverse(_rhs(forward, adjoint, y, weight, two_aty, jnp.zeros_like(two_aty), masked))
-    beta_k = jnp.broadcast_to(b_pixel, two_aty.shape)
-    exact, damped = (jnp.maximum(least_squares - apply(beta_k), 0.0) for apply in (apply_inverse, apply_update))
-    objective = partial(_objective, forward, smoothness, y, weight, b_pixel, alpha)
-    z0 = jnp.where((objective(exact) <= 2.0 * objective(damped))[:, None], exact, damped)
-    u0 = jnp.zeros_like(z0)
-    state = (z0, u0, z0, u0, jnp.ones_like(scale), jnp.full_like(scale, jnp.inf))
-    return (y, weight, two_aty, b_pixel), scale, state
+
+    def rows(data, weight):
+        y, b_pixel, scale = _scaled(data, weight, beta)
+        two_aty = 2.0 * adjoint(weight * y)
+        least_squares = apply_inverse(_rhs(forward, adjoint, y, weight, two_aty, jnp.zeros_like(two_aty), masked))
+        # β is the same on every offset: M(β 1) = β (M 1), one row for all pixels instead of two products
+        ones = jnp.ones((1, two_aty.shape[1]), two_aty.dtype)
+        exact, damped = (jnp.maximum(least_squares - b_pixel * apply(ones), 0.0)
+                         for apply in (apply_inverse, apply_update))
+        objective = partial(_objective, forward, smoothness, y, weight, b_pixel, alpha)
+        z0 = jnp.where((objective(exact) <= 2.0 * objective(damped))[:, None], exact, damped)
+        return (y, weight, two_aty, b_pixel), scale, z0
+
+    return _in_chunks(rows, chunk, data, weight)
 
 
-@partial(jax.jit, static_argnames=("kind", "check_every", "masked"), donate_argnames=("state", "iters", "done"))
-def _iterate(arrays, rho, alpha, y, weight, two_aty, b_pixel, state, iters, done, it, stop_at, tol, max_iter, *,
-             kind: str, check_every: int, masked: bool):
-    """ADMM blocks of ``check_every`` iterations until at most ``stop_at`` pixels are unconverged, or max_iter.
+def _admm_block(kind, arrays, rho, alpha, tol, max_iter, *, check_every: int, masked: bool):
+    """One block of ``check_every`` ADMM iterations: (rows, state, iters, done, age) → (state, iters, done, age).
 
     Goldstein et al.'s fast ADMM with restart, per pixel: Nesterov momentum on (Z, U) while the combined
     residual c falls by the factor η, else back to the last iterate without momentum. Only the four (P, K)
     iterates are carried (the loop is memory-bound between the products); the residuals are formed on the
-    last iteration of each block.
+    last iteration of each block. ``age`` counts each pixel's own iterations (the pixels of a refilled batch
+    started at different times); a pixel converges at the first check where its residuals meet ``tol``
+    within ``max_iter`` (rounded up to a whole block).
     """
     forward, adjoint, apply_update, *_ = _operators(kind, arrays, alpha)
-    dtype = y.dtype
-    shrink = b_pixel / rho
-    eta = jnp.asarray(0.999, dtype)
+    eta = jnp.asarray(0.999, tol.dtype)
 
-    def step(state, check=False):
+    def step(rows, state, check=False):
+        y, weight, two_aty, b_pixel = rows
         z_hat, u_hat, z_old, u_old, momentum, c_old = state
         x = apply_update(_rhs(forward, adjoint, y, weight, two_aty, z_hat, masked) + rho * (z_hat - u_hat))
-        z = jnp.maximum(x + u_hat - shrink, 0.0)
+        z = jnp.maximum(x + u_hat - b_pixel / rho, 0.0)
         u = u_hat + x - z
         c = _sq(u - u_hat)[:, None] + _sq(z - z_hat)[:, None]
         ok = c < eta * c_old
@@ -163,24 +184,96 @@ def _iterate(arrays, rho, alpha, y, weight, two_aty, b_pixel, state, iters, done
         now = (primal <= tol * size) & (dual <= tol * jnp.maximum(rho * jnp.sqrt(_sq(u)), 1e-6))
         return new, now
 
-    def block(carry):
-        state, iters, done, it = carry
-        state = jax.lax.fori_loop(0, check_every - 1, lambda _, s: step(s), state)
-        state, now = step(state, check=True)
-        it = it + check_every
-        iters = jnp.where(done | ~now, iters, it)
-        return state, iters, done | now, it
+    def block(rows, state, iters, done, age):
+        state = jax.lax.fori_loop(0, check_every - 1, lambda _, s: step(rows, s), state)
+        state, now = step(rows, state, check=True)
+        age = age + check_every
+        now = now & (age < max_iter + check_every)
+        iters = jnp.where(done | ~now, iters, age)
+        return state, iters, done | now, age
+
+    return block
+
+
+def _alive(done, age, max_iter):
+    """The pixels still iterating: not converged and under the cap."""
+    return ~done & (age < max_iter)
+
+
+@partial(jax.jit, static_argnames=("kind", "check_every", "masked"), donate_argnames=("state", "iters", "done", "age"))
+def _iterate(arrays, rho, alpha, rows, state, iters, done, age, stop_at, tol, max_iter, *, kind: str,
+             check_every: int, masked: bool):
+    """ADMM blocks on one batch until at most ``stop_at`` of its pixels are alive."""
+    block = _admm_block(kind, arrays, rho, alpha, tol, max_iter, check_every=check_every, masked=masked)
 
     def keep_going(carry):
-        return (jnp.sum(~carry[2]) > stop_at) & (carry[3] < max_iter)
+        return jnp.sum(_alive(carry[2], carry[3], max_iter)) > stop_at
 
-    return jax.lax.while_loop(keep_going, block, (state, iters, done, it))
+    return jax.lax.while_loop(keep_going, lambda carry: block(rows, *carry), (state, iters, done, age))
 
 
-@partial(jax.jit, static_argnames=("kind", "polish_iter", "masked"))
-def _finish(arrays, alpha, y, weight, two_aty, b_pixel, scale, z, *, kind: str, polish_iter: int, masked: bool):
+def _fresh(pool, z0, index):
+    """The pool's rows and a first ADMM state (the warm start, no momentum) for the pixels ``index``."""
+    z = z0[index]
+    u = jnp.zeros_like(z)
+    ones = jnp.ones((z.shape[0], 1), z.dtype)
+    return tuple(a[index] for a in pool), (z, u, z, u, ones, jnp.full_like(ones, jnp.inf))
+
+
+@partial(jax.jit, static_argnames=("kind", "check_every", "masked", "slots"))
+def _stream(arrays, rho, alpha, pool, z0, tol, max_iter, *, kind: str, check_every: int, masked: bool, slots: int):
+    """Every pixel of the pool through one batch of ``slots`` rows, refilled as its pixels finish.
+
+    A batch iterated to the end runs as long as its slowest pixel while most converge in a fraction of that
+    (on the benchmark's stack: median 20 iterations, a batch's slowest 40–200). So after each block the
+    finished rows (converged or at the cap) are written out and refilled with the pool's next pixels: each
+    pixel costs about its own iterations and the products stay full-sized. Returns once the pool is
+    exhausted and at most half the batch is alive: the batch (pixel index, P for an empty row; rows, state,
+    iters, done, age) and the transport, iterations and flags of the pixels written out so far.
+    """
+    block = _admm_block(kind, arrays, rho, alpha, tol, max_iter, check_every=check_every, masked=masked)
+    p = z0.shape[0]
+
+    def refill(carry):
+        pixel, rows, state, iters, done, age, queue, out = carry
+        free = ~_alive(done, age, max_iter)
+        target = jnp.where(free, pixel, p)  # living rows and empty ones (pixel = P) are dropped
+        out = tuple(o.at[target].set(v, mode="drop") for o, v in zip(out, (state[2], iters, done), strict=True))
+        new = queue + jnp.cumsum(free) - 1
+        take = free & (new < p)
+        pixel = jnp.where(take, new, jnp.where(free, p, pixel))
+        new_rows, new_state = _fresh(pool, z0, jnp.minimum(new, p - 1))
+        rows, state = (tuple(jnp.where(take[:, None], b, a) for a, b in zip(old, fresh, strict=True))
+                       for old, fresh in ((rows, new_rows), (state, new_state)))
+        iters, done, age = jnp.where(take, max_iter, iters), done & ~take, jnp.where(take, 0, age)
+        return pixel, rows, state, iters, done, age, queue + jnp.sum(take), out
+
+    def body(carry):
+        pixel, rows, state, iters, done, age, queue, out = carry
+        state, iters, done, age = block(rows, state, iters, done, age)
+        return jax.lax.cond(queue < p, refill, lambda c: c, (pixel, rows, state, iters, done, age, queue, out))
+
+    def keep_going(carry):
+        pixel, _, _, _, done, age, queue, _ = carry
+        return (queue < p) | (jnp.sum(_alive(done, age, max_iter) & (pixel < p)) > _stop_at(slots))
+
+    pixel = jnp.arange(slots)
+    rows, state = _fresh(pool, z0, pixel)
+    out = (jnp.zeros_like(z0), jnp.full((p,), max_iter, jnp.int32), jnp.zeros((p,), bool))
+    batch = (jnp.full((slots,), max_iter, jnp.int32), jnp.zeros((slots,), bool), jnp.zeros((slots,), jnp.int32))
+    return jax.lax.while_loop(keep_going, body, (pixel, rows, state, *batch, jnp.asarray(slots, pixel.dtype), out))
+
+
+@partial(jax.jit, static_argnames=("kind", "polish_iter", "masked", "chunk"))
+def _finish(arrays, alpha, y, weight, two_aty, b_pixel, scale, z, *, kind: str, polish_iter: int, masked: bool,
+            chunk: int):
     """The polish (conjugate gradients on the free offsets' KKT system, kept where it lowers the objective), then
     T and its objective back in the data's units."""
+    return _in_chunks(partial(_finish_rows, arrays, alpha, kind=kind, polish_iter=polish_iter, masked=masked),
+                      chunk, y, weight, two_aty, b_pixel, scale, z)
+
+
+def _finish_rows(arrays, alpha, y, weight, two_aty, b_pixel, scale, z, *, kind: str, polish_iter: int, masked: bool):
     forward, adjoint, _, _, apply_gram2, smoothness = _operators(kind, arrays, alpha)
     dtype = y.dtype
 
@@ -205,9 +298,21 @@ def _finish(arrays, alpha, y, weight, two_aty, b_pixel, scale, z, *, kind: str, 
 
         polished, *_ = jax.lax.fori_loop(0, polish_iter, cg, (z, r0, r0, jnp.sum(r0 * r0, -1, keepdims=True)))
         polished = jnp.maximum(jnp.where(jnp.all(jnp.isfinite(polished), -1, keepdims=True), polished, z), 0.0)
-        better = objective(polished) < objective(z)
-        z = jnp.where(better[:, None], polished, z)
-    return z * scale, objective(z) * scale[:, 0] ** 2
+        value, before = objective(polished), objective(z)
+        better = value < before
+        z, value = jnp.where(better[:, None], polished, z), jnp.where(better, value, before)
+    else:
+        value = objective(z)
+    return z * scale, value * scale[:, 0] ** 2
+
+
+#: elements (pixels × offsets) of the batch the pixels stream through: its (P × K) iterates stay in cache
+BATCH_ELEMENTS = 1024 * 128
+
+
+def batch_slots(offsets: int) -> int:
+    """Rows of the streaming batch for K offsets: a power of two near BATCH_ELEMENTS / K, within [64, 16384]."""
+    return int(np.clip(2 ** np.round(np.log2(BATCH_ELEMENTS / max(offsets, 1))), 64, 16384))
 
 
 #: the smallest batch the active set is compacted into (below it a call's fixed cost dominates)
@@ -225,49 +330,50 @@ def _batch_size(active: int) -> int:
 
 
 def _solve(arrays, rho, alpha, beta, data, weight, tol, *, kind: str, max_iter: int, check_every: int,
-           polish_iter: int, masked: bool):
-    """Start, iterate with the active set compacted, finish.
+           polish_iter: int, masked: bool, slots: int):
+    """Start, stream the pixels through a batch of ``slots`` (:func:`_stream`), compact its tail, finish.
 
-    A call of P pixels runs until its slowest pixel converges, while most converge in a fraction of that (on
-    the benchmark's stack: median 20 iterations, a call's slowest 40–120). So once half the batch has
-    converged, the unconverged pixels (their iterates, data and momentum) are gathered into the next power of
-    two and iterated on alone; each batch size compiles once.
+    Once the pool is exhausted the batch's living pixels are gathered into the next power of two each time
+    half of them have converged, and iterated on alone (each batch size compiles once).
     """
-    per_pixel, scale, state = _start(arrays, alpha, beta, data, weight, kind=kind, masked=masked)
-    p = scale.shape[0]
+    p = data.shape[0]
+    slots = min(slots, p)
+    pool, scale, z0 = _start(arrays, alpha, beta, data, weight, kind=kind, masked=masked, chunk=slots)
     options = {"kind": kind, "check_every": check_every, "masked": masked}
     limits = (tol, jnp.asarray(max_iter, jnp.int32))
-    iters, done = jnp.full((p,), max_iter, jnp.int32), jnp.zeros((p,), bool)
-    state, iters, done, it = _iterate(arrays, rho, alpha, *per_pixel, state, iters, done, jnp.asarray(0, jnp.int32),
-                                      jnp.asarray(_stop_at(p), jnp.int32), *limits, **options)
-    if int(it) < max_iter and not bool(jnp.all(done)):
-        # compaction, in numpy between the jitted calls (index bookkeeping no jit does cheaply)
-        state, iters, done = [np.array(a) for a in state], np.array(iters), np.array(done)
-        per_pixel = [np.asarray(a) for a in per_pixel]
-        index = np.flatnonzero(~done)
-        while index.size and int(it) < max_iter:
-            n = index.size
-            size = min(p, _batch_size(n))
-            padded = np.concatenate([index, np.full(size - n, index[0])])
-            pad_done = np.arange(size) >= n  # padding rows count as converged and are never written back
-            out_state, out_iters, out_done, it = _iterate(
-                arrays, rho, alpha, *(a[padded] for a in per_pixel), tuple(a[padded] for a in state),
-                iters[padded], done[padded] | pad_done, it, jnp.asarray(_stop_at(size), jnp.int32), *limits, **options)
-            for full, part in zip(state, out_state, strict=True):
-                full[index] = np.asarray(part)[:n]
-            iters[index], done[index] = np.asarray(out_iters)[:n], np.asarray(out_done)[:n]
-            index = index[~done[index]]
-    transport, objective = _finish(arrays, alpha, *per_pixel, scale, jnp.asarray(state[2]), kind=kind,
-                                   polish_iter=polish_iter, masked=masked)
-    return transport, iters, done, objective
+    pixel, rows, state, iters, done, age, _, out = _stream(arrays, rho, alpha, pool, z0, *limits, slots=slots,
+                                                           **options)
+    # the tail, in numpy between the jitted calls (index bookkeeping no jit does cheaply)
+    pixel, iters, done, age = (np.array(a) for a in (pixel, iters, done, age))
+    state, rows = [np.array(a) for a in state], [np.asarray(a) for a in rows]
+    index = np.flatnonzero(_alive(done, age, max_iter) & (pixel < p))
+    while index.size:
+        n = index.size
+        size = _batch_size(n)
+        padded = np.concatenate([index, np.full(size - n, index[0])])
+        pad_done = np.arange(size) >= n  # padding rows count as converged and are never written back
+        part_state, part_iters, part_done, part_age = _iterate(
+            arrays, rho, alpha, tuple(a[padded] for a in rows), tuple(a[padded] for a in state), iters[padded],
+            done[padded] | pad_done, age[padded], jnp.asarray(_stop_at(size), jnp.int32), *limits, **options)
+        for full, part in zip(state, part_state, strict=True):
+            full[index] = np.asarray(part)[:n]
+        iters[index], done[index], age[index] = (np.asarray(a)[:n] for a in (part_iters, part_done, part_age))
+        index = index[_alive(done[index], age[index], max_iter)]
+    held = pixel < p
+    z_out, iters_out, done_out = (np.array(a) for a in out)
+    z_out[pixel[held]], iters_out[pixel[held]], done_out[pixel[held]] = state[2][held], iters[held], done[held]
+    transport, objective = _finish(arrays, alpha, *pool, scale, jnp.asarray(z_out), kind=kind,
+                                   polish_iter=polish_iter, masked=masked, chunk=slots)
+    return transport, iters_out, done_out, objective
 
 
 def solve(problem: DemuxProblem | SeparableDemuxProblem, data: np.ndarray, weight: np.ndarray | None = None, *,
           tol: float = 1e-3, max_iter: int = 200, check_every: int = 5, polish_iter: int = 20,
-          dtype=np.float32) -> DemuxResult:
+          slots: int | None = None, dtype=np.float32) -> DemuxResult:
     """Solve every pixel's problem: ``data`` (P, N) observations, ``weight`` (P, N) 0/1 (None: all 1).
 
-    Non-finite observations are masked whatever ``weight`` says. float64 needs ``jax.enable_x64``.
+    The pixels stream through a batch of ``slots`` rows (None: :func:`batch_slots`). Non-finite observations
+    are masked whatever ``weight`` says. float64 needs ``jax.enable_x64``.
     """
     data = np.asarray(data)
     if data.ndim != 2 or data.shape[1] != problem.frames:
@@ -282,5 +388,6 @@ def solve(problem: DemuxProblem | SeparableDemuxProblem, data: np.ndarray, weigh
     z, iters, done, objective = _solve(
         tuple(cast(m) for m in problem.arrays()), cast(problem.rho), cast(problem.alpha), cast(problem.beta),
         cast(np.where(weight, data, 0.0)), cast(weight), cast(tol), kind=problem.kind, max_iter=int(max_iter),
-        check_every=int(check_every), polish_iter=int(polish_iter), masked=masked)
+        check_every=int(check_every), polish_iter=int(polish_iter), masked=masked,
+        slots=int(slots or batch_slots(problem.offsets)))
     return DemuxResult(np.asarray(z), np.asarray(iters), np.asarray(done), np.asarray(objective))
