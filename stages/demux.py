@@ -102,10 +102,9 @@ def solve_pixels(problem: DemuxProblem | SeparableDemuxProblem, data: np.ndarray
                  dtype: str, **options):
     """``solve`` over (P, N) pixels in calls of :func:`pixels_per_call` (the last one padded with empty pixels)."""
     p, per_call = data.shape[0], pixels_per_call(data.shape[0], problem.offsets)
-    calls = max(1, -(-p // per_call))
-    size = min(per_call, p) if calls == 1 else per_call
+    size = min(per_call, p)  # one call of exactly p pixels, or equal calls with the last one padded
     parts = []
-    for c in range(calls):
+    for c in range(max(1, -(-p // per_call))):
         chunk_data = data[c * size:(c + 1) * size]
         chunk_weight = weight[c * size:(c + 1) * size]
         pad = size - chunk_data.shape[0]
