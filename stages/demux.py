@@ -32,8 +32,8 @@ def pixels_per_call(pixels: int, offsets: int) -> int:
     """Pixels per solver call: at most POOL_BATCHES streaming batches, the calls of ``pixels`` equal in size
     (a multiple of the batch, so a band's calls share one compiled shape and little is padding)."""
     slots = batch_slots(offsets)
-    calls = -(-pixels // (POOL_BATCHES * slots))
-    return slots * -(-pixels // (calls * slots))
+    calls = max(1, -(-pixels // (POOL_BATCHES * slots)))
+    return slots * max(1, -(-pixels // (calls * slots)))
 
 
 class OffsetGrid(pydantic.BaseModel):
@@ -102,6 +102,8 @@ def solve_pixels(problem: DemuxProblem | SeparableDemuxProblem, data: np.ndarray
                  dtype: str, **options):
     """``solve`` over (P, N) pixels in calls of :func:`pixels_per_call` (the last one padded with empty pixels)."""
     p, per_call = data.shape[0], pixels_per_call(data.shape[0], problem.offsets)
+    if p == 0:  # no pixels (an empty band): nothing to solve, the solver's batches need at least one row
+        return [np.zeros((0, problem.offsets), dtype), np.zeros(0, np.int32), np.zeros(0, bool), np.zeros(0, dtype)]
     size = min(per_call, p)  # one call of exactly p pixels, or equal calls with the last one padded
     parts = []
     for c in range(max(1, -(-p // per_call))):

@@ -5,11 +5,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import xarray as xr
+from hypothesis import given
+from hypothesis import strategies as st
 
 from devices.sim import transport as tr
 from devices.sim.procam_scene import ProcamScene
 from pipeline.errors import StageError
-from stages.demux import demux_plane_to_ray
+from stages.demux import POOL_BATCHES, demux_plane_to_ray, pixels_per_call, solve_pixels
+from stages.demux_problem import DemuxProblem
+from stages.demux_solver import batch_slots
 from stages.illumination import plane_to_ray_illumination
 
 RIG = {"camera_rows": 40, "camera_cols": 48, "projector_rows": 40, "projector_cols": 48, "bits": None}
@@ -123,3 +127,19 @@ def test_missing_rig_attrs_and_full_transport_captures_are_refused():
                            .assign_attrs({k: v for k, v in capture.attrs.items() if k != "saturation_counts"}))
     with pytest.raises(StageError, match="demux_full"):
         demux_plane_to_ray(capture.expand_dims(line=[10.0]))
+
+
+@given(pixels=st.integers(0, 10**7), offsets=st.integers(1, 2000))
+def test_calls_are_whole_batches_of_equal_size_with_little_padding(pixels, offsets):
+    per_call, slots = pixels_per_call(pixels, offsets), batch_slots(offsets)
+    calls = max(1, -(-pixels // per_call))
+    assert per_call % slots == 0 and slots <= per_call <= POOL_BATCHES * slots
+    assert calls * per_call >= pixels and calls * per_call - pixels <= calls * slots  # under a batch per call
+
+
+def test_no_pixels_give_empty_results():
+    problem = DemuxProblem.build(plane_to_ray_illumination([0.0, 40.0], [170.0, 170.0], np.arange(-4, 5),
+                                                           scan_speed=1 / 17, line_time=17.0))
+    transport, iterations, converged, objective = solve_pixels(problem, np.zeros((0, 2)), np.zeros((0, 2), bool),
+                                                               dtype="float32", tol=1e-3)
+    assert transport.shape == (0, 9) and iterations.shape == converged.shape == objective.shape == (0,)
