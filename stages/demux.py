@@ -100,25 +100,33 @@ def _frames(capture: xr.Dataset, timing: dict, boundary_margin_us: float | None,
 
 def solve_pixels(problem: DemuxProblem | SeparableDemuxProblem, data: np.ndarray, weight: np.ndarray, *,
                  dtype: str, **options):
-    """``solve`` over (P, N) pixels in calls of :func:`pixels_per_call` (the last one padded with empty pixels)."""
+    """``solve`` over (P, N) pixels in calls of :func:`pixels_per_call` (the last one padded with all-zero pixels).
+
+    A call with any masked observation takes the solver's masked path (about twice the products per
+    iteration), so the pixels with masked observations (weight 0 or non-finite) are solved last, together:
+    only the calls that hold them pay.
+    """
     p, per_call = data.shape[0], pixels_per_call(data.shape[0], problem.offsets)
     if p == 0:  # no pixels (an empty band): nothing to solve, the solver's batches need at least one row
         return [np.zeros((0, problem.offsets), dtype), np.zeros(0, np.int32), np.zeros(0, bool), np.zeros(0, dtype)]
+    order = np.argsort(~((np.asarray(weight) > 0) & np.isfinite(data)).all(axis=1), kind="stable")
+    data, weight = data[order], weight[order]
     size = min(per_call, p)  # one call of exactly p pixels, or equal calls with the last one padded
     parts = []
     for c in range(max(1, -(-p // per_call))):
         chunk_data = data[c * size:(c + 1) * size]
         chunk_weight = weight[c * size:(c + 1) * size]
         pad = size - chunk_data.shape[0]
-        if pad:
+        if pad:  # zero observations, unmasked: a weight of 0 would send the whole call down the masked path
             chunk_data = np.pad(chunk_data, ((0, pad), (0, 0)))
-            chunk_weight = np.pad(chunk_weight, ((0, pad), (0, 0)))
+            chunk_weight = np.pad(chunk_weight, ((0, pad), (0, 0)), constant_values=1)
         with jax.enable_x64(dtype == "float64"):
             result = solve(problem, chunk_data, chunk_weight, dtype=np.dtype(dtype), **options)
         keep = slice(0, size - pad)
         parts.append((result.transport[keep], result.iterations[keep], result.converged[keep],
                       result.objective[keep]))
-    return [np.concatenate(column) for column in zip(*parts, strict=True)]
+    inverse = np.argsort(order)
+    return [np.concatenate(column)[inverse] for column in zip(*parts, strict=True)]
 
 
 def _solve_band(problem: DemuxProblem | SeparableDemuxProblem, frames: np.ndarray, shape: tuple[int, int], *,
