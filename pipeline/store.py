@@ -41,21 +41,50 @@ class IncompleteCaptureWarning(UserWarning):
 PROCESSING_CHUNK = "16MiB"
 
 
+def _processing_chunks(ds: xr.Dataset) -> xr.Dataset:
+    """``ds`` (opened on its on-disk chunks) with each variable's dask chunks grouped to whole on-disk chunks of
+    about PROCESSING_CHUNK; an on-disk chunk larger than that is kept whole, never split.
+
+    A capture is stored one frame per chunk for resumable writes (one task per frame would drown the
+    scheduler in overhead); a transport store holds bands of rows. dask's ``chunks="auto"`` splits an on-disk
+    chunk above its limit, and every piece then reads and decompresses the whole chunk: a 31 MB band of a
+    75-frame stack became 4800 one-row tasks that each decoded all of it.
+    """
+    limit = dask.utils.parse_bytes(PROCESSING_CHUNK)
+    out = {}
+    for name, var in ds.data_vars.items():
+        if var.chunks is None or var.ndim == 0 or var.dtype.kind in "OSUV":
+            continue
+        disk = tuple(c[0] for c in var.chunks)
+        if 0 in disk:
+            continue
+        # whole on-disk chunks grouped along the leading (frame) dims while under the limit. Written by hand:
+        # dask's normalize_chunks("auto", previous_chunks=…) evens chunks out and splits on-disk ones (6 frames
+        # stored 4 + 2 came back 3 + 3)
+        chunks, nbytes = list(disk), int(np.prod(disk)) * var.dtype.itemsize
+        for axis, (extent, size) in enumerate(zip(var.shape, disk, strict=True)):
+            multiple = max(1, min(-(-extent // size), limit // nbytes))
+            chunks[axis], nbytes = size * multiple, nbytes * multiple
+            if chunks[axis] < extent:
+                break
+        if tuple(chunks) != disk:
+            out[name] = var.chunk(dict(zip(var.dims, chunks, strict=True)))
+    return ds.assign(out) if out else ds
+
+
 def _open_raw(path: str | os.PathLike) -> xr.Dataset:
     where = os.fspath(path)
     if not Path(where).exists() and "://" not in where:
         raise StoreError(Problem("no store at this path", where=where,
                                  fix="check the path, or run the step that writes it"))
     try:
-        # dask chunks: whole on-disk chunks grouped to about PROCESSING_CHUNK (a capture is stored one frame
-        # per chunk for resumable writes; one task per frame would drown the scheduler in overhead)
-        with dask.config.set({"array.chunk-size": PROCESSING_CHUNK}):
-            return xr.open_zarr(where, consolidated=False, decode_timedelta=False, chunks="auto")
+        ds = xr.open_zarr(where, consolidated=False, decode_timedelta=False, chunks={})  # the on-disk chunks
     except Exception as exc:  # zarr/xarray raise many types for a corrupt store; name it, keep the cause
         raise StoreError(
             Problem(f"cannot be read as a zarr store ({type(exc).__name__}: {exc})", where=where,
                     fix="the store is corrupt or not zarr v3; re-create it or restore it from a backup")
         ) from exc
+    return _processing_chunks(ds)
 
 
 def _migrate(ds: xr.Dataset, where: str) -> xr.Dataset:

@@ -68,6 +68,24 @@ def test_opening_a_store_and_building_on_it_computes_nothing(tmp_path, no_comput
     assert result["absorption"].chunks is not None and no_compute.count == 0
 
 
+@pytest.mark.parametrize(("shape", "disk"), [((6, 2200, 1000), (4, 1100, 1000)), ((40, 300, 400), (1, 300, 400))])
+def test_stores_are_read_in_whole_on_disk_chunks(tmp_path, shape, disk):
+    """An on-disk chunk over PROCESSING_CHUNK (17.6 MB here) is read whole, never split into pieces that each
+    decode it; small ones (a frame of 0.5 MB) are grouped, whole, up to about PROCESSING_CHUNK."""
+    frames = da.zeros(shape, dtype=np.float32, chunks=disk)
+    ds = xr.Dataset({"target": (("angle", "row", "col"), frames), "reference": (("angle", "row", "col"), frames)},
+                    coords={"angle": ("angle", np.arange(shape[0]) * 1.5, {"units": "degree"})}, attrs=dict(GEOMETRY))
+    to_store(ds, tmp_path / "s.zarr", "tomography_capture")
+    opened = open_store(tmp_path / "s.zarr")["target"]
+    assert opened.encoding["chunks"] == disk
+    for chunks, size in zip(opened.chunks, disk, strict=True):
+        assert all(c % size == 0 for c in chunks[:-1])  # whole on-disk chunks, whatever their size
+    nbytes = max(np.prod([c[0] for c in opened.chunks]) * 4, np.prod(disk) * 4)
+    assert nbytes <= max(np.prod(disk) * 4, 16 * 2**20)
+    if np.prod(disk) * 4 < 2**20:
+        assert opened.chunks[0][0] > 1  # small frames are grouped
+
+
 def test_store_written_by_plain_xarray_opens(tmp_path):
     """The documented format is enough: no selpath writer involved."""
     ds = capture().assign_attrs(selpath_format=1, selpath_kind="tomography_capture")
