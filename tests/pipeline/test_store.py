@@ -86,6 +86,12 @@ def test_stores_are_read_in_whole_on_disk_chunks(tmp_path, shape, disk):
         assert opened.chunks[0][0] > 1  # small frames are grouped
 
 
+def test_numeric_data_are_written_with_fast_zstd(tmp_path):
+    to_store(capture(), tmp_path / "s.zarr", "tomography_capture")
+    compressors = zarr.open_array(tmp_path / "s.zarr" / "target").compressors
+    assert [(type(c).__name__, c.level) for c in compressors] == [("ZstdCodec", 1)]
+
+
 def test_store_written_by_plain_xarray_opens(tmp_path):
     """The documented format is enough: no selpath writer involved."""
     ds = capture().assign_attrs(selpath_format=1, selpath_kind="tomography_capture")
