@@ -11,6 +11,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
+from pipeline.compute import enable_compile_cache
 from pipeline.engine import RunReport, run_workflow
 from pipeline.errors import SelpathError
 from pipeline.registry import default_registry
@@ -55,6 +56,7 @@ def run(
     progress: Annotated[bool, typer.Option(help="show a progress bar")] = True,
 ) -> None:
     """Validate and run a workflow; steps whose stored output is up to date are skipped."""
+    enable_compile_cache()
     try:
         workflow = load_workflow(file)
         report = run_workflow(workflow, scheduler=scheduler, progress=progress, reuse=not force, log=console.print)
@@ -163,6 +165,7 @@ def demo(
 
     Writes every store and figure under ``--out``, and ``report.html`` / ``procam-report.html`` beside them.
     """
+    enable_compile_cache()
     names = list(DEMO_WORKFLOWS) if instrument == "all" else [instrument]
     if any(name not in DEMO_WORKFLOWS for name in names):
         _fail(SelpathError(f"unknown instrument {instrument!r}: choose tomography, procam or all"))

@@ -161,7 +161,7 @@ def _writable(ds: xr.Dataset) -> xr.Dataset:
     ds = ds.copy()
     for name in ds.variables:
         ds[name].encoding = {}
-    for name, var in ds.data_vars.items():
+    for var in ds.data_vars.values():
         if var.dtype.kind in "fiub":
             var.encoding = {"compressors": (ZstdCodec(level=1),)}
     if not ds.chunks:

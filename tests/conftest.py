@@ -34,6 +34,12 @@ SMALL_WORKFLOW = textwrap.dedent("""\
     """)
 
 
+@pytest.fixture(autouse=True)
+def no_compile_cache(monkeypatch):
+    """The command line keeps compiled kernels in ~/.cache; tests leave the home folder (and JAX's config) alone."""
+    monkeypatch.setenv("SELPATH_COMPILE_CACHE", "off")
+
+
 @pytest.fixture
 def workflow_text() -> str:
     return SMALL_WORKFLOW
