@@ -19,7 +19,7 @@ import xarray as xr
 from pipeline.errors import Problem, StageError
 from pipeline.registry import stage
 from stages.demux_problem import DemuxProblem, SeparableDemuxProblem
-from stages.demux_solver import batch_slots, solve
+from stages.demux_solver import batch_slots, observed, solve
 from stages.illumination import epipolar_boundary, line_cells, line_illumination, plane_to_ray_illumination
 from stages.reconstruct import Dtype
 
@@ -109,7 +109,7 @@ def solve_pixels(problem: DemuxProblem | SeparableDemuxProblem, data: np.ndarray
     p, per_call = data.shape[0], pixels_per_call(data.shape[0], problem.offsets)
     if p == 0:  # no pixels (an empty band): nothing to solve, the solver's batches need at least one row
         return [np.zeros((0, problem.offsets), dtype), np.zeros(0, np.int32), np.zeros(0, bool), np.zeros(0, dtype)]
-    order = np.argsort(~((np.asarray(weight) > 0) & np.isfinite(data)).all(axis=1), kind="stable")
+    order = np.argsort(~observed(data, weight).all(axis=1), kind="stable")
     data, weight = data[order], weight[order]
     size = min(per_call, p)  # one call of exactly p pixels, or equal calls with the last one padded
     parts = []

@@ -375,6 +375,12 @@ def _solve(arrays, rho, alpha, beta, data, weight, tol, *, kind: str, max_iter: 
     return transport, iters_out, done_out, objective
 
 
+def observed(data: np.ndarray, weight: np.ndarray | None = None) -> np.ndarray:
+    """(P, N) bool: the observations that count, finite and (where ``weight`` is given) of weight > 0."""
+    finite = np.isfinite(data)
+    return finite if weight is None else (np.asarray(weight) > 0) & finite
+
+
 def solve(problem: DemuxProblem | SeparableDemuxProblem, data: np.ndarray, weight: np.ndarray | None = None, *,
           tol: float = 1e-3, max_iter: int = 200, check_every: int = 5, polish_iter: int = 20,
           slots: int | None = None, dtype=np.float32) -> DemuxResult:
@@ -386,8 +392,7 @@ def solve(problem: DemuxProblem | SeparableDemuxProblem, data: np.ndarray, weigh
     data = np.asarray(data)
     if data.ndim != 2 or data.shape[1] != problem.frames:
         raise ValueError(f"data is {data.shape}; expected (pixels, {problem.frames} frames)")
-    finite = np.isfinite(data)
-    weight = finite if weight is None else (np.asarray(weight) > 0) & finite
+    weight = observed(data, weight)
     masked = not bool(weight.all())
     jdtype = jnp.dtype(dtype)
     if jdtype == jnp.float64 and not jax.config.jax_enable_x64:
