@@ -54,9 +54,12 @@ def forward(transport: xr.Dataset, capture: xr.Dataset) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def noise_free():
+    """Solved in float64: at tol 1e-4 float32 meets its residual floor on some CPUs (93.6 % of pixels converged
+    on an AMD EPYC without AVX-512, all of them within 180 iterations in float64; the solver issue's topic)."""
     s = scene()
     capture = capture_of(s)
-    return s, capture, demux_plane_to_ray(capture, beta=1e-4, alpha=1e-3, max_iter=600, tol=1e-4).compute()
+    return s, capture, demux_plane_to_ray(capture, beta=1e-4, alpha=1e-3, max_iter=600, tol=1e-4,
+                                             dtype="float64").compute()
 
 
 def test_round_trip_reproduces_the_images(noise_free):
