@@ -24,6 +24,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from devices.protocols import Camera, LightSource, RotaryStage, SampleChanger
 from devices.serial_stage import angular_distance
 from pipeline.errors import DeviceError
+from pipeline.locks import store_lock
 from pipeline.store import create_capture, missing_frames, open_store, write_frame
 
 KIND = "tomography_capture"
@@ -66,8 +67,15 @@ def acquire_tomography(rig: TomographyRig, store: str | os.PathLike, angles: Seq
     """Capture target, backlit, dark and reference frames into ``store``; resume if it holds part of the sweep.
 
     Returns the store opened lazily. A device fault raises :class:`~pipeline.errors.DeviceError` after
-    every frame captured so far is safely written; run the same sweep again to resume.
+    every frame captured so far is safely written; run the same sweep again to resume. The store is
+    locked while the sweep runs: a second sweep into it is refused, naming this one.
     """
+    with store_lock(store, purpose="acquire_tomography"):
+        return _sweep(rig, store, angles, progress=progress, log=log)
+
+
+def _sweep(rig: TomographyRig, store: str | os.PathLike, angles: Sequence[float], *, progress: bool,
+           log: Callable[[str], None]) -> xr.Dataset:
     angles = [float(a) for a in angles]
     if len(set(np.round(np.asarray(angles) % 360.0, 6))) != len(angles):
         raise ValueError("the sweep repeats an angle (modulo 360°); each angle must be captured once")

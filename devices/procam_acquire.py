@@ -24,6 +24,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from devices.patterns import vertical_line, white
 from devices.protocols import Camera, Projector, SyncController
 from pipeline.errors import DeviceError, Problem, SpecError
+from pipeline.locks import store_lock
 from pipeline.store import create_capture, missing_frames, open_store, write_frame
 
 #: camera rows per stored chunk of a capture
@@ -102,8 +103,14 @@ def capture_template(instruments: ProcamInstruments, kind: str, delays, exposure
 
 def sweep_frames(instruments: ProcamInstruments, store, template: xr.Dataset, kind: str, pattern_of: Callable,
                  progress: bool, log: Callable[[str], None]) -> xr.Dataset:
-    """Capture every missing frame of ``template`` into ``store`` (created or resumed), showing
-    ``pattern_of(line)`` (line None for sweeps without lines)."""
+    """Capture every missing frame of ``template`` into ``store`` (created or resumed, and locked while the
+    sweep runs), showing ``pattern_of(line)`` (line None for sweeps without lines)."""
+    with store_lock(store, purpose=kind):
+        return _sweep_frames(instruments, store, template, kind, pattern_of, progress, log)
+
+
+def _sweep_frames(instruments: ProcamInstruments, store, template: xr.Dataset, kind: str, pattern_of: Callable,
+                  progress: bool, log: Callable[[str], None]) -> xr.Dataset:
     delays, exposures = template["delay"].values, template["exposure"].values
     refuse_impossible(instruments, delays, exposures)
     speed = float(instruments.attrs.get("scan_speed_px_per_us", 0.0))

@@ -2,7 +2,9 @@
 
 One command per line, one reply per command. Every reply ends in ``*HH``, the XOR of its bytes before
 ``*`` in two hex digits (the NMEA 0183 checksum), so a garbled reply is caught instead of parsed. The
-transport only moves lines; it knows nothing of what they mean. It raises typed errors:
+transport only moves lines; what a reply means is the driver's, which says which lines answer its command
+(``answers``): a well-formed line that does not (a late reply to an earlier command, an unsolicited
+status line) is skipped, not taken for the answer, until the answer or the timeout comes. It raises typed errors:
 :class:`~pipeline.errors.DeviceTimeout` (no complete line in time, the partial bytes shown),
 :class:`~pipeline.errors.DeviceProtocolError` (bad checksum, not ASCII, or an ``ERR`` reply) and
 :class:`~pipeline.errors.DeviceDisconnected` (the port went away). Only :meth:`SerialLine.query`
@@ -22,7 +24,13 @@ try:  # a pty or tty closing under pyserial's flush() raises termios.error, whic
 except ImportError:  # Windows
     PORT_ERRORS = (serial.SerialException, OSError)
 
+import time
+from collections.abc import Callable
+
 from pipeline.errors import DeviceDisconnected, DeviceError, DeviceProtocolError, DeviceTimeout
+
+#: most well-formed lines that do not answer a command skipped while waiting for its answer
+MAX_STRAY_LINES = 16
 
 
 def checksum(body: str) -> str:
@@ -59,25 +67,40 @@ class SerialLine:
         except PORT_ERRORS:
             pass  # closing a port that already went away is not an error
 
-    def exchange(self, command: str, *, timeout_s: float | None = None) -> str:
-        """Send ``command`` once and return the checksum-verified body of its reply line."""
+    def exchange(self, command: str, *, timeout_s: float | None = None,
+                 answers: Callable[[str], bool] | None = None) -> str:
+        """Send ``command`` once and return the checksum-verified body of the line that answers it.
+
+        ``answers(body)`` says whether a well-formed line answers ``command`` (None: the first line does);
+        others are skipped while the timeout lasts, and named in the error if no answer comes. An ``ERR``
+        line always answers. A garbled line is an error at once (it may have been the answer).
+        """
+        timeout = self.timeout_s if timeout_s is None else timeout_s
+        deadline = time.monotonic() + timeout
+        strays: list[str] = []
         try:
             self._port.reset_input_buffer()  # a late reply to an earlier command must not answer this one
             self._port.write(f"{command}\n".encode("ascii"))
             self._port.flush()
-            self._port.timeout = self.timeout_s if timeout_s is None else timeout_s
-            raw = self._port.read_until(b"\n")
+            while True:
+                self._port.timeout = max(deadline - time.monotonic(), 0.0)
+                raw = self._port.read_until(b"\n")
+                if not raw.endswith(b"\n"):
+                    what = "no reply" if not raw else "an incomplete reply"
+                    if strays:
+                        what = f"no line answering it (skipped {len(strays)} that did not: {strays})"
+                    raise DeviceTimeout(f"{what} within {timeout:g} s", port=self.url, command=command,
+                                        reply=raw if raw else None)
+                body = self._verify(command, raw)
+                if answers is None or answers(body) or len(strays) >= MAX_STRAY_LINES:
+                    return body
+                strays.append(body)
         except serial.SerialTimeoutException as exc:
             raise DeviceTimeout("the port did not accept the command in time", port=self.url,
                                 command=command) from exc
         except PORT_ERRORS as exc:
             raise DeviceDisconnected(f"the port went away ({exc})", port=self.url, command=command,
                                      fix="reconnect the device, then run the acquisition again to resume") from exc
-        if not raw.endswith(b"\n"):
-            what = "no reply" if not raw else "an incomplete reply"
-            raise DeviceTimeout(f"{what} within {self._port.timeout:g} s", port=self.url, command=command,
-                                reply=raw if raw else None)
-        return self._verify(command, raw)
 
     def _verify(self, command: str, raw: bytes) -> str:
         try:
@@ -101,7 +124,7 @@ class SerialLine:
         last: DeviceError | None = None
         for _ in range(retries + 1):
             try:
-                body = self.exchange(command, timeout_s=timeout_s)
+                body = self.exchange(command, timeout_s=timeout_s, answers=lambda b: b.split(" ", 1)[0] == expect)
             except DeviceTimeout as exc:
                 last = exc
                 continue

@@ -1,7 +1,9 @@
 """A motorised rotary stage over a serial line (protocol in ``docs/devices.md``).
 
 Commands (one line each): ``*IDN?``, ``HOME``, ``MOVE <deg>``, ``POS?``. Queries (``*IDN?``, ``POS?``)
-are idempotent and retried a bounded number of times; ``HOME`` and ``MOVE`` are sent exactly once. When
+are idempotent and retried a bounded number of times; ``HOME`` and ``MOVE`` are sent exactly once. Only
+the line that answers a command counts (``OK MOVE <the commanded angle>``): a stray or late well-formed
+line is skipped while the reply's timeout lasts. When
 the reply to a move is lost or garbled, the driver asks the stage where it is instead of moving again;
 after every move it reads the position back and refuses to report an angle the stage does not confirm.
 """
@@ -62,7 +64,7 @@ class SerialRotaryStage:
         return _angle(body.partition(" ")[2], port=self.url, command="POS?", reply=body)
 
     def home(self) -> None:
-        body = self.line.exchange("HOME", timeout_s=self.move_timeout_s)
+        body = self.line.exchange("HOME", timeout_s=self.move_timeout_s, answers=lambda b: b.startswith("OK HOME"))
         if body != "OK HOME":
             raise DeviceProtocolError("unexpected reply to HOME", port=self.url, command="HOME", reply=body)
         self._verify("HOME", 0.0)
@@ -71,7 +73,8 @@ class SerialRotaryStage:
         target = float(angle_deg) % 360.0
         command = f"MOVE {target:.3f}"
         try:
-            body = self.line.exchange(command, timeout_s=self.move_timeout_s)
+            body = self.line.exchange(command, timeout_s=self.move_timeout_s,  # a late OK of an earlier move: skipped
+                                      answers=lambda b: b == f"OK MOVE {target:.3f}")
         except (DeviceTimeout, DeviceProtocolError) as exc:
             if isinstance(exc.reply, str) and exc.reply.startswith("ERR"):
                 raise  # the firmware refused: it did not move

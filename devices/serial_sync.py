@@ -77,7 +77,7 @@ class SerialSyncController:
 
     def arm(self) -> None:
         try:
-            body = self.line.exchange("ARM")
+            body = self.line.exchange("ARM", answers=lambda b: b == "OK ARM")
             if body != "OK ARM":
                 raise DeviceProtocolError("unexpected reply to ARM", port=self.url, command="ARM", reply=body)
         except (DeviceTimeout, DeviceProtocolError) as exc:
@@ -94,7 +94,7 @@ class SerialSyncController:
         command = f"{keyword} {value:.1f}"
         after = ""
         try:
-            body = self.line.exchange(command)
+            body = self.line.exchange(command, answers=lambda b: b == f"OK {keyword} {value:.1f}")
             if body != f"OK {keyword} {value:.1f}":
                 raise DeviceProtocolError(f"unexpected reply to {keyword}", port=self.url, command=command,
                                           reply=body)

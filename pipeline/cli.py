@@ -3,6 +3,10 @@
 from __future__ import annotations
 
 import json
+import os
+import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated
 
@@ -12,12 +16,14 @@ from rich.markup import escape
 from rich.table import Table
 
 from pipeline.compute import enable_compile_cache
+from pipeline.constraints import describe
 from pipeline.engine import RunReport, run_workflow
-from pipeline.errors import SelpathError
+from pipeline.errors import SelpathError, StoreError
+from pipeline.integrity import verify_store
 from pipeline.registry import default_registry
 from pipeline.report import write_html
 from pipeline.spec import load_workflow
-from pipeline.store import missing_frames, open_store, read_provenance
+from pipeline.store import forget_frames, is_complete, missing_frames, open_store, read_provenance
 
 app = typer.Typer(help="selpath: selected light path measurement, from capture to science.",
                   no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
@@ -32,8 +38,34 @@ DEMO_WORKFLOWS = {
 
 
 def _fail(exc: SelpathError) -> None:
-    errors.print(f"[bold red]error:[/] {exc}", markup=True, highlight=False, soft_wrap=True)
+    errors.print(f"[bold red]error:[/] {escape(str(exc))}", markup=True, highlight=False, soft_wrap=True)
     raise typer.Exit(2)
+
+
+@contextmanager
+def _guard() -> Iterator[None]:
+    """Every error reaches the user as one message, never a traceback (SELPATH_DEBUG=1 shows it)."""
+    try:
+        yield
+    except SelpathError as exc:
+        _fail(exc)
+    except KeyboardInterrupt:
+        errors.print("[bold red]interrupted[/]: every finished output and captured frame is kept; run the same "
+                     "command again to resume", highlight=False)
+        raise typer.Exit(130) from None
+    except (typer.Exit, typer.Abort):
+        raise
+    except MemoryError:
+        errors.print("[bold red]error:[/] out of memory; use smaller sizes, fewer angles or smaller tiles",
+                     highlight=False)
+        raise typer.Exit(2) from None
+    except Exception as exc:  # noqa: BLE001 - the last line of defence between a bug and a traceback
+        if os.environ.get("SELPATH_DEBUG"):
+            raise
+        text = escape(f"{type(exc).__name__}: {exc}".split("\n")[0][:500])
+        errors.print(f"[bold red]error:[/] unexpected {text} (this is a bug in selpath or a plugin: please report "
+                     "it with the command; SELPATH_DEBUG=1 shows the traceback)", highlight=False, soft_wrap=True)
+        raise typer.Exit(3) from None
 
 
 def _print_report(report: RunReport) -> None:
@@ -57,34 +89,28 @@ def run(
 ) -> None:
     """Validate and run a workflow; steps whose stored output is up to date are skipped."""
     enable_compile_cache()
-    try:
+    with _guard():
         workflow = load_workflow(file)
         report = run_workflow(workflow, scheduler=scheduler, progress=progress, reuse=not force, log=console.print)
-    except SelpathError as exc:
-        _fail(exc)
     _print_report(report)
 
 
 @app.command()
 def validate(file: Annotated[Path, typer.Argument(help="workflow YAML file")]) -> None:
     """Check a workflow without running it; lists every problem with file:line and the fix."""
-    try:
+    with _guard():
         workflow = load_workflow(file)
-    except SelpathError as exc:
-        _fail(exc)
-    console.print(f"[green]ok[/]: {workflow.name}: {len(workflow.steps)} steps, outputs "
+    console.print(f"[green]ok[/]: {escape(workflow.name)}: {len(workflow.steps)} steps, outputs "
                   + ", ".join(f"{n} -> {o.store}" for n, o in workflow.outputs.items()))
 
 
 @app.command()
 def stages(name: Annotated[str | None, typer.Argument(help="show one stage in full")] = None) -> None:
     """List the registered stages with their inputs, settings, defaults, units and docs."""
-    try:
+    with _guard():
         registry = default_registry()
-    except SelpathError as exc:
-        _fail(exc)
     if name and name not in registry:
-        errors.print(f"[bold red]error:[/] unknown stage {name!r}; known: {', '.join(registry.names())}")
+        errors.print(f"[bold red]error:[/] unknown stage {escape(repr(name))}; known: {', '.join(registry.names())}")
         raise typer.Exit(2)
     chosen = [registry[name]] if name else list(registry)
     for s in chosen:
@@ -95,32 +121,69 @@ def stages(name: Annotated[str | None, typer.Argument(help="show one stage in fu
             table.add_row(i, "input", "Dataset/DataArray", "required" if i in s.required_inputs else "None", "")
         for field_name, field in s.params.model_fields.items():
             default = "required" if field.is_required() else repr(field.default)
-            table.add_row(field_name, "setting", escape(_type_text(field.annotation)), escape(default),
+            table.add_row(field_name, "setting", escape(describe(field)), escape(default),
                           escape(field.description or ""))
         console.print(table)
 
 
-def _type_text(annotation) -> str:
-    return getattr(annotation, "__name__", None) or str(annotation).replace("typing.", "")
-
-
 @app.command()
-def inspect(store: Annotated[Path, typer.Argument(help="a selpath zarr store")]) -> None:
-    """Check a store and show its kind, dims, coords with units, variables, missing frames and provenance."""
-    try:
-        ds = open_store(store, keep_flags=True)
+def inspect(
+    store: Annotated[Path, typer.Argument(help="a selpath zarr store")],
+    verify: Annotated[bool, typer.Option(help="read every chunk and list the missing and corrupt ones")] = False,
+    recapture: Annotated[bool, typer.Option(help="with --verify: mark capture frames with bad chunks as not "
+                                                   "captured, so the next run of the acquisition captures them "
+                                                   "again")] = False,
+) -> None:
+    """Check a store and show its kind, dims, coords with units, variables, missing frames and provenance.
+
+    Exit status 0: complete and (with --verify) every chunk readable; 1: incomplete (frames missing, or no
+    record that writing finished) or bad chunks; 2: it cannot be opened or breaks its kind's schema.
+    """
+    with _guard(), warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            ds = open_store(store, keep_flags=True)
+        except StoreError as exc:
+            if not verify:
+                raise
+            bad = verify_store(store)  # say which chunks, even where the store cannot be opened for use
+            errors.print(f"[bold red]error:[/] {escape(str(exc))}", highlight=False, soft_wrap=True)
+            _print_bad(bad, recapture and store)
+            raise typer.Exit(1 if bad else 2) from None
         missing = missing_frames(store)
-    except SelpathError as exc:
-        _fail(exc)
-    console.print(f"[bold]{store}[/]: {ds.attrs.get('selpath_kind')} cube, format {ds.attrs.get('selpath_format')}")
+        bad = verify_store(store) if verify else []
+        provenance = read_provenance(store)
+        complete = is_complete(store) or bool(missing)
+    console.print(f"[bold]{escape(str(store))}[/]: {ds.attrs.get('selpath_kind')} cube, format "
+                  f"{ds.attrs.get('selpath_format')}")
     console.print(ds.drop_vars([v for v in ds.data_vars if str(v).startswith("written__")]))
+    incomplete = not complete
     for variable, frames in missing.items():
         state = "[green]complete[/]" if not frames else f"[yellow]{len(frames)} frames missing[/], first {frames[0]}"
         console.print(f"capture of {variable}: {state}")
-    provenance = read_provenance(store)
+        incomplete |= bool(frames)
+    for warning in caught:
+        console.print(f"[yellow]warning[/]: {escape(str(warning.message))}")
+    if not missing and not complete:
+        console.print("[yellow]incomplete[/]: no record that writing this store finished (a killed run leaves "
+                      "such stores); write it again")
+    if verify:
+        _print_bad(bad, recapture and store)
     if provenance:
         summary = {k: provenance.get(k) for k in ("workflow", "output", "created", "step_hash", "versions")}
         console.print_json(json.dumps(summary))
+    if incomplete or bad:
+        raise typer.Exit(1)
+
+
+def _print_bad(bad: list, recapture_store: Path | bool) -> None:
+    console.print(f"verify: {'[green]every chunk reads[/]' if not bad else f'[red]{len(bad)} bad chunk(s)[/]'}")
+    for chunk in bad:
+        console.print(f"  {escape(str(chunk))}")
+    if bad and recapture_store:
+        with _guard():
+            frames = forget_frames(recapture_store, bad)
+        console.print(f"marked {frames} frame(s) as not captured: run the acquisition again to capture them")
 
 
 def _tomography_summary(workflow) -> list[str]:
@@ -170,7 +233,7 @@ def demo(
     if any(name not in DEMO_WORKFLOWS for name in names):
         _fail(SelpathError(f"unknown instrument {instrument!r}: choose tomography, procam or all"))
     summaries = {"tomography": _tomography_summary, "procam": _procam_summary}
-    try:
+    with _guard():
         for name in names:
             path, page_name = DEMO_WORKFLOWS[name]
             workflow = load_workflow(path).rerooted(out)
@@ -181,8 +244,6 @@ def demo(
             for line in summary:
                 console.print(line)
             console.print(f"report: {page}")
-    except SelpathError as exc:
-        _fail(exc)
 
 
 def main() -> None:

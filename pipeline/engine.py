@@ -5,6 +5,11 @@ identity of any external store it reads. A step with a stored output whose prove
 same hash is not run at all: its result is read back lazily from that store, so re-running an
 unchanged workflow computes nothing, and changing one setting recomputes only the steps after it.
 Provenance is written only after an output's data is complete, so an interrupted run is redone.
+
+Nothing a user owns is ever deleted: output paths are checked before anything runs
+(:func:`pipeline.spec.check_output_paths`), every output store is locked for the run
+(:mod:`pipeline.locks`), and each is written into a temporary sibling, given its manifest and provenance,
+and only then moved into place (:mod:`pipeline.outputs`).
 """
 
 from __future__ import annotations
@@ -13,6 +18,7 @@ import datetime as _dt
 import hashlib
 import inspect
 import json
+import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -22,9 +28,12 @@ from typing import Any
 import xarray as xr
 
 from pipeline.compute import compute, scheduler_session
-from pipeline.errors import Problem, StageError
-from pipeline.spec import OutputSpec, Ref, Step, Workflow
-from pipeline.store import open_store, read_provenance, to_store, write_provenance
+from pipeline.errors import Problem, SelpathError, StageError
+from pipeline.integrity import write_manifest
+from pipeline.locks import store_locks
+from pipeline.outputs import PNG_MARKER, Staging, png_path, tidy_staging
+from pipeline.spec import OutputSpec, Ref, Step, Workflow, check_output_paths
+from pipeline.store import missing_frames, open_store, read_provenance, write_provenance, write_store
 
 _PACKAGES = ("selpath", "xarray", "dask", "zarr", "numpy", "jax")
 
@@ -138,6 +147,8 @@ class _Graph:
             self._outputs_of.setdefault(out.from_, []).append(out)
             self._stored[out.store] = read_provenance(out.store)  # once per output
             if reuse and (self._stored[out.store] or {}).get("step_hash") == self.records[out.from_]["step_hash"]:
+                if out.store in workflow.self_written and _has_missing_frames(out.store):
+                    continue  # a frame's chunk was lost (or marked for recapture): the acquisition resumes
                 self.report.fresh.add(out.store)
 
     def resolve(self, step_id: str) -> Any:
@@ -154,11 +165,22 @@ class _Graph:
                 return self.results[step_id]
             reasons.append(_why_changed(self._stored[out.store], record, out.store) if self.reuse else "forced")
         inputs = {name: _select(self.resolve(ref.step), ref, step) for name, ref in step.inputs.items()}
+        own = [o.store for o in self._outputs_of.get(step_id, []) if o.store in self.workflow.self_written]
+        recaptured = [s for s in own if self._stored[s] is not None]  # frames captured again into a finished store
         self.results[step_id] = _call(step, inputs)
+        if recaptured:
+            self._stale_after(step_id)
         reason = "; ".join(reasons) if reasons else "no stored output (intermediate step)"
         self.report.steps[step_id] = StepReport(step_id, "computed", reason)
         self.log(f"[bold]run[/]  {step_id} ({step.stage.name}): {reason}")
         return self.results[step_id]
+
+    def _stale_after(self, step_id: str) -> None:
+        """Outputs downstream of ``step_id`` are no longer fresh: its store's data changed under the same
+        settings (frames captured again after a chunk was lost), so their stored results are out of date."""
+        for out in self.workflow.outputs.values():
+            if out.from_ != step_id and step_id in _ancestors(self.workflow, out.from_):
+                self.report.fresh.discard(out.store)
 
     def finish(self) -> None:
         for step_id in self.workflow.steps:
@@ -195,37 +217,65 @@ def run_workflow(workflow: Workflow, *, scheduler: str | None = None, progress: 
     """
     start = time.perf_counter()
     scheduler = scheduler or workflow.scheduler
-    graph = _Graph(workflow, reuse=reuse, log=log)
-    order = list(workflow.steps)  # dependency order
-    outputs = sorted(workflow.outputs.items(), key=lambda item: order.index(item[1].from_))
-    with scheduler_session(scheduler) as client:
-        for number, (name, out) in enumerate(outputs, 1):
-            result = graph.resolve(out.from_)
-            if out.store in graph.report.fresh:
-                continue
-            data = _as_dataset(result, name)
-            if out.store not in workflow.self_written:  # else the stage filled it as it ran: record, never rewrite
-                kind = out.kind or data.attrs.get("selpath_kind")
-                if kind is None:
-                    raise StageError(Problem(f"the result of step {out.from_!r} has no selpath_kind attr",
-                                             path=f"outputs.{name}", fix="set `kind:` on the output"))
-                write = to_store(data, out.store, kind, compute=False)
-                compute([write], scheduler=scheduler, client=client, progress=progress,
-                        description=f"{workflow.name}: {name} ({number}/{len(outputs)})")
-                if kind == "figure":
-                    _save_png(out.store)
-            _record(workflow, graph.records, name, out, scheduler)
-            graph.report.written.append(out.store)
-            graph.results[out.from_] = open_store(out.store)  # the steps after it read the stored cube
+    check_output_paths(workflow)
+    stores = [out.store for out in workflow.outputs.values()]
+    with store_locks(stores, purpose=f"selpath run {workflow.source}"):
+        for store in stores:
+            for done in tidy_staging(store):
+                log(f"[dim]tidy[/] {done}")
+        graph = _Graph(workflow, reuse=reuse, log=log)
+        order = list(workflow.steps)  # dependency order
+        outputs = sorted(workflow.outputs.items(), key=lambda item: order.index(item[1].from_))
+        with scheduler_session(scheduler) as client:
+            for number, (name, out) in enumerate(outputs, 1):
+                result = graph.resolve(out.from_)
+                if out.store in graph.report.fresh:
+                    continue
+                if out.store in workflow.self_written:  # the stage filled it as it ran: record, never rewrite
+                    _record(workflow, graph.records, name, out, scheduler, out.store)
+                else:
+                    _write_output(workflow, graph.records, name, out, _as_dataset(result, name), scheduler, client,
+                                  progress, f"{workflow.name}: {name} ({number}/{len(outputs)})")
+                graph.report.written.append(out.store)
+                graph.results[out.from_] = open_store(out.store)  # the steps after it read the stored cube
     graph.finish()
     graph.report.seconds = time.perf_counter() - start
     return graph.report
 
 
-def _record(workflow: Workflow, records: dict[str, dict[str, Any]], name: str, out: OutputSpec, scheduler: str):
-    """Write an output's provenance (only once its data is complete)."""
+def _write_output(workflow: Workflow, records: dict[str, dict[str, Any]], name: str, out: OutputSpec,
+                  data: xr.Dataset, scheduler: str, client: Any, progress: bool, description: str) -> None:
+    """Write one output into a staging sibling, add its manifest and provenance, then move it into place."""
+    kind = out.kind or data.attrs.get("selpath_kind")
+    if kind is None:
+        raise StageError(Problem(f"the result of step {out.from_!r} has no selpath_kind attr",
+                                 path=f"outputs.{name}", fix="set `kind:` on the output"))
+    staging = Staging(out.store)
+    try:
+        write = write_store(data, staging.path, kind, compute=False)
+        compute([write], scheduler=scheduler, client=client, progress=progress, description=description)
+        write_manifest(staging.path, data)
+        _record(workflow, records, name, out, scheduler, staging.path)
+    except BaseException:
+        staging.abort()
+        raise
+    staging.commit()
+    if kind == "figure":
+        _save_png(out.store)
+
+
+def _has_missing_frames(store: str) -> bool:
+    try:
+        return any(missing_frames(store).values())
+    except SelpathError:
+        return True
+
+
+def _record(workflow: Workflow, records: dict[str, dict[str, Any]], name: str, out: OutputSpec, scheduler: str,
+            target: str) -> None:
+    """Write an output's provenance into ``target`` (its store, or the staging copy), once its data is complete."""
     chain = _ancestors(workflow, out.from_)
-    write_provenance(out.store, {
+    write_provenance(target, {
         "step_hash": records[out.from_]["step_hash"],
         "step_record": records[out.from_],
         "output": name,
@@ -245,7 +295,9 @@ def _save_png(store: str) -> None:
     import matplotlib.image
 
     image = open_store(store, "figure")["image"].values
-    matplotlib.image.imsave(f"{store.removesuffix('.zarr')}.png", image)
+    staging = f"{png_path(store)}.partial"
+    matplotlib.image.imsave(staging, image, format="png", metadata={PNG_MARKER: store})
+    os.replace(staging, png_path(store))
 
 
 def _ancestors(workflow: Workflow, step_id: str) -> list[str]:

@@ -111,7 +111,7 @@ def _build_stage(name: str, func: Callable[..., Any], precheck: Callable | None,
                 required.append(param.name)
     model = pydantic.create_model(
         f"{name}_settings",
-        __config__=pydantic.ConfigDict(extra="forbid", strict=True),
+        __config__=pydantic.ConfigDict(extra="forbid", strict=True, allow_inf_nan=False),
         **fields,
     )
     summary = inspect.cleandoc(func.__doc__ or "").split("\n\n")[0].replace("\n", " ")

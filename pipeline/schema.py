@@ -17,11 +17,19 @@ from pipeline.errors import Problem
 
 #: Schema version written into every store as ``selpath_format``. Bump it (and add a migration in
 #: :data:`MIGRATIONS`) whenever a kind's dims, units or required attrs change.
-FORMAT_VERSION = 1
+#: Format 2 (2026-11): every chunk carries a crc32c checksum and is written even when it holds only the fill
+#: value, and a manifest in ``_selpath`` records completion and units. Its cubes are those of format 1.
+FORMAT_VERSION = 2
+
+
+def _from_format_1(ds: xr.Dataset) -> xr.Dataset:
+    """Format 1 → 2: the cubes are unchanged (only how chunks are encoded differs, which zarr reads per array)."""
+    return ds
+
 
 #: Migrations from older formats: ``{old_version: function(Dataset) -> Dataset of old_version + 1}``.
 #: Archives are migrated step by step on open, never guessed.
-MIGRATIONS: dict[int, Callable[[xr.Dataset], xr.Dataset]] = {}
+MIGRATIONS: dict[int, Callable[[xr.Dataset], xr.Dataset]] = {1: _from_format_1}
 
 PIXEL_DIMS = ("row", "col")
 CHANNEL_DIM = "channel"

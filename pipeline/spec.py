@@ -21,7 +21,9 @@ from typing import Annotated, Any, TypeVar
 import pydantic
 import yaml
 
+from pipeline.constraints import describe
 from pipeline.errors import ConfigError, Problem, SpecError
+from pipeline.outputs import OutputPath, output_problems
 from pipeline.registry import Stage, StageRegistry, default_registry
 from pipeline.schema import KINDS
 
@@ -132,18 +134,62 @@ class Workflow:
 # -- YAML with locations ---------------------------------------------------------------------------
 
 
-def _locations(node: yaml.Node, path: tuple = (), out: dict | None = None) -> dict[tuple, int]:
-    """Map each path in the document (keys and list indices) to its 1-based line."""
+#: Largest document accepted, counting every node as often as aliases repeat it. A workflow has hundreds; nested
+#: aliases ("billion laughs") expand a few hundred bytes into billions, which no check may walk.
+MAX_NODES = 100_000
+#: Deepest nesting accepted (PyYAML and pydantic recurse once per level).
+MAX_DEPTH = 64
+
+
+def _expanded_size(root: yaml.Node, source: str) -> int:
+    """Nodes of the document with aliases expanded, counted without expanding them (each node once: linear);
+    raises SpecError past MAX_NODES or MAX_DEPTH, or for a recursive alias."""
+    sizes: dict[int, int] = {}
+    on_path: set[int] = set()
+
+    def size(node: yaml.Node, depth: int) -> int:
+        key = id(node)
+        if key in sizes:
+            return sizes[key]
+        if key in on_path:
+            raise SpecError(Problem("an alias refers to a node that contains it (a recursive document)",
+                                    f"{source}:{node.start_mark.line + 1}", fix="write the value out"))
+        if depth > MAX_DEPTH:
+            raise SpecError(Problem(f"nested deeper than {MAX_DEPTH} levels", f"{source}:{node.start_mark.line + 1}"))
+        on_path.add(key)
+        children = ([v for pair in node.value for v in pair] if isinstance(node, yaml.MappingNode)
+                    else node.value if isinstance(node, yaml.SequenceNode) else [])
+        total = 1 + sum(size(child, depth + 1) for child in children)
+        on_path.discard(key)
+        sizes[key] = total
+        if total > MAX_NODES:
+            raise SpecError(Problem(f"the document expands to more than {MAX_NODES:,} nodes through its aliases "
+                                    "(a YAML bomb, or a file that is not a workflow)",
+                                    f"{source}:{node.start_mark.line + 1}",
+                                    fix="write the workflow without nested aliases"))
+        return total
+
+    return size(root, 0)
+
+
+def _locations(node: yaml.Node, path: tuple = (), out: dict | None = None, seen: set | None = None
+               ) -> dict[tuple, int]:
+    """Map each path in the document (keys and list indices) to its 1-based line. A node reached again through
+    an alias is not walked again (its paths resolve to the alias's line)."""
     out = {} if out is None else out
+    seen = set() if seen is None else seen
     out[path] = node.start_mark.line + 1
+    if id(node) in seen:
+        return out
+    seen.add(id(node))
     if isinstance(node, yaml.MappingNode):
         for key, value in node.value:
             out[(*path, key.value)] = key.start_mark.line + 1
-            _locations(value, (*path, key.value), out)
+            _locations(value, (*path, key.value), out, seen)
             out[(*path, key.value)] = key.start_mark.line + 1
     elif isinstance(node, yaml.SequenceNode):
         for i, item in enumerate(node.value):
-            _locations(item, (*path, i), out)
+            _locations(item, (*path, i), out, seen)
     return out
 
 
@@ -170,7 +216,15 @@ def _read(path_or_text: str | os.PathLike, source: str | None, what: str = "work
     if candidate is not None:
         if not candidate.is_file():
             raise SpecError(Problem(f"no such {what} file", where=str(candidate), fix="check the path"))
-        return candidate.read_text(), source or str(candidate), candidate.resolve().parent
+        data = candidate.read_bytes()
+        try:
+            text = data.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            line = data[: exc.start].count(b"\n") + 1
+            raise SpecError(Problem(f"not UTF-8 text (byte {data[exc.start]:#04x} at offset {exc.start}): a {what} "
+                                    "file is YAML text", where=f"{candidate}:{line}",
+                                    fix="check that this is the right file; save it as UTF-8")) from None
+        return text, source or str(candidate), candidate.resolve().parent
     return str(path_or_text), source or f"<{what}>", Path.cwd()
 
 
@@ -178,11 +232,15 @@ def _parse(text: str, source: str) -> tuple[Any, _Located]:
     loader = yaml.SafeLoader(text)
     try:
         node = loader.get_single_node()
+        if node is not None:
+            _expanded_size(node, source)
         raw = loader.construct_document(node) if node is not None else None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         line = f":{mark.line + 1}" if mark else ""
         raise SpecError(Problem(f"not valid YAML: {getattr(exc, 'problem', exc)}", where=f"{source}{line}")) from exc
+    except RecursionError:
+        raise SpecError(Problem(f"nested too deeply to read (over {MAX_DEPTH} levels)", where=source)) from None
     finally:
         loader.dispose()
     return raw, _Located(source, _locations(node) if node is not None else {})
@@ -243,10 +301,53 @@ def load_workflow(path_or_text: str | os.PathLike, registry: StageRegistry | Non
     outputs = _check_outputs(spec, steps, located, base_dir)
     self_written = _self_written_outputs(steps, outputs, located)
     order = _topological_order(steps, located)
+    if not located.problems:
+        workflow = Workflow(spec.workflow, spec.scheduler, {i: steps[i] for i in order}, outputs, text, source,
+                            base_dir, frozenset(self_written))
+        for field, message, fix in output_path_problems(workflow):
+            located.add(field, message, fix)
     if located.problems:
         raise SpecError(located.problems)
-    return Workflow(spec.workflow, spec.scheduler, {i: steps[i] for i in order}, outputs, text, source, base_dir,
-                    frozenset(self_written))
+    return workflow
+
+
+def output_path_problems(workflow: Workflow) -> list[tuple[tuple, str, str]]:
+    """Every output store that breaks the rules of :mod:`pipeline.outputs` (a path ending in ``.zarr``, absent
+    or a selpath store, never the folder of another output, an input, the workflow file, its folder or the
+    working folder), as ``(location in the file, message, fix)``."""
+    writers = {}
+    for step in workflow.steps.values():
+        if step.stage.writes is not None:
+            writers[_resolved(step.stage.writes(step.settings))] = step
+    outputs = []
+    for name, out in workflow.outputs.items():
+        step = writers.get(out.store)
+        field = ("steps", step.index, "with", "store") if step is not None else ("outputs", name, "store")
+        outputs.append(OutputPath(name, out.store, field))
+    protected: dict[str, str] = {}
+    for step in workflow.steps.values():
+        own = step.stage.writes(step.settings) if step.stage.writes is not None else None
+        for name in type(step.settings).model_fields:
+            value = getattr(step.settings, name)
+            if _is_path_setting(type(step.settings), name) and isinstance(value, str) and value and value != own:
+                protected[f"the input steps[{step.index}].with.{name}"] = value
+    if not workflow.source.startswith("<"):
+        protected["the workflow file"] = str(Path(workflow.source).resolve())
+    protected["the workflow's folder"] = str(workflow.base_dir)
+    protected["the working folder"] = str(Path.cwd())
+    return output_problems(outputs, protected)
+
+
+def check_output_paths(workflow: Workflow) -> None:
+    """Raise one SpecError if any output store breaks the rules (see :func:`output_path_problems`)."""
+    problems = [Problem(message, workflow.source, _format_path(field), fix)
+                for field, message, fix in output_path_problems(workflow)]
+    if problems:
+        raise SpecError(problems)
+
+
+def _resolved(store: str) -> str:
+    return store if "://" in store else str(Path(store).resolve())
 
 
 def _self_written_outputs(steps: dict[str, Step], outputs: dict[str, OutputSpec], located: _Located) -> set[str]:
@@ -259,8 +360,7 @@ def _self_written_outputs(steps: dict[str, Step], outputs: dict[str, OutputSpec]
     for step in steps.values():
         if step.stage.writes is None:
             continue
-        store = step.stage.writes(step.settings)
-        store = store if "://" in store else str(Path(store).resolve())
+        store = _resolved(step.stage.writes(step.settings))
         clash = [n for n, o in outputs.items() if o.store == store and o.from_ != step.id]
         for name in clash:
             located.add(("outputs", name, "store"), f"store {store} is filled by step {step.id!r} "
@@ -338,7 +438,7 @@ def _check_steps(spec: WorkflowFile, raw: dict, registry: StageRegistry, located
             for err in exc.errors():
                 field = err["loc"][0] if err["loc"] else ""
                 expected = stage.params.model_fields.get(str(field))
-                fix = f"expected {_type_name(expected.annotation)}" if expected is not None else ""
+                fix = f"expected {describe(expected)}" if expected is not None else ""
                 located.add((*where, "with", *err["loc"]), f"setting of stage {stage.name!r} "
                             f"{_pydantic_message(err)}", fix)
             continue
@@ -358,10 +458,6 @@ def _check_steps(spec: WorkflowFile, raw: dict, registry: StageRegistry, located
     return steps
 
 
-def _type_name(annotation: Any) -> str:
-    return getattr(annotation, "__name__", None) or str(annotation).replace("typing.", "")
-
-
 def _check_outputs(spec: WorkflowFile, steps: dict[str, Step], located: _Located,
                    base_dir: Path) -> dict[str, OutputSpec]:
     outputs: dict[str, OutputSpec] = {}
@@ -375,6 +471,8 @@ def _check_outputs(spec: WorkflowFile, steps: dict[str, Step], located: _Located
         if out.kind is not None and out.kind not in KINDS:
             located.add((*path, "kind"), f"unknown cube kind {out.kind!r}", _suggest(out.kind, sorted(KINDS)))
         store = out.store if "://" in out.store else str((base_dir / out.store).resolve())
+        if not out.store.strip():
+            store = ""  # never resolved to the workflow's folder: refused by the path rules below
         if store in stores:
             located.add((*path, "store"), f"store {out.store!r} is also written by output {stores[store]!r}",
                         "give each output its own store")

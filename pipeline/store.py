@@ -7,8 +7,13 @@ Layout of a store (zarr v3 group, no consolidated metadata; see ``docs/format.md
 * for stores filled frame by frame, one boolean variable ``written__<var>`` per data variable over its
   frame dims, set *after* the frame's pixels land, so a kill at any point loses at most the frame in
   flight and :func:`missing_frames` says exactly which frames to capture again;
-* a child group ``_selpath`` whose attrs hold the provenance. Appends and region writes rewrite the
-  root group's attrs (xarray #8755) but never touch a child group, and ``xr.open_zarr`` ignores it.
+* a child group ``_selpath`` whose attrs hold the manifest (complete, units; :mod:`pipeline.integrity`)
+  and the provenance. Appends and region writes rewrite the root group's attrs (xarray #8755) but never
+  touch a child group, and ``xr.open_zarr`` ignores it.
+
+Every chunk carries a crc32c checksum; reading a corrupt one raises a StoreError naming store, variable
+and chunk. Whole stores are written into a temporary sibling and moved into place when complete
+(:mod:`pipeline.outputs`).
 """
 
 from __future__ import annotations
@@ -17,75 +22,105 @@ import hashlib
 import json
 import os
 import warnings
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
 import dask
+import dask.array as da
 import numpy as np
 import xarray as xr
 import zarr
-from zarr.codecs import ZstdCodec
+from dask.base import tokenize
 
 from pipeline.errors import Problem, StoreError
+from pipeline.integrity import (
+    CHECKSUMMED_FORMAT,
+    PROVENANCE_GROUP,
+    WRITTEN_PREFIX,
+    BadChunk,
+    CheckedArray,
+    absent_chunks,
+    compressors,
+    read_manifest,
+    units_problems,
+    write_manifest,
+    written_frames,
+)
+from pipeline.outputs import Staging, staged
 from pipeline.schema import FORMAT_VERSION, KINDS, MIGRATIONS, check_dataset
-
-WRITTEN_PREFIX = "written__"
-PROVENANCE_GROUP = "_selpath"
 
 
 class IncompleteCaptureWarning(UserWarning):
     """A capture store opened for processing still misses frames."""
 
 
+class IncompleteStoreWarning(UserWarning):
+    """A store opened for processing has no record that its writing finished."""
+
+
 #: target size of the dask chunks a store is read in (a whole number of its on-disk chunks)
 PROCESSING_CHUNK = "16MiB"
 
 
-def _processing_chunks(ds: xr.Dataset) -> xr.Dataset:
-    """``ds`` (opened on its on-disk chunks) with each variable's dask chunks grouped to whole on-disk chunks of
-    about PROCESSING_CHUNK; an on-disk chunk larger than that is kept whole, never split.
+def processing_chunks(shape: tuple[int, ...], disk: tuple[int, ...], itemsize: int) -> tuple[int, ...]:
+    """Dask chunks for reading an array stored in ``disk`` chunks: whole on-disk chunks grouped along the
+    leading (frame) dims up to about PROCESSING_CHUNK; an on-disk chunk larger than that is kept whole.
 
     A capture is stored one frame per chunk for resumable writes (one task per frame would drown the
     scheduler in overhead); a transport store holds bands of rows. dask's ``chunks="auto"`` splits an on-disk
     chunk above its limit, and every piece then reads and decompresses the whole chunk: a 31 MB band of a
-    75-frame stack became 4800 one-row tasks that each decoded all of it.
+    75-frame stack became 4800 one-row tasks that each decoded all of it. Written by hand: dask's
+    normalize_chunks("auto", previous_chunks=…) evens chunks out and splits on-disk ones (6 frames stored
+    4 + 2 came back 3 + 3).
     """
     limit = dask.utils.parse_bytes(PROCESSING_CHUNK)
-    out = {}
-    for name, var in ds.data_vars.items():
-        if var.chunks is None or var.ndim == 0 or var.dtype.kind in "OSUV":
-            continue
-        disk = tuple(c[0] for c in var.chunks)
-        if 0 in disk:
-            continue
-        # whole on-disk chunks grouped along the leading (frame) dims while under the limit. Written by hand:
-        # dask's normalize_chunks("auto", previous_chunks=…) evens chunks out and splits on-disk ones (6 frames
-        # stored 4 + 2 came back 3 + 3)
-        chunks, nbytes = list(disk), int(np.prod(disk)) * var.dtype.itemsize
-        for axis, (extent, size) in enumerate(zip(var.shape, disk, strict=True)):
-            multiple = max(1, min(-(-extent // size), limit // nbytes))
-            chunks[axis], nbytes = size * multiple, nbytes * multiple
-            if chunks[axis] < extent:
-                break
-        if tuple(chunks) != disk:
-            out[name] = var.chunk(dict(zip(var.dims, chunks, strict=True)))
-    return ds.assign(out) if out else ds
+    chunks, nbytes = list(disk), int(np.prod(disk)) * itemsize
+    for axis, (extent, size) in enumerate(zip(shape, disk, strict=True)):
+        multiple = max(1, min(-(-extent // size), limit // max(nbytes, 1)))
+        chunks[axis], nbytes = size * multiple, nbytes * multiple
+        if chunks[axis] < extent:
+            break
+    return tuple(chunks)
 
 
 def _open_raw(path: str | os.PathLike) -> xr.Dataset:
+    """The store's cube, each data variable a dask array read through :class:`~pipeline.integrity.CheckedArray`
+    in processing chunks (whole on-disk chunks), so a corrupt chunk raises a StoreError naming it."""
     where = os.fspath(path)
     if not Path(where).exists() and "://" not in where:
         raise StoreError(Problem("no store at this path", where=where,
                                  fix="check the path, or run the step that writes it"))
     try:
-        ds = xr.open_zarr(where, consolidated=False, decode_timedelta=False, chunks={})  # the on-disk chunks
+        ds = xr.open_dataset(where, engine="zarr", consolidated=False, decode_timedelta=False, chunks=None,
+                             cache=False)
     except Exception as exc:  # zarr/xarray raise many types for a corrupt store; name it, keep the cause
         raise StoreError(
             Problem(f"cannot be read as a zarr store ({type(exc).__name__}: {exc})", where=where,
                     fix="the store is corrupt or not zarr v3; re-create it or restore it from a backup")
         ) from exc
-    return _processing_chunks(ds)
+    stamp = _store_stamp(where)
+    lazy = {}
+    for name, var in ds.data_vars.items():
+        disk = tuple(var.encoding.get("chunks") or var.shape)
+        if var.ndim == 0 or var.dtype.kind in "OSUV" or 0 in var.shape:
+            continue
+        chunks = processing_chunks(var.shape, disk, var.dtype.itemsize)
+        data = da.from_array(CheckedArray(var.variable, where, str(name), disk), chunks=chunks, lock=False,
+                             name=f"open-{name}-{tokenize(where, str(name), chunks, stamp)}",
+                             meta=np.empty((0,) * var.ndim, dtype=var.dtype))
+        lazy[name] = var.copy(data=data)
+        lazy[name].encoding = var.encoding
+    return ds.assign(lazy) if lazy else ds
+
+
+def _store_stamp(where: str) -> str:
+    """Changes whenever the store is rewritten (its root metadata file is replaced): part of dask key names."""
+    try:
+        meta = Path(where) / "zarr.json"
+        return f"{meta.stat().st_mtime_ns}:{meta.stat().st_ino}"
+    except OSError:
+        return where
 
 
 def _migrate(ds: xr.Dataset, where: str) -> xr.Dataset:
@@ -118,7 +153,10 @@ def open_store(path: str | os.PathLike, kind: str | None = None, *, keep_flags: 
     frames of which variable are missing (they read as the fill value, NaN, and would pass unnoticed).
     """
     where = os.fspath(path)
-    ds = _migrate(_open_raw(path), where)
+    raw = _open_raw(path)
+    manifest = read_manifest(where)
+    edited = [Problem(p.message, where=where, path=p.path, fix=p.fix) for p in units_problems(raw, manifest)]
+    ds = _migrate(raw, where)
     stored_kind = ds.attrs.get("selpath_kind")
     if kind is None:
         kind = stored_kind
@@ -127,14 +165,24 @@ def open_store(path: str | os.PathLike, kind: str | None = None, *, keep_flags: 
             Problem("attr selpath_kind is missing and no kind was given", where=where,
                     fix=f"set ds.attrs['selpath_kind'] to one of {sorted(KINDS)}")
         )
-    problems = [] if stored_kind in (None, kind) else [
+    problems = edited + ([] if stored_kind in (None, kind) else [
         Problem(f"store holds a {stored_kind!r} cube, not a {kind!r} cube", where=where)
-    ]
+    ])
     problems += [Problem(p.message, where=where, path=p.path, fix=p.fix) for p in check_dataset(ds, kind)]
+    flags = [v for v in ds.data_vars if str(v).startswith(WRITTEN_PREFIX)]
+    if not flags and (manifest or {}).get("complete") and raw.attrs.get("selpath_format", 0) >= CHECKSUMMED_FORMAT:
+        problems += [Problem(p.message, where=where, path=p.path, fix=p.fix)
+                     for p in absent_chunks(where, [str(v) for v in raw.variables])]
     if problems:
         raise StoreError(problems)
+    if flags:  # a frame flagged written whose chunk is gone is missing again
+        ds = ds.assign({name: ds[name].copy(data=written_frames(where, str(name)[len(WRITTEN_PREFIX):],
+                                                                ds[name].values)) for name in flags})
+    elif not is_complete(where, manifest):
+        warnings.warn(f"{where}: no record that writing this store finished (a run killed while writing it, or a "
+                      "store selpath did not write); its data may be partial. Write it again, or check it with "
+                      "`selpath inspect --verify`", IncompleteStoreWarning, stacklevel=2)
     if not keep_flags:
-        flags = [v for v in ds.data_vars if str(v).startswith(WRITTEN_PREFIX)]
         for name in flags:
             written = ds[name].values
             if not written.all():
@@ -144,6 +192,13 @@ def open_store(path: str | os.PathLike, kind: str | None = None, *, keep_flags: 
                               stacklevel=2)
         ds = ds.drop_vars(flags)
     return ds
+
+
+def is_complete(path: str | os.PathLike, manifest: Mapping[str, Any] | None = None) -> bool:
+    """Whether a store records that its writing finished: a manifest saying so (format 2), or for stores of
+    format 1 a provenance record. Captures filled frame by frame are complete when every frame is written."""
+    manifest = read_manifest(path) if manifest is None else manifest
+    return bool((manifest or {}).get("complete")) or read_provenance(path) is not None
 
 
 def stamp(ds: xr.Dataset, kind: str) -> xr.Dataset:
@@ -156,14 +211,10 @@ def stamp(ds: xr.Dataset, kind: str) -> xr.Dataset:
 
 def _writable(ds: xr.Dataset) -> xr.Dataset:
     """A copy whose dask chunks zarr can take (regular but for the last), stale encodings dropped and numeric
-    data compressed by zstd at level 1: on a 75-frame capture and its 128-offset transport it writes 1.5–1.7×
-    faster than zarr's default (level 3) for 1 % more bytes."""
+    data and coordinates compressed and checksummed (:func:`pipeline.integrity.compressors`)."""
     ds = ds.copy()
-    for name in ds.variables:
-        ds[name].encoding = {}
-    for var in ds.data_vars.values():
-        if var.dtype.kind in "fiub":
-            var.encoding = {"compressors": (ZstdCodec(level=1),)}
+    for name, var in ds.variables.items():
+        ds[name].encoding = {"compressors": compressors()} if var.dtype.kind in "fiub" else {}
     if not ds.chunks:
         return ds
     ds = ds.unify_chunks()
@@ -174,12 +225,35 @@ def _writable(ds: xr.Dataset) -> xr.Dataset:
     return ds.chunk(regular) if regular else ds
 
 
-def to_store(ds: xr.Dataset, path: str | os.PathLike, kind: str, *, compute: bool = True):
-    """Write a whole cube (checked and stamped) to a new store, replacing any store at ``path``.
+def write_store(ds: xr.Dataset, path: str | os.PathLike, kind: str, *, compute: bool = True):
+    """Write a whole cube (checked and stamped) into a new store at ``path``, every chunk checksummed and
+    written (fill-valued ones too), without the manifest: the building block of :func:`to_store`, for writers
+    that stage, check and commit themselves (the engine). ``compute=False`` returns the dask delayed write."""
+    return _writable(stamp(ds, kind)).to_zarr(os.fspath(path), mode="w-", consolidated=False, compute=compute,
+                                             write_empty_chunks=True)
 
-    With ``compute=False`` returns the dask delayed write, so many outputs can be computed in one pass.
+
+def to_store(ds: xr.Dataset, path: str | os.PathLike, kind: str, *, compute: bool = True):
+    """Write a whole cube (checked and stamped) as a complete store at ``path``, replacing an older selpath
+    store there (anything else at ``path`` is refused, never deleted).
+
+    The cube is written into a temporary sibling, its manifest added, and then moved into place, so a
+    crash never leaves a half-written store under ``path``. With ``compute=False`` returns a dask delayed
+    that writes and moves it when computed.
     """
-    return _writable(stamp(ds, kind)).to_zarr(os.fspath(path), mode="w", consolidated=False, compute=compute)
+    if compute:
+        with staged(path) as target:
+            write_store(ds, target, kind)
+            write_manifest(target, ds)
+        return None
+    staging = Staging(path)
+    write = write_store(ds, staging.path, kind, compute=False)
+    return dask.delayed(_finish)(write, staging, ds[[]])
+
+
+def _finish(_written: Any, staging: Staging, metadata: xr.Dataset) -> None:
+    write_manifest(staging.path, metadata)
+    staging.commit()
 
 
 # -- frame-by-frame capture -------------------------------------------------------------------------
@@ -214,9 +288,10 @@ def create_capture(path: str | os.PathLike, template: xr.Dataset, kind: str) -> 
         flags[f"{WRITTEN_PREFIX}{name}"] = (frame_dims, np.zeros(shape, dtype=bool))
         template[name] = var.chunk(dict.fromkeys(frame_dims, 1))
     template = _writable(template.assign(flags))
-    template.to_zarr(where, mode="w-", consolidated=False, compute=False)
+    template.to_zarr(where, mode="w-", consolidated=False, compute=False, write_empty_chunks=True)
     # the flags are small numpy arrays: write them for real, so every frame starts as missing
-    template[list(flags)].to_zarr(where, mode="r+", consolidated=False)
+    template[list(flags)].to_zarr(where, mode="r+", consolidated=False, write_empty_chunks=True)
+    write_manifest(where, template, complete=False)  # complete is what the frame flags say
     return open_store(where, kind, keep_flags=True)
 
 
@@ -249,7 +324,8 @@ def write_frame(path: str | os.PathLike, variable: str, index: Mapping[str, int]
     if variable not in group or flag_name not in group:
         raise StoreError(Problem(f"variable {variable!r} was not pre-allocated for capture", where=where,
                                  fix="create the store with create_capture first"))
-    array, flags = group[variable], group[flag_name]
+    empty = {"write_empty_chunks": True}  # a frame equal to the fill value still lands, so a gone chunk is seen
+    array, flags = group[variable].with_config(empty), group[flag_name].with_config(empty)
     frame_dims = tuple(array.metadata.dimension_names)[: flags.ndim]
     if set(index) != set(frame_dims):
         raise StoreError(Problem(f"index {dict(index)} must name exactly the frame dims {frame_dims}", where=where,
@@ -266,9 +342,10 @@ def write_frame(path: str | os.PathLike, variable: str, index: Mapping[str, int]
 def missing_frames(path: str | os.PathLike) -> dict[str, list[dict[str, Any]]]:
     """For each captured variable, the frames not yet written, as ``{dim: coordinate value}`` dicts.
 
-    Stores written whole (without ``written__*`` flags) have no missing frames.
+    A frame counts as written when its flag is set *and* its chunks are on disk. Stores written whole
+    (without ``written__*`` flags) have no missing frames.
     """
-    ds = open_store(path, keep_flags=True)
+    ds = open_store(path, keep_flags=True)  # flags already cleared where a frame's chunk is gone
     out: dict[str, list[dict[str, Any]]] = {}
     for name in ds.data_vars:
         if not str(name).startswith(WRITTEN_PREFIX):
@@ -281,6 +358,24 @@ def missing_frames(path: str | os.PathLike) -> dict[str, list[dict[str, Any]]]:
             for pos in positions
         ]
     return out
+
+
+def forget_frames(path: str | os.PathLike, bad: Iterable[BadChunk]) -> int:
+    """Mark the frames holding ``bad`` chunks (from :func:`~pipeline.integrity.verify_store`) as not captured,
+    so the acquisition captures them again when it next runs. Returns how many frames were marked."""
+    where = os.fspath(path)
+    group = zarr.open_group(where, mode="r+")
+    frames = set()
+    for chunk in bad:
+        flag_name = f"{WRITTEN_PREFIX}{chunk.variable}"
+        if flag_name not in group:
+            continue
+        flags, array = group[flag_name], group[chunk.variable]
+        position = tuple(c * s for c, s in zip(chunk.chunk[: flags.ndim], array.chunks, strict=False))
+        frames.add((chunk.variable, position))
+    for variable, position in sorted(frames):
+        group[f"{WRITTEN_PREFIX}{variable}"][position] = False
+    return len(frames)
 
 
 # -- provenance --------------------------------------------------------------------------------------

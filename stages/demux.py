@@ -39,7 +39,7 @@ def pixels_per_call(pixels: int, offsets: int) -> int:
 class OffsetGrid(pydantic.BaseModel):
     """Offsets o = projector row − camera row: start, start+step, …, up to and including stop [rows]."""
 
-    model_config = pydantic.ConfigDict(extra="forbid", frozen=True)
+    model_config = pydantic.ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
     start: int
     stop: int
     step: int = pydantic.Field(1, gt=0)

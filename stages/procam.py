@@ -38,7 +38,7 @@ from pipeline.spec import StorePath
 class TimeSweep(pydantic.BaseModel):
     """Times start, start+step, …, up to and including stop [µs]."""
 
-    model_config = pydantic.ConfigDict(extra="forbid", frozen=True)
+    model_config = pydantic.ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
     start: float
     stop: float
     step: float = pydantic.Field(gt=0, description="µs")

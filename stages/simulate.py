@@ -17,7 +17,7 @@ _FRAME_BYTES_PER_CHUNK = 64 * 2**20
 class AngleSweep(pydantic.BaseModel):
     """Stage angles start, start+step, … below stop, in degrees."""
 
-    model_config = pydantic.ConfigDict(extra="forbid", frozen=True)
+    model_config = pydantic.ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
     start: float = 0.0
     stop: float = pydantic.Field(360.0, description="exclusive end, degree")
     step: float = pydantic.Field(1.0, gt=0, description="degree")
@@ -29,7 +29,7 @@ class AngleSweep(pydantic.BaseModel):
 class RodSpec(pydantic.BaseModel):
     """A vertical rod inside the object: centre (x, y) and radius in the length unit, extra σ per unit length."""
 
-    model_config = pydantic.ConfigDict(extra="forbid", frozen=True)
+    model_config = pydantic.ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
     x: float
     y: float
     radius: float = pydantic.Field(gt=0)

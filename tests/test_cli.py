@@ -31,7 +31,7 @@ def test_run_then_inspect(small_workflow):
     store = small_workflow.parent / "out" / "absorption.zarr"
     shown = runner.invoke(app, ["inspect", str(store)])
     assert shown.exit_code == 0, shown.output
-    assert "absorption cube, format 1" in shown.output and '"workflow": "small-absorption"' in shown.output
+    assert "absorption cube, format 2" in shown.output and '"workflow": "small-absorption"' in shown.output
     missing = runner.invoke(app, ["inspect", str(small_workflow.parent / "nothing.zarr")])
     assert missing.exit_code == 2 and "no store at this path" in missing.output
 

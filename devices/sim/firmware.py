@@ -10,7 +10,9 @@ scheduled by command number (0-based, in the order the firmware receives them):
 ``partial``     answer half a line, without its newline, and stop;
 ``noise``       answer bytes that are not ASCII;
 ``disconnect``  close the line (cable pulled): every later read fails;
-``lost-reply``  perform the command, then lose its reply (the host must ask what happened).
+``lost-reply``  perform the command, then lose its reply (the host must ask what happened);
+``stray``       send an unsolicited well-formed status line (``EVT …``) just before the reply;
+``late``        send the previous command's reply again (arriving late) just before this one's.
 
 Subclasses add device faults (``DEVICE_FAULTS``), handed to ``execute``. Use as a context manager; the
 firmware runs in a daemon thread.
@@ -28,7 +30,7 @@ from collections.abc import Mapping
 
 from devices.serial_line import frame_reply
 
-LINE_FAULTS = ("silent", "garble", "partial", "noise", "disconnect", "lost-reply")
+LINE_FAULTS = ("silent", "garble", "partial", "noise", "disconnect", "lost-reply", "stray", "late")
 
 
 class FakeFirmware:
@@ -47,6 +49,7 @@ class FakeFirmware:
             raise ValueError(f"unknown faults {unknown}; known: {known}")
         self.faults = {k: self.ALIASES.get(v, v) for k, v in (faults or {}).items()}
         self.received: list[str] = []
+        self._previous_reply = b""
         self._master, self._slave = pty.openpty()
         tty.setraw(self._slave)
         self.port = os.ttyname(self._slave)
@@ -113,6 +116,11 @@ class FakeFirmware:
             reply = reply[: len(reply) // 2]
         elif fault == "noise":
             reply = b"\xff\xfe\x00garbage\n"
+        elif fault == "stray":
+            self._send(frame_reply("EVT TEMPERATURE 31.5"))
+        elif fault == "late" and self._previous_reply:
+            self._send(self._previous_reply)
+        self._previous_reply = reply
         self._send(reply)
         return True
 

@@ -38,7 +38,7 @@ Fraction = Annotated[float, pydantic.Field(ge=0.0, le=1.0)]
 
 
 class _Model(pydantic.BaseModel):
-    model_config = pydantic.ConfigDict(extra="forbid", frozen=True, validate_default=True)
+    model_config = pydantic.ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False, validate_default=True)
 
 
 class Rectangle(_Model):

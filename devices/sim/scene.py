@@ -16,6 +16,7 @@ names** under ``effects:`` (``scattering``, ``noise``); an unknown effect is an 
 
 from __future__ import annotations
 
+import math
 import os
 import re
 from typing import Annotated, Any, Literal
@@ -42,7 +43,10 @@ def unit_parser(units: dict[str, float], example: str, what: str):
         match = _QUANTITY.match(value)
         if not match or match["unit"] not in units:
             raise ValueError(f"{value!r} is not {what}; write e.g. {example!r} (units: {', '.join(units)})")
-        return float(match["value"]) * units[match["unit"]]
+        number = float(match["value"]) * units[match["unit"]]
+        if not math.isfinite(number):
+            raise ValueError(f"{value!r} is not a finite {what.removeprefix('a ').removeprefix('an ')}")
+        return number
 
     return pydantic.BeforeValidator(parse)
 
@@ -58,7 +62,7 @@ Duration = Annotated[float, unit_parser(_TO_S, "50 ms", "a duration")]
 
 
 class _Model(pydantic.BaseModel):
-    model_config = pydantic.ConfigDict(extra="forbid", frozen=True)
+    model_config = pydantic.ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class Cylinder(_Model):

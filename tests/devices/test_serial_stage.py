@@ -156,3 +156,46 @@ def test_no_frame_is_ever_recorded_at_a_wrong_angle(tmp_path):
         rig.close()
     assert not any(missing_frames(store).values())
     xr.testing.assert_identical(resumed.load(), clean.load())
+
+
+@pytest.mark.parametrize("fault", ["stray", "late"])
+def test_a_stray_or_late_line_is_skipped_not_taken_for_the_reply(fault):
+    """The reported stop: a well-formed line arriving before the reply (an unsolicited status line, or the
+    previous command's reply arriving late) was called "unexpected reply to MOVE" and stopped the sweep."""
+    with FakeStageFirmware({2: fault, 3: fault, 4: fault, 5: fault}) as fw:  # MOVE, POS?, MOVE, POS?
+        stage = homed(fw)
+        assert [stage.move_to(10.0), stage.move_to(20.0)] == [10.0, 20.0]
+        stage.close()
+    assert fw.received[2:] == ["MOVE 10.000", "POS?", "MOVE 20.000", "POS?"]  # nothing resent
+
+
+def _fuzz(faults: tuple[str, ...], rate: float, moves: int, seed: int) -> tuple[int, int, list[str]]:
+    """Random faults on a share of commands over ``moves`` moves: (wrong angles, completed moves, errors)."""
+    rng = np.random.default_rng(seed)
+    schedule = {i: str(rng.choice(faults)) for i in range(2, 4 * moves) if rng.random() < rate}
+    wrong, done, errors = 0, 0, []
+    with FakeStageFirmware(schedule) as fw:
+        stage = homed(fw)
+        for target in rng.uniform(0, 360, moves).round(3):
+            try:
+                reached = stage.move_to(target)
+            except DeviceError as exc:
+                errors.append(type(exc).__name__)
+                continue
+            done += 1
+            wrong += abs(reached - target) > 0.01 or abs(fw.position - target) > 0.01
+        stage.close()
+    return wrong, done, errors
+
+
+def test_fuzzed_stray_and_late_lines_never_stop_a_sweep():
+    wrong, done, errors = _fuzz(("stray", "late"), 0.3, 150, seed=14)
+    assert (wrong, done, errors) == (0, 150, [])
+
+
+def test_fuzzed_line_and_motor_faults_never_record_a_wrong_angle():
+    """Every fault the firmware knows but a disconnect, on 10 % of commands: moves may fail (a slip, a lost
+    reply after retries), but no move ever returns an angle the stage is not at."""
+    faults = ("silent", "garble", "partial", "noise", "lost-reply", "stray", "late", "slip")
+    wrong, done, errors = _fuzz(faults, 0.1, 200, seed=19)
+    assert wrong == 0 and done + len(errors) == 200 and done >= 150

@@ -24,7 +24,9 @@ from pipeline import (
     write_frame,
     write_provenance,
 )
+from pipeline.integrity import write_manifest
 from pipeline.schema import FORMAT_VERSION
+from pipeline.store import IncompleteStoreWarning
 
 GEOMETRY = {"camera_model": "perspective", "focal_length_px": 1800.0, "principal_point_px": [800.0, 600.0],
             "camera_distance": 300.0, "light_distance": 250.0, "light_angle_deg": 45.0, "length_unit": "mm"}
@@ -86,17 +88,25 @@ def test_stores_are_read_in_whole_on_disk_chunks(tmp_path, shape, disk):
         assert opened.chunks[0][0] > 1  # small frames are grouped
 
 
-def test_numeric_data_are_written_with_fast_zstd(tmp_path):
+def test_numeric_data_are_written_with_fast_zstd_and_a_checksum(tmp_path):
     to_store(capture(), tmp_path / "s.zarr", "tomography_capture")
-    compressors = zarr.open_array(tmp_path / "s.zarr" / "target").compressors
-    assert [(type(c).__name__, c.level) for c in compressors] == [("ZstdCodec", 1)]
+    for name in ("target", "angle"):
+        compressors = zarr.open_array(tmp_path / "s.zarr" / name).compressors
+        assert [(type(c).__name__, getattr(c, "level", None)) for c in compressors] == [("ZstdCodec", 1),
+                                                                                        ("Crc32cCodec", None)]
 
 
 def test_store_written_by_plain_xarray_opens(tmp_path):
-    """The documented format is enough: no selpath writer involved."""
+    """The documented format is enough: no selpath writer involved. Without a manifest nothing says the writing
+    finished, so opening warns; write_manifest (what to_store does last) records it."""
     ds = capture().assign_attrs(selpath_format=1, selpath_kind="tomography_capture")
     ds.to_zarr(tmp_path / "plain.zarr", consolidated=False)
-    xr.testing.assert_identical(open_store(tmp_path / "plain.zarr").load(), ds)
+    with pytest.warns(IncompleteStoreWarning, match="plain.zarr: no record that writing this store finished"):
+        opened = open_store(tmp_path / "plain.zarr").load()
+    expected = ds.assign_attrs(selpath_format=FORMAT_VERSION)  # migrated from format 1 on open
+    xr.testing.assert_identical(opened, expected)
+    write_manifest(tmp_path / "plain.zarr", ds)
+    xr.testing.assert_identical(open_store(tmp_path / "plain.zarr").load(), expected)
 
 
 def test_schema_check_lists_every_problem(tmp_path):
@@ -124,7 +134,8 @@ def test_newer_format_and_wrong_kind_and_corrupt_store(tmp_path):
     with pytest.raises(StoreError, match="holds a 'tomography_capture' cube, not a 'sinogram' cube"):
         open_store(tmp_path / "s.zarr", "sinogram")
     zarr.open_group(tmp_path / "s.zarr", mode="r+").attrs["selpath_format"] = FORMAT_VERSION + 1
-    with pytest.raises(StoreError, match=r"format 2 is newer than this selpath reads \(format 1\)"):
+    newer = rf"format {FORMAT_VERSION + 1} is newer than this selpath reads \(format {FORMAT_VERSION}\)"
+    with pytest.raises(StoreError, match=newer):
         open_store(tmp_path / "s.zarr")
     (tmp_path / "junk.zarr").mkdir()
     (tmp_path / "junk.zarr" / "zarr.json").write_text("{not json")

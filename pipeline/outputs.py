@@ -1,0 +1,190 @@
+"""Where outputs may be written, and how they land there without losing anything.
+
+Rules for an output store (checked when a workflow is validated, and again before a run writes):
+
+* its path ends in ``.zarr`` (``out/capture.zarr``, ``s3://bucket/run/capture.zarr``);
+* if something is already there, it is a selpath store (its root ``zarr.json`` carries the
+  ``selpath_format`` marker): selpath replaces only what it wrote;
+* it is never the folder of, nor a parent folder of, another output, an input (a store or file a step
+  reads), the workflow file or the working folder.
+
+A store is written into a temporary sibling (``.<name>.partial-<token>``) and moved into place only
+once its data, manifest and provenance are complete (:class:`Staging`), so a crash never leaves a
+half-written store under the final name: either the old store or the new one is there. Stores on object
+storage (``scheme://…``) cannot be renamed; they are written in place and their manifest, written last,
+marks them complete (see :mod:`pipeline.integrity`). A ``figure`` output also writes ``<stem>.png``;
+a PNG there that selpath did not write (no ``selpath_store`` text chunk) is never replaced.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import uuid
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+
+from pipeline.errors import Problem, StoreError
+
+STORE_SUFFIX = ".zarr"
+_PARTIAL = ".partial-"
+_REPLACED = ".replaced-"
+#: PNG text key naming the store a figure PNG was rendered from (marks PNGs selpath may replace)
+PNG_MARKER = "selpath_store"
+
+
+def is_remote(path: str | os.PathLike) -> bool:
+    return "://" in os.fspath(path)
+
+
+def is_selpath_store(path: str | os.PathLike) -> bool:
+    """True if ``path`` is a folder whose root ``zarr.json`` is a group carrying ``selpath_format``."""
+    try:
+        doc = json.loads((Path(path) / "zarr.json").read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(doc, dict) and "selpath_format" in (doc.get("attributes") or {})
+
+
+def png_path(store: str | os.PathLike) -> str:
+    """Where a figure output's PNG lands: ``<store without .zarr>.png``."""
+    return f"{os.fspath(store).removesuffix(STORE_SUFFIX)}.png"
+
+
+def png_written_by_selpath(path: str | os.PathLike) -> bool:
+    from PIL import Image
+
+    try:
+        with Image.open(path) as image:
+            return PNG_MARKER in getattr(image, "text", {})
+    except (OSError, ValueError):
+        return False
+
+
+def _inside(child: Path, parent: Path) -> bool:
+    """True if ``child`` is ``parent`` or lies anywhere under it."""
+    return child == parent or parent in child.parents
+
+
+@dataclass(frozen=True)
+class OutputPath:
+    """An output store to check: its resolved path and where the user wrote it (for messages)."""
+
+    name: str
+    store: str
+    #: location of the field in the workflow file, e.g. ("outputs", "capture", "store")
+    field: tuple
+
+
+def output_problems(outputs: list[OutputPath], protected: Mapping[str, str | os.PathLike]) -> list[tuple[tuple,
+                                                                                                         str, str]]:
+    """Every way ``outputs`` break the rules above, as ``(field, message, fix)``.
+
+    ``protected`` maps a label (``"input steps[2].with.store"``, ``"the workflow file"``) to a path no output
+    may be or contain.
+    """
+    problems: list[tuple[tuple, str, str]] = []
+    for out in outputs:
+        text = out.store
+        name = text.rstrip("/").rsplit("/", 1)[-1]
+        if not name.endswith(STORE_SUFFIX) or name == STORE_SUFFIX:
+            problems.append((out.field, f"output {out.name!r} store {text!r} is not a path ending in "
+                             f"'{STORE_SUFFIX}'", f"name the store like out/{out.name}.zarr"))
+            continue
+        if is_remote(text):
+            continue
+        path = Path(text)
+        if path.is_symlink() or (path.exists() and not path.is_dir()):
+            problems.append((out.field, f"output {out.name!r}: {text} exists and is not a folder",
+                             "choose another path; selpath replaces only stores it wrote"))
+            continue
+        if path.exists() and not is_selpath_store(path):
+            problems.append((out.field, f"output {out.name!r}: {text} holds files that are not a selpath store "
+                             "(no selpath_format marker); selpath never replaces them",
+                             "choose another path, or move those files away"))
+        for other in outputs:
+            if other is not out and not is_remote(other.store) and path in Path(other.store).parents:
+                problems.append((out.field, f"output {out.name!r} ({text}) is a parent folder of output "
+                                 f"{other.name!r} ({other.store}); writing one would delete the other",
+                                 "give each output its own .zarr path, side by side"))
+        for label, value in protected.items():
+            if not is_remote(value) and _inside(Path(value), path):
+                problems.append((out.field, f"output {out.name!r} ({text}) would replace {label} ({value})",
+                                 "write outputs to their own .zarr paths, e.g. under out/"))
+        png = png_path(text)
+        if Path(png).exists() and not png_written_by_selpath(png):
+            problems.append((out.field, f"output {out.name!r}: a figure output also writes {png}, which exists and "
+                             "was not written by selpath", "move that PNG away or rename the output store"))
+    return problems
+
+
+class Staging:
+    """A temporary sibling of ``final`` to write a store into, then :meth:`commit` (move into place) or
+    :meth:`abort` (remove). For remote stores the staging path is ``final`` itself."""
+
+    def __init__(self, final: str | os.PathLike):
+        self.final = os.fspath(final)
+        if is_remote(self.final):
+            self.path = self.final
+        else:
+            target = Path(self.final).absolute()
+            target.parent.mkdir(parents=True, exist_ok=True)
+            self.path = str(target.parent / f".{target.name}{_PARTIAL}{uuid.uuid4().hex[:12]}")
+
+    def commit(self) -> None:
+        """Move the finished store into place; an older selpath store there is replaced, anything else refused."""
+        if self.path == self.final:
+            return
+        final = Path(self.final)
+        if final.exists() or final.is_symlink():
+            if final.is_symlink() or not is_selpath_store(final):
+                self.abort()
+                raise StoreError(Problem("something that is not a selpath store appeared at this path while the "
+                                         "output was written; it was left untouched and the output not written",
+                                         where=self.final, fix="move it away and run again"))
+            old = final.parent / f".{final.name}{_REPLACED}{uuid.uuid4().hex[:12]}"
+            os.rename(final, old)
+            os.rename(self.path, final)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.rename(self.path, final)
+
+    def abort(self) -> None:
+        if self.path != self.final:
+            shutil.rmtree(self.path, ignore_errors=True)
+
+
+@contextmanager
+def staged(final: str | os.PathLike) -> Iterator[str]:
+    """Yield a path to write a store into; it is moved to ``final`` when the block ends without error and
+    removed if it raises."""
+    staging = Staging(final)
+    try:
+        yield staging.path
+    except BaseException:
+        staging.abort()
+        raise
+    staging.commit()
+
+
+def tidy_staging(final: str | os.PathLike) -> list[str]:
+    """Clean up what a killed writer left beside ``final``: partial stores are removed; a replaced store whose
+    successor never arrived is put back. Call it only while holding the store's lock. Returns what it did."""
+    if is_remote(final):
+        return []
+    target = Path(final).absolute()
+    if not target.parent.is_dir():
+        return []
+    done = []
+    replaced = sorted(target.parent.glob(f".{target.name}{_REPLACED}*"))
+    for leftover in sorted(target.parent.glob(f".{target.name}{_PARTIAL}*")) + replaced:
+        if leftover in replaced and not target.exists() and is_selpath_store(leftover):
+            os.rename(leftover, target)
+            done.append(f"restored {target} from {leftover.name}")
+        else:
+            shutil.rmtree(leftover, ignore_errors=True)
+            done.append(f"removed {leftover.name}")
+    return done

@@ -1,0 +1,136 @@
+"""Corruption never passes unseen: for every store kind and every way a chunk goes bad (truncated, garbage,
+deleted), `inspect --verify` names it and no read returns data from it; a capture frame whose chunk is bad
+is captured again; incomplete stores and edited units are reported."""
+
+from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+import xarray as xr
+import zarr
+from typer.testing import CliRunner
+
+from pipeline import StoreError, load_workflow, open_store, run_workflow, to_store
+from pipeline.cli import app
+from pipeline.integrity import verify_store
+from pipeline.schema import KINDS, LENGTH_UNITS
+from pipeline.store import missing_frames, write_provenance
+from tests.devices.test_acquire import make_workflow
+
+runner = CliRunner()
+SIZES = {"angle": 3, "row": 4, "col": 5, "vertex": 3, "xy": 2, "slice": 2, "delay": 3, "exposure": 2, "line": 2,
+         "offset": 3, "du": 2, "dv": 3, "theta": 4, "x": 5, "y": 5, "rgba": 4, "light_angle": 2, "method": 2}
+
+
+def minimal(kind: str) -> xr.Dataset:
+    """A small valid cube of ``kind`` built from its schema: every variable, coordinate unit and attr."""
+    spec = KINDS[kind]
+    rng = np.random.default_rng(0)
+    ds = xr.Dataset({name: (var.dims, rng.random(tuple(SIZES[d] for d in var.dims)).astype(np.float32))
+                     for name, var in spec.variables.items()})
+    for dim, units in spec.coord_units.items():
+        unit = "mm" if units == LENGTH_UNITS else sorted(units)[0]
+        ds = ds.assign_coords({dim: (dim, np.arange(SIZES[dim], dtype=float), {"units": unit})})
+    attrs = dict.fromkeys(spec.attrs, 1.0)
+    if "camera_model" in attrs:
+        attrs.update(camera_model="orthographic", pixel_size=0.1, length_unit="mm")
+    return ds.assign_attrs(attrs)
+
+
+def _chunk_file(store: Path, variable: str) -> Path:
+    files = sorted(p for p in (store / variable).rglob("*") if p.is_file() and p.name != "zarr.json")
+    return files[len(files) // 2]
+
+
+def _damage(path: Path, how: str) -> None:
+    data = path.read_bytes()
+    if how == "truncate":
+        path.write_bytes(data[: len(data) // 2])
+    elif how == "garbage":
+        middle = len(data) // 2
+        path.write_bytes(data[:middle] + bytes(255 - b for b in data[middle:middle + 8]) + data[middle + 8:])
+    else:
+        path.unlink()
+
+
+@pytest.mark.parametrize("how", ["truncate", "garbage", "delete"])
+@pytest.mark.parametrize("kind", sorted(KINDS))
+def test_a_bad_chunk_of_any_kind_is_named_and_never_read(tmp_path, kind, how):
+    store = tmp_path / "s.zarr"
+    ds = minimal(kind)
+    to_store(ds.chunk(dict.fromkeys(ds.dims, 2)), store, kind)
+    variable = next(iter(KINDS[kind].variables))
+    chunk = _chunk_file(store, variable)
+    index = tuple(int(p) for p in chunk.relative_to(store / variable / "c").parts)
+    _damage(chunk, how)
+
+    assert [(b.variable, b.chunk, b.reason.split(" ")[0]) for b in verify_store(store)] == [
+        (variable, index, "missing" if how == "delete" else "corrupt")]
+    shown = runner.invoke(app, ["inspect", str(store), "--verify"], env={"COLUMNS": "200"})
+    assert shown.exit_code == 1 and f"{variable} chunk {index}: " in shown.output.replace("\n", ""), shown.output
+
+    with pytest.raises(StoreError) as info:
+        open_store(store)[variable].load()
+    message = str(info.value)
+    assert f"s.zarr: variable {variable}: " in message, message
+    if how == "delete":
+        assert "1 of " in message and f"chunks are missing, first {index}" in message
+    else:
+        assert f"chunk {index} (" in message and "cannot be read: the store is corrupt" in message
+
+
+def test_a_corrupt_capture_frame_is_captured_again_on_resume(tmp_path):
+    """The reported case: garbage in one chunk of capture/target went unseen, and a deleted chunk read as NaN
+    while its flag said captured. Now a read names it, and `inspect --verify --recapture` (or a deleted chunk on
+    its own) makes the acquisition capture that frame again on the next run."""
+    path = make_workflow(tmp_path)
+    run_workflow(load_workflow(path), progress=False)
+    store = tmp_path / "capture.zarr"
+    clean = open_store(store).load()
+    _damage(store / "target" / "c" / "5" / "0" / "0", "garbage")
+    with pytest.raises(StoreError, match=r"variable target: chunk \(5, 0, 0\) \(.*\) cannot be read"):
+        open_store(store)["target"].load()
+    shown = runner.invoke(app, ["inspect", str(store), "--verify", "--recapture"], env={"COLUMNS": "200"})
+    assert shown.exit_code == 1 and "marked 1 frame(s) as not captured" in shown.output, shown.output
+    assert missing_frames(store)["target"] == [{"angle": 75.0}]
+    _damage(store / "reference" / "c" / "7" / "0" / "0", "delete")
+    assert missing_frames(store)["reference"] == [{"angle": 105.0}]
+
+    report = run_workflow(load_workflow(path), progress=False)
+    assert report.computed() == ["capture"]
+    assert verify_store(store) == [] and not any(missing_frames(store).values())
+    xr.testing.assert_identical(open_store(store).load(), clean)  # the simulator is deterministic
+
+
+def test_a_store_without_a_completion_record_is_reported_incomplete(tmp_path):
+    """Partial outputs of a killed run (older selpath wrote in place) passed inspect and open_store silently."""
+    store = tmp_path / "sinogram.zarr"
+    ds = minimal("sinogram").assign_attrs(selpath_format=1, selpath_kind="sinogram")
+    ds.to_zarr(store, consolidated=False)  # as a killed run of the old engine left it: no provenance
+    with pytest.warns(UserWarning, match="no record that writing this store finished"):
+        open_store(store)
+    shown = runner.invoke(app, ["inspect", str(store)], env={"COLUMNS": "200"})
+    assert shown.exit_code == 1 and "incomplete" in shown.output
+    write_provenance(store, {"step_hash": "x"})  # what the old engine wrote once an output was complete
+    assert runner.invoke(app, ["inspect", str(store)]).exit_code == 0
+
+
+def test_edited_units_are_refused_naming_both(tmp_path):
+    store = tmp_path / "sinogram.zarr"
+    to_store(minimal("sinogram"), store, "sinogram")
+    zarr.open_array(store / "x", mode="r+").attrs["units"] = "m"
+    with pytest.raises(StoreError, match=re.escape("x: 'x' has units 'm' but was written in 'mm'")):
+        open_store(store)
+    assert runner.invoke(app, ["inspect", str(store)]).exit_code == 2
+
+
+def test_inspect_of_a_complete_store_exits_zero(tmp_path):
+    store = tmp_path / "r.zarr"
+    to_store(minimal("reconstruction"), store, "reconstruction")
+    shown = runner.invoke(app, ["inspect", str(store), "--verify"])
+    assert shown.exit_code == 0 and "every chunk reads" in shown.output
+    assert os.listdir(tmp_path) == ["r.zarr"]
