@@ -1,14 +1,17 @@
-"""Absorption at real size: throughput and peak memory, tile by tile, against eager NumPy.
+"""Absorption at real size: throughput and peak memory, tile by tile, against eager NumPy; and the cost of
+reading a store back (every chunk decoded and its checksum verified).
 
 A lazily simulated 1600×1200 capture with 360 angles (2.8 GB per frame variable in float32) goes through
 the ``absorption`` stage into a zarr store with the threaded scheduler. The simulation's own cost is
 measured alone and subtracted. The peer is the same arithmetic in eager NumPy on frames already in
-memory (what a notebook would write), scaled to the same pixel count. Each measurement runs in its own
-process so peak RSS is its own.
+memory (what a notebook would write), scaled to the same pixel count. ``read`` opens the written store
+with ``open_store`` and reduces both variables (decode + checksum of every chunk). Each measurement runs
+in its own process so peak RSS is its own.
 
     python benchmarks/absorption_throughput.py [--angles 360] [--rows 1200] [--cols 1600]
 
-Last line: ``absorption: px_per_s=<a> numpy_px_per_s=<b> ratio=<a/b> peak_rss_gb=<c> numpy_peak_rss_gb=<d>``
+Last lines: ``absorption: px_per_s=<a> numpy_px_per_s=<b> ratio=<a/b> peak_rss_gb=<c> numpy_peak_rss_gb=<d>``
+and ``read: px_per_s=<r> mb_per_s=<m>`` (MB of decoded absorption + flags per second).
 """
 
 from __future__ import annotations
@@ -33,6 +36,18 @@ def _capture(args):
                                      n_rows=args.rows, n_cols=args.cols, pixel_size=40.0 / args.cols * 1.2)
 
 
+def _read(store: str) -> float:
+    """Seconds to open ``store`` and reduce every variable (every chunk read, decoded and verified)."""
+    import dask
+
+    from pipeline.store import open_store
+
+    start = time.perf_counter()
+    ds = open_store(store)
+    dask.compute(ds["absorption"].sum(), ds["flags"].max(), scheduler="threads")
+    return time.perf_counter() - start
+
+
 def measure(mode: str, args) -> dict:
     import dask
     import numpy as np
@@ -53,7 +68,8 @@ def measure(mode: str, args) -> dict:
             with dask.config.set(scheduler="threads"):
                 to_store(absorption(capture), f"{folder}/absorption.zarr", "absorption")
             seconds = time.perf_counter() - start
-        return {"seconds": seconds, "peak_rss_gb": _peak_rss_gb(), "pixels": pixels}
+            read = _read(f"{folder}/absorption.zarr")
+        return {"seconds": seconds, "peak_rss_gb": _peak_rss_gb(), "pixels": pixels, "read_seconds": read}
     if mode == "numpy":
         n = max(1, min(args.angles, 8))  # eager NumPy holds everything: measure 8 angles, scale by pixels
         frames = _capture(argparse.Namespace(**{**vars(args), "angles": n})).compute()
@@ -98,6 +114,9 @@ def main() -> None:
     print(f"absorption: px_per_s={ours:.3g} numpy_px_per_s={peer:.3g} ratio={ours / peer:.2f} "
           f"peak_rss_gb={results['selpath']['peak_rss_gb']:.2f} "
           f"numpy_peak_rss_gb={results['numpy']['peak_rss_gb']:.2f}")
+    read = results["selpath"]["read_seconds"]
+    print(f"read: px_per_s={results['selpath']['pixels'] / read:.3g} "
+          f"mb_per_s={results['selpath']['pixels'] * 5 / 1e6 / read:.0f} seconds={read:.2f}")
 
 
 if __name__ == "__main__":

@@ -26,12 +26,15 @@ from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
 import xarray as xr
+import zarr
+from rich.markup import escape
 
 from pipeline.compute import compute, scheduler_session
 from pipeline.errors import Problem, SelpathError, StageError
 from pipeline.integrity import write_manifest
 from pipeline.locks import store_locks
 from pipeline.outputs import PNG_MARKER, Staging, png_path, tidy_staging
+from pipeline.quality import WHAT, below_floor, shares
 from pipeline.spec import OutputSpec, Ref, Step, Workflow, check_output_paths
 from pipeline.store import missing_frames, open_store, read_provenance, write_provenance, write_store
 
@@ -143,6 +146,8 @@ class _Graph:
         self.results: dict[str, Any] = {}
         self._outputs_of: dict[str, list[OutputSpec]] = {}
         self._stored: dict[str, dict | None] = {}
+        #: steps whose usable shares were checked when an output was written
+        self.checked: set[str] = set()
         for out in workflow.outputs.values():
             self._outputs_of.setdefault(out.from_, []).append(out)
             self._stored[out.store] = read_provenance(out.store)  # once per output
@@ -161,7 +166,7 @@ class _Graph:
             if out.store in self.report.fresh:
                 self.results[step_id] = open_store(out.store)
                 self.report.steps[step_id] = StepReport(step_id, "reused", f"{out.store} has the same provenance")
-                self.log(f"[dim]skip[/] {step_id}: {out.store} is up to date")
+                self.log(f"[dim]skip[/] {escape(step_id)}: {escape(out.store)} is up to date")
                 return self.results[step_id]
             reasons.append(_why_changed(self._stored[out.store], record, out.store) if self.reuse else "forced")
         inputs = {name: _select(self.resolve(ref.step), ref, step) for name, ref in step.inputs.items()}
@@ -172,7 +177,7 @@ class _Graph:
             self._stale_after(step_id)
         reason = "; ".join(reasons) if reasons else "no stored output (intermediate step)"
         self.report.steps[step_id] = StepReport(step_id, "computed", reason)
-        self.log(f"[bold]run[/]  {step_id} ({step.stage.name}): {reason}")
+        self.log(f"[bold]run[/]  {escape(step_id)} ({step.stage.name}): {escape(reason)}")
         return self.results[step_id]
 
     def _stale_after(self, step_id: str) -> None:
@@ -181,6 +186,12 @@ class _Graph:
         for out in self.workflow.outputs.values():
             if out.from_ != step_id and step_id in _ancestors(self.workflow, out.from_):
                 self.report.fresh.discard(out.store)
+
+    def unchecked(self, step_id: str) -> list[str]:
+        """``step_id`` and the steps upstream of it computed in this run whose usable shares are not yet checked
+        (a step read back from a store was checked when it was written)."""
+        return [i for i in _ancestors(self.workflow, step_id)
+                if i not in self.checked and self.report.steps.get(i, StepReport(i, "", "")).status == "computed"]
 
     def finish(self) -> None:
         for step_id in self.workflow.steps:
@@ -222,7 +233,7 @@ def run_workflow(workflow: Workflow, *, scheduler: str | None = None, progress: 
     with store_locks(stores, purpose=f"selpath run {workflow.source}"):
         for store in stores:
             for done in tidy_staging(store):
-                log(f"[dim]tidy[/] {done}")
+                log(f"[dim]tidy[/] {escape(done)}")
         graph = _Graph(workflow, reuse=reuse, log=log)
         order = list(workflow.steps)  # dependency order
         outputs = sorted(workflow.outputs.items(), key=lambda item: order.index(item[1].from_))
@@ -234,8 +245,8 @@ def run_workflow(workflow: Workflow, *, scheduler: str | None = None, progress: 
                 if out.store in workflow.self_written:  # the stage filled it as it ran: record, never rewrite
                     _record(workflow, graph.records, name, out, scheduler, out.store)
                 else:
-                    _write_output(workflow, graph.records, name, out, _as_dataset(result, name), scheduler, client,
-                                  progress, f"{workflow.name}: {name} ({number}/{len(outputs)})")
+                    _write_output(graph, name, out, _as_dataset(result, name), scheduler, client, progress,
+                                  f"{workflow.name}: {name} ({number}/{len(outputs)})")
                 graph.report.written.append(out.store)
                 graph.results[out.from_] = open_store(out.store)  # the steps after it read the stored cube
     graph.finish()
@@ -243,25 +254,59 @@ def run_workflow(workflow: Workflow, *, scheduler: str | None = None, progress: 
     return graph.report
 
 
-def _write_output(workflow: Workflow, records: dict[str, dict[str, Any]], name: str, out: OutputSpec,
-                  data: xr.Dataset, scheduler: str, client: Any, progress: bool, description: str) -> None:
-    """Write one output into a staging sibling, add its manifest and provenance, then move it into place."""
+def _write_output(graph: _Graph, name: str, out: OutputSpec, data: xr.Dataset, scheduler: str, client: Any,
+                  progress: bool, description: str) -> None:
+    """Write one output into a staging sibling, check the usable shares of its step and of the steps upstream
+    computed on the way (:mod:`pipeline.quality`), add its manifest and provenance, then move it into place."""
+    workflow = graph.workflow
     kind = out.kind or data.attrs.get("selpath_kind")
     if kind is None:
         raise StageError(Problem(f"the result of step {out.from_!r} has no selpath_kind attr",
                                  path=f"outputs.{name}", fix="set `kind:` on the output"))
+    upstream = graph.unchecked(out.from_)
+    carried = {f"{_CARRIED}{step}__{var}": share for step in upstream if step != out.from_
+               for var, share in shares(graph.results[step]).items()}
     staging = Staging(out.store)
     try:
-        write = write_store(data, staging.path, kind, compute=False)
+        write = write_store(data.assign(carried), staging.path, kind, compute=False)
         compute([write], scheduler=scheduler, client=client, progress=progress, description=description)
+        usable = _usable(staging.path, out.from_, data, carried, graph)
         write_manifest(staging.path, data)
-        _record(workflow, records, name, out, scheduler, staging.path)
+        _record(workflow, graph.records, name, out, scheduler, staging.path, usable)
     except BaseException:
         staging.abort()
         raise
     staging.commit()
+    graph.checked.update(upstream)
     if kind == "figure":
         _save_png(out.store)
+
+
+_CARRIED = "usable__"
+
+
+def _usable(staging: str, step_id: str, data: xr.Dataset, carried: dict[str, xr.DataArray],
+            graph: _Graph) -> dict[str, dict[str, float]]:
+    """The usable shares just written beside an output: checked against their floors (StageError naming every
+    share below one), then the carried ones of upstream steps removed from the store. Returns them by step."""
+    group = zarr.open_group(staging, mode="r+")
+    found: dict[str, dict[str, float]] = {}
+    attrs: dict[str, dict[str, Any]] = {}
+    for var, share in shares(data).items():
+        found.setdefault(step_id, {})[var] = float(group[var][()])
+        attrs.setdefault(step_id, {})[var] = share.attrs
+    for key, share in carried.items():
+        step, var = key[len(_CARRIED):].split("__", 1)
+        found.setdefault(step, {})[var] = float(group[key][()])
+        attrs.setdefault(step, {})[var] = share.attrs
+        del group[key]
+    problems = [p for step, values in found.items() for p in below_floor(step, values, attrs[step])]
+    for step, values in found.items():
+        for var, value in values.items():
+            graph.log(f"[dim]usable[/] {escape(step)}: {escape(attrs[step][var][WHAT])}: {value:.1%}")
+    if problems:
+        raise StageError(problems)
+    return found
 
 
 def _has_missing_frames(store: str) -> bool:
@@ -272,7 +317,7 @@ def _has_missing_frames(store: str) -> bool:
 
 
 def _record(workflow: Workflow, records: dict[str, dict[str, Any]], name: str, out: OutputSpec, scheduler: str,
-            target: str) -> None:
+            target: str, usable: dict[str, dict[str, float]] | None = None) -> None:
     """Write an output's provenance into ``target`` (its store, or the staging copy), once its data is complete."""
     chain = _ancestors(workflow, out.from_)
     write_provenance(target, {
@@ -287,6 +332,7 @@ def _record(workflow: Workflow, records: dict[str, dict[str, Any]], name: str, o
         "versions": package_versions(),
         "scheduler": scheduler,
         "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+        "usable": usable or {},
     })
 
 

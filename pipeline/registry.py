@@ -53,6 +53,9 @@ class Stage:
     #: for stages that write their own store as they go (acquisitions): the store path from the settings.
     #: The engine treats that store as the step's output and never rewrites it.
     writes: Callable[[pydantic.BaseModel], str] | None = None
+    #: optional: the data variables the stage's result will have, from its validated settings (None where
+    #: unknown), so ``$step.variable`` references are checked when the workflow is validated
+    variables: Callable[[pydantic.BaseModel], Iterable[str] | None] | None = None
 
     @property
     def source(self) -> str:
@@ -84,7 +87,7 @@ def _param_docs(doc: str) -> dict[str, str]:
 
 
 def _build_stage(name: str, func: Callable[..., Any], precheck: Callable | None, identity: Callable | None,
-                 writes: Callable | None = None) -> Stage:
+                 writes: Callable | None = None, variables: Callable | None = None) -> Stage:
     if not _NAME.match(name):
         raise SelpathError(f"stage name {name!r} must be lower_snake_case")
     hints = typing.get_type_hints(func, include_extras=True)
@@ -115,17 +118,20 @@ def _build_stage(name: str, func: Callable[..., Any], precheck: Callable | None,
         **fields,
     )
     summary = inspect.cleandoc(func.__doc__ or "").split("\n\n")[0].replace("\n", " ")
-    return Stage(name, func, tuple(inputs), tuple(required), model, summary, docs, precheck, identity, writes)
+    return Stage(name, func, tuple(inputs), tuple(required), model, summary, docs, precheck, identity, writes,
+                 variables)
 
 
 def stage(name: str, *, precheck: Callable[[Any], list[str]] | None = None,
-          identity: Callable[[Any], Any] | None = None, writes: Callable[[Any], str] | None = None) -> Callable:
+          identity: Callable[[Any], Any] | None = None, writes: Callable[[Any], str] | None = None,
+          variables: Callable[[Any], Iterable[str] | None] | None = None) -> Callable:
     """Mark ``func`` as the stage ``name``; the function itself is returned unchanged.
 
     ``precheck(settings)`` runs when a workflow is validated and returns problems as strings;
     ``identity(settings)`` names external data the stage reads, so provenance changes with it;
     ``writes(settings)`` is the store a stage fills itself while it runs (an acquisition), which then
-    is the step's output: the engine records its provenance but never rewrites it.
+    is the step's output: the engine records its provenance but never rewrites it; ``variables(settings)``
+    lists the data variables of the result where the settings tell them (a store's, a capture kind's).
 
     >>> import xarray as xr
     >>> @stage("double")
@@ -136,7 +142,7 @@ def stage(name: str, *, precheck: Callable[[Any], list[str]] | None = None,
     """
 
     def mark(func: Callable[..., Any]) -> Callable[..., Any]:
-        setattr(func, _MARK, _build_stage(name, func, precheck, identity, writes))
+        setattr(func, _MARK, _build_stage(name, func, precheck, identity, writes, variables))
         return func
 
     return mark

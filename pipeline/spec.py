@@ -455,7 +455,24 @@ def _check_steps(spec: WorkflowFile, raw: dict, registry: StageRegistry, located
             if ref.step not in seen:
                 located.add(("steps", step.index, "with", key), f"reference {ref} names no step",
                             _suggest(ref.step, list(seen)))
+            elif ref.variable is not None and ref.step in steps:
+                known = _variables_of(steps[ref.step])
+                if known is not None and ref.variable not in known:
+                    located.add(("steps", step.index, "with", key), f"{ref} names no variable of step "
+                                f"{ref.step!r} (it has {', '.join(sorted(known))})", _suggest(ref.variable,
+                                                                                          sorted(known)))
     return steps
+
+
+def _variables_of(step: Step) -> set[str] | None:
+    """The data variables a step's result will have, where its stage can tell from its settings."""
+    if step.stage.variables is None:
+        return None
+    try:
+        names = step.stage.variables(step.settings)
+    except Exception:  # noqa: BLE001 - an unreadable store is reported by the stage's own precheck
+        return None
+    return None if names is None else {str(n) for n in names}
 
 
 def _check_outputs(spec: WorkflowFile, steps: dict[str, Step], located: _Located,

@@ -19,7 +19,13 @@ def _precheck(settings) -> list[str]:
     return []
 
 
-@stage("load_store", precheck=_precheck, identity=lambda settings: store_identity(settings.store))
+def _variables(settings) -> list[str]:
+    """The store's data variables (frame flags aside), read from its metadata at validation time."""
+    return [str(v) for v in open_store(settings.store, settings.kind).data_vars]
+
+
+@stage("load_store", precheck=_precheck, identity=lambda settings: store_identity(settings.store),
+       variables=_variables)
 def load_store(*, store: StorePath, kind: str | None = None) -> xr.Dataset:
     """Open a selpath store lazily, checked against its cube kind.
 

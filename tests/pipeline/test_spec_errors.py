@@ -165,3 +165,12 @@ def test_input_store_with_wrong_dims_fails_validation(tmp_path):
         to_store(ds, tmp_path / "cap.zarr", "tomography_capture")
     message, _ = _errors(tmp_path, LOAD.format(store="missing.zarr"))
     assert re.search(r"missing.zarr: no store at this path", message), message
+
+
+def test_a_variable_reference_is_checked_against_the_input_store(tmp_path):
+    """`$capture.nonexistent` passed validation and failed only at run time; the store's variables are known."""
+    to_store(_capture(), tmp_path / "cap.zarr", "tomography_capture")
+    text = LOAD.format(store="cap.zarr").replace("{capture: $capture}", "{capture: $capture.targett}")
+    message, _ = _errors(tmp_path, text)
+    assert re.search(r"wf.yaml:8: steps\[1\].with.capture: \$capture.targett names no variable of step 'capture' "
+                     r"\(it has reference, target\) \(fix: did you mean 'target'\?\)", message), message

@@ -1,0 +1,65 @@
+"""Degenerate data must not give confident zeros: each stage states what share of its input was usable.
+
+A stage puts the share in its result as a 0-d data variable made by :func:`usable_share` (lazy, like the
+rest of the result), with the floor below which its output means nothing, the cause and the setting to
+change in the variable's attrs. The share stays in the stage's store, where anyone can read it
+(``xr.open_zarr(path).usable_fraction``).
+
+The engine computes these shares in the same pass that writes an output, for the output's own step and
+every step upstream of it that was not read back from a store, and refuses to move the output into place
+when one is below its floor: a :class:`~pipeline.errors.StageError` names the step, the share, the floor,
+the cause and the fix. In a notebook, :func:`enforce` does the same on any result.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+
+import dask
+import numpy as np
+import xarray as xr
+
+from pipeline.errors import Problem, StageError
+
+FLOOR = "selpath_floor"
+WHAT = "selpath_usable"
+FIX = "selpath_fix"
+
+
+def usable_share(share: xr.DataArray | float, *, floor: float, what: str, fix: str) -> xr.DataArray:
+    """A 0-d variable holding the usable share of a stage's input (lazy if ``share`` is), checked against
+    ``floor``: ``what`` names the input in words ("lit reference pixels whose target is usable"), ``fix``
+    the setting to change or the data to look at."""
+    share = share if isinstance(share, xr.DataArray) else xr.DataArray(float(share))
+    return share.astype(np.float64).assign_attrs({
+        "long_name": f"share of {what}", "units": "1", FLOOR: float(floor), WHAT: what, FIX: fix})
+
+
+def shares(result: xr.Dataset | xr.DataArray) -> dict[str, xr.DataArray]:
+    """The usable-share variables of a stage's result (none for a DataArray)."""
+    if not isinstance(result, xr.Dataset):
+        return {}
+    return {str(n): v for n, v in result.data_vars.items() if v.ndim == 0 and FLOOR in v.attrs}
+
+
+def below_floor(step: str, values: Mapping[str, float], attrs: Mapping[str, Mapping]) -> list[Problem]:
+    """Problems for the shares of ``step`` below their floors (NaN, an empty input, counts as 0)."""
+    problems = []
+    for name, value in values.items():
+        meta = attrs[name]
+        share = 0.0 if value is None or not math.isfinite(value) else float(value)
+        if share < meta[FLOOR]:
+            problems.append(Problem(f"only {share:.2%} of {meta[WHAT]} (floor {meta[FLOOR]:.2%}): its output would "
+                                    "mean nothing", path=f"step {step!r} {name}", fix=meta[FIX]))
+    return problems
+
+
+def enforce(result: xr.Dataset, step: str = "result") -> dict[str, float]:
+    """Compute the usable shares of ``result`` and raise StageError if any is below its floor; returns them."""
+    found = shares(result)
+    values = dict(zip(found, (float(v) for v in dask.compute(*[v.data for v in found.values()])), strict=True))
+    problems = below_floor(step, values, {n: v.attrs for n, v in found.items()})
+    if problems:
+        raise StageError(problems)
+    return values
