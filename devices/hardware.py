@@ -36,10 +36,11 @@ class StageConfig(_Model):
 
 
 class CameraConfig(_Model):
-    source: int | str
-    width: int | None = None
-    height: int | None = None
-    exposure: float | None = None
+    source: int | str = pydantic.Field(description="OpenCV camera index or stream URL")
+    width: int | None = pydantic.Field(None, gt=0, description="frame width to ask for [px]")
+    height: int | None = pydantic.Field(None, gt=0, description="frame height to ask for [px]")
+    exposure: float | None = pydantic.Field(None, description="CAP_PROP_EXPOSURE as the backend reads it; signed "
+                                            "(many backends take log2 seconds, e.g. -6)")
     discard: int = pydantic.Field(0, ge=0)
 
 

@@ -13,6 +13,8 @@ plain ``typing.Annotated`` types, so a plugin uses them the same way::
 from __future__ import annotations
 
 import os
+import types
+import typing
 from typing import Annotated, Any
 
 import pydantic
@@ -65,13 +67,25 @@ def memory_problems(nbytes: float, what: str, fix: str = "") -> list[str]:
 _BOUNDS = ((Gt, "gt", ">"), (Ge, "ge", "≥"), (Lt, "lt", "<"), (Le, "le", "≤"))
 
 
+def _bounds(metadata) -> list[str]:
+    items = [m for item in metadata for m in (getattr(item, "metadata", None) or [item])]  # Field(gt=0) holds Gt
+    return [f"{symbol} {getattr(item, attr):g}" for item in items for cls, attr, symbol in _BOUNDS
+            if isinstance(item, cls)]
+
+
+def _type_text(annotation: Any) -> str:
+    """``int``, ``float > 0``, ``float > 0 | None``, ``tuple[float, ...]``: a type with its ranges."""
+    if typing.get_origin(annotation) is typing.Annotated:
+        base, *metadata = typing.get_args(annotation)
+        bounds = _bounds(metadata)
+        return f"{_type_text(base)} {', '.join(bounds)}" if bounds else _type_text(base)
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        return " | ".join("None" if a is type(None) else _type_text(a) for a in typing.get_args(annotation))
+    return getattr(annotation, "__name__", None) or str(annotation).replace("typing.", "")
+
+
 def describe(field: Any) -> str:
-    """A setting's type with its range, e.g. ``int ≥ 1`` or ``float in [0, 1]``, for ``selpath stages``."""
-    annotation = field.annotation
-    text = getattr(annotation, "__name__", None) or str(annotation).replace("typing.", "")
-    bounds = []
-    for item in field.metadata:
-        for cls, attr, symbol in _BOUNDS:
-            if isinstance(item, cls):
-                bounds.append(f"{symbol} {getattr(item, attr):g}")
+    """A setting's type with its range, e.g. ``int ≥ 1`` or ``float ≥ 0, ≤ 1``, for ``selpath stages``."""
+    text = _type_text(field.annotation)
+    bounds = _bounds(field.metadata)
     return f"{text} {', '.join(bounds)}" if bounds else text

@@ -18,6 +18,7 @@ from devices.acquire import acquire_tomography as sweep
 from devices.hardware import hardware_rig, load_hardware
 from devices.sim.rig import simulated_rig
 from devices.sim.scene import load_scene
+from pipeline.constraints import memory_problems
 from pipeline.errors import SelpathError
 from pipeline.registry import stage
 from pipeline.spec import StorePath
@@ -31,11 +32,15 @@ def _precheck(settings) -> list[str]:
     if not source:
         return [f"rig {settings.rig!r} needs the setting {name!r} (a YAML file)"]
     try:
-        (load_scene if settings.rig == "sim" else load_hardware)(source)
+        spec = (load_scene if settings.rig == "sim" else load_hardware)(source)
     except SelpathError as exc:
         return [f"{name} file: {p}" for p in getattr(exc, "problems", [exc])]
     if len(settings.angles.values()) == 0:
         return ["the angle sweep is empty"]
+    if settings.rig == "sim":  # the simulator traces one ray per pixel: (rows × cols, 3) float64 end points
+        rows, cols = spec.camera.rows, spec.camera.cols
+        return memory_problems(rows * cols * 3 * 8, f"the simulated camera's rays ({rows:,} × {cols:,} px, "
+                               "3 float64 coordinates each)", fix="lower camera.rows or camera.cols in the scene")
     return []
 
 
@@ -45,7 +50,8 @@ def _identity(settings) -> dict:
     return {"rig": settings.rig, "file": str(source), "sha256": digest}
 
 
-@stage("acquire_tomography", precheck=_precheck, identity=_identity, writes=lambda settings: settings.store)
+@stage("acquire_tomography", precheck=_precheck, identity=_identity, writes=lambda settings: settings.store,
+       variables=lambda settings: ["target", "reference", "backlit", "dark"])  # devices.acquire.capture_template
 def acquire_tomography(
     *,
     store: StorePath,
@@ -69,7 +75,7 @@ def acquire_tomography(
     hardware : str
         Rig file for ``rig: hardware`` (``docs/devices.md``).
     angles : AngleSweep
-        Stage angles {start, stop, step} [degree].
+        Stage angles {start, stop, step} [degree]; stop > start, at most 100 000 angles.
     progress : bool
         Show a progress bar.
     """

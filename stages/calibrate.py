@@ -12,10 +12,14 @@ All stages are elementwise xarray operations on dask arrays, hence lazy and tile
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import xarray as xr
 
+from pipeline.constraints import Fraction, NonNegative, Positive
 from pipeline.errors import Problem, StageError
+from pipeline.quality import usable_share
 from pipeline.registry import stage
 
 #: bits of ``flags``; target bits are shifted by 0, reference bits by 3
@@ -93,12 +97,13 @@ def frame_flags(raw: np.ndarray, corrected: np.ndarray, *, saturation_level: flo
     return (saturated * SATURATED + no_signal * NO_SIGNAL + nonfinite * NONFINITE).astype(np.uint8)
 
 
-def _pair_kernel(target, reference, background, *, subtracted: bool, level: float, min_signal: float,
-                 dtype, absorption: bool):
+def _pair_kernel(target, reference, background, min_signal, *, subtracted: bool, level: float, dtype,
+                 absorption: bool):
     """One tile, one pass: flags of both frames, then log difference (or ratio) of the valid pixels.
 
     Fused by hand into a single NumPy function: the same arithmetic as ~15 separate lazy xarray
     operations ran at 60 Mpx/s on 2 cores, this kernel at 80 Mpx/s (benchmarks/absorption_throughput.py).
+    ``min_signal`` is a scalar or per-frame thresholds broadcast against the tile.
     """
     def split(frames):
         frames = frames.astype(dtype, copy=False)
@@ -113,63 +118,160 @@ def _pair_kernel(target, reference, background, *, subtracted: bool, level: floa
     return np.where(valid, value, np.nan).astype(dtype, copy=False), flags
 
 
+def _same_frames(capture: xr.Dataset, background: str | None, stage_name: str) -> None:
+    """Target and reference must be frames of the same sweep; the background one frame of their size."""
+    target, reference = capture["target"], capture["reference"]
+    problems = []
+    if target.dims != reference.dims or target.shape != reference.shape:
+        problems.append(Problem(f"stage {stage_name!r}: reference has dims {reference.dims} and shape "
+                                f"{reference.shape}, target {target.dims} and {target.shape}; they must match",
+                                path="reference", fix="film the reference object at the same angles with the same "
+                                "camera, and store both with dims (angle, row, col)"))
+    if background is not None:
+        frame = capture[background]
+        pixels = {d: target.sizes[d] for d in target.dims if d in ("row", "col", "channel")}
+        if set(frame.dims) - set(target.dims) or any(frame.sizes[d] != n for d, n in pixels.items() if d in frame.dims):
+            problems.append(Problem(f"stage {stage_name!r}: background {background!r} has dims {frame.dims} and "
+                                    f"shape {frame.shape}; the frames are {target.dims} {target.shape}",
+                                    path=background, fix="use one frame of the same camera, dims (row, col)"))
+    if problems:
+        raise StageError(problems)
+
+
+def frame_peak(frames: xr.DataArray, background: xr.DataArray, *, subtracted: bool, level: float) -> xr.DataArray:
+    """Per frame, the brightest dark-subtracted pixel that is finite and below saturation (lazy)."""
+    raw = frames + background if subtracted else frames
+    corrected = frames if subtracted else frames - background
+    pixel_dims = [d for d in frames.dims if d in ("row", "col", "channel")]
+    return corrected.where((raw < level) & np.isfinite(corrected)).max(dim=pixel_dims)
+
+
+#: floors of the usable shares (:mod:`pipeline.quality`): a beam rig's reference lights much of the frame
+#: (86 % of pixels are valid in the demo), so under 0.1 % with signal is a wrong scale or a dark capture
+SIGNAL_FLOOR, USABLE_FLOOR, DARK_FLOOR = 0.001, 0.05, 0.05
+
+
 def _checked_pair(capture: xr.Dataset, stage_name: str, saturation_level: float | None, min_signal: float,
-                  *, absorption: bool) -> tuple[xr.DataArray, xr.DataArray, dict]:
-    """Absorption (or transmittance) and flags of dark-subtracted target and reference, lazily per tile."""
+                  min_signal_relative: float, *, absorption: bool) -> tuple[xr.DataArray, xr.DataArray, dict, dict]:
+    """Absorption (or transmittance) and flags of dark-subtracted target and reference, lazily per tile, and the
+    usable shares of the input (:mod:`pipeline.quality`)."""
+    capture = sorted_sweep(capture, "angle", stage_name)
     background_name = capture.attrs.get("background_subtracted") or ("dark" if "dark" in capture else None)
     _require(capture, ("target", "reference") + ((background_name,) if background_name else ()), stage_name)
+    _same_frames(capture, background_name, stage_name)
     level = _saturation_level(capture, saturation_level)
+    subtracted = bool(capture.attrs.get("background_subtracted"))
     background = capture[background_name] if background_name else xr.DataArray(0.0)
     dtype = np.result_type(_float_dtype(capture["target"]), _float_dtype(capture["reference"]))
+    threshold = xr.DataArray(float(min_signal))
+    if min_signal_relative > 0:
+        peak = frame_peak(capture["reference"].astype(dtype), background, subtracted=subtracted, level=level)
+        threshold = np.maximum(threshold, min_signal_relative * peak.fillna(np.inf))
     value, flags = xr.apply_ufunc(
-        _pair_kernel, capture["target"], capture["reference"], background,
-        kwargs=dict(subtracted=bool(capture.attrs.get("background_subtracted")), level=level,
-                    min_signal=min_signal, dtype=dtype, absorption=absorption),
+        _pair_kernel, capture["target"], capture["reference"], background, threshold,
+        kwargs=dict(subtracted=subtracted, level=level, dtype=dtype, absorption=absorption),
         output_core_dims=[[], []], dask="parallelized", output_dtypes=[dtype, np.uint8],
     )
     value = value.transpose(*capture["target"].dims)
     flags = flags.transpose(*capture["target"].dims)
     flags.attrs.update(flag_masks=FLAG_MASKS, flag_meanings=FLAG_MEANINGS, long_name="why a pixel is invalid")
     attrs = {k: v for k, v in capture.attrs.items() if k != "selpath_kind"}
-    attrs.update(saturation_level=level, min_signal=min_signal)
-    return value, flags, attrs
+    attrs.update(saturation_level=level, min_signal=min_signal, min_signal_relative=min_signal_relative)
+    lit = (flags >> 3) == 0  # the reference pixel is finite, unsaturated and above min_signal
+    shares = {
+        "signal_fraction": usable_share(
+            lit.mean(), floor=SIGNAL_FLOOR, what="reference pixels with usable signal (finite, below saturation_level, "
+            "above min_signal)", fix="check the frames' scale: min_signal is in counts above dark (for data on another "
+            "scale set min_signal_relative, e.g. 0.01 of each frame's brightest reference pixel); check the dark "
+            "frame, saturation_level and NaN frames"),
+        "usable_fraction": usable_share(
+            (flags == 0).sum() / np.maximum(lit.sum(), 1), floor=USABLE_FLOOR,
+            what="lit reference pixels whose target is usable too (finite, below saturation_level, above min_signal)",
+            fix="most target frames are saturated, NaN or dark where the reference is lit: check them and "
+            "saturation_level"),
+    }
+    if background_name and not subtracted:
+        shares["dark_fraction"] = usable_share(
+            (capture[background_name] >= 0).mean(), floor=DARK_FLOOR,
+            what=f"{background_name} pixels at or above 0 counts",
+            fix=f"{background_name!r} must be the sensor's offset (counts ≥ 0) in the frames' units: is it already "
+            "subtracted from the frames, or from another camera?")
+    return value, flags, attrs, shares
 
 
-@stage("normalise_reference")
-def normalise_reference(capture: xr.Dataset, /, *, saturation_level: float | None = None,
-                        min_signal: float = 0.0) -> xr.Dataset:
-    """Transmittance I_target / I_reference per pixel (dark-subtracted), with flags for unusable pixels.
+def sorted_sweep(ds: xr.Dataset, dim: str, stage_name: str) -> xr.Dataset:
+    """``ds`` with its sweep coordinate ``dim`` sorted (warning if it was not); a repeated value is refused."""
+    if dim not in ds.coords:
+        return ds
+    values = np.asarray(ds[dim].values)
+    unique, counts = np.unique(values, return_counts=True)
+    if (counts > 1).any():
+        repeated = unique[counts > 1]
+        raise StageError(Problem(f"stage {stage_name!r}: coordinate {dim!r} repeats {repeated[:5].tolist()} "
+                                 f"({int((counts - 1).sum())} duplicate frame(s)); each {dim} must be captured once",
+                                 path=dim, fix="drop the duplicates (ds.drop_duplicates) or fix the coordinate"))
+    if (np.diff(values) < 0).any():
+        warnings.warn(f"stage {stage_name!r}: coordinate {dim!r} is not sorted; frames were reordered by {dim}",
+                      UnsortedSweepWarning, stacklevel=3)
+        ds = ds.sortby(dim)
+    return ds
 
-    Parameters
+
+class UnsortedSweepWarning(UserWarning):
+    """A sweep coordinate (angle, delay, …) was not in increasing order; the stage sorted it."""
+
+
+_PAIR_DOCS = """Parameters
     ----------
     saturation_level : float or None
         Raw count at or above which a pixel is saturated [counts]; default: the capture's
         ``saturation_level`` attr, else the integer dtype's maximum.
     min_signal : float
         Dark-subtracted count at or below which a pixel has no usable signal [counts].
+    min_signal_relative : float
+        Also no usable signal at or below this share of the frame's brightest unsaturated reference pixel
+        (dark-subtracted) [1]: a threshold meaningful on any intensity scale (radiance renders, 16-bit
+        cameras); 0 turns it off. A pixel must pass both.
+
+    Besides the result and ``flags``, the shares ``signal_fraction`` (reference pixels with usable signal;
+    floor 0.1 %), ``usable_fraction`` (of those, pixels whose target is usable too; floor 5 %) and
+    ``dark_fraction`` (dark pixels ≥ 0 counts; floor 5 %): below a floor the workflow stops, naming the cause
+    (:mod:`pipeline.quality`). A repeated angle is refused and unsorted angles are sorted (with a warning)."""
+
+
+def _pair_docs(func):
+    """The settings' documentation shared by absorption and normalise_reference (read by the registry)."""
+    func.__doc__ = func.__doc__.replace("{pair}", _PAIR_DOCS)
+    return func
+
+
+@stage("normalise_reference")
+@_pair_docs
+def normalise_reference(capture: xr.Dataset, /, *, saturation_level: Positive | None = None,
+                        min_signal: NonNegative = 0.0, min_signal_relative: Fraction = 0.0) -> xr.Dataset:
+    """Transmittance I_target / I_reference per pixel (dark-subtracted), with flags for unusable pixels.
+
+    {pair}
     """
-    value, flags, attrs = _checked_pair(capture, "normalise_reference", saturation_level, min_signal,
-                                        absorption=False)
+    value, flags, attrs, shares = _checked_pair(capture, "normalise_reference", saturation_level, min_signal,
+                                                min_signal_relative, absorption=False)
     value.attrs.update(units="1", long_name="I_target / I_reference")
-    return xr.Dataset({"transmittance": value, "flags": flags}, attrs={**attrs, "selpath_kind": "transmittance"})
+    return xr.Dataset({"transmittance": value, "flags": flags, **shares},
+                      attrs={**attrs, "selpath_kind": "transmittance"})
 
 
 @stage("absorption")
-def absorption(capture: xr.Dataset, /, *, saturation_level: float | None = None,
-               min_signal: float = 0.0) -> xr.Dataset:
+@_pair_docs
+def absorption(capture: xr.Dataset, /, *, saturation_level: Positive | None = None,
+               min_signal: NonNegative = 0.0, min_signal_relative: Fraction = 0.0) -> xr.Dataset:
     """Total absorption A = log I_reference − log I_target per pixel (thesis Eq. 3), with flags.
 
     Computed as a difference of logs, never as the log of a ratio, so float32 frames spanning
     1e-8…1e8 cannot under- or overflow.
 
-    Parameters
-    ----------
-    saturation_level : float or None
-        Raw count at or above which a pixel is saturated [counts]; default: the capture's
-        ``saturation_level`` attr, else the integer dtype's maximum.
-    min_signal : float
-        Dark-subtracted count at or below which a pixel has no usable signal [counts].
+    {pair}
     """
-    value, flags, attrs = _checked_pair(capture, "absorption", saturation_level, min_signal, absorption=True)
+    value, flags, attrs, shares = _checked_pair(capture, "absorption", saturation_level, min_signal,
+                                                min_signal_relative, absorption=True)
     value.attrs.update(units="1", long_name="total absorption log I_reference - log I_target")
-    return xr.Dataset({"absorption": value, "flags": flags}, attrs={**attrs, "selpath_kind": "absorption"})
+    return xr.Dataset({"absorption": value, "flags": flags, **shares}, attrs={**attrs, "selpath_kind": "absorption"})

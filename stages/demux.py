@@ -10,18 +10,23 @@ time t_p, so Σ_o T(o) w(o; t_d, t_e) reproduces a frame.
 
 from __future__ import annotations
 
+from typing import ClassVar
+
 import dask.array as da
 import jax
 import numpy as np
 import pydantic
 import xarray as xr
 
+from pipeline.constraints import Count, Index, NonNegative, Positive
 from pipeline.errors import Problem, StageError
+from pipeline.quality import usable_share
 from pipeline.registry import stage
 from stages.demux_problem import DemuxProblem, SeparableDemuxProblem
 from stages.demux_solver import batch_slots, observed, solve
 from stages.illumination import epipolar_boundary, line_cells, line_illumination, plane_to_ray_illumination
-from stages.reconstruct import Dtype
+from stages.reconstruct import Dtype, MaxIter
+from stages.sweeps import sweep_problem
 
 #: streaming batches per solver call: a call's pool (data, warm starts, results: ~8 (P × K) arrays, 64 MB at
 #: K = 128) is bounded while the batch's tail (its last, slowest pixels) is paid once per 16 batches of pixels
@@ -37,12 +42,24 @@ def pixels_per_call(pixels: int, offsets: int) -> int:
 
 
 class OffsetGrid(pydantic.BaseModel):
-    """Offsets o = projector row − camera row: start, start+step, …, up to and including stop [rows]."""
+    """Offsets o = projector row − camera row: start, start+step, …, up to and including stop [rows]: stop ≥
+    start, step > 0, at most :attr:`MAX_VALUES` offsets (every offset of a 5 000-row sensor; the solver's
+    K × K float64 matrices then take 800 MB)."""
 
     model_config = pydantic.ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+    #: most offsets a grid may have
+    MAX_VALUES: ClassVar[int] = 10_000
     start: int
     stop: int
     step: int = pydantic.Field(1, gt=0)
+
+    @pydantic.model_validator(mode="after")
+    def _bounded(self):
+        problem = sweep_problem(self.start, self.stop, self.step, inclusive=True, what="offsets",
+                                cap=self.MAX_VALUES)
+        if problem:
+            raise ValueError(f"offset grid: {problem}")
+        return self
 
     def values(self) -> np.ndarray:
         return np.arange(self.start, self.stop + 1, self.step)
@@ -182,10 +199,10 @@ def _band(block: xr.Dataset, *, problem: DemuxProblem, keep: np.ndarray, levels:
 
 @stage("demux_plane_to_ray")
 def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, /, *,
-                       offsets: OffsetGrid | None = None, alpha: float = 0.01, beta: float = 0.01,
-                       tol: float = 5e-3, max_iter: int = 200, polish_iter: int = 5,
-                       boundary_margin_us: float | None = None, sync_offset_us: float | None = None,
-                       full_scale: float | None = None, rows_per_tile: int = 32,
+                       offsets: OffsetGrid | None = None, alpha: NonNegative = 0.01, beta: NonNegative = 0.01,
+                       tol: Positive = 5e-3, max_iter: MaxIter = 200, polish_iter: Index = 5,
+                       boundary_margin_us: NonNegative | None = None, sync_offset_us: float | None = None,
+                       full_scale: Positive | None = None, rows_per_tile: Count = 32,
                        dtype: Dtype = "float32") -> xr.Dataset:
     """Plane-to-ray transport T(offset, row, col) from a ``(delay, exposure, row, col)`` capture (§5.2.2).
 
@@ -196,7 +213,8 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
     Parameters
     ----------
     offsets : {start, stop, step} or None
-        Offset grid [rows]; None: every offset some frame of the sweep lights.
+        Offset grid [rows], stop included, at most 10 000 offsets; None: every offset some frame of the sweep
+        lights.
     alpha : float
         Smoothness weight α (thesis: 0.01).
     beta : float
@@ -210,8 +228,8 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
         4.5 % at the cap]. The default meets the issue's 1e-4 median on the benchmark's stack at K = 128; many
         offsets per pixel (Fig. 38) need 2e-3 for it, at about twice the time.
     max_iter : int
-        Iteration cap; a pixel that reaches it is flagged unconverged. A solver call streams its pixels
-        through a batch refilled as they converge, so the cap bounds only the slow ones.
+        Iteration cap, in [1, 1 000 000]; a pixel that reaches it is flagged unconverged. A solver call streams its
+        pixels through a batch refilled as they converge, so the cap bounds only the slow ones.
     polish_iter : int
         Conjugate-gradient steps of the final support polish (0: none); it costs about as many products as
         iterations and is kept per pixel only where it lowers the objective.
@@ -219,7 +237,7 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
         Drop frames whose exposure edge is within this many µs of the epipolar row; None: t_p/2 (the edge
         cuts the epipolar row's own line time; widen it by the laser jitter of a real rig).
     sync_offset_us : float or None
-        Sync offset t_o [µs]; None: the scan calibration's when wired in, else 0.
+        Sync offset t_o [µs], signed; None: the scan calibration's when wired in, else 0.
     full_scale : float or None
         Counts that scale the images to [0, 1]; None: the capture's saturation_counts − dark_level_counts.
     rows_per_tile : int
@@ -243,9 +261,20 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
     out = out.assign_coords(offset=("offset", grid, {"units": "px", "long_name": "projector row − camera row"}))
     out["transport"].attrs = {"units": "counts", "long_name": "plane-to-ray transport T(v, s, t)"}
     out["objective"].attrs = {"long_name": "objective at T (images scaled to [0, 1])"}
+    out["usable_fraction"] = _usable(out["frames_used"], int(keep.sum()))
     return out.assign_attrs(_transport_attrs(
         "plane_to_ray_transport", timing=timing, delays=delays, exposures=exposures, keep=keep, margin=margin,
         full_scale=scale, alpha=alpha, beta=beta, tol=tol, max_iter=max_iter, polish_iter=polish_iter, dtype=dtype))
+
+
+#: floor of ``usable_fraction``: below it most observations are saturated or missing, and T is a guess
+USABLE_FLOOR = 0.05
+
+
+def _usable(frames_used: xr.DataArray, frames: int) -> xr.DataArray:
+    return usable_share(frames_used.sum() / max(frames * frames_used.size, 1), floor=USABLE_FLOOR,
+                        what="observations (pixel × frame) that were usable, neither saturated nor missing",
+                        fix="check the capture: saturation_counts, NaN frames, exposures too long for the scene")
 
 
 #: bytes of full transport one dask task may hold (the default rows_per_tile of demux_full follows from it)
@@ -281,11 +310,12 @@ def _band_full(block: xr.Dataset, *, problem: SeparableDemuxProblem, keep: np.nd
 
 @stage("demux_full")
 def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, /, *,
-               offsets: OffsetGrid | None = None, cell_width_px: float | None = None,
-               du_reach_px: float | None = None, alpha: float = 0.01, beta: float = 0.01, tol: float = 5e-3,
-               max_iter: int = 200, polish_iter: int = 5, boundary_margin_us: float | None = None,
-               sync_offset_us: float | None = None, full_scale: float | None = None,
-               rows_per_tile: int | None = None, dtype: Dtype = "float32") -> xr.Dataset:
+               offsets: OffsetGrid | None = None, cell_width_px: Positive | None = None,
+               du_reach_px: NonNegative | None = None, alpha: NonNegative = 0.01, beta: NonNegative = 0.01,
+               tol: Positive = 5e-3, max_iter: MaxIter = 200, polish_iter: Index = 5,
+               boundary_margin_us: NonNegative | None = None, sync_offset_us: float | None = None,
+               full_scale: Positive | None = None, rows_per_tile: Count | None = None,
+               dtype: Dtype = "float32") -> xr.Dataset:
     """Full transport T(du, dv, row, col) from a ``(delay, exposure, line, row, col)`` capture (§5.3.1).
 
     Per pixel the thesis's problem (Eq. 40 with the α, β and T ≥ 0 of plane-to-ray) over u-cells × offsets,
@@ -298,7 +328,7 @@ def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, 
     Parameters
     ----------
     offsets : {start, stop, step} or None
-        dv grid [rows]; None: every offset some frame of the sweep lights.
+        dv grid [rows], stop included, at most 10 000 offsets; None: every offset some frame of the sweep lights.
     cell_width_px : float or None
         Width of a u-cell [projector columns]; None: the spacing of the lines (the thesis's 20 px).
     du_reach_px : float or None
@@ -349,6 +379,7 @@ def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, 
                               "description": f"light from a {step:g}-column u-cell; NaN where no line reached"}
     out["u_direct"].attrs = {"units": "px", "long_name": "direct correspondence u₀ (centre of the brightest cell)"}
     out["objective"].attrs = {"long_name": "objective at T (images scaled to [0, 1])"}
+    out["usable_fraction"] = _usable(out["frames_used"], int(keep.sum()) * capture.sizes["line"])
     return out.assign_attrs(_transport_attrs(
         "full_transport", timing=timing, delays=delays, exposures=exposures, keep=keep, margin=margin,
         full_scale=scale, alpha=alpha, beta=beta, tol=tol, max_iter=max_iter, polish_iter=polish_iter, dtype=dtype,

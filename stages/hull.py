@@ -19,9 +19,11 @@ from skimage.measure import label
 from skimage.morphology import remove_small_holes, remove_small_objects
 
 from devices.geometry import RigGeometry
+from pipeline.constraints import Index, Positive
 from pipeline.errors import Problem, StageError
+from pipeline.quality import usable_share
 from pipeline.registry import stage
-from stages.calibrate import _require
+from stages.calibrate import _require, sorted_sweep
 
 GEOMETRY_ATTRS = tuple(set(RigGeometry.__dataclass_fields__) - {"rows", "cols"})
 
@@ -59,7 +61,7 @@ def _fill_small_holes(mask: np.ndarray, max_size: int) -> np.ndarray:
 
 
 @stage("silhouettes")
-def silhouettes(capture: xr.Dataset, /, *, threshold: float | None = None, min_size: int = 16) -> xr.Dataset:
+def silhouettes(capture: xr.Dataset, /, *, threshold: Positive | None = None, min_size: Index = 16) -> xr.Dataset:
     """Binary object masks from the backlit frames, per angle (lazy, one task per angle chunk).
 
     Parameters
@@ -67,17 +69,27 @@ def silhouettes(capture: xr.Dataset, /, *, threshold: float | None = None, min_s
     threshold : float or None
         Counts above dark below which a pixel is object; None: Otsu's threshold per frame [counts].
     min_size : int
-        Blobs and holes up to this many pixels are removed (noise, dust) [px].
+        Blobs and holes up to this many pixels are removed (noise, dust); 0: none [px].
     """
     _require(capture, ("backlit",), "silhouettes")
+    capture = sorted_sweep(capture, "angle", "silhouettes")
     backlit = capture["backlit"].chunk({"row": -1, "col": -1})
     dark = capture["dark"] if "dark" in capture else xr.zeros_like(backlit.isel(angle=0, drop=True))
     mask = xr.apply_ufunc(_silhouette_kernel, backlit, dark.chunk({"row": -1, "col": -1}),
                           input_core_dims=[["row", "col"], ["row", "col"]], output_core_dims=[["row", "col"]],
                           dask="parallelized", output_dtypes=[bool],
                           kwargs={"threshold": threshold, "min_size": min_size})
-    return xr.Dataset({"silhouette": mask.transpose("angle", "row", "col")},
+    mask = mask.transpose("angle", "row", "col")
+    covered = mask.mean(("row", "col"))
+    share = usable_share(((covered > 0) & (covered < 1)).mean(), floor=SILHOUETTE_FLOOR,
+                         what="backlit frames with a silhouette (neither empty nor the whole frame)",
+                         fix="check the backlit and dark frames (NaN, unlit, saturated) or set `threshold` [counts]")
+    return xr.Dataset({"silhouette": mask, "object_fraction": share},
                       attrs=geometry_attrs(capture.attrs) | {"selpath_kind": "silhouettes"})
+
+
+#: floor of ``object_fraction``: a hull from fewer than half the views is not the object's
+SILHOUETTE_FLOOR = 0.5
 
 
 def silhouette_half_planes(mask_row: np.ndarray, angles_deg: np.ndarray, geometry: RigGeometry, row: int

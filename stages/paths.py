@@ -18,7 +18,9 @@ import xarray as xr
 
 from devices.geometry import RigGeometry
 from devices.sim.shapes import convex_polygon
+from pipeline.constraints import Fraction
 from pipeline.errors import Problem, StageError
+from pipeline.quality import usable_share
 from pipeline.registry import stage
 from stages.calibrate import _require
 from stages.hull import geometry_attrs
@@ -123,8 +125,12 @@ def _align_kernel(absorption, flags, angle, row, col, vertices, n_vertices, *, g
     return np.stack([theta, x, np.where(reason == 0, absorption, np.nan), reason], axis=-1)
 
 
+#: floor of ``ray_fraction`` (the demo keeps 82 % of its lit-row pixels)
+RAY_FLOOR = 0.05
+
+
 @stage("align_paths")
-def align_paths(absorption: xr.Dataset, hull: xr.Dataset, /, *, min_exit_cos: float = 0.02) -> xr.Dataset:
+def align_paths(absorption: xr.Dataset, hull: xr.Dataset, /, *, min_exit_cos: Fraction = 0.02) -> xr.Dataset:
     """Turn every lit pixel into a ray (θ, X) with its total absorption, on the lit slices only (lazy).
 
     For a light sheet every camera row is a slice; for a narrow beam only the row(s) at the beam's
@@ -133,7 +139,7 @@ def align_paths(absorption: xr.Dataset, hull: xr.Dataset, /, *, min_exit_cos: fl
     Parameters
     ----------
     min_exit_cos : float
-        Rays leaving the contour at a smaller |cos| to its normal graze it and are dropped [1].
+        Rays leaving the contour at a smaller |cos| to its normal graze it and are dropped, in [0, 1]; 0: none [1].
     """
     _require(absorption, ("absorption",), "align_paths")
     missing = [k for k in ("camera_model", "light_angle_deg", "length_unit") if k not in hull.attrs]
@@ -170,7 +176,12 @@ def align_paths(absorption: xr.Dataset, hull: xr.Dataset, /, *, min_exit_cos: fl
         {"theta": theta.assign_attrs(units="degree", long_name="normal angle θ of the ray"),
          "x": x.assign_attrs(units=unit, long_name="signed distance X of the ray from the axis"),
          "absorption": total.assign_attrs(long_name="total absorption along the ray"),
-         "reason": reason.assign_attrs(flag_values=list(REASONS), flag_meanings=meanings)},
+         "reason": reason.assign_attrs(flag_values=list(REASONS), flag_meanings=meanings),
+         "ray_fraction": usable_share(
+             (reason == 0).sum() / np.maximum((reason != 1).sum(), 1), floor=RAY_FLOOR,
+             what="lit-row pixels whose camera ray meets the contour that became rays",
+             fix="see `reason`: flagged absorption (5) points at min_signal or the frames, no contour (6) or misses "
+             "(3) at the silhouettes and the hull, grazing (2) at min_exit_cos")},
         attrs=geometry_attrs(hull.attrs) | {"selpath_kind": "rays", "x_extent": half_width,
                                             "min_exit_cos": min_exit_cos})
     # (transpose only when needed: a no-op transpose layer trips dask 2026.8 when several outputs share it)

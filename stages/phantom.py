@@ -13,17 +13,25 @@ the skin cancel), so both stages describe the inclusions' σ only.
 
 from __future__ import annotations
 
+from typing import Annotated
+
 import numpy as np
+import pydantic
 import xarray as xr
 
 from devices.geometry import to_object
 from devices.sim import tomography as tomo
 from devices.sim.scene import Scene, load_scene
+from pipeline.constraints import Count, Index, NonNegative, Positive, memory_problems
 from pipeline.errors import Problem, SelpathError, StageError
 from pipeline.registry import stage
 from pipeline.spec import StorePath
 from stages.paths import sinogram_coordinates
 from stages.simulate import AngleSweep
+from stages.sinogram import Bins
+
+#: θ_l, the light's angle to the camera axis [degree]
+LightAngle = Annotated[float, pydantic.Field(ge=0, le=180)]
 
 
 def _precheck(settings) -> list[str]:
@@ -32,6 +40,30 @@ def _precheck(settings) -> list[str]:
     except SelpathError as exc:
         return [f"scene file: {p}" for p in getattr(exc, "problems", [exc])]
     return []
+
+
+def ray_problems(n_theta: int, n_x: int) -> list[str]:
+    """The exact Radon transform traces one segment per (θ, X) bin: two (n_theta·n_x, 3) float64 end points."""
+    return memory_problems(n_theta * n_x * 3 * 8, f"the sinogram's rays ({n_theta:,} × {n_x:,} bins, 3 float64 "
+                           "coordinates each)", fix="lower n_theta or n_x")
+
+
+def truth_problems(n_pixels: int | None, supersample: int) -> list[str]:
+    """The truth raster samples (n·supersample)² points of 3 float64 coordinates; n is at least 2 (a sinogram's
+    X bins) where n_pixels is None."""
+    n = n_pixels or 2
+    side = n * supersample
+    grid = f"{n:,} × {n:,} px" if n_pixels else "even the smallest (2 × 2 px) grid"
+    return memory_problems(side * side * 3 * 8, f"the truth raster's sample points ({grid} × {supersample}² "
+                           "samples, 3 float64 coordinates each)", fix="lower n_pixels or supersample")
+
+
+def _sinogram_precheck(settings) -> list[str]:
+    return _precheck(settings) + ray_problems(settings.n_theta, settings.n_x)
+
+
+def _truth_precheck(settings) -> list[str]:
+    return _precheck(settings) + truth_problems(settings.n_pixels, settings.supersample)
 
 
 def scene_radon(scene: Scene, theta_deg: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -82,11 +114,11 @@ def observed_mask(scene: Scene, angles_deg: np.ndarray, theta_deg: np.ndarray, x
     return seen
 
 
-@stage("simulate_sinogram", precheck=_precheck)
-def simulate_sinogram(*, scene: StorePath, light_angle_deg: float | None = None, n_theta: int = 180,
-                      n_x: int = 128, x_extent: float | None = None,
+@stage("simulate_sinogram", precheck=_sinogram_precheck)
+def simulate_sinogram(*, scene: StorePath, light_angle_deg: LightAngle | None = None, n_theta: Count = 180,
+                      n_x: Bins = 128, x_extent: Positive | None = None,
                       angles: AngleSweep = AngleSweep(),  # noqa: B008 (a frozen model: immutable default)
-                      noise_std: float = 0.0, seed: int = 0) -> xr.Dataset:
+                      noise_std: NonNegative = 0.0, seed: Index = 0) -> xr.Dataset:
     """An exact sinogram of a scene's inclusions with the rig's mask of observed rays (§4.4.1).
 
     Parameters
@@ -94,15 +126,15 @@ def simulate_sinogram(*, scene: StorePath, light_angle_deg: float | None = None,
     scene : str
         Scene file (``workflows/scenes/*.yaml``).
     light_angle_deg : float or None
-        θ_l [degree]; None: the scene's.
+        θ_l in [0, 180] [degree]; None: the scene's.
     n_theta : int
         Bins over [0°, 180°).
     n_x : int
-        Bins over [−x_extent, x_extent].
+        Bins over [−x_extent, x_extent], at least 2.
     x_extent : float or None
         Half-width of the X grid [scene length unit, mm]; None: 1.02 × the object's reach.
     angles : AngleSweep
-        Stage angles of the simulated sweep [degree].
+        Stage angles of the simulated sweep [degree]; stop > start, at most 100 000 angles.
     noise_std : float
         Gaussian noise added to the absorption of every bin [absorption].
     seed : int
@@ -145,9 +177,9 @@ def truth_raster(scene: Scene, n: int, extent: float, supersample: int = 4) -> n
     return total.reshape(n, supersample, n, supersample).mean(axis=(1, 3))
 
 
-@stage("phantom_truth", precheck=_precheck)
-def phantom_truth(sinogram: xr.Dataset, /, *, scene: StorePath, n_pixels: int | None = None,
-                  supersample: int = 4) -> xr.Dataset:
+@stage("phantom_truth", precheck=_truth_precheck)
+def phantom_truth(sinogram: xr.Dataset, /, *, scene: StorePath, n_pixels: Count | None = None,
+                  supersample: Count = 4) -> xr.Dataset:
     """The scene's inclusion σ on the reconstruction grid of ``sinogram`` (the reference for error tables).
 
     Parameters

@@ -14,7 +14,7 @@ import hashlib
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, ClassVar, Literal
 
 import jax
 import jax.numpy as jnp
@@ -30,39 +30,74 @@ from devices.procam_acquire import acquire_plane_to_ray as plane_sweep
 from devices.sim.procam_rig import simulated_procam_rig
 from devices.sim.procam_scene import ProcamScene, load_procam_scene
 from devices.sim.sync_firmware import DEFAULT_LIMITS
+from pipeline.constraints import Count, NonNegative, Positive, memory_problems
 from pipeline.errors import Problem, SelpathError, StageError
 from pipeline.registry import stage
 from pipeline.spec import StorePath
+from stages.sweeps import sweep_problem
 
 
 class TimeSweep(pydantic.BaseModel):
-    """Times start, start+step, …, up to and including stop [µs]."""
+    """Times start, start+step, …, up to and including stop [µs]: stop ≥ start (equal: the one value start),
+    step > 0, at most :attr:`MAX_VALUES` values (a 1 µs step over ±50 ms, far beyond a controller's range)."""
 
     model_config = pydantic.ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+    #: most values a sweep may have, and what they are called in messages
+    MAX_VALUES: ClassVar[int] = 100_000
+    WHAT: ClassVar[str] = "delays"
     start: float
     stop: float
     step: float = pydantic.Field(gt=0, description="µs")
+
+    @pydantic.model_validator(mode="after")
+    def _bounded(self):
+        problem = sweep_problem(self.start, self.stop, self.step, inclusive=True, what=self.WHAT,
+                                cap=self.MAX_VALUES)
+        if problem:
+            raise ValueError(f"{self.WHAT} sweep: {problem}")
+        return self
 
     def values(self) -> np.ndarray:
         return np.round(np.arange(self.start, self.stop + 1e-9 * self.step, self.step), 6)
 
 
 class PixelSweep(TimeSweep):
-    """Projector columns start, start+step, …, up to and including stop [px]."""
+    """Projector columns start, start+step, …, up to and including stop [px]: stop ≥ start, step > 0, at most
+    :attr:`MAX_VALUES` lines (a line every 0.1 px across a 10 000-column projector)."""
+
+    MAX_VALUES: ClassVar[int] = 100_000
+    WHAT: ClassVar[str] = "lines"
 
 
-def _scene(scene: StorePath, sensor: tuple[int, int] | None) -> ProcamScene:
+#: exposures t_e [µs]: each > 0, at least one
+Exposures = Annotated[tuple[Positive, ...], pydantic.Field(min_length=1)]
+#: a sensor size [rows, cols], each at least 1
+SensorSize = tuple[Count, Count]
+
+
+def _scene(scene: StorePath, sensor: SensorSize | None) -> ProcamScene:
     spec = load_procam_scene(scene)
     return spec if sensor is None else spec.with_rig(camera_rows=sensor[0], camera_cols=sensor[1])
 
 
+def frame_problems(spec: ProcamScene) -> list[str]:
+    """One camera frame (rows × cols float32) and one projector pattern (rows × cols float64) in memory."""
+    rig = spec.rig
+    return (memory_problems(rig.camera_rows * rig.camera_cols * 4, f"one camera frame ({rig.camera_rows:,} × "
+                            f"{rig.camera_cols:,} px float32)", fix="a smaller sensor [rows, cols]")
+            + memory_problems(rig.projector_rows * rig.projector_cols * 8, f"one projector pattern "
+                              f"({rig.projector_rows:,} × {rig.projector_cols:,} px float64)",
+                              fix="fewer projector_rows or projector_cols in the scene's rig"))
+
+
 def _precheck(settings) -> list[str]:
-    """Read the scene and check the sweep against the controller's limits at validation time."""
+    """Read the scene, check the sweep against the controller's limits and a frame against this machine's
+    memory at validation time."""
     try:
-        _scene(settings.scene, settings.sensor)
+        spec = _scene(settings.scene, settings.sensor)
     except SelpathError as exc:
         return [f"scene file: {p}" for p in getattr(exc, "problems", [exc])]
-    return DEFAULT_LIMITS.problems(settings.delays.values(), settings.exposures)
+    return DEFAULT_LIMITS.problems(settings.delays.values(), settings.exposures) + frame_problems(spec)
 
 
 def _identity(settings) -> dict:
@@ -81,7 +116,7 @@ def _log(progress: bool):
 
 
 @contextmanager
-def _simulated_rig(scene: StorePath, sensor: tuple[int, int] | None) -> Iterator[ProcamInstruments]:
+def _simulated_rig(scene: StorePath, sensor: SensorSize | None) -> Iterator[ProcamInstruments]:
     """The simulated rig showing ``scene`` (at ``sensor`` size when given), closed when the sweep ends."""
     instruments = simulated_procam_rig(_scene(scene, sensor))
     try:
@@ -90,15 +125,16 @@ def _simulated_rig(scene: StorePath, sensor: tuple[int, int] | None) -> Iterator
         instruments.close()
 
 
-@stage("acquire_plane_to_ray", precheck=_precheck, identity=_identity, writes=lambda settings: settings.store)
+@stage("acquire_plane_to_ray", precheck=_precheck, identity=_identity, writes=lambda settings: settings.store,
+       variables=lambda settings: ["image"])
 def acquire_plane_to_ray(
     *,
     store: StorePath,
     scene: StorePath,
     delays: TimeSweep,
-    exposures: tuple[float, ...],
+    exposures: Exposures,
     rig: Literal["sim"] = "sim",
-    sensor: tuple[int, int] | None = None,
+    sensor: SensorSize | None = None,
     progress: bool = True,
 ) -> xr.Dataset:
     """White pattern, every (delay, exposure) → a ``(delay, exposure, row, col)`` store, frame by frame, resumable.
@@ -110,13 +146,14 @@ def acquire_plane_to_ray(
     scene : str
         Projector–camera scene file (``workflows/scenes/*.yaml``).
     delays : TimeSweep
-        Sync delays t_d {start, stop, step} [µs], stop included.
+        Sync delays t_d {start, stop, step} [µs], stop included (stop ≥ start), at most 100 000 delays.
     exposures : list of float
         Exposures t_e [µs].
     rig : str
         ``sim``: the transport simulator.
     sensor : [rows, cols] or None
-        Render at this sensor size instead of the scene rig's (scenes are drawn in fractions of the image).
+        Render at this sensor size instead of the scene rig's (scenes are drawn in fractions of the image); a
+        frame that would not fit in memory is refused.
     progress : bool
         Show a progress bar.
     """
@@ -124,17 +161,18 @@ def acquire_plane_to_ray(
         return plane_sweep(instruments, store, delays.values(), exposures, progress=progress, log=_log(progress))
 
 
-@stage("acquire_full_transport", precheck=_precheck, identity=_identity, writes=lambda settings: settings.store)
+@stage("acquire_full_transport", precheck=_precheck, identity=_identity, writes=lambda settings: settings.store,
+       variables=lambda settings: ["image"])
 def acquire_full_transport(
     *,
     store: StorePath,
     scene: StorePath,
     delays: TimeSweep,
-    exposures: tuple[float, ...],
+    exposures: Exposures,
     lines: PixelSweep,
-    line_width: float,
+    line_width: Positive,
     rig: Literal["sim"] = "sim",
-    sensor: tuple[int, int] | None = None,
+    sensor: SensorSize | None = None,
     progress: bool = True,
 ) -> xr.Dataset:
     """A vertical line at each l_p × every (delay, exposure) → ``(delay, exposure, line, row, col)``, resumable.
@@ -146,11 +184,11 @@ def acquire_full_transport(
     scene : str
         Projector–camera scene file.
     delays : TimeSweep
-        Sync delays t_d [µs], stop included.
+        Sync delays t_d [µs], stop included (stop ≥ start), at most 100 000 delays.
     exposures : list of float
         Exposures t_e [µs].
     lines : PixelSweep
-        Line centres l_p {start, stop, step} [px], stop included.
+        Line centres l_p {start, stop, step} [px], stop included (stop ≥ start), at most 100 000 lines.
     line_width : float
         Line width l_w [px].
     rig : str
@@ -165,15 +203,16 @@ def acquire_full_transport(
                           progress=progress, log=_log(progress))
 
 
-@stage("acquire_scan_calibration", precheck=_precheck, identity=_identity, writes=lambda settings: settings.store)
+@stage("acquire_scan_calibration", precheck=_precheck, identity=_identity, writes=lambda settings: settings.store,
+       variables=lambda settings: ["image"])
 def acquire_scan_calibration(
     *,
     store: StorePath,
     scene: StorePath,
     delays: TimeSweep,
-    exposures: tuple[float, ...],
+    exposures: Exposures,
     rig: Literal["sim"] = "sim",
-    sensor: tuple[int, int] | None = None,
+    sensor: SensorSize | None = None,
     progress: bool = True,
 ) -> xr.Dataset:
     """White pattern with the camera in global-shutter mode at every (delay, exposure), for
@@ -186,7 +225,8 @@ def acquire_scan_calibration(
     scene : str
         Scene file (a flat white target is best).
     delays : TimeSweep
-        Trigger delays after VSYNC [µs], stop included; the band must stay inside the sensor.
+        Trigger delays after VSYNC [µs], stop included (stop ≥ start), at most 100 000 delays; the band must stay
+        inside the sensor.
     exposures : list of float
         Exposures [µs]; each must exceed t_p plus one row period for a fully lit row.
     rig : str
@@ -229,7 +269,7 @@ def row_profile_statistics(profile: np.ndarray) -> tuple[float, float]:
 
 
 @stage("calibrate_scan_speed")
-def calibrate_scan_speed(capture: xr.Dataset, /, *, min_rows: float = 2.0) -> xr.Dataset:
+def calibrate_scan_speed(capture: xr.Dataset, /, *, min_rows: NonNegative = 2.0) -> xr.Dataset:
     """Fit the projector scan speed v_p and the sync offset t_o from a global-shutter capture (§5.3.2).
 
     Model, per frame at commanded delay t_d and exposure t_e: the scan lights v_p · t_e rows during the

@@ -16,14 +16,16 @@ the area inside the blue line of Fig. 21, where FBP is exact up to discretisatio
 from __future__ import annotations
 
 from functools import lru_cache
-from typing import Literal
+from typing import Annotated, Literal
 
 import dask.array as da
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pydantic
 import xarray as xr
 
+from pipeline.constraints import Count, NonNegative, Positive, memory_problems
 from pipeline.errors import Problem, StageError
 from pipeline.registry import stage
 from stages.admm import TVADMM
@@ -31,9 +33,23 @@ from stages.calibrate import _require
 from stages.filters import ramp_filter
 from stages.hull import geometry_attrs
 from stages.projector import Geometry, backproject
-from stages.sinogram import support_function
+from stages.sinogram import observed_share, support_function
 
 Dtype = Literal["float32", "float64"]
+#: an iteration cap: at least 1, at most a million (solvers keep per-iteration histories and int32 counters)
+MaxIter = Annotated[int, pydantic.Field(ge=1, le=1_000_000)]
+
+
+def image_problems(n_pixels: int | None) -> list[str]:
+    """One slice's n × n image, where the settings give n (cell-centre grids are float64)."""
+    if n_pixels is None:
+        return []  # the sinogram's X bins: known only when it is computed
+    return memory_problems(n_pixels * n_pixels * 8, f"one {n_pixels:,} × {n_pixels:,} px slice (float64)",
+                           fix="lower n_pixels")
+
+
+def _image_precheck(settings) -> list[str]:
+    return image_problems(settings.n_pixels)
 
 
 def grid_geometry(sinogram: xr.Dataset, n_pixels: int | None, method: str = "joseph") -> Geometry:
@@ -169,6 +185,7 @@ def _output(sinogram: xr.Dataset, geometry: Geometry, variables: dict, attrs: di
               "slice": sinogram["slice"]}
     out = xr.Dataset(variables, coords=coords)
     out["sigma"].attrs.update(units=f"1/{unit}", long_name="absorption coefficient σ")
+    out["observed_fraction"] = observed_share(sinogram["observed"])
     return out.assign_attrs(geometry_attrs(sinogram.attrs) | {"selpath_kind": "reconstruction",
                                                               "cell_size": geometry.cell} | attrs)
 
@@ -197,20 +214,24 @@ def _fbp_block(block: xr.Dataset, *, geometry: Geometry, filter_name: str, fill:
                       coords={"slice": block["slice"]})
 
 
-def _template(sinogram: xr.Dataset, geometry: Geometry, variables: dict[str, tuple[tuple[str, ...], type]],
+def _template(inputs: xr.Dataset, geometry: Geometry, variables: dict[str, tuple[tuple[str, ...], type]],
               extra: dict[str, int] | None = None) -> xr.Dataset:
-    sizes = {"slice": sinogram.sizes["slice"], "y": geometry.n, "x": geometry.n} | (extra or {})
-    chunks = sinogram["absorption"].chunksizes.get("slice", (sizes["slice"],))
+    """Lazy zeros shaped like the blocks' results, chunked along slice as ``inputs`` (from :func:`_blocks`)."""
+    sizes = {"slice": inputs.sizes["slice"], "y": geometry.n, "x": geometry.n} | (extra or {})
+    chunks = inputs.chunksizes["slice"]
     data = {name: (dims, da.zeros(tuple(sizes[d] for d in dims), dtype=dtype,
                                   chunks=tuple(chunks if d == "slice" else sizes[d] for d in dims)))
             for name, (dims, dtype) in variables.items()}
-    return xr.Dataset(data, coords={"slice": sinogram["slice"]})
+    return xr.Dataset(data, coords={"slice": inputs["slice"]})
 
 
 def _blocks(sinogram: xr.Dataset, hull: xr.Dataset | None) -> xr.Dataset:
+    """The sinogram (and the hull's contours) chunked whole in θ and X, in slice chunks; eager (numpy) input
+    is chunked one slice per block."""
     inputs = sinogram[["absorption", "observed"]]
     if not inputs.chunks:
         inputs = inputs.chunk({"slice": 1})
+    inputs = inputs.chunk({"theta": -1, "x": -1, "slice": inputs.chunksizes["slice"]})
     shell = _hull_for(sinogram, hull)
     if shell is not None:
         inputs = xr.merge([inputs, shell.chunk({"slice": inputs.chunksizes["slice"]})], join="exact",
@@ -218,8 +239,8 @@ def _blocks(sinogram: xr.Dataset, hull: xr.Dataset | None) -> xr.Dataset:
     return inputs.assign_attrs({})
 
 
-@stage("fbp")
-def fbp(sinogram: xr.Dataset, hull: xr.Dataset | None = None, /, *, n_pixels: int | None = None,
+@stage("fbp", precheck=_image_precheck)
+def fbp(sinogram: xr.Dataset, hull: xr.Dataset | None = None, /, *, n_pixels: Count | None = None,
         filter: Literal["ram-lak", "shepp-logan", "cosine", "hamming", "hann"] = "ram-lak",  # noqa: A002
         fill: Literal["zero", "linear"] = "zero", dtype: Dtype = "float32") -> xr.Dataset:
     """Filtered back-projection per slice (lazy, one task per slice chunk).
@@ -239,7 +260,7 @@ def fbp(sinogram: xr.Dataset, hull: xr.Dataset | None = None, /, *, n_pixels: in
     _check(sinogram, hull, "fbp")
     geometry = grid_geometry(sinogram, n_pixels)
     inputs = _blocks(sinogram, hull)
-    template = _template(sinogram, geometry, {"sigma": (("slice", "y", "x"), np.dtype(dtype)),
+    template = _template(inputs, geometry, {"sigma": (("slice", "y", "x"), np.dtype(dtype)),
                                               "reliable": (("slice", "y", "x"), np.dtype(bool))})
     out = xr.map_blocks(_fbp_block, inputs, kwargs={"geometry": geometry, "filter_name": filter, "fill": fill,
                                                     "dtype": dtype}, template=template)
@@ -279,11 +300,11 @@ def _tv_block(block: xr.Dataset, *, solver: TVADMM, slack: float, bound: str, dt
         coords={"slice": block["slice"]})
 
 
-@stage("reconstruct_tv")
-def reconstruct_tv(sinogram: xr.Dataset, hull: xr.Dataset | None = None, /, *, tv_weight: float = 1e-3,
-                   n_pixels: int | None = None, bound: Literal["physical", "nonnegative"] = "physical",
-                   bound_slack: float = 0.0, rho: float = 0.1, tol: float = 1e-3, max_iter: int = 200,
-                   cg_steps: int = 3, projector: Literal["joseph", "binary"] = "joseph",
+@stage("reconstruct_tv", precheck=_image_precheck)
+def reconstruct_tv(sinogram: xr.Dataset, hull: xr.Dataset | None = None, /, *, tv_weight: NonNegative = 1e-3,
+                   n_pixels: Count | None = None, bound: Literal["physical", "nonnegative"] = "physical",
+                   bound_slack: NonNegative = 0.0, rho: Positive = 0.1, tol: Positive = 1e-3, max_iter: MaxIter = 200,
+                   cg_steps: Count = 3, projector: Literal["joseph", "binary"] = "joseph",
                    dtype: Dtype = "float32") -> xr.Dataset:
     """Constrained TV reconstruction of Eq. 20 by ADMM, per slice (lazy; slices of a chunk are batched).
 
@@ -306,7 +327,7 @@ def reconstruct_tv(sinogram: xr.Dataset, hull: xr.Dataset | None = None, /, *, t
     tol : float
         Relative primal and dual residual at which to stop [1].
     max_iter : int
-        Iteration cap.
+        Iteration cap, in [1, 1 000 000].
     cg_steps : int
         Conjugate-gradient steps per σ-update (warm-started).
     projector : str
@@ -321,7 +342,7 @@ def reconstruct_tv(sinogram: xr.Dataset, hull: xr.Dataset | None = None, /, *, t
     solver = TVADMM(geometry, tv_weight=tv_weight, rho=rho, tol=tol, max_iter=max_iter, cg_steps=cg_steps)
     inputs = _blocks(sinogram, hull)
     image, flag, hist = ("slice", "y", "x"), ("slice",), ("slice", "iteration")
-    template = _template(sinogram, geometry, {
+    template = _template(inputs, geometry, {
         "sigma": (image, np.dtype(dtype)), "sigma_max": (image, np.dtype(dtype)), "reliable": (image, np.dtype(bool)),
         "iterations": (flag, np.dtype(np.int64)), "converged": (flag, np.dtype(bool)),
         "objective": (hist, np.dtype(dtype)), "primal_residual": (hist, np.dtype(dtype)),

@@ -7,13 +7,20 @@ The functions are lazy (xarray/dask); the figure stages render them.
 
 from __future__ import annotations
 
+from typing import Annotated
+
 import numpy as np
+import pydantic
 import xarray as xr
 
 from devices.patterns import checkerboard
+from pipeline.constraints import Count, Fraction, Index, Positive
 from pipeline.errors import Problem, StageError
 from pipeline.registry import stage
 from stages.report import _DPI, _SIZE_IN, _as_figure, _rgba, plt
+
+#: named pixels, name → [x, y] in image fractions, each in [0, 1]; at least one
+Pixels = Annotated[dict[str, tuple[Fraction, Fraction]], pydantic.Field(min_length=1)]
 
 
 def relight(transport: xr.DataArray, row_pattern: np.ndarray) -> xr.DataArray:
@@ -120,13 +127,13 @@ def _draw_profiles(delays, measured: dict, offsets, recovered: dict, exposure: f
 
 @stage("delay_profile_figure")
 def delay_profile_figure(capture: xr.Dataset, transport: xr.Dataset, /, *,
-                         pixels: dict[str, tuple[float, float]], exposure: float | None = None) -> xr.Dataset:
+                         pixels: Pixels, exposure: Positive | None = None) -> xr.Dataset:
     """Fig. 38: measured delay profiles I(t_d) and the demultiplexed T(offset) at named pixels.
 
     Parameters
     ----------
     pixels : dict
-        name → [x, y] in image fractions (the scene files' units).
+        name → [x, y] in image fractions (the scene files' units), each in [0, 1]; at least one pixel.
     exposure : float or None
         Exposure whose delay sweep is drawn [µs]; None: the shortest.
     """
@@ -155,14 +162,14 @@ def _draw_relit(images: list[np.ndarray], titles: list[str]) -> np.ndarray:
 
 
 @stage("relighting_figure")
-def relighting_figure(transport: xr.Dataset, /, *, lines: tuple[float, ...] = (0.2, 0.4, 0.6, 0.8),
-                      line_rows: int = 5) -> xr.Dataset:
+def relighting_figure(transport: xr.Dataset, /, *, lines: tuple[Fraction, ...] = (0.2, 0.4, 0.6, 0.8),
+                      line_rows: Count = 5) -> xr.Dataset:
     """Fig. 40: the scene relit by single virtual lines sweeping down, and under white (the regular image).
 
     Parameters
     ----------
     lines : list of float
-        Line centres as fractions of the image height.
+        Line centres as fractions of the image height, each in [0, 1].
     line_rows : int
         Line width in projector rows.
     """
@@ -198,8 +205,8 @@ def _draw_epipolar(regular, sharpened, row: int, exposure: float, half_width: in
 
 
 @stage("epipolar_figure")
-def epipolar_figure(capture: xr.Dataset, transport: xr.Dataset, /, *, exposure: float | None = None,
-                    half_width: int = 0, row: float = 0.5) -> xr.Dataset:
+def epipolar_figure(capture: xr.Dataset, transport: xr.Dataset, /, *, exposure: Positive | None = None,
+                    half_width: Index = 0, row: Fraction = 0.5) -> xr.Dataset:
     """Fig. 47: the captured epipolar frame (t_d = 0) at a long exposure against the sharpened epipolar image
     synthesised from T, with a cross-section.
 
@@ -210,7 +217,7 @@ def epipolar_figure(capture: xr.Dataset, transport: xr.Dataset, /, *, exposure: 
     half_width : int
         Offsets kept by the sharpened image: |offset| ≤ half_width rows.
     row : float
-        Cross-section row, as a fraction of the image height.
+        Cross-section row, as a fraction of the image height, in [0, 1].
     """
     if 0.0 not in capture["delay"].values:
         raise StageError(Problem("the capture has no frame at delay 0 (the epipolar frame)",
@@ -261,7 +268,7 @@ def _draw_profiles_2d(du, dv, step: float, overview, profiles: dict, at: dict) -
 
 
 @stage("profile_2d_figure")
-def profile_2d_figure(transport: xr.Dataset, /, *, pixels: dict[str, tuple[float, float]]) -> xr.Dataset:
+def profile_2d_figure(transport: xr.Dataset, /, *, pixels: Pixels) -> xr.Dataset:
     """Fig. 39: the 2-D profile T(du, dv) of full transport at named pixels, each scaled to its peak, beside
     the white image Σ T with the pixels marked. du is projector columns from the direct correspondence u₀,
     dv projector rows from the camera row; cells the sweep never lit are blank.
@@ -269,7 +276,7 @@ def profile_2d_figure(transport: xr.Dataset, /, *, pixels: dict[str, tuple[float
     Parameters
     ----------
     pixels : dict
-        name → [x, y] in image fractions (the scene files' units).
+        name → [x, y] in image fractions (the scene files' units), each in [0, 1]; at least one pixel.
     """
     t = _full(transport)["transport"]
     at = {name: _pixel(transport, where) for name, where in pixels.items()}
@@ -297,8 +304,8 @@ def checkerboard_relight(transport: xr.Dataset, square_px: int, projector_cols: 
 
 
 @stage("relighting_full_figure")
-def relighting_full_figure(transport: xr.Dataset, /, *, square_px: int | None = None,
-                           projector_cols: int | None = None) -> xr.Dataset:
+def relighting_full_figure(transport: xr.Dataset, /, *, square_px: Count | None = None,
+                           projector_cols: Count | None = None) -> xr.Dataset:
     """Fig. 41: the scene relit from full transport under a virtual checkerboard, its complement, and white
     (:func:`checkerboard_relight`).
 

@@ -15,6 +15,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import xarray as xr  # noqa: E402
 
+from pipeline.constraints import Index  # noqa: E402
 from pipeline.registry import stage  # noqa: E402
 from stages.calibrate import _require  # noqa: E402
 from stages.sinogram import coverage_model, optimal_light_angle  # noqa: E402
@@ -48,7 +49,7 @@ def _draw_sinogram(absorption: np.ndarray, observed: np.ndarray, theta: np.ndarr
 
 
 @stage("sinogram_figure")
-def sinogram_figure(sinogram: xr.Dataset, /, *, slice_index: int = 0) -> xr.Dataset:
+def sinogram_figure(sinogram: xr.Dataset, /, *, slice_index: Index = 0) -> xr.Dataset:
     """The sinogram of one slice beside its mask of observed rays (the missing areas of Fig. 14 / 20).
 
     Parameters
@@ -97,7 +98,7 @@ def _draw_capture(frame: np.ndarray, backlit: np.ndarray, angle: float) -> np.nd
 
 
 @stage("capture_figure")
-def capture_figure(capture: xr.Dataset, /, *, angle_index: int = 0) -> xr.Dataset:
+def capture_figure(capture: xr.Dataset, /, *, angle_index: Index = 0) -> xr.Dataset:
     """One target frame beside its backlit frame.
 
     Parameters
@@ -131,7 +132,7 @@ def _draw_reconstructions(images: list[np.ndarray], titles: list[str], truth: np
 
 @stage("reconstruction_figure")
 def reconstruction_figure(fbp: xr.Dataset, optimised: xr.Dataset, truth: xr.Dataset | None = None, /, *,
-                          slice_index: int = 0) -> xr.Dataset:
+                          slice_index: Index = 0) -> xr.Dataset:
     """FBP beside the constrained optimisation (and the truth, with errors, when given), as in Fig. 18/21.
 
     Parameters

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Annotated, ClassVar
+
 import dask.array as da
 import numpy as np
 import pydantic
@@ -9,18 +11,31 @@ import xarray as xr
 from dask.base import tokenize
 
 from devices.sim.parallel_light import Rod, render
+from pipeline.constraints import Count, Index, NonNegative, Positive, memory_problems
 from pipeline.registry import stage
+from stages.sweeps import sweep_problem
 
 _FRAME_BYTES_PER_CHUNK = 64 * 2**20
 
 
 class AngleSweep(pydantic.BaseModel):
-    """Stage angles start, start+step, … below stop, in degrees."""
+    """Stage angles start, start+step, … below stop, in degrees: stop > start, step > 0, at most
+    :attr:`MAX_VALUES` angles (a sweep of 0.0036° steps over a full turn; far beyond any stage)."""
 
     model_config = pydantic.ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+    #: most angles a sweep may have
+    MAX_VALUES: ClassVar[int] = 100_000
     start: float = 0.0
     stop: float = pydantic.Field(360.0, description="exclusive end, degree")
     step: float = pydantic.Field(1.0, gt=0, description="degree")
+
+    @pydantic.model_validator(mode="after")
+    def _bounded(self):
+        problem = sweep_problem(self.start, self.stop, self.step, inclusive=False, what="angles",
+                                cap=self.MAX_VALUES)
+        if problem:
+            raise ValueError(f"angle sweep: {problem}")
+        return self
 
     def values(self) -> np.ndarray:
         return np.arange(self.start, self.stop - 1e-9 * self.step, self.step)
@@ -39,23 +54,51 @@ class RodSpec(pydantic.BaseModel):
 _DEFAULT_RODS = (RodSpec(x=6.0, y=3.0, radius=2.0, sigma=0.15),)
 
 
-@stage("simulate_parallel_capture")
+#: peak bytes :func:`devices.sim.parallel_light.render` allocates per float32 frame it renders, without and with
+#: noise (tracemalloc, 256 × 1024 and 64 × 512 frames, 1 and 4 angles: 5.0–5.3 and 13.0–13.1; every call renders
+#: target, reference and backlit in float64 before the cast, and the noise in float64 beside them)
+RENDER_FRAMES = {False: 5.3, True: 13.1}
+
+
+def angles_per_chunk(n_angles: int, frame_bytes: int) -> int:
+    """Angles rendered per dask task: as many frames as fit in 64 MiB, at least one."""
+    return max(1, min(n_angles, _FRAME_BYTES_PER_CHUNK // max(frame_bytes, 1)))
+
+
+def _capture_precheck(settings) -> list[str]:
+    """Sensor levels in order, and one render task's arrays within this machine's memory."""
+    problems = []
+    if settings.saturation_level <= settings.dark_level:
+        problems.append(f"saturation_level ({settings.saturation_level:g}) must be above dark_level "
+                        f"({settings.dark_level:g}) [counts]")
+    frame = settings.n_rows * settings.n_cols * 4
+    per_chunk = angles_per_chunk(len(settings.angles.values()), frame)
+    factor = RENDER_FRAMES[settings.noise_std > 0]
+    frames = "a frame" if per_chunk == 1 else f"{per_chunk:,} frames"
+    problems += memory_problems(
+        factor * per_chunk * frame,
+        f"one render task ({frames} of {settings.n_rows:,} × {settings.n_cols:,} px float32, about {factor:g}× "
+        "that in working arrays)", fix="lower n_rows or n_cols")
+    return problems
+
+
+@stage("simulate_parallel_capture", precheck=_capture_precheck)
 def simulate_parallel_capture(
     *,
     angles: AngleSweep = AngleSweep(),  # noqa: B008 (a frozen model: immutable default)
-    n_rows: int = 8,
-    n_cols: int = 256,
-    pixel_size: float = 0.2,
-    radius: float = 20.0,
+    n_rows: Count = 8,
+    n_cols: Count = 256,
+    pixel_size: Positive = 0.2,
+    radius: Positive = 20.0,
     rods: tuple[RodSpec, ...] = _DEFAULT_RODS,
-    medium_sigma: float = 0.01,
-    intensity: float = 3000.0,
-    skin_transmittance: float = 0.8,
-    dark_level: float = 64.0,
-    saturation_level: float = 4095.0,
-    backlight: float = 2000.0,
-    noise_std: float = 0.0,
-    seed: int = 0,
+    medium_sigma: NonNegative = 0.01,
+    intensity: Positive = 3000.0,
+    skin_transmittance: Annotated[float, pydantic.Field(gt=0, le=1)] = 0.8,
+    dark_level: NonNegative = 64.0,
+    saturation_level: Positive = 4095.0,
+    backlight: NonNegative = 2000.0,
+    noise_std: NonNegative = 0.0,
+    seed: Index = 0,
 ) -> xr.Dataset:
     """A tomography capture of a cylinder with rods under parallel light (θ_l = 0, orthographic camera).
 
@@ -65,9 +108,9 @@ def simulate_parallel_capture(
     Parameters
     ----------
     angles : AngleSweep
-        Stage angles {start, stop, step} [degree].
+        Stage angles {start, stop, step} [degree]; stop > start, at most 100 000 angles.
     n_rows : int
-        Sensor rows (slices along the rotation axis).
+        Sensor rows (slices along the rotation axis); sizes whose render would not fit in memory are refused.
     n_cols : int
         Sensor columns.
     pixel_size : float
@@ -81,11 +124,11 @@ def simulate_parallel_capture(
     intensity : float
         Counts a pixel would get through a non-absorbing object [counts].
     skin_transmittance : float
-        Transmittance of the diffusing skin, crossed twice [1].
+        Transmittance of the diffusing skin, crossed twice, in (0, 1] [1].
     dark_level : float
         Sensor offset [counts].
     saturation_level : float
-        Full-well count; direct views of the source saturate [counts].
+        Full-well count, above ``dark_level``; direct views of the source saturate [counts].
     backlight : float
         Counts of the lit diffuse plane in backlit frames [counts].
     noise_std : float
@@ -94,8 +137,7 @@ def simulate_parallel_capture(
         Seed of the noise.
     """
     angle_values = angles.values()
-    frame_bytes = n_rows * n_cols * 4
-    per_chunk = max(1, min(len(angle_values), _FRAME_BYTES_PER_CHUNK // frame_bytes))
+    per_chunk = angles_per_chunk(len(angle_values), n_rows * n_cols * 4)
     lazy_angles = da.from_array(np.stack([angle_values, np.arange(len(angle_values))], axis=1),
                                 chunks=(per_chunk, 2))
     solids = tuple(Rod(r.x, r.y, r.radius, r.sigma) for r in rods)

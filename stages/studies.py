@@ -8,20 +8,36 @@ Lazy like the stages it wires (the sinograms themselves are cheap and made at on
 
 from __future__ import annotations
 
+from typing import Annotated
+
 import numpy as np
+import pydantic
 import xarray as xr
 
+from pipeline.constraints import Count, NonNegative, Positive, memory_problems
 from pipeline.registry import stage
 from pipeline.spec import StorePath
-from stages.phantom import _precheck, phantom_truth, simulate_sinogram
-from stages.reconstruct import fbp, reconstruct_tv
+from stages.phantom import LightAngle, _precheck, phantom_truth, ray_problems, simulate_sinogram, truth_problems
+from stages.reconstruct import MaxIter, fbp, reconstruct_tv
 from stages.simulate import AngleSweep
+from stages.sinogram import Bins
 
 
-@stage("light_angle_study", precheck=_precheck)
-def light_angle_study(*, scene: StorePath, light_angles: tuple[float, ...] = (0.0, 30.0, 60.0, 90.0, 120.0),
-                      n_theta: int = 180, n_x: int = 128, noise_std: float = 0.0, tv_weight: float = 1e-4,
-                      tol: float = 1e-3, max_iter: int = 200,
+def _study_precheck(settings) -> list[str]:
+    """The scene, and the largest arrays of one θ_l: the rays, the truth raster (supersample 4 on the n_x grid)
+    and the optimisation's projector, which interpolates (n_theta, n_x, n_x) float32 arrays."""
+    n_theta, n_x = settings.n_theta, settings.n_x
+    return (_precheck(settings) + ray_problems(n_theta, n_x) + truth_problems(n_x, 4)
+            + memory_problems(n_theta * n_x * n_x * 4, f"the projector's interpolation arrays ({n_theta:,} × "
+                              f"{n_x:,} × {n_x:,} float32)", fix="lower n_theta or n_x"))
+
+
+@stage("light_angle_study", precheck=_study_precheck)
+def light_angle_study(*, scene: StorePath,
+                      light_angles: Annotated[tuple[LightAngle, ...], pydantic.Field(min_length=1)] = (
+                          0.0, 30.0, 60.0, 90.0, 120.0),
+                      n_theta: Count = 180, n_x: Bins = 128, noise_std: NonNegative = 0.0,
+                      tv_weight: NonNegative = 1e-4, tol: Positive = 1e-3, max_iter: MaxIter = 200,
                       angles: AngleSweep = AngleSweep()) -> xr.Dataset:  # noqa: B008 (frozen model)
     """FBP and the optimisation versus θ_l, with RMSE and max |error| against the truth (Table 1).
 
@@ -30,11 +46,11 @@ def light_angle_study(*, scene: StorePath, light_angles: tuple[float, ...] = (0.
     scene : str
         Scene file (the thesis: ``scenes/phantom-cylinder.yaml``).
     light_angles : tuple of float
-        θ_l values [degree].
+        θ_l values, each in [0, 180], at least one [degree].
     n_theta : int
         θ bins over [0°, 180°).
     n_x : int
-        X bins, and the image size.
+        X bins, and the image size (at least 2).
     noise_std : float
         Gaussian noise on every bin [absorption].
     tv_weight : float
@@ -44,7 +60,7 @@ def light_angle_study(*, scene: StorePath, light_angles: tuple[float, ...] = (0.
     max_iter : int
         ADMM iteration cap.
     angles : AngleSweep
-        Stage angles of the simulated sweep [degree].
+        Stage angles of the simulated sweep [degree]; stop > start, at most 100 000 angles.
     """
     results, observed = [], []
     truth = None

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import re
 
+import pytest
 from typer.testing import CliRunner
 
 from pipeline.cli import app
@@ -39,11 +40,13 @@ def test_run_then_inspect(small_workflow):
 def test_stages_lists_settings_with_units():
     listed = runner.invoke(app, ["stages", "absorption"], env={"COLUMNS": "200"})
     assert listed.exit_code == 0
-    assert "min_signal" in listed.output and "[counts]" in listed.output and "float | None" in listed.output
+    assert "min_signal" in listed.output and "[counts]" in listed.output and "float > 0 | None" in listed.output
+    assert "float ≥ 0, ≤ 1" in listed.output  # the range of min_signal_relative
     unknown = runner.invoke(app, ["stages", "nope"])
     assert unknown.exit_code == 2 and "unknown stage 'nope'" in unknown.output
 
 
+@pytest.mark.slow
 def test_demo_acquires_on_the_simulated_rig_into_its_own_folder(tmp_path):
     """`selpath demo` end to end (about 150 s): the tomography workflow (acquisition, processing, FBP and the
     optimisation) and the projector–camera one (calibration, stack, demultiplexing, figures) land under
@@ -68,3 +71,22 @@ def test_demo_acquires_on_the_simulated_rig_into_its_own_folder(tmp_path):
     assert procam_page.count("<img src='data:image/png;base64,") >= 3 and "plane-to-ray transport" in procam_page
     second = runner.invoke(app, ["demo", "--out", str(out)], env={"COLUMNS": "200"})
     assert second.exit_code == 0 and "computed" not in second.output
+
+
+def test_errors_keep_bracketed_text_and_never_show_a_traceback(tmp_path, monkeypatch):
+    """Rich markup ate `[degree]` in errors ("expected one of  (fix…)"); an unexpected exception printed a
+    traceback. Both now reach the user as one plain message."""
+    import pipeline.cli
+
+    store = tmp_path / "x.zarr"
+    shown = runner.invoke(app, ["inspect", str(store)])
+    assert shown.exit_code == 2 and "no store at this path" in shown.output
+
+    def broken(*args, **kwargs):
+        raise ValueError("units must be one of [degree] or [rad]")
+
+    monkeypatch.setattr(pipeline.cli, "load_workflow", broken)
+    result = runner.invoke(app, ["validate", str(tmp_path / "wf.yaml")])
+    assert result.exit_code == 3 and "Traceback" not in result.output
+    assert "unexpected ValueError: units must be one of [degree] or [rad] (this is a bug" in result.output.replace(
+        "\n", " ")

@@ -30,7 +30,7 @@ from typing import Annotated, Literal
 import numpy as np
 import pydantic
 
-from devices.sim.scene import Pixels, unit_parser
+from devices.sim.scene import Pixels, saturation_above_dark, unit_parser
 from pipeline.spec import load_yaml_model
 
 Micros = Annotated[float, unit_parser({"us": 1.0, "ms": 1e3, "s": 1e6}, "170 us", "a duration")]
@@ -43,8 +43,15 @@ class _Model(pydantic.BaseModel):
 
 class Rectangle(_Model):
     kind: Literal["rectangle"]
-    x: tuple[float, float] = pydantic.Field(description="left, right as fractions of the image width")
-    y: tuple[float, float] = pydantic.Field(description="top, bottom as fractions of the image height")
+    x: tuple[float, float] = pydantic.Field(description="left, right as fractions of the image width; left < right")
+    y: tuple[float, float] = pydantic.Field(description="top, bottom as fractions of the image height; top < bottom")
+
+    @pydantic.field_validator("x", "y")
+    @classmethod
+    def _ordered(cls, value):
+        if not value[0] < value[1]:
+            raise ValueError(f"[{value[0]:g}, {value[1]:g}] is empty: the first edge must be below the second")
+        return value
 
     def mask(self, fx: np.ndarray, fy: np.ndarray) -> np.ndarray:
         return (fx >= self.x[0]) & (fx < self.x[1]) & (fy >= self.y[0]) & (fy < self.y[1])
@@ -132,13 +139,13 @@ class Background(_Model):
 
 class Jitter(_Model):
     std: Annotated[Micros, pydantic.Field(ge=0)] = pydantic.Field(description="per-row laser timing jitter")
-    seed: int = 0
+    seed: int = pydantic.Field(0, ge=0)
 
 
 class SensorNoise(_Model):
     gain: float | None = pydantic.Field(1.0, gt=0, description="counts per photo-electron (shot); null: none")
     read_std: float = pydantic.Field(2.0, ge=0, description="counts")
-    seed: int = 0
+    seed: int = pydantic.Field(0, ge=0)
 
 
 class ProcamRig(_Model):
@@ -160,6 +167,8 @@ class ProcamRig(_Model):
     jitter: Jitter | None = None
     noise: SensorNoise | None = None
     frame_interval: Micros = pydantic.Field("0 us", ge=0, description="simulated readout time per frame")
+
+    _levels = pydantic.model_validator(mode="after")(lambda self: saturation_above_dark(self))
 
     @property
     def scan_speed(self) -> float:

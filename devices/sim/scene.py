@@ -61,6 +61,14 @@ Pixels = Annotated[float, unit_parser({"px": 1.0}, "800 px", "a pixel quantity")
 Duration = Annotated[float, unit_parser(_TO_S, "50 ms", "a duration")]
 
 
+def saturation_above_dark(sensor):
+    """Model validator of sensors: the full well lies above the dark level."""
+    if sensor.saturation_level <= sensor.dark_level:
+        raise ValueError(f"saturation_level ({sensor.saturation_level:g}) must be above dark_level "
+                         f"({sensor.dark_level:g}) [counts]")
+    return sensor
+
+
 class _Model(pydantic.BaseModel):
     model_config = pydantic.ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
@@ -114,7 +122,15 @@ class Inclusion(_Model):
     name: str = ""
     shape: ShapeSpec
     sigma: InvLength
-    z_range: tuple[Length, Length] | None = pydantic.Field(None, description="default: the object's height")
+    z_range: tuple[Length, Length] | None = pydantic.Field(None, description="[low, high], low < high; default: "
+                                                           "the object's height")
+
+    @pydantic.field_validator("z_range")
+    @classmethod
+    def _ordered(cls, value):
+        if value is not None and not value[0] < value[1]:
+            raise ValueError(f"z_range [{value[0]:g}, {value[1]:g}] mm is empty: the low end must be below the high")
+        return value
 
 
 class Skin(_Model):
@@ -163,8 +179,9 @@ class PerspectiveCamera(_Model):
     rows: int = pydantic.Field(gt=0)
     cols: int = pydantic.Field(gt=0)
     distance: Annotated[Length, pydantic.Field(gt=0)]
-    focal_length: Pixels | None = None
-    fov: Angle | None = pydantic.Field(None, description="horizontal field of view, instead of focal_length")
+    focal_length: Annotated[Pixels, pydantic.Field(gt=0)] | None = None
+    fov: Annotated[Angle, pydantic.Field(gt=0, lt=180)] | None = pydantic.Field(
+        None, description="horizontal field of view, instead of focal_length")
     principal_point: tuple[Pixels, Pixels] | None = None
 
     @pydantic.model_validator(mode="after")
@@ -193,13 +210,15 @@ class Sensor(_Model):
     backlight: float = pydantic.Field(2000.0, ge=0, description="counts of the lit plane behind the object")
     frame_interval: Duration = pydantic.Field(0.0, ge=0, description="simulated readout time per frame")
 
+    _levels = pydantic.model_validator(mode="after")(lambda self: saturation_above_dark(self))
+
 
 class Scattering(_Model):
     """Volumetric scattering with an isotropic phase function, by Monte Carlo (§4.4.4)."""
 
     sigma_s: Annotated[InvLength, pydantic.Field(gt=0)]
     photons: int = pydantic.Field(200_000, gt=0, description="photons per frame")
-    seed: int = 0
+    seed: int = pydantic.Field(0, ge=0)
     max_events: int = pydantic.Field(10_000, gt=0, description="scattering events before a photon is dropped")
 
 
@@ -207,7 +226,7 @@ class Noise(_Model):
     read_std: float = pydantic.Field(2.0, ge=0, description="Gaussian read noise, counts")
     gain: float | None = pydantic.Field(1.0, gt=0, description="counts per photo-electron (shot noise); "
                                         "null for none")
-    seed: int = 0
+    seed: int = pydantic.Field(0, ge=0)
 
 
 class Effects(_Model):

@@ -52,7 +52,7 @@ def test_steps_may_be_listed_in_any_order(tmp_path, workflow_text):
          r"\(fix: did you mean 'min_signal'"),
         ("n_cols: 48", "n_cols: forty-eight",
          r"wf.yaml:9: steps\[0\].with.n_cols: setting of stage 'simulate_parallel_capture' Input should be a "
-         r"valid integer \(got 'forty-eight'\) \(fix: expected int\)"),
+         r"valid integer \(got 'forty-eight'\) \(fix: expected int ≥ 1\)"),
         ("n_cols: 48", "n_cols: 48.5", r"steps\[0\].with.n_cols: .*valid integer \(got 48.5\)"),
         ("- {x: 6.0, y: 3.0, radius: 4.0, sigma: 0.05}", "- {x: 6.0, y: 3.0, radius: 4.0}",
          r"wf.yaml:13: steps\[0\].with.rods\[0\].sigma: setting of stage 'simulate_parallel_capture' is required"),
@@ -174,3 +174,32 @@ def test_a_variable_reference_is_checked_against_the_input_store(tmp_path):
     message, _ = _errors(tmp_path, text)
     assert re.search(r"wf.yaml:8: steps\[1\].with.capture: \$capture.targett names no variable of step 'capture' "
                      r"\(it has reference, target\) \(fix: did you mean 'target'\?\)", message), message
+
+
+def test_a_yaml_bomb_is_refused_in_well_under_a_second(tmp_path):
+    """445 bytes of nested aliases took 99 s and 9.2 GB to validate; two more levels never finished."""
+    import time
+
+    levels = ["a0: &a0 [x, x, x, x, x, x, x, x, x, x]"]
+    levels += [f"a{i}: &a{i} [{', '.join([f'*a{i - 1}'] * 10)}]" for i in range(1, 12)]
+    text = "\n".join(levels) + "\nworkflow: bomb\nsteps: [{id: s, stage: load_store, with: {store: *a11}}]\n"
+    start = time.perf_counter()
+    message, _ = _errors(tmp_path, text)
+    assert time.perf_counter() - start < 1.0
+    assert re.search(r"wf.yaml:\d+: the document expands to more than 100,000 nodes through its aliases", message)
+
+
+def test_a_binary_file_is_not_a_workflow(tmp_path):
+    path = tmp_path / "wf.yaml"
+    path.write_bytes(b"workflow: x\n\xff\xfe\x00\x01binary")
+    with pytest.raises(SpecError, match=r"wf.yaml:2: not UTF-8 text \(byte 0xff at offset 12\): a workflow file is "
+                                        r"YAML text"):
+        load_workflow(path)
+
+
+@pytest.mark.parametrize("value", [".nan", ".inf", "-.inf", "1e999"])
+def test_non_finite_settings_are_refused(tmp_path, workflow_text, value):
+    """`.nan` as a setting passed validation and switched checks off (NaN compares false)."""
+    message, _ = _errors(tmp_path, workflow_text.replace("min_signal: 1.0", f"min_signal: {value}"))
+    assert re.search(r"wf.yaml:\d+: steps\[1\].with.min_signal: setting of stage 'absorption' Input should be a "
+                     r"(finite|valid) number", message), message
