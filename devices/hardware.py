@@ -20,7 +20,7 @@ from devices.acquire import TomographyRig
 from devices.manual import ManualLight, ManualSampleChanger
 from devices.opencv_camera import OpenCVCamera
 from devices.serial_stage import SerialRotaryStage
-from pipeline.spec import load_yaml_model
+from pipeline.yaml_source import load_yaml_model
 
 
 class _Model(pydantic.BaseModel):

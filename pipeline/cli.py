@@ -20,10 +20,11 @@ from pipeline.constraints import describe
 from pipeline.engine import RunReport, run_workflow
 from pipeline.errors import SelpathError, StoreError
 from pipeline.integrity import verify_store
+from pipeline.provenance import read_provenance
 from pipeline.registry import default_registry
 from pipeline.report import write_html
 from pipeline.spec import load_workflow
-from pipeline.store import forget_frames, is_complete, missing_frames, open_store, read_provenance
+from pipeline.store import forget_frames, is_complete, missing_frames, open_store
 
 app = typer.Typer(help="selpath: selected light path measurement, from capture to science.",
                   no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)

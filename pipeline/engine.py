@@ -34,9 +34,10 @@ from pipeline.errors import Problem, SelpathError, StageError
 from pipeline.integrity import write_manifest
 from pipeline.locks import store_locks
 from pipeline.outputs import PNG_MARKER, Staging, png_path, tidy_staging
+from pipeline.provenance import read_provenance, write_provenance
 from pipeline.quality import WHAT, below_floor, shares
 from pipeline.spec import OutputSpec, Ref, Step, Workflow, check_output_paths
-from pipeline.store import missing_frames, open_store, read_provenance, write_provenance, write_store
+from pipeline.store import missing_frames, open_store, write_store
 
 _PACKAGES = ("selpath", "xarray", "dask", "zarr", "numpy", "jax")
 

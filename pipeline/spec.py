@@ -16,16 +16,16 @@ import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, TypeVar
+from typing import Annotated, Any
 
 import pydantic
-import yaml
 
 from pipeline.constraints import describe
-from pipeline.errors import ConfigError, Problem, SpecError
+from pipeline.errors import Problem, SpecError
 from pipeline.outputs import OutputPath, output_problems
 from pipeline.registry import Stage, StageRegistry, default_registry
 from pipeline.schema import KINDS
+from pipeline.yaml_source import Located, format_path, parse_yaml, pydantic_message, read_source
 
 
 class _PathMarker:
@@ -131,163 +131,12 @@ class Workflow:
                                    self_written=frozenset(moved[s] for s in self.self_written))
 
 
-# -- YAML with locations ---------------------------------------------------------------------------
-
-
-#: Largest document accepted, counting every node as often as aliases repeat it. A workflow has hundreds; nested
-#: aliases ("billion laughs") expand a few hundred bytes into billions, which no check may walk.
-MAX_NODES = 100_000
-#: Deepest nesting accepted (PyYAML and pydantic recurse once per level).
-MAX_DEPTH = 64
-
-
-def _expanded_size(root: yaml.Node, source: str) -> int:
-    """Nodes of the document with aliases expanded, counted without expanding them (each node once: linear);
-    raises SpecError past MAX_NODES or MAX_DEPTH, or for a recursive alias."""
-    sizes: dict[int, int] = {}
-    on_path: set[int] = set()
-
-    def size(node: yaml.Node, depth: int) -> int:
-        key = id(node)
-        if key in sizes:
-            return sizes[key]
-        if key in on_path:
-            raise SpecError(Problem("an alias refers to a node that contains it (a recursive document)",
-                                    f"{source}:{node.start_mark.line + 1}", fix="write the value out"))
-        if depth > MAX_DEPTH:
-            raise SpecError(Problem(f"nested deeper than {MAX_DEPTH} levels", f"{source}:{node.start_mark.line + 1}"))
-        on_path.add(key)
-        children = ([v for pair in node.value for v in pair] if isinstance(node, yaml.MappingNode)
-                    else node.value if isinstance(node, yaml.SequenceNode) else [])
-        total = 1 + sum(size(child, depth + 1) for child in children)
-        on_path.discard(key)
-        sizes[key] = total
-        if total > MAX_NODES:
-            raise SpecError(Problem(f"the document expands to more than {MAX_NODES:,} nodes through its aliases "
-                                    "(a YAML bomb, or a file that is not a workflow)",
-                                    f"{source}:{node.start_mark.line + 1}",
-                                    fix="write the workflow without nested aliases"))
-        return total
-
-    return size(root, 0)
-
-
-def _locations(node: yaml.Node, path: tuple = (), out: dict | None = None, seen: set | None = None
-               ) -> dict[tuple, int]:
-    """Map each path in the document (keys and list indices) to its 1-based line. A node reached again through
-    an alias is not walked again (its paths resolve to the alias's line)."""
-    out = {} if out is None else out
-    seen = set() if seen is None else seen
-    out[path] = node.start_mark.line + 1
-    if id(node) in seen:
-        return out
-    seen.add(id(node))
-    if isinstance(node, yaml.MappingNode):
-        for key, value in node.value:
-            out[(*path, key.value)] = key.start_mark.line + 1
-            _locations(value, (*path, key.value), out, seen)
-            out[(*path, key.value)] = key.start_mark.line + 1
-    elif isinstance(node, yaml.SequenceNode):
-        for i, item in enumerate(node.value):
-            _locations(item, (*path, i), out, seen)
-    return out
-
-
-def _format_path(path: tuple) -> str:
-    text = ""
-    for part in path:
-        text += f"[{part}]" if isinstance(part, int) else (f".{part}" if text else str(part))
-    return text
-
-
-class _Located:
-    def __init__(self, source: str, lines: dict[tuple, int]):
-        self.source, self.lines, self.problems = source, lines, []
-
-    def add(self, path: tuple, message: str, fix: str = "") -> None:
-        probe = path
-        while probe and probe not in self.lines:
-            probe = probe[:-1]
-        self.problems.append(Problem(message, f"{self.source}:{self.lines.get(probe, 1)}", _format_path(path), fix))
-
-
-def _read(path_or_text: str | os.PathLike, source: str | None, what: str = "workflow") -> tuple[str, str, Path]:
-    candidate = Path(path_or_text) if not isinstance(path_or_text, str) or "\n" not in path_or_text else None
-    if candidate is not None:
-        if not candidate.is_file():
-            raise SpecError(Problem(f"no such {what} file", where=str(candidate), fix="check the path"))
-        data = candidate.read_bytes()
-        try:
-            text = data.decode("utf-8")
-        except UnicodeDecodeError as exc:
-            line = data[: exc.start].count(b"\n") + 1
-            raise SpecError(Problem(f"not UTF-8 text (byte {data[exc.start]:#04x} at offset {exc.start}): a {what} "
-                                    "file is YAML text", where=f"{candidate}:{line}",
-                                    fix="check that this is the right file; save it as UTF-8")) from None
-        return text, source or str(candidate), candidate.resolve().parent
-    return str(path_or_text), source or f"<{what}>", Path.cwd()
-
-
-def _parse(text: str, source: str) -> tuple[Any, _Located]:
-    loader = yaml.SafeLoader(text)
-    try:
-        node = loader.get_single_node()
-        if node is not None:
-            _expanded_size(node, source)
-        raw = loader.construct_document(node) if node is not None else None
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        line = f":{mark.line + 1}" if mark else ""
-        raise SpecError(Problem(f"not valid YAML: {getattr(exc, 'problem', exc)}", where=f"{source}{line}")) from exc
-    except RecursionError:
-        raise SpecError(Problem(f"nested too deeply to read (over {MAX_DEPTH} levels)", where=source)) from None
-    finally:
-        loader.dispose()
-    return raw, _Located(source, _locations(node) if node is not None else {})
-
-
-M = TypeVar("M", bound=pydantic.BaseModel)
-
-
-def load_yaml_model(path_or_text: str | os.PathLike, model: type[M], *, what: str = "configuration") -> M:
-    """Read a YAML file (or text) into a pydantic ``model``; one SpecError lists every problem with file:line.
-
-    Used for every YAML file selpath reads besides workflows (scenes, rig configurations).
-    """
-    text, source, _ = _read(path_or_text, None, what)
-    raw, located = _parse(text, source)
-    try:
-        return model.model_validate(raw)
-    except pydantic.ValidationError as exc:
-        for err in exc.errors():
-            located.add(_document_path(raw, err["loc"]), _pydantic_message(err))
-        raise ConfigError(located.problems) from None
-
-
-def _document_path(raw: Any, loc: tuple) -> tuple:
-    """A pydantic error location as a path in the document: union tags (``kind: cylinder``) dropped."""
-    path, node = [], raw
-    for part in loc:
-        if isinstance(node, dict) and part not in node and part in (node.get("kind"), node.get("model")):
-            continue  # a discriminated union's tag, not a key of the file
-        if str(part).startswith("function-"):
-            continue
-        path.append(part)
-        if isinstance(node, dict):
-            node = node.get(part)
-        elif isinstance(node, list) and isinstance(part, int) and part < len(node):
-            node = node[part]
-        else:
-            node = None
-    return tuple(path)
-
-
 def load_workflow(path_or_text: str | os.PathLike, registry: StageRegistry | None = None,
                   *, source: str | None = None) -> Workflow:
     """Read, validate and wire a workflow file (or YAML text). Raises one SpecError listing every problem."""
     registry = default_registry() if registry is None else registry
-    text, source, base_dir = _read(path_or_text, source)
-    raw, located = _parse(text, source)
+    text, source, base_dir = read_source(path_or_text, source)
+    raw, located = parse_yaml(text, source)
     if not isinstance(raw, dict):
         raise SpecError(Problem("a workflow file is a mapping with keys workflow, steps and outputs", f"{source}:1"))
     try:
@@ -295,7 +144,7 @@ def load_workflow(path_or_text: str | os.PathLike, registry: StageRegistry | Non
     except pydantic.ValidationError as exc:
         for err in exc.errors():
             loc = tuple("with" if p == "with_" else "from" if p == "from_" else p for p in err["loc"])
-            located.add(loc, _pydantic_message(err))
+            located.add(loc, pydantic_message(err))
         raise SpecError(located.problems) from None
     steps = _check_steps(spec, raw, registry, located, base_dir)
     outputs = _check_outputs(spec, steps, located, base_dir)
@@ -340,7 +189,7 @@ def output_path_problems(workflow: Workflow) -> list[tuple[tuple, str, str]]:
 
 def check_output_paths(workflow: Workflow) -> None:
     """Raise one SpecError if any output store breaks the rules (see :func:`output_path_problems`)."""
-    problems = [Problem(message, workflow.source, _format_path(field), fix)
+    problems = [Problem(message, workflow.source, format_path(field), fix)
                 for field, message, fix in output_path_problems(workflow)]
     if problems:
         raise SpecError(problems)
@@ -350,7 +199,7 @@ def _resolved(store: str) -> str:
     return store if "://" in store else str(Path(store).resolve())
 
 
-def _self_written_outputs(steps: dict[str, Step], outputs: dict[str, OutputSpec], located: _Located) -> set[str]:
+def _self_written_outputs(steps: dict[str, Step], outputs: dict[str, OutputSpec], located: Located) -> set[str]:
     """Stages that fill their own store (acquisitions) make it an output, named after the step.
 
     An explicit output of the same step and store is the same thing; any other output that names
@@ -374,17 +223,6 @@ def _self_written_outputs(steps: dict[str, Step], outputs: dict[str, OutputSpec]
     return written
 
 
-def _pydantic_message(err: dict) -> str:
-    if err["type"] == "missing":
-        return "is required but missing"
-    if err["type"] == "extra_forbidden":
-        return "is not a known field"
-    message = err["msg"].removeprefix("Value error, ")
-    if isinstance(err.get("input"), dict | list):
-        return message
-    return f"{message} (got {err['input']!r})"
-
-
 def _suggest(name: str, choices: list[str]) -> str:
     close = difflib.get_close_matches(name, choices, n=3)
     return f"did you mean {' or '.join(repr(c) for c in close)}?" if close else f"one of: {', '.join(choices)}"
@@ -394,7 +232,7 @@ def _is_path_setting(model: type[pydantic.BaseModel], name: str) -> bool:
     return any(isinstance(m, _PathMarker) for m in model.model_fields[name].metadata)
 
 
-def _check_steps(spec: WorkflowFile, raw: dict, registry: StageRegistry, located: _Located,
+def _check_steps(spec: WorkflowFile, raw: dict, registry: StageRegistry, located: Located,
                  base_dir: Path) -> dict[str, Step]:
     steps: dict[str, Step] = {}
     seen: dict[str, int] = {}
@@ -440,7 +278,7 @@ def _check_steps(spec: WorkflowFile, raw: dict, registry: StageRegistry, located
                 expected = stage.params.model_fields.get(str(field))
                 fix = f"expected {describe(expected)}" if expected is not None else ""
                 located.add((*where, "with", *err["loc"]), f"setting of stage {stage.name!r} "
-                            f"{_pydantic_message(err)}", fix)
+                            f"{pydantic_message(err)}", fix)
             continue
         for name in stage.params.model_fields:
             value = getattr(model, name)
@@ -475,7 +313,7 @@ def _variables_of(step: Step) -> set[str] | None:
     return None if names is None else {str(n) for n in names}
 
 
-def _check_outputs(spec: WorkflowFile, steps: dict[str, Step], located: _Located,
+def _check_outputs(spec: WorkflowFile, steps: dict[str, Step], located: Located,
                    base_dir: Path) -> dict[str, OutputSpec]:
     outputs: dict[str, OutputSpec] = {}
     stores: dict[str, str] = {}
@@ -498,7 +336,7 @@ def _check_outputs(spec: WorkflowFile, steps: dict[str, Step], located: _Located
     return outputs
 
 
-def _topological_order(steps: dict[str, Step], located: _Located) -> list[str]:
+def _topological_order(steps: dict[str, Step], located: Located) -> list[str]:
     """Steps in dependency order; a cycle is reported with its members (Kahn's algorithm)."""
     needs = {i: {r.step for r in s.inputs.values() if r.step in steps} for i, s in steps.items()}
     order: list[str] = []

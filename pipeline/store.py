@@ -18,8 +18,6 @@ and chunk. Whole stores are written into a temporary sibling and moved into plac
 
 from __future__ import annotations
 
-import hashlib
-import json
 import os
 import warnings
 from collections.abc import Iterable, Mapping
@@ -36,7 +34,6 @@ from dask.base import tokenize
 from pipeline.errors import Problem, StoreError
 from pipeline.integrity import (
     CHECKSUMMED_FORMAT,
-    PROVENANCE_GROUP,
     WRITTEN_PREFIX,
     BadChunk,
     CheckedArray,
@@ -48,6 +45,7 @@ from pipeline.integrity import (
     written_frames,
 )
 from pipeline.outputs import Staging, staged
+from pipeline.provenance import jsonable, read_provenance
 from pipeline.schema import FORMAT_VERSION, KINDS, MIGRATIONS, check_dataset
 
 
@@ -307,7 +305,7 @@ def _sweep_differences(existing: xr.Dataset, template: xr.Dataset) -> list[str]:
         if name not in existing.coords or not np.array_equal(existing[name].values, coord.values):
             out.append(f"coordinate {name!r} differs from the new sweep's")
     for key, value in template.attrs.items():
-        if _jsonable(existing.attrs.get(key)) != _jsonable(value):
+        if jsonable(existing.attrs.get(key)) != jsonable(value):
             out.append(f"attr {key!r} is {existing.attrs.get(key)!r} in the store, {value!r} in the new sweep")
     return out
 
@@ -376,53 +374,3 @@ def forget_frames(path: str | os.PathLike, bad: Iterable[BadChunk]) -> int:
     for variable, position in sorted(frames):
         group[f"{WRITTEN_PREFIX}{variable}"][position] = False
     return len(frames)
-
-
-# -- provenance --------------------------------------------------------------------------------------
-
-
-def _jsonable(value: Any) -> Any:
-    return json.loads(json.dumps(value, default=_json_default, sort_keys=True))
-
-
-def _json_default(value: Any) -> Any:
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    raise TypeError(f"{type(value).__name__} is not JSON serialisable")
-
-
-def write_provenance(path: str | os.PathLike, provenance: Mapping[str, Any]) -> None:
-    """Record how a store was made, in its ``_selpath`` child group (safe from appends)."""
-    group = zarr.open_group(os.fspath(path), mode="r+")
-    child = group.require_group(PROVENANCE_GROUP)
-    child.attrs["provenance"] = _jsonable(dict(provenance))
-
-
-def read_provenance(path: str | os.PathLike) -> dict[str, Any] | None:
-    """The provenance recorded by :func:`write_provenance`, or None if the store has none (or is absent)."""
-    try:
-        group = zarr.open_group(os.fspath(path), mode="r")
-        return dict(group[PROVENANCE_GROUP].attrs["provenance"])
-    except (FileNotFoundError, KeyError, zarr.errors.GroupNotFoundError, zarr.errors.NodeTypeValidationError):
-        return None
-
-
-def store_identity(path: str | os.PathLike) -> dict[str, Any]:
-    """What identifies a store's content for provenance: its own provenance hash if selpath made it,
-    else a fingerprint of its metadata and (for local stores) file sizes and modification times."""
-    where = os.fspath(path)
-    prov = read_provenance(where)
-    if prov and "step_hash" in prov:
-        return {"store": where, "step_hash": prov["step_hash"]}
-    digest = hashlib.sha256()
-    root = Path(where)
-    if root.is_dir():
-        for file in sorted(root.rglob("*")):
-            if file.is_file():
-                stat = file.stat()
-                digest.update(f"{file.relative_to(root)}:{stat.st_size}:{stat.st_mtime_ns}\n".encode())
-                if file.name == "zarr.json":
-                    digest.update(file.read_bytes())
-    return {"store": where, "fingerprint": digest.hexdigest()}

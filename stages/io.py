@@ -5,9 +5,10 @@ from __future__ import annotations
 import xarray as xr
 
 from pipeline.errors import StoreError
+from pipeline.provenance import store_identity
 from pipeline.registry import stage
 from pipeline.spec import StorePath
-from pipeline.store import open_store, store_identity
+from pipeline.store import open_store
 
 
 def _precheck(settings) -> list[str]:

@@ -26,7 +26,7 @@ import pydantic
 
 from devices.geometry import RigGeometry
 from devices.sim.shapes import Ellipse, Polygon, Prism, convex_polygon
-from pipeline.spec import load_yaml_model
+from pipeline.yaml_source import load_yaml_model
 
 _TO_MM = {"m": 1000.0, "cm": 10.0, "mm": 1.0, "um": 1e-3}
 _TO_DEG = {"deg": 1.0, "degree": 1.0, "rad": 180.0 / np.pi}

@@ -14,8 +14,9 @@ from devices.sim.rig import simulated_rig
 from devices.sim.scene import load_scene
 from pipeline.engine import run_workflow
 from pipeline.errors import DeviceError, StoreError
+from pipeline.provenance import read_provenance
 from pipeline.spec import load_workflow
-from pipeline.store import missing_frames, open_store, read_provenance
+from pipeline.store import missing_frames, open_store
 
 SCENE = """\
 scene: tiny-bin

@@ -15,8 +15,9 @@ from devices.sim.procam_scene import ProcamScene
 from devices.sim.transport import render_frame
 from pipeline.engine import run_workflow
 from pipeline.errors import SpecError
+from pipeline.provenance import read_provenance
 from pipeline.spec import load_workflow
-from pipeline.store import missing_frames, open_store, read_provenance
+from pipeline.store import missing_frames, open_store
 
 SCENE = """\
 scene: tiny-candle
