@@ -20,6 +20,7 @@ from pipeline.constraints import describe
 from pipeline.engine import RunReport, run_workflow
 from pipeline.errors import SelpathError, StoreError
 from pipeline.integrity import verify_store
+from pipeline.locks import store_lock
 from pipeline.provenance import read_provenance
 from pipeline.registry import default_registry
 from pipeline.report import write_html
@@ -78,7 +79,7 @@ def _print_report(report: RunReport) -> None:
         table.add_row(step.id, f"[{colours[step.status]}]{step.status}[/]", escape(step.reason))
     console.print(table)
     for store in report.written:
-        console.print(f"wrote {store}")
+        console.print(f"wrote {escape(store)}")
 
 
 @app.command()
@@ -102,7 +103,7 @@ def validate(file: Annotated[Path, typer.Argument(help="workflow YAML file")]) -
     with _guard():
         workflow = load_workflow(file)
     console.print(f"[green]ok[/]: {escape(workflow.name)}: {len(workflow.steps)} steps, outputs "
-                  + ", ".join(f"{n} -> {o.store}" for n, o in workflow.outputs.items()))
+                  + escape(", ".join(f"{n} -> {o.store}" for n, o in workflow.outputs.items())))
 
 
 @app.command()
@@ -161,7 +162,7 @@ def inspect(
     incomplete = not complete
     for variable, frames in missing.items():
         state = "[green]complete[/]" if not frames else f"[yellow]{len(frames)} frames missing[/], first {frames[0]}"
-        console.print(f"capture of {variable}: {state}")
+        console.print(f"capture of {escape(variable)}: {state}")
         incomplete |= bool(frames)
     for warning in caught:
         console.print(f"[yellow]warning[/]: {escape(str(warning.message))}")
@@ -182,7 +183,7 @@ def _print_bad(bad: list, recapture_store: Path | bool) -> None:
     for chunk in bad:
         console.print(f"  {escape(str(chunk))}")
     if bad and recapture_store:
-        with _guard():
+        with _guard(), store_lock(recapture_store, purpose="inspect --recapture"):
             frames = forget_frames(recapture_store, bad)
         console.print(f"marked {frames} frame(s) as not captured: run the acquisition again to capture them")
 
@@ -244,7 +245,7 @@ def demo(
             page = write_html(workflow, report, Path(out) / page_name, summary=summary)
             for line in summary:
                 console.print(line)
-            console.print(f"report: {page}")
+            console.print(f"report: {escape(str(page))}")
 
 
 def main() -> None:

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
+import dask
 import xarray as xr
 import zarr
 from rich.markup import escape
@@ -33,7 +34,7 @@ from pipeline.compute import compute, scheduler_session
 from pipeline.errors import Problem, SelpathError, StageError
 from pipeline.integrity import write_manifest
 from pipeline.locks import store_locks
-from pipeline.outputs import PNG_MARKER, Staging, png_path, tidy_staging
+from pipeline.outputs import PNG_MARKER, Staging, check_png, png_path, tidy_staging
 from pipeline.provenance import read_provenance, write_provenance
 from pipeline.quality import WHAT, below_floor, shares
 from pipeline.spec import OutputSpec, Ref, Step, Workflow, check_output_paths
@@ -257,39 +258,51 @@ def run_workflow(workflow: Workflow, *, scheduler: str | None = None, progress: 
 
 def _write_output(graph: _Graph, name: str, out: OutputSpec, data: xr.Dataset, scheduler: str, client: Any,
                   progress: bool, description: str) -> None:
-    """Write one output into a staging sibling, check the usable shares of its step and of the steps upstream
-    computed on the way (:mod:`pipeline.quality`), add its manifest and provenance, then move it into place."""
+    """Write one output into a staging sibling, check usable shares (:mod:`pipeline.quality`), add its manifest,
+    provenance and (for figures) PNG, then move it into place.
+
+    Checked: the output step's own shares; for a step with none (a figure), those of the unstored steps upstream,
+    written beside it in the same pass. Upstream shares of a step with its own are computed only to explain its
+    failure: carrying them would make every upstream pixel be computed (a beam rig's absorption on every camera
+    row, where align_paths reads one or two).
+    """
     workflow = graph.workflow
     kind = out.kind or data.attrs.get("selpath_kind")
     if kind is None:
         raise StageError(Problem(f"the result of step {out.from_!r} has no selpath_kind attr",
                                  path=f"outputs.{name}", fix="set `kind:` on the output"))
-    upstream = graph.unchecked(out.from_)
-    carried = {f"{_CARRIED}{step}__{var}": share for step in upstream if step != out.from_
-               for var, share in shares(graph.results[step]).items()}
+    if kind == "figure":
+        check_png(out.store)
+    upstream = [step for step in graph.unchecked(out.from_) if step != out.from_]
+    own = shares(data)
+    carried = {} if own else {f"{_CARRIED}{step}.{var}": share for step in upstream
+                              for var, share in shares(graph.results[step]).items()}
     staging = Staging(out.store)
     try:
-        write = write_store(data.assign(carried), staging.path, kind, compute=False)
+        write = write_store(data.assign(carried), staging.path, kind, compute=False,
+                            replace=staging.path == staging.final)
         compute([write], scheduler=scheduler, client=client, progress=progress, description=description)
-        usable = _usable(staging.path, out.from_, data, carried, graph)
+        usable = _usable(staging.path, out.from_, data, carried, graph, explain=upstream if own else [])
         write_manifest(staging.path, data)
         _record(workflow, graph.records, name, out, scheduler, staging.path, usable)
+        if kind == "figure":
+            _save_png(staging.path, out.store)
     except BaseException:
         staging.abort()
         raise
     staging.commit()
-    graph.checked.update(upstream)
-    if kind == "figure":
-        _save_png(out.store)
+    graph.checked.update([*upstream, out.from_])
 
 
-_CARRIED = "usable__"
+#: prefix of the upstream shares written beside an output, ``usable.<step>.<variable>`` (step ids hold no dot)
+_CARRIED = "usable."
 
 
-def _usable(staging: str, step_id: str, data: xr.Dataset, carried: dict[str, xr.DataArray],
-            graph: _Graph) -> dict[str, dict[str, float]]:
-    """The usable shares just written beside an output: checked against their floors (StageError naming every
-    share below one), then the carried ones of upstream steps removed from the store. Returns them by step."""
+def _usable(staging: str, step_id: str, data: xr.Dataset, carried: dict[str, xr.DataArray], graph: _Graph, *,
+            explain: list[str]) -> dict[str, dict[str, float]]:
+    """The usable shares just written beside an output, checked against their floors, the carried ones of
+    upstream steps removed from the store. Below a floor: the shares of the ``explain`` steps are computed too,
+    and one StageError names every share below its floor, upstream first. Returns the shares by step."""
     group = zarr.open_group(staging, mode="r+")
     found: dict[str, dict[str, float]] = {}
     attrs: dict[str, dict[str, Any]] = {}
@@ -297,7 +310,7 @@ def _usable(staging: str, step_id: str, data: xr.Dataset, carried: dict[str, xr.
         found.setdefault(step_id, {})[var] = float(group[var][()])
         attrs.setdefault(step_id, {})[var] = share.attrs
     for key, share in carried.items():
-        step, var = key[len(_CARRIED):].split("__", 1)
+        step, var = key[len(_CARRIED):].split(".", 1)
         found.setdefault(step, {})[var] = float(group[key][()])
         attrs.setdefault(step, {})[var] = share.attrs
         del group[key]
@@ -305,6 +318,12 @@ def _usable(staging: str, step_id: str, data: xr.Dataset, carried: dict[str, xr.
     for step, values in found.items():
         for var, value in values.items():
             graph.log(f"[dim]usable[/] {escape(step)}: {escape(attrs[step][var][WHAT])}: {value:.1%}")
+    if problems and explain:
+        upstream = [(step, var, share) for step in explain for var, share in shares(graph.results[step]).items()]
+        values = dask.compute(*[share.data for _, _, share in upstream])
+        causes = [p for (step, var, share), value in zip(upstream, values, strict=True)
+                  for p in below_floor(step, {var: float(value)}, {var: share.attrs})]
+        problems = causes + problems
     if problems:
         raise StageError(problems)
     return found
@@ -337,11 +356,11 @@ def _record(workflow: Workflow, records: dict[str, dict[str, Any]], name: str, o
     })
 
 
-def _save_png(store: str) -> None:
-    """A ``figure`` cube is also written as ``<store>.png`` beside its store, for people."""
+def _save_png(source: str, store: str) -> None:
+    """A ``figure`` cube (written at ``source``) is also saved as ``<store>.png`` beside its store, for people."""
     import matplotlib.image
 
-    image = open_store(store, "figure")["image"].values
+    image = open_store(source, "figure")["image"].values
     staging = f"{png_path(store)}.partial"
     matplotlib.image.imsave(staging, image, format="png", metadata={PNG_MARKER: store})
     os.replace(staging, png_path(store))

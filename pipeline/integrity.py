@@ -99,7 +99,7 @@ def present_chunks(path: str | os.PathLike, name: str, array: zarr.Array) -> np.
     if "://" in where:
         return None
     root = Path(where)
-    grid = array._chunk_grid_shape
+    grid = array.cdata_shape
     present = np.zeros(grid, dtype=bool)
     for coords in itertools.product(*(range(n) for n in grid)):
         present[coords] = _chunk_path(root, name, array, coords).is_file()
@@ -162,21 +162,29 @@ def verify_store(path: str | os.PathLike) -> list[BadChunk]:
     format-2 store, and in a capture for every frame its ``written__`` flag says was captured.
     """
     where = os.fspath(path)
-    group = zarr.open_group(where, mode="r")
+    try:
+        group = zarr.open_group(where, mode="r")
+    except Exception as exc:  # noqa: BLE001 - absent, not zarr, or metadata unreadable
+        raise StoreError(Problem(f"cannot be read as a zarr store ({type(exc).__name__}: {exc})", where=where,
+                                 fix="check the path; a store whose metadata is gone cannot be verified")) from exc
     form = group.attrs.get("selpath_format", 0)
     manifest = read_manifest(where) or {}
     flags = {name[len(WRITTEN_PREFIX):]: np.asarray(array[...]) for name, array in _arrays(group)
              if name.startswith(WRITTEN_PREFIX)}
+    data_vars = {name for name, array in _arrays(group) if _is_data(array, flags, name)}
     bad = []
     for name, array in _arrays(group):
         present = present_chunks(where, name, array)
-        grid = array._chunk_grid_shape
+        grid = array.cdata_shape
         for coords in itertools.product(*(range(n) for n in grid)):
             if present is not None and not present[coords]:
-                expected = manifest.get("complete", False) and form >= CHECKSUMMED_FORMAT
-                if name in flags:  # a capture: a chunk is expected where its frame is flagged written
+                if form < CHECKSUMMED_FORMAT:  # format 1 skipped chunks holding only the fill value
+                    expected = False
+                elif name in flags:  # a capture: a chunk is expected where its frame is flagged written
                     frame = tuple(c * s for c, s in zip(coords[: flags[name].ndim], array.chunks, strict=False))
                     expected = bool(flags[name][frame])
+                else:  # coordinates and flags always; data once the store is complete
+                    expected = name not in data_vars or bool(manifest.get("complete", False))
                 if expected:
                     bad.append(BadChunk(name, coords, "missing"))
                 continue
@@ -185,6 +193,12 @@ def verify_store(path: str | os.PathLike) -> list[BadChunk]:
             except Exception as exc:  # noqa: BLE001 - zarr and its codecs raise many types for bad bytes
                 bad.append(BadChunk(name, coords, f"corrupt ({_decode_error(exc)})"))
     return bad
+
+
+def _is_data(array: zarr.Array, flags: Mapping[str, np.ndarray], name: str) -> bool:
+    """A data variable filled after the store is made (a capture's frames), not a coordinate or a flag."""
+    return name in flags or (not name.startswith(WRITTEN_PREFIX) and tuple(array.metadata.dimension_names or ())
+                             != (name,))
 
 
 # -- reading with chunk-level errors ---------------------------------------------------------------------

@@ -28,7 +28,7 @@ except ImportError:  # pragma: no cover - Windows
 
 
 def lock_path(store: str | os.PathLike) -> Path:
-    target = Path(store).absolute()
+    target = Path(store).resolve()  # one lock file whatever link the store is reached through
     return target.parent / f".{target.name}.lock"
 
 

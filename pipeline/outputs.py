@@ -13,17 +13,19 @@ once its data, manifest and provenance are complete (:class:`Staging`), so a cra
 half-written store under the final name: either the old store or the new one is there. Stores on object
 storage (``scheme://…``) cannot be renamed; they are written in place and their manifest, written last,
 marks them complete (see :mod:`pipeline.integrity`). A ``figure`` output also writes ``<stem>.png``;
-a PNG there that selpath did not write (no ``selpath_store`` text chunk) is never replaced.
+a PNG there that selpath did not write (no ``selpath_store`` text chunk) is never replaced. An existing
+selpath store is replaced only for the workflow output that wrote it (its provenance names both); an
+acquisition resumes an unfinished capture in place.
 """
 
 from __future__ import annotations
 
+import glob
 import json
 import os
 import shutil
 import uuid
-from collections.abc import Iterator, Mapping
-from contextlib import contextmanager
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -77,6 +79,10 @@ class OutputPath:
     store: str
     #: location of the field in the workflow file, e.g. ("outputs", "capture", "store")
     field: tuple
+    #: the workflow writing it; a store another workflow (or output) made is never replaced
+    workflow: str = ""
+    #: the output fills its store frame by frame (an acquisition), resuming what is there
+    self_written: bool = False
 
 
 def output_problems(outputs: list[OutputPath], protected: Mapping[str, str | os.PathLike]) -> list[tuple[tuple,
@@ -105,6 +111,8 @@ def output_problems(outputs: list[OutputPath], protected: Mapping[str, str | os.
             problems.append((out.field, f"output {out.name!r}: {text} holds files that are not a selpath store "
                              "(no selpath_format marker); selpath never replaces them",
                              "choose another path, or move those files away"))
+        elif path.exists():
+            problems.extend((out.field, message, fix) for message, fix in _ownership(out, path))
         for other in outputs:
             if other is not out and not is_remote(other.store) and path in Path(other.store).parents:
                 problems.append((out.field, f"output {out.name!r} ({text}) is a parent folder of output "
@@ -114,11 +122,41 @@ def output_problems(outputs: list[OutputPath], protected: Mapping[str, str | os.
             if not is_remote(value) and _inside(Path(value), path):
                 problems.append((out.field, f"output {out.name!r} ({text}) would replace {label} ({value})",
                                  "write outputs to their own .zarr paths, e.g. under out/"))
-        png = png_path(text)
-        if Path(png).exists() and not png_written_by_selpath(png):
-            problems.append((out.field, f"output {out.name!r}: a figure output also writes {png}, which exists and "
-                             "was not written by selpath", "move that PNG away or rename the output store"))
     return problems
+
+
+def _ownership(out: OutputPath, path: Path) -> list[tuple[str, str]]:
+    """An existing selpath store is replaced only by the workflow output that wrote it; an acquisition resumes
+    only a capture (its own sweep is checked when it starts)."""
+    from pipeline.provenance import read_provenance  # here: provenance reads stores, which write via outputs
+
+    provenance = read_provenance(path)
+    capture = any(p.name.startswith("written__") for p in path.iterdir())
+    if provenance is not None:
+        owner = (provenance.get("workflow"), provenance.get("output"))
+        if owner != (out.workflow, out.name):
+            return [(f"output {out.name!r}: {path} holds output {owner[1]!r} of workflow {owner[0]!r}; selpath "
+                     "replaces a store only for the output that wrote it",
+                     "choose another path, or delete that store yourself if it is no longer needed")]
+        return []
+    if out.self_written:
+        return [] if capture else [(f"output {out.name!r}: {path} is a selpath store but not a capture to resume",
+                                    "choose another path")]
+    from pipeline.integrity import read_manifest
+
+    if not capture and not (read_manifest(path) or {}).get("complete"):
+        return []  # a store whose writing never finished (a run killed under an older selpath): nothing to keep
+    what = "an unfinished capture" if capture else "a complete store written outside a workflow (to_store)"
+    return [(f"output {out.name!r}: {path} holds {what}; selpath does not replace it",
+             "choose another path, or delete that store yourself if it is no longer needed")]
+
+
+def check_png(store: str | os.PathLike) -> None:
+    """Before a figure output is written: refuse if ``<stem>.png`` exists and selpath did not write it."""
+    png = png_path(store)
+    if Path(png).exists() and not png_written_by_selpath(png):
+        raise StoreError(Problem(f"a figure output also writes {png}, which exists and was not written by selpath",
+                                 where=os.fspath(store), fix="move that PNG away or rename the output store"))
 
 
 class Staging:
@@ -126,11 +164,11 @@ class Staging:
     :meth:`abort` (remove). For remote stores the staging path is ``final`` itself."""
 
     def __init__(self, final: str | os.PathLike):
-        self.final = os.fspath(final)
+        self.final = os.fspath(final) if is_remote(final) else str(Path(final).absolute())
         if is_remote(self.final):
             self.path = self.final
         else:
-            target = Path(self.final).absolute()
+            target = Path(self.final)
             target.parent.mkdir(parents=True, exist_ok=True)
             self.path = str(target.parent / f".{target.name}{_PARTIAL}{uuid.uuid4().hex[:12]}")
 
@@ -157,19 +195,6 @@ class Staging:
             shutil.rmtree(self.path, ignore_errors=True)
 
 
-@contextmanager
-def staged(final: str | os.PathLike) -> Iterator[str]:
-    """Yield a path to write a store into; it is moved to ``final`` when the block ends without error and
-    removed if it raises."""
-    staging = Staging(final)
-    try:
-        yield staging.path
-    except BaseException:
-        staging.abort()
-        raise
-    staging.commit()
-
-
 def tidy_staging(final: str | os.PathLike) -> list[str]:
     """Clean up what a killed writer left beside ``final``: partial stores are removed; a replaced store whose
     successor never arrived is put back. Call it only while holding the store's lock. Returns what it did."""
@@ -179,8 +204,9 @@ def tidy_staging(final: str | os.PathLike) -> list[str]:
     if not target.parent.is_dir():
         return []
     done = []
-    replaced = sorted(target.parent.glob(f".{target.name}{_REPLACED}*"))
-    for leftover in sorted(target.parent.glob(f".{target.name}{_PARTIAL}*")) + replaced:
+    name = glob.escape(target.name)  # a store named "a*.zarr" must not match another's leftovers
+    replaced = sorted(target.parent.glob(f".{name}{_REPLACED}*"))
+    for leftover in sorted(target.parent.glob(f".{name}{_PARTIAL}*")) + replaced:
         if leftover in replaced and not target.exists() and is_selpath_store(leftover):
             os.rename(leftover, target)
             done.append(f"restored {target} from {leftover.name}")

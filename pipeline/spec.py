@@ -172,7 +172,7 @@ def output_path_problems(workflow: Workflow) -> list[tuple[tuple, str, str]]:
     for name, out in workflow.outputs.items():
         step = writers.get(out.store)
         field = ("steps", step.index, "with", "store") if step is not None else ("outputs", name, "store")
-        outputs.append(OutputPath(name, out.store, field))
+        outputs.append(OutputPath(name, out.store, field, workflow.name, out.store in workflow.self_written))
     protected: dict[str, str] = {}
     for step in workflow.steps.values():
         own = step.stage.writes(step.settings) if step.stage.writes is not None else None

@@ -44,7 +44,7 @@ from pipeline.integrity import (
     write_manifest,
     written_frames,
 )
-from pipeline.outputs import Staging, staged
+from pipeline.outputs import Staging
 from pipeline.provenance import jsonable, read_provenance
 from pipeline.schema import FORMAT_VERSION, KINDS, MIGRATIONS, check_dataset
 
@@ -154,6 +154,7 @@ def open_store(path: str | os.PathLike, kind: str | None = None, *, keep_flags: 
     raw = _open_raw(path)
     manifest = read_manifest(where)
     edited = [Problem(p.message, where=where, path=p.path, fix=p.fix) for p in units_problems(raw, manifest)]
+    checksummed = raw.attrs.get("selpath_format", 0) >= CHECKSUMMED_FORMAT  # format 2 writes every chunk
     ds = _migrate(raw, where)
     stored_kind = ds.attrs.get("selpath_kind")
     if kind is None:
@@ -168,12 +169,15 @@ def open_store(path: str | os.PathLike, kind: str | None = None, *, keep_flags: 
     ])
     problems += [Problem(p.message, where=where, path=p.path, fix=p.fix) for p in check_dataset(ds, kind)]
     flags = [v for v in ds.data_vars if str(v).startswith(WRITTEN_PREFIX)]
-    if not flags and (manifest or {}).get("complete") and raw.attrs.get("selpath_format", 0) >= CHECKSUMMED_FORMAT:
-        problems += [Problem(p.message, where=where, path=p.path, fix=p.fix)
-                     for p in absent_chunks(where, [str(v) for v in raw.variables])]
+    if checksummed:  # coordinates and flags are written whole when a store is made; data once it is complete
+        whole = [str(v) for v in raw.coords] + [str(v) for v in flags]
+        if not flags and (manifest or {}).get("complete"):
+            whole += [str(v) for v in raw.data_vars]
+        problems += [Problem(p.message, where=where, path=p.path, fix=p.fix) for p in absent_chunks(where, whole)]
     if problems:
         raise StoreError(problems)
-    if flags:  # a frame flagged written whose chunk is gone is missing again
+    if flags and checksummed:  # a frame flagged written whose chunk is gone is missing again (format 1 did not
+        # write chunks holding only the fill value: there an absent chunk is no evidence)
         ds = ds.assign({name: ds[name].copy(data=written_frames(where, str(name)[len(WRITTEN_PREFIX):],
                                                                 ds[name].values)) for name in flags})
     elif not is_complete(where, manifest):
@@ -223,12 +227,14 @@ def _writable(ds: xr.Dataset) -> xr.Dataset:
     return ds.chunk(regular) if regular else ds
 
 
-def write_store(ds: xr.Dataset, path: str | os.PathLike, kind: str, *, compute: bool = True):
+def write_store(ds: xr.Dataset, path: str | os.PathLike, kind: str, *, compute: bool = True,
+                replace: bool = False):
     """Write a whole cube (checked and stamped) into a new store at ``path``, every chunk checksummed and
     written (fill-valued ones too), without the manifest: the building block of :func:`to_store`, for writers
-    that stage, check and commit themselves (the engine). ``compute=False`` returns the dask delayed write."""
-    return _writable(stamp(ds, kind)).to_zarr(os.fspath(path), mode="w-", consolidated=False, compute=compute,
-                                             write_empty_chunks=True)
+    that stage, check and commit themselves (the engine). ``compute=False`` returns the dask delayed write;
+    ``replace`` writes over a store there (object storage, where nothing can be staged and renamed)."""
+    return _writable(stamp(ds, kind)).to_zarr(os.fspath(path), mode="w" if replace else "w-", consolidated=False,
+                                             compute=compute, write_empty_chunks=True)
 
 
 def to_store(ds: xr.Dataset, path: str | os.PathLike, kind: str, *, compute: bool = True):
@@ -239,13 +245,18 @@ def to_store(ds: xr.Dataset, path: str | os.PathLike, kind: str, *, compute: boo
     crash never leaves a half-written store under ``path``. With ``compute=False`` returns a dask delayed
     that writes and moves it when computed.
     """
-    if compute:
-        with staged(path) as target:
-            write_store(ds, target, kind)
-            write_manifest(target, ds)
-        return None
     staging = Staging(path)
-    write = write_store(ds, staging.path, kind, compute=False)
+    in_place = staging.path == staging.final
+    if compute:
+        try:
+            write_store(ds, staging.path, kind, replace=in_place)
+            write_manifest(staging.path, ds)
+        except BaseException:
+            staging.abort()
+            raise
+        staging.commit()
+        return None
+    write = write_store(ds, staging.path, kind, compute=False, replace=in_place)
     return dask.delayed(_finish)(write, staging, ds[[]])
 
 

@@ -111,8 +111,10 @@ def _log(progress: bool):
     if not progress:
         return lambda _: None
     from rich.console import Console
+    from rich.markup import escape
 
-    return Console(stderr=True).print
+    console = Console(stderr=True)
+    return lambda message: console.print(escape(message), highlight=False)
 
 
 @contextmanager

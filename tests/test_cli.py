@@ -90,3 +90,30 @@ def test_errors_keep_bracketed_text_and_never_show_a_traceback(tmp_path, monkeyp
     assert result.exit_code == 3 and "Traceback" not in result.output
     assert "unexpected ValueError: units must be one of [degree] or [rad] (this is a bug" in result.output.replace(
         "\n", " ")
+
+
+def test_paths_with_brackets_print_as_they_are(tmp_path, workflow_text):
+    """A workflow under `d[/x]` wrote its store, then rich read `[/x]` as markup and printed a traceback."""
+    folder = tmp_path / "d[" / "x]"
+    folder.mkdir(parents=True)
+    (folder / "small.yaml").write_text(workflow_text)
+    for command in (["validate"], ["run", "--no-progress"]):
+        result = runner.invoke(app, [command[0], str(folder / "small.yaml"), *command[1:]], env={"COLUMNS": "300"})
+        assert result.exit_code == 0, result.output
+        assert "d[/x]/out/capture.zarr" in result.output.replace("\n", "")
+
+
+def test_a_report_never_replaces_a_file_selpath_did_not_write(tmp_path, small_workflow):
+    from pipeline import StoreError, load_workflow
+    from pipeline.engine import RunReport
+    from pipeline.report import write_html
+
+    page = tmp_path / "report.html"
+    page.write_text("my own notes")
+    with pytest.raises(StoreError, match="a report would replace this file, which selpath did not write"):
+        write_html(load_workflow(small_workflow), RunReport("small"), page)
+    assert page.read_text() == "my own notes"
+    page.unlink()
+    for _ in range(2):  # its own report it replaces
+        write_html(load_workflow(small_workflow), RunReport("small"), page)
+    assert 'content="selpath"' in page.read_text()

@@ -135,3 +135,24 @@ def test_inspect_of_a_complete_store_exits_zero(tmp_path):
     shown = runner.invoke(app, ["inspect", str(store), "--verify"])
     assert shown.exit_code == 0 and "every chunk reads" in shown.output
     assert os.listdir(tmp_path) == ["r.zarr"]
+
+
+def test_a_missing_coordinate_chunk_of_a_capture_is_named(tmp_path):
+    """The angles of a capture read back as NaN, unreported, when their chunk was deleted."""
+    path = make_workflow(tmp_path)
+    run_workflow(load_workflow(path), progress=False)
+    store = tmp_path / "capture.zarr"
+    (store / "angle" / "c" / "0").unlink()
+    with pytest.raises(StoreError, match=r"variable angle: 1 of 1 chunks are missing, first \(0,\)"):
+        open_store(store)
+    assert [(b.variable, b.reason) for b in verify_store(store)] == [("angle", "missing")]
+
+
+def test_a_format_1_capture_with_a_fill_valued_frame_is_not_missing_frames(tmp_path):
+    """Format 1 did not write chunks that held only the fill value: there an absent chunk is no evidence."""
+    path = make_workflow(tmp_path)
+    run_workflow(load_workflow(path), progress=False)
+    store = tmp_path / "capture.zarr"
+    zarr.open_group(store, mode="r+").attrs["selpath_format"] = 1
+    (store / "target" / "c" / "5" / "0" / "0").unlink()  # as format 1 left an all-fill frame
+    assert not any(missing_frames(store).values()) and verify_store(store) == []

@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 
 from pipeline import SpecError, StageRegistry, load_workflow, open_store, read_provenance, run_workflow, stage
 from pipeline.cli import app
-from pipeline.outputs import staged, tidy_staging
+from pipeline.outputs import Staging, tidy_staging
 from pipeline.registry import default_registry
 from pipeline.store import to_store
 
@@ -162,20 +162,58 @@ def test_leftovers_of_a_killed_writer_are_tidied_and_a_lost_store_restored(tmp_p
     xr.testing.assert_identical(open_store(final)["sigma"].load(), ds["sigma"])
 
 
-def test_staged_replaces_only_selpath_stores(tmp_path):
+def test_a_commit_replaces_only_selpath_stores(tmp_path):
     final = tmp_path / "x.zarr"
     final.mkdir()
     (final / "keep.txt").write_text("mine")
     from pipeline.errors import StoreError
-    with pytest.raises(StoreError, match="not a selpath store appeared at this path"), staged(final) as target:
-        os.makedirs(target)
+    staging = Staging(final)
+    os.makedirs(staging.path)
+    with pytest.raises(StoreError, match="not a selpath store appeared at this path"):
+        staging.commit()
     assert (final / "keep.txt").read_text() == "mine" and os.listdir(tmp_path) == ["x.zarr"]
 
 
 def test_a_figure_png_selpath_did_not_write_is_never_replaced(tmp_path):
     import matplotlib.image
 
+    from pipeline import StoreError
+
     (tmp_path / "out").mkdir()
     matplotlib.image.imsave(tmp_path / "out" / "fig.png", np.zeros((2, 2, 3)))  # the user's own picture
-    path = _wf(tmp_path, "  a: {from: capture, store: out/fig.zarr}")
-    assert "a figure output also writes" in _problems(path) and "was not written by selpath" in _problems(path)
+    before = (tmp_path / "out" / "fig.png").read_bytes()
+    path = _wf(tmp_path, "  a: {from: capture, store: out/fig.zarr}")  # not a figure: its PNG name is free
+    assert load_workflow(path)
+    path.write_text(path.read_text().replace("outputs:", "  - {id: f, stage: capture_figure, with: {capture: "
+                                             "$capture}}\noutputs:").replace("from: capture", "from: f"))
+    with pytest.raises(StoreError, match=r"a figure output also writes .*fig.png, which exists and was not written"):
+        run_workflow(load_workflow(path), progress=False)
+    assert (tmp_path / "out" / "fig.png").read_bytes() == before and sorted(os.listdir(tmp_path / "out")) == [
+        "fig.png"]
+
+
+def test_another_workflows_store_is_never_replaced(tmp_path):
+    """Any selpath store used to be replaceable: a second workflow silently replaced another's capture."""
+    first = _wf(tmp_path / "a", "  capture: {from: capture, store: ../shared.zarr}")
+    run_workflow(load_workflow(first), progress=False)
+    second = tmp_path / "b" / "wf.yaml"
+    second.parent.mkdir()
+    second.write_text(first.read_text().replace("workflow: t", "workflow: other"))
+    assert "holds output 'capture' of workflow 't'; selpath replaces a store only for the output that wrote it" in \
+        _problems(second)
+    assert read_provenance(tmp_path / "shared.zarr")["workflow"] == "t"
+
+
+def test_a_store_name_is_never_a_pattern_for_another_stores_leftovers(tmp_path):
+    (tmp_path / ".abc.zarr.partial-0123").mkdir()  # another output's staging folder, being written
+    assert tidy_staging(tmp_path / "a*.zarr") == [] and (tmp_path / ".abc.zarr.partial-0123").is_dir()
+
+
+def test_remote_outputs_are_rewritten_in_place(tmp_path):
+    """Object storage cannot rename: a second write (settings changed) replaces the store in place."""
+    ds = xr.Dataset({"sigma": (("y", "x"), np.ones((2, 2)))},
+                    coords={"y": ("y", [0.0, 1.0], {"units": "mm"}), "x": ("x", [0.0, 1.0], {"units": "mm"})})
+    url = f"memory://{tmp_path.name}/r.zarr"
+    to_store(ds, url, "reconstruction")
+    to_store(ds * 2, url, "reconstruction")
+    assert float(open_store(url)["sigma"].sum()) == 8.0

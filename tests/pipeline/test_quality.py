@@ -31,7 +31,16 @@ def doubled(source: xr.Dataset, /) -> xr.Dataset:
     return xr.Dataset({"sigma": source["sigma"] * 2}, coords=source.coords, attrs={"selpath_kind": "reconstruction"})
 
 
-REGISTRY = StageRegistry([masked.__selpath_stage__, doubled.__selpath_stage__])
+@stage("relay")
+def relay(source: xr.Dataset, /) -> xr.Dataset:
+    """Its own share: the finite share of what it passes on (fails where the source fails)."""
+    share = usable_share(xr.DataArray(source["sigma"].notnull().mean()), floor=0.25, what="values passed on",
+                         fix="look upstream")
+    return xr.Dataset({"sigma": source["sigma"], "passed": share}, coords=source.coords,
+                      attrs={"selpath_kind": "reconstruction"})
+
+
+REGISTRY = StageRegistry([masked.__selpath_stage__, doubled.__selpath_stage__, relay.__selpath_stage__])
 WORKFLOW = """\
 workflow: q
 scheduler: synchronous
@@ -63,6 +72,18 @@ def test_an_unstored_upstream_step_is_checked_with_the_output_after_it(tmp_path)
     stored = open_store(tmp_path / "d.zarr")
     assert list(stored.data_vars) == ["sigma"]  # the carried share is recorded, not left in the store
     assert read_provenance(tmp_path / "d.zarr")["usable"] == {"m": {"usable_fraction": 0.75}}
+
+
+def test_a_failing_step_with_its_own_share_is_explained_by_the_upstream_ones(tmp_path):
+    """Upstream shares are computed only to explain a failure (carrying them would compute every upstream
+    pixel); the error names the upstream cause first."""
+    (tmp_path / "wf.yaml").write_text(WORKFLOW.format(valid=1, outputs="  r: {from: r, store: r.zarr}").replace(
+        "outputs:", "  - {id: r, stage: relay, with: {source: $m}}\noutputs:"))
+    with pytest.raises(StageError) as info:
+        run_workflow(load_workflow(tmp_path / "wf.yaml", REGISTRY), progress=False)
+    message = str(info.value)
+    assert message.index("step 'm' usable_fraction: only 12.50%") < message.index("step 'r' passed: only 12.50%")
+    assert sorted(os.listdir(tmp_path)) == ["wf.yaml"]
 
 
 def test_the_share_stays_in_the_steps_own_store(tmp_path):
