@@ -25,7 +25,6 @@ from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
 from typing import Any
 
-import dask
 import xarray as xr
 import zarr
 from rich.markup import escape
@@ -275,14 +274,16 @@ def _write_output(graph: _Graph, name: str, out: OutputSpec, data: xr.Dataset, s
         check_png(out.store)
     upstream = [step for step in graph.unchecked(out.from_) if step != out.from_]
     own = shares(data)
-    carried = {} if own else {f"{_CARRIED}{step}.{var}": share for step in upstream
+    carried = {} if own else {f"{_CARRIED}{step}.{var}": (step, var, share) for step in upstream
                               for var, share in shares(graph.results[step]).items()}
     staging = Staging(out.store)
     try:
-        write = write_store(data.assign(carried), staging.path, kind, compute=False,
+        write = write_store(data.assign({key: share for key, (_, _, share) in carried.items()}), staging.path, kind,
+                            compute=False,
                             replace=staging.path == staging.final)
         compute([write], scheduler=scheduler, client=client, progress=progress, description=description)
-        usable = _usable(staging.path, out.from_, data, carried, graph, explain=upstream if own else [])
+        usable = _usable(staging.path, out.from_, data, carried, graph, explain=upstream if own else [],
+                         compute_on=(scheduler, client))
         write_manifest(staging.path, data)
         _record(workflow, graph.records, name, out, scheduler, staging.path, usable)
         if kind == "figure":
@@ -294,12 +295,12 @@ def _write_output(graph: _Graph, name: str, out: OutputSpec, data: xr.Dataset, s
     graph.checked.update([*upstream, out.from_])
 
 
-#: prefix of the upstream shares written beside an output, ``usable.<step>.<variable>`` (step ids hold no dot)
+#: prefix of the upstream shares written beside an output, ``usable.<step>.<variable>``
 _CARRIED = "usable."
 
 
-def _usable(staging: str, step_id: str, data: xr.Dataset, carried: dict[str, xr.DataArray], graph: _Graph, *,
-            explain: list[str]) -> dict[str, dict[str, float]]:
+def _usable(staging: str, step_id: str, data: xr.Dataset, carried: dict[str, tuple[str, str, xr.DataArray]],
+            graph: _Graph, *, explain: list[str], compute_on: tuple[str, Any]) -> dict[str, dict[str, float]]:
     """The usable shares just written beside an output, checked against their floors, the carried ones of
     upstream steps removed from the store. Below a floor: the shares of the ``explain`` steps are computed too,
     and one StageError names every share below its floor, upstream first. Returns the shares by step."""
@@ -309,8 +310,7 @@ def _usable(staging: str, step_id: str, data: xr.Dataset, carried: dict[str, xr.
     for var, share in shares(data).items():
         found.setdefault(step_id, {})[var] = float(group[var][()])
         attrs.setdefault(step_id, {})[var] = share.attrs
-    for key, share in carried.items():
-        step, var = key[len(_CARRIED):].split(".", 1)
+    for key, (step, var, share) in carried.items():
         found.setdefault(step, {})[var] = float(group[key][()])
         attrs.setdefault(step, {})[var] = share.attrs
         del group[key]
@@ -320,7 +320,8 @@ def _usable(staging: str, step_id: str, data: xr.Dataset, carried: dict[str, xr.
             graph.log(f"[dim]usable[/] {escape(step)}: {escape(attrs[step][var][WHAT])}: {value:.1%}")
     if problems and explain:
         upstream = [(step, var, share) for step in explain for var, share in shares(graph.results[step]).items()]
-        values = dask.compute(*[share.data for _, _, share in upstream])
+        scheduler, client = compute_on
+        values = compute([share.data for _, _, share in upstream], scheduler=scheduler, client=client, progress=False)
         causes = [p for (step, var, share), value in zip(upstream, values, strict=True)
                   for p in below_floor(step, {var: float(value)}, {var: share.attrs})]
         problems = causes + problems

@@ -89,20 +89,22 @@ def _arrays(group: zarr.Group) -> Iterable[tuple[str, zarr.Array]]:
             yield name, node
 
 
-def _chunk_path(root: Path, name: str, array: zarr.Array, coords: tuple[int, ...]) -> Path:
-    return root / name / array.metadata.encode_chunk_key(coords)
-
-
 def present_chunks(path: str | os.PathLike, name: str, array: zarr.Array) -> np.ndarray | None:
-    """Boolean array over ``array``'s chunk grid: True where the chunk's file exists (None for remote stores)."""
+    """Boolean array over ``array``'s chunk grid: True where the chunk's file exists (None for remote stores).
+
+    One listing of the array's folder, each file name decoded to its chunk index by the array's own chunk
+    key encoding (a store of 1 425 frame bands is one directory walk, not 1 425 stats)."""
     where = os.fspath(path)
     if "://" in where:
         return None
-    root = Path(where)
-    grid = array.cdata_shape
-    present = np.zeros(grid, dtype=bool)
-    for coords in itertools.product(*(range(n) for n in grid)):
-        present[coords] = _chunk_path(root, name, array, coords).is_file()
+    folder = Path(where) / name
+    present = np.zeros(array.cdata_shape, dtype=bool)
+    index = {array.metadata.encode_chunk_key(c): c for c in itertools.product(*(range(n) for n in present.shape))}
+    for parent, _, files in os.walk(folder):
+        for file in files:
+            coords = index.get(Path(parent, file).relative_to(folder).as_posix())
+            if coords is not None:
+                present[coords] = True
     return present
 
 

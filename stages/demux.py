@@ -26,7 +26,7 @@ from stages.demux_problem import DemuxProblem, SeparableDemuxProblem
 from stages.demux_solver import batch_slots, observed, solve
 from stages.illumination import epipolar_boundary, line_cells, line_illumination, plane_to_ray_illumination
 from stages.reconstruct import Dtype, MaxIter
-from stages.sweeps import sweep_problem
+from stages.sweeps import Sweep
 
 #: streaming batches per solver call: a call's pool (data, warm starts, results: ~8 (P × K) arrays, 64 MB at
 #: K = 128) is bounded while the batch's tail (its last, slowest pixels) is paid once per 16 batches of pixels
@@ -41,25 +41,17 @@ def pixels_per_call(pixels: int, offsets: int) -> int:
     return slots * max(1, -(-pixels // (calls * slots)))
 
 
-class OffsetGrid(pydantic.BaseModel):
+class OffsetGrid(Sweep):
     """Offsets o = projector row − camera row: start, start+step, …, up to and including stop [rows]: stop ≥
     start, step > 0, at most :attr:`MAX_VALUES` offsets (every offset of a 5 000-row sensor; the solver's
     K × K float64 matrices then take 800 MB)."""
 
-    model_config = pydantic.ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
-    #: most offsets a grid may have
     MAX_VALUES: ClassVar[int] = 10_000
+    WHAT: ClassVar[str] = "offsets"
+    LABEL: ClassVar[str] = "offset grid"
     start: int
     stop: int
     step: int = pydantic.Field(1, gt=0)
-
-    @pydantic.model_validator(mode="after")
-    def _bounded(self):
-        problem = sweep_problem(self.start, self.stop, self.step, inclusive=True, what="offsets",
-                                cap=self.MAX_VALUES)
-        if problem:
-            raise ValueError(f"offset grid: {problem}")
-        return self
 
     def values(self) -> np.ndarray:
         return np.arange(self.start, self.stop + 1, self.step)

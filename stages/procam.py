@@ -34,28 +34,19 @@ from pipeline.constraints import Count, NonNegative, Positive, memory_problems
 from pipeline.errors import Problem, SelpathError, StageError
 from pipeline.registry import stage
 from pipeline.spec import StorePath
-from stages.sweeps import sweep_problem
+from stages.sweeps import Sweep
 
 
-class TimeSweep(pydantic.BaseModel):
+class TimeSweep(Sweep):
     """Times start, start+step, …, up to and including stop [µs]: stop ≥ start (equal: the one value start),
     step > 0, at most :attr:`MAX_VALUES` values (a 1 µs step over ±50 ms, far beyond a controller's range)."""
 
-    model_config = pydantic.ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
-    #: most values a sweep may have, and what they are called in messages
     MAX_VALUES: ClassVar[int] = 100_000
     WHAT: ClassVar[str] = "delays"
+    LABEL: ClassVar[str] = "delays sweep"
     start: float
     stop: float
     step: float = pydantic.Field(gt=0, description="µs")
-
-    @pydantic.model_validator(mode="after")
-    def _bounded(self):
-        problem = sweep_problem(self.start, self.stop, self.step, inclusive=True, what=self.WHAT,
-                                cap=self.MAX_VALUES)
-        if problem:
-            raise ValueError(f"{self.WHAT} sweep: {problem}")
-        return self
 
     def values(self) -> np.ndarray:
         return np.round(np.arange(self.start, self.stop + 1e-9 * self.step, self.step), 6)
@@ -67,6 +58,7 @@ class PixelSweep(TimeSweep):
 
     MAX_VALUES: ClassVar[int] = 100_000
     WHAT: ClassVar[str] = "lines"
+    LABEL: ClassVar[str] = "lines sweep"
 
 
 #: exposures t_e [µs]: each > 0, at least one

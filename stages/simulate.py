@@ -13,29 +13,22 @@ from dask.base import tokenize
 from devices.sim.parallel_light import Rod, render
 from pipeline.constraints import Count, Index, NonNegative, Positive, memory_problems
 from pipeline.registry import stage
-from stages.sweeps import sweep_problem
+from stages.sweeps import Sweep
 
 _FRAME_BYTES_PER_CHUNK = 64 * 2**20
 
 
-class AngleSweep(pydantic.BaseModel):
+class AngleSweep(Sweep):
     """Stage angles start, start+step, … below stop, in degrees: stop > start, step > 0, at most
     :attr:`MAX_VALUES` angles (a sweep of 0.0036° steps over a full turn; far beyond any stage)."""
 
-    model_config = pydantic.ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
-    #: most angles a sweep may have
     MAX_VALUES: ClassVar[int] = 100_000
+    WHAT: ClassVar[str] = "angles"
+    LABEL: ClassVar[str] = "angle sweep"
+    INCLUSIVE: ClassVar[bool] = False
     start: float = 0.0
     stop: float = pydantic.Field(360.0, description="exclusive end, degree")
     step: float = pydantic.Field(1.0, gt=0, description="degree")
-
-    @pydantic.model_validator(mode="after")
-    def _bounded(self):
-        problem = sweep_problem(self.start, self.stop, self.step, inclusive=False, what="angles",
-                                cap=self.MAX_VALUES)
-        if problem:
-            raise ValueError(f"angle sweep: {problem}")
-        return self
 
     def values(self) -> np.ndarray:
         return np.arange(self.start, self.stop - 1e-9 * self.step, self.step)

@@ -12,6 +12,9 @@ True
 from __future__ import annotations
 
 import math
+from typing import ClassVar
+
+import pydantic
 
 
 def sweep_count(start: float, stop: float, step: float, *, inclusive: bool) -> float:
@@ -43,3 +46,25 @@ def sweep_problem(start: float, stop: float, step: float, *, inclusive: bool, wh
         return (f"the sweep would have {_count_text(count)} {what} ({bounds}); at most {cap:,} are allowed: "
                 "take a larger step or a narrower range")
     return None
+
+
+class Sweep(pydantic.BaseModel):
+    """Base of the sweep settings: subclasses declare ``start``, ``stop``, ``step`` and ``values()``; this
+    refuses an empty sweep or one of more than ``MAX_VALUES`` values, naming ``LABEL`` and ``WHAT``."""
+
+    model_config = pydantic.ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+    #: most values a sweep may have
+    MAX_VALUES: ClassVar[int] = 100_000
+    #: what its values are called ("angles") and what it is called ("angle sweep") in messages
+    WHAT: ClassVar[str] = "values"
+    LABEL: ClassVar[str] = "sweep"
+    #: stop is a value of the sweep (True) or the first value past it (False)
+    INCLUSIVE: ClassVar[bool] = True
+
+    @pydantic.model_validator(mode="after")
+    def _bounded(self):
+        problem = sweep_problem(self.start, self.stop, self.step, inclusive=self.INCLUSIVE, what=self.WHAT,
+                                cap=self.MAX_VALUES)
+        if problem:
+            raise ValueError(f"{self.LABEL}: {problem}")
+        return self

@@ -45,7 +45,7 @@ def _mutated(text: str, old: str, new: str) -> str:
     return text.replace(old, new)
 
 
-def _refused(tmp_path: Path, text: str, message: str) -> None:
+def assert_refused(tmp_path: Path, text: str, message: str) -> None:
     """``text`` written beside a copy of the shipped scenes fails validation with ``message`` (its end, exactly:
     the file's own path comes first)."""
     if not (tmp_path / "scenes").exists():
@@ -60,7 +60,7 @@ def test_the_unbroken_workflows_validate(tmp_path, workflow_text):
     shutil.copytree(WORKFLOWS / "scenes", tmp_path / "scenes")
     for text in (workflow_text, *(p.read_text() for p in sorted(WORKFLOWS.glob("*.yaml")))):
         (tmp_path / "wf.yaml").write_text(text)
-        load_workflow(tmp_path / "wf.yaml")
+        assert load_workflow(tmp_path / "wf.yaml").steps
 
 
 SMALL = [  # (old, new, message): mutations of SMALL_WORKFLOW
@@ -117,20 +117,20 @@ HUGE_FRAME = SMALL[-1]
 
 @pytest.mark.parametrize(("old", "new", "message"), SMALL, ids=[m[1].split("\n")[0] for m in SMALL])
 def test_small_workflow_mutations_are_refused(tmp_path, workflow_text, old, new, message):
-    _refused(tmp_path, _mutated(workflow_text, old, new), message)
+    assert_refused(tmp_path, _mutated(workflow_text, old, new), message)
 
 
 def test_memory_message_names_this_machines_memory(tmp_path, workflow_text, monkeypatch):
     monkeypatch.setattr(pipeline.constraints, "machine_memory", lambda: 256 * GIB)
     old, new, message = HUGE_FRAME
-    _refused(tmp_path, _mutated(workflow_text, old, new), message.replace("(16.0 GiB)", "(256.0 GiB)"))
+    assert_refused(tmp_path, _mutated(workflow_text, old, new), message.replace("(16.0 GiB)", "(256.0 GiB)"))
 
 
 def test_frames_that_fit_are_not_refused(tmp_path, workflow_text):
     """256 × 4096 frames: eight per render task, 13.1 × 32 MiB = 419 MiB of working arrays, under 8 GiB."""
     path = tmp_path / "wf.yaml"
     path.write_text(_mutated(workflow_text, "n_rows: 3\n      n_cols: 48", "n_rows: 256\n      n_cols: 4096"))
-    load_workflow(path)
+    assert load_workflow(path).steps["capture"].settings.n_cols == 4096
 
 
 SHIPPED = [  # (workflow, old, new, message)
@@ -231,7 +231,7 @@ SHIPPED = [  # (workflow, old, new, message)
 @pytest.mark.parametrize(("workflow", "old", "new", "message"), SHIPPED,
                          ids=[f"{w.removesuffix('.yaml')}:{n.split(chr(10))[0]}" for w, _, n, _ in SHIPPED])
 def test_shipped_workflow_mutations_are_refused(tmp_path, workflow, old, new, message):
-    _refused(tmp_path, _mutated(_shipped(workflow), old, new), message)
+    assert_refused(tmp_path, _mutated(_shipped(workflow), old, new), message)
 
 
 SCENES = [  # (scene file, old, new, message): a scene broken under a shipped workflow that reads it
@@ -256,7 +256,7 @@ def test_scene_mutations_are_refused(tmp_path, workflow, scene, old, new, messag
     shutil.copytree(WORKFLOWS / "scenes", tmp_path / "scenes")
     path = tmp_path / "scenes" / scene
     path.write_text(_mutated(path.read_text(), old, new))
-    _refused(tmp_path, _shipped(workflow), message)
+    assert_refused(tmp_path, _shipped(workflow), message)
 
 
 def test_hardware_rig_sizes_are_checked(tmp_path):
@@ -265,7 +265,7 @@ def test_hardware_rig_sizes_are_checked(tmp_path):
                    "geometry: {camera_model: orthographic, light_angle_deg: 45, length_unit: mm, pixel_size: 0.1}\n")
     text = ("workflow: hw\nsteps:\n  - id: capture\n    stage: acquire_tomography\n"
             "    with: {rig: hardware, hardware: rig.yaml, store: out/capture.zarr}\noutputs: {}\n")
-    _refused(tmp_path, text, "camera.width: Input should be greater than 0 (got 0)")
+    assert_refused(tmp_path, text, "camera.width: Input should be greater than 0 (got 0)")
 
 
 # -- sweeps ------------------------------------------------------------------------------------------------
