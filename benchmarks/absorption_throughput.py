@@ -30,7 +30,8 @@ def _peak_rss_gb() -> float:
 
 
 def _capture(args):
-    from stages.simulate import AngleSweep, simulate_parallel_capture
+    from stages.tomography.acquire import AngleSweep
+    from stages.tomography.simulate import simulate_parallel_capture
 
     return simulate_parallel_capture(angles=AngleSweep(start=0, stop=360, step=360 / args.angles),
                                      n_rows=args.rows, n_cols=args.cols, pixel_size=40.0 / args.cols * 1.2)
@@ -53,7 +54,7 @@ def measure(mode: str, args) -> dict:
     import numpy as np
 
     from pipeline.store import to_store
-    from stages.calibrate import absorption
+    from stages.tomography.calibrate import absorption
 
     pixels = args.angles * args.rows * args.cols
     if mode == "simulate":

@@ -53,7 +53,7 @@ def _kept(k: int):
     """The frames the stage keeps: its default rule drops the 6 whose exposure edge cuts the epipolar row."""
     import numpy as np
 
-    from stages.illumination import epipolar_boundary
+    from stages.procam._illumination import epipolar_boundary
 
     d, e = np.meshgrid(_delays(k), EXPOSURES_US, indexing="ij")
     return ~epipolar_boundary(d.ravel(), e.ravel(), sync_offset=0.0, margin=LINE_TIME / 2)
@@ -62,7 +62,7 @@ def _kept(k: int):
 def _matrix(k: int, kept: bool = False):
     import numpy as np
 
-    from stages.illumination import plane_to_ray_illumination
+    from stages.procam._illumination import plane_to_ray_illumination
 
     d, e = np.meshgrid(_delays(k), EXPOSURES_US, indexing="ij")
     a = plane_to_ray_illumination(d.ravel(), e.ravel(), _offsets(k), scan_speed=SPEED, line_time=LINE_TIME)
@@ -132,7 +132,7 @@ def measure(mode: str, args) -> dict:
         enable_compile_cache()
     k = args.k
     if mode in ("selpath", "generate"):
-        from stages.demux import OffsetGrid, demux_plane_to_ray
+        from stages.procam.demux import OffsetGrid, demux_plane_to_ray
 
         pixels = args.rows * args.cols
         with dask.config.set(scheduler="threads", num_workers=args.workers), tempfile.TemporaryDirectory() as tmp:
@@ -146,7 +146,7 @@ def measure(mode: str, args) -> dict:
             seconds = time.perf_counter() - start
             result = {"seconds": seconds, "pixels": pixels, "peak_rss_gb": _peak_rss_gb()}
             if mode == "selpath":  # the stage's own output on the sample pixels, for the objective gap
-                from stages.demux_problem import DemuxProblem
+                from stages.procam._demux_problem import DemuxProblem
 
                 stored = open_store(f"{tmp}/t.zarr")
                 n = min(args.sample, args.cols)
@@ -163,9 +163,9 @@ def measure(mode: str, args) -> dict:
 
         import cvxpy as cp
 
-        from stages.demux import solve_pixels
-        from stages.demux_problem import DemuxProblem
-        from stages.demux_solver import solve
+        from stages.procam._demux_problem import DemuxProblem
+        from stages.procam._demux_solver import solve
+        from stages.procam.demux import solve_pixels
 
         matrix = _matrix(k, kept=True)
         problem = DemuxProblem.build(matrix)

@@ -28,10 +28,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from devices.sim.scene import load_scene
-from stages.admm import TVADMM
-from stages.phantom import observed_mask, scene_radon, truth_raster
-from stages.projector import Geometry, operator_norm
-from stages.reconstruct import fbp_slice, known_zero, support_mask, upper_bound
+from stages.tomography._admm import TVADMM
+from stages.tomography._projector import Geometry, operator_norm
+from stages.tomography.phantom import observed_mask, scene_radon, truth_raster
+from stages.tomography.reconstruct import fbp_slice, known_zero, support_mask, upper_bound
 
 ROOT = Path(__file__).resolve().parent
 SCENE = ROOT.parent / "workflows" / "scenes" / "phantom-cylinder.yaml"

@@ -122,3 +122,11 @@ class RigGeometry:
         towards = np.array([np.sin(a), np.cos(a), 0.0])
         distance = self.light_distance if self.light_distance is not None else 1.0
         return towards * distance + np.array([0.0, 0.0, self.beam_height]), -towards
+
+
+GEOMETRY_ATTRS = tuple(set(RigGeometry.__dataclass_fields__) - {"rows", "cols"})
+
+
+def geometry_attrs(attrs) -> dict:
+    """The rig-geometry attrs of a cube (carried from the capture through every tomography stage)."""
+    return {k: v for k, v in attrs.items() if k in GEOMETRY_ATTRS or k == "saturation_level"}

@@ -16,10 +16,10 @@ from typing import Literal
 
 import pydantic
 
-from devices.acquire import TomographyRig
 from devices.manual import ManualLight, ManualSampleChanger
 from devices.opencv_camera import OpenCVCamera
 from devices.serial_stage import SerialRotaryStage
+from devices.tomography_acquire import TomographyRig
 from pipeline.yaml_source import load_yaml_model
 
 

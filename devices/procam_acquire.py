@@ -2,7 +2,7 @@
 
 ``acquire_plane_to_ray``: the white pattern, every (delay, exposure) → a ``(delay, exposure, row, col)``
 store. ``acquire_full_transport``: a vertical line at each position l_p (width l_w) × every (delay,
-exposure) → ``(delay, exposure, line, row, col)``. Like the tomography sweep (``devices.acquire``), the store
+exposure) → ``(delay, exposure, line, row, col)``. Like the tomography sweep (``devices.tomography_acquire``), the store
 is pre-allocated, each frame is a region write followed by its ``written__`` flag, and running the same
 sweep again captures only what is missing. A sweep the controller cannot do is refused before anything
 moves, naming the limit. Order: exposure (slowest), line, delay, so settings change as little as possible.

@@ -1,6 +1,6 @@
 """What an acquisition sweep needs from an instrument, as ``typing.Protocol``s.
 
-A sweep (``devices.acquire``) talks only to these protocols, so a real rig (``devices.serial_stage``,
+A sweep (``devices.tomography_acquire``) talks only to these protocols, so a real rig (``devices.serial_stage``,
 ``devices.opencv_camera``, ``devices.manual``) and the simulated rig (``devices.sim.rig``) are
 interchangeable: a sweep cannot tell one from the other. Every method either does what it says or
 raises :class:`~pipeline.errors.DeviceError` naming the port, the command and the reply.

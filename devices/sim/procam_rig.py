@@ -1,5 +1,5 @@
 """The simulated projector–camera rig: sync controller, projector and rolling-shutter camera on top of the
-transport simulator (``devices.sim.transport``), behind the protocols of :mod:`devices.protocols`.
+transport simulator (``devices.sim.procam_transport``), behind the protocols of :mod:`devices.protocols`.
 
 The camera renders what the rig's state says: the delay and exposure the controller holds (plus the
 rig's true sync offset, which only a calibration reveals) and the pattern on the projector. Like the
@@ -15,8 +15,8 @@ import numpy as np
 
 from devices.protocols import SyncLimits
 from devices.sim.procam_scene import ProcamScene
+from devices.sim.procam_transport import render_frame
 from devices.sim.sync_firmware import DEFAULT_LIMITS, SimSyncController
-from devices.sim.transport import render_frame
 from pipeline.errors import DeviceError
 
 

@@ -4,7 +4,7 @@ A scene is a list of objects painted over a background in camera-image coordinat
 image's width and height, so one scene renders at any sensor size). Each object has an albedo, a
 disparity (where its direct correspondence lies in the projector) and the light-transport **effects** it
 shows; the ground-truth transport of a pixel is assembled from *only the effects its object names*
-(``devices.sim.transport``), each as separable lobes in offset space:
+(``devices.sim.procam_transport``), each as separable lobes in offset space:
 
 ``subsurface``               an isotropic exponential lobe at the direct correspondence (candle, milk, soap);
 ``diffuse_interreflection``  a broad, horizontally extended lobe whose strength falls with the distance from

@@ -12,10 +12,10 @@ import time
 
 import numpy as np
 
-from devices.acquire import TomographyRig
 from devices.protocols import RotaryStage
 from devices.sim.scene import Scene
 from devices.sim.tomography import SAMPLES, ExitPoints, exit_points, lit_frame, silhouette
+from devices.tomography_acquire import TomographyRig
 from pipeline.errors import DeviceError
 
 
@@ -103,7 +103,7 @@ class SimCamera:
 
 
 def simulated_rig(scene: Scene) -> TomographyRig:
-    """A :class:`~devices.acquire.TomographyRig` of simulated devices showing ``scene``."""
+    """A :class:`~devices.tomography_acquire.TomographyRig` of simulated devices showing ``scene``."""
     stage = SimRotaryStage()
     beam, backlight, samples = SimLight("beam"), SimLight("backlight"), SimSampleChanger()
     camera = SimCamera(scene, stage, beam, backlight, samples)

@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 from devices.sim.parallel_light import Rod, column_x, line_integrals
-from stages.calibrate import absorption
-from stages.simulate import AngleSweep, RodSpec, simulate_parallel_capture
+from stages.tomography.acquire import AngleSweep
+from stages.tomography.calibrate import absorption
+from stages.tomography.simulate import RodSpec, simulate_parallel_capture
 
 RODS = (Rod(6.0, 3.0, 4.0, 0.05), Rod(-5.0, -7.0, 2.5, 0.2))
 
@@ -58,7 +59,7 @@ def test_noise_is_independent_of_chunking(monkeypatch):
     kwargs = dict(angles=AngleSweep(start=0, stop=50, step=5), n_rows=3, n_cols=16, noise_std=3.0, seed=7)
     whole = simulate_parallel_capture(**kwargs)
     assert whole["target"].data.numblocks[0] == 1
-    monkeypatch.setattr("stages.simulate._FRAME_BYTES_PER_CHUNK", 3 * 16 * 4 * 3)  # three frames a chunk
+    monkeypatch.setattr("stages.tomography.simulate._FRAME_BYTES_PER_CHUNK", 3 * 16 * 4 * 3)  # three frames a chunk
     pieces = simulate_parallel_capture(**kwargs)
     assert pieces["target"].data.chunks[0] == (3, 3, 3, 1)
     whole, pieces = whole.compute(), pieces.compute()

@@ -12,7 +12,7 @@ import xarray as xr
 from devices.procam_acquire import acquire_full_transport, acquire_plane_to_ray, plan_sweep
 from devices.sim.procam_rig import simulated_procam_rig
 from devices.sim.procam_scene import ProcamScene
-from devices.sim.transport import render_frame
+from devices.sim.procam_transport import render_frame
 from pipeline.engine import run_workflow
 from pipeline.errors import SpecError
 from pipeline.provenance import read_provenance
@@ -148,7 +148,7 @@ outputs:
 
 def test_calibration_without_a_visible_band_names_the_frames_and_the_fix():
     from pipeline.errors import StageError
-    from stages.procam import calibrate_scan_speed
+    from stages.procam.calibrate import calibrate_scan_speed
 
     dark = xr.Dataset({"image": (("delay", "exposure", "row", "col"), np.zeros((2, 2, 8, 4)))},
                       coords={"delay": [0.0, 170.0], "exposure": [170.0, 340.0]}, attrs={"line_time_us": 17.0})

@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 
+import workflows
 from devices.sim.scene import load_scene
 from pipeline.errors import ConfigError
 
-SCENES = sorted((Path(__file__).parents[2] / "workflows" / "scenes").glob("*.yaml"))
+SCENES = sorted((workflows.folder() / "scenes").glob("*.yaml"))
 
 GOOD = """\
 scene: ok

@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from devices.acquire import TomographyRig, acquire_tomography
 from devices.serial_line import SerialLine, frame_reply
 from devices.serial_stage import SerialRotaryStage
 from devices.sim.rig import SimCamera, SimLight, SimSampleChanger, simulated_rig
 from devices.sim.scene import Scene
 from devices.sim.stage_firmware import FakeStageFirmware
+from devices.tomography_acquire import TomographyRig, acquire_tomography
 from pipeline.errors import DeviceDisconnected, DeviceError, DeviceProtocolError, DeviceTimeout
 from pipeline.store import missing_frames, open_store
 

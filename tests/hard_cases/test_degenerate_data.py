@@ -13,14 +13,16 @@ import xarray as xr
 
 from pipeline import StageError, load_workflow, run_workflow, to_store
 from pipeline.quality import enforce
-from stages.calibrate import UnsortedSweepWarning, absorption
-from stages.hull import silhouettes, visual_hull
-from stages.paths import align_paths
-from stages.reconstruct import fbp, reconstruct_tv
-from stages.simulate import AngleSweep, simulate_parallel_capture
-from stages.sinogram import bin_sinogram
-from tests.stages.test_tomography_processing import capture as simulated
-from tests.stages.test_tomography_processing import cylinder_camera, make_scene
+from stages._common import UnsortedSweepWarning
+from stages.tomography.acquire import AngleSweep
+from stages.tomography.calibrate import absorption
+from stages.tomography.hull import silhouettes, visual_hull
+from stages.tomography.paths import align_paths
+from stages.tomography.reconstruct import fbp, reconstruct_tv
+from stages.tomography.simulate import simulate_parallel_capture
+from stages.tomography.sinogram import bin_sinogram
+from tests.stages.tomography.test_tomography_processing import capture as simulated
+from tests.stages.tomography.test_tomography_processing import cylinder_camera, make_scene
 
 
 @pytest.fixture(scope="module")

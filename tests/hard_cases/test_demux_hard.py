@@ -5,9 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stages.demux_problem import DemuxProblem
-from stages.demux_solver import solve
-from stages.illumination import plane_to_ray_illumination
+from stages.procam._demux_problem import DemuxProblem
+from stages.procam._demux_solver import solve
+from stages.procam._illumination import plane_to_ray_illumination
 
 OFFSETS = np.arange(-32, 33)
 
@@ -98,8 +98,8 @@ def test_separable_full_transport_with_nan_and_saturated_frames_at_extreme_scale
     """The Kronecker (full-transport) solver on a rank-deficient sweep (N = 30 < K = 6 × 33) with NaN
     frames, a fully masked pixel and data scaled by 1e±8 in float32: finite, non-negative, converged with
     honest flags, and the same objective (÷ scale²) as the unscaled solve to 1e-3 relative."""
-    from stages.demux_problem import SeparableDemuxProblem
-    from stages.illumination import line_cells, line_illumination
+    from stages.procam._demux_problem import SeparableDemuxProblem
+    from stages.procam._illumination import line_cells, line_illumination
 
     cells, step = line_cells(np.arange(0.0, 9.0, 2.0), 4.0)
     a_u = line_illumination(np.arange(0.0, 9.0, 2.0), 4.0, cells, step)

@@ -20,7 +20,7 @@ from pipeline.integrity import verify_store
 from pipeline.provenance import write_provenance
 from pipeline.schema import KINDS, LENGTH_UNITS
 from pipeline.store import missing_frames
-from tests.devices.test_acquire import make_workflow
+from tests.devices.test_tomography_acquire import make_workflow
 
 runner = CliRunner()
 SIZES = {"angle": 3, "row": 4, "col": 5, "vertex": 3, "xy": 2, "slice": 2, "delay": 3, "exposure": 2, "line": 2,

@@ -10,6 +10,7 @@ import pytest
 import xarray as xr
 from typer.testing import CliRunner
 
+import workflows
 from pipeline import SpecError, StageRegistry, load_workflow, open_store, read_provenance, run_workflow, stage
 from pipeline.cli import app
 from pipeline.outputs import Staging, tidy_staging
@@ -108,8 +109,7 @@ steps:
     with: {rig: sim, scene: scene.yaml, store: "", angles: {start: 0, stop: 10, step: 5}}
 """)
     import shutil
-    from pathlib import Path
-    shutil.copy(Path(__file__).parents[2] / "workflows" / "scenes" / "gelatin-bin.yaml", tmp_path / "scene.yaml")
+    shutil.copy(workflows.scene("gelatin-bin"), tmp_path / "scene.yaml")
     message = _problems(tmp_path / "wf.yaml")
     assert "wf.yaml:5: steps[0].with.store: output 'capture' store" in message and "ending in '.zarr'" in message
 

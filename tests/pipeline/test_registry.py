@@ -52,8 +52,8 @@ def test_duplicate_names_are_refused_naming_both():
         return capture
 
     registry = StageRegistry(default_registry())
-    with pytest.raises(SelpathError, match=r"stage 'absorption' is registered twice: by stages.calibrate:absorption "
-                                           r"and by .*impostor"):
+    with pytest.raises(SelpathError, match=r"stage 'absorption' is registered twice: by "
+                                           r"stages.tomography.calibrate:absorption and by .*impostor"):
         registry.add(impostor.__selpath_stage__)
 
 

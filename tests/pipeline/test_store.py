@@ -62,7 +62,7 @@ def test_round_trip_is_identical(tmp_path_factory, data, channel):
 
 
 def test_opening_a_store_and_building_on_it_computes_nothing(tmp_path, no_compute):
-    from stages.calibrate import absorption
+    from stages.tomography.calibrate import absorption
 
     to_store(capture().assign_attrs(saturation_level=1e9), tmp_path / "s.zarr", "tomography_capture")  # numpy
     opened = open_store(tmp_path / "s.zarr")

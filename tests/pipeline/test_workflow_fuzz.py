@@ -12,11 +12,12 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from typer.testing import CliRunner
 
+import workflows
 from pipeline import SelpathError, load_workflow
 from pipeline.cli import app
 from tests.conftest import SMALL_WORKFLOW
 
-WORKFLOWS = sorted((Path(__file__).parents[2] / "workflows").glob("*.yaml"))
+WORKFLOWS = [workflows.path(name) for name in workflows.names()]
 VALUES = st.sampled_from([0, -1, 1, 2, 0.5, -0.5, 1e9, 1e300, -1e300, math.nan, math.inf, -math.inf, "", "x",
                           "..", ".", "/", "out", "out/x.zarr", "$capture", "$capture.nope", "$nope", "[degree]",
                           None, True, [], {}, [1, 2], {"start": 0, "stop": 1e300, "step": 1}])

@@ -20,14 +20,15 @@ import pytest
 from annotated_types import Ge, Gt
 
 import pipeline.constraints
+import workflows
 from pipeline import SpecError, load_workflow
 from pipeline.registry import default_registry
-from stages.demux import OffsetGrid
-from stages.procam import PixelSweep, TimeSweep
-from stages.simulate import AngleSweep
-from stages.sweeps import sweep_count
+from stages._sweeps import sweep_count
+from stages.procam.acquire import PixelSweep, TimeSweep
+from stages.procam.demux import OffsetGrid
+from stages.tomography.acquire import AngleSweep
 
-WORKFLOWS = Path(__file__).resolve().parents[2] / "workflows"
+WORKFLOWS = workflows.folder()
 GIB = 2**30
 
 

@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from devices.acquire import acquire_tomography
+import workflows
 from devices.sim.rig import simulated_rig
 from devices.sim.scene import load_scene
+from devices.tomography_acquire import acquire_tomography
 from pipeline.engine import run_workflow
 from pipeline.errors import DeviceError, StoreError
 from pipeline.provenance import read_provenance
@@ -123,7 +124,7 @@ def test_a_device_fault_keeps_every_frame_captured_so_far(tmp_path):
 
 
 def test_the_shipped_workflow_acquires_the_gelatin_bin_into_a_capture_store():
-    path = Path(__file__).parents[2] / "workflows" / "tomography-sim.yaml"
+    path = workflows.path("tomography-sim")
     workflow = load_workflow(path)
     capture = workflow.steps["capture"]
     assert capture.stage.name == "acquire_tomography" and "capture" in Path(capture.settings.store).name

@@ -12,8 +12,6 @@ All stages are elementwise xarray operations on dask arrays, hence lazy and tile
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 import xarray as xr
 
@@ -21,6 +19,7 @@ from pipeline.constraints import Fraction, NonNegative, Positive
 from pipeline.errors import Problem, StageError
 from pipeline.quality import usable_share
 from pipeline.registry import stage
+from stages._common import require_variables, sorted_sweep
 
 #: bits of ``flags``; target bits are shifted by 0, reference bits by 3
 SATURATED, NO_SIGNAL, NONFINITE = 1, 2, 4
@@ -28,17 +27,6 @@ FLAG_MASKS = [1, 2, 4, 8, 16, 32]
 FLAG_MEANINGS = ("target_saturated target_no_signal target_nonfinite "
                  "reference_saturated reference_no_signal reference_nonfinite")
 FRAME_VARIABLES = ("target", "reference", "backlit")
-
-
-def _require(capture: xr.Dataset, names: tuple[str, ...], stage_name: str) -> None:
-    problems = [
-        Problem(f"stage {stage_name!r} needs variable {name!r}; the input has {sorted(map(str, capture.data_vars))}",
-                path=name)
-        for name in names
-        if name not in capture.data_vars
-    ]
-    if problems:
-        raise StageError(problems)
 
 
 def _float_dtype(array: xr.DataArray) -> np.dtype:
@@ -60,7 +48,7 @@ def subtract_background(capture: xr.Dataset, /, *, background: str = "dark",
     variables : list of str
         Frame variables to correct; those absent from the capture are skipped.
     """
-    _require(capture, (background,), "subtract_background")
+    require_variables(capture, (background,), "subtract_background")
     if capture.attrs.get("background_subtracted"):
         raise StageError(Problem(f"background {capture.attrs['background_subtracted']!r} was already subtracted",
                                  fix="subtract it once"))
@@ -157,7 +145,7 @@ def _checked_pair(capture: xr.Dataset, stage_name: str, saturation_level: float 
     usable shares of the input (:mod:`pipeline.quality`)."""
     capture = sorted_sweep(capture, "angle", stage_name)
     background_name = capture.attrs.get("background_subtracted") or ("dark" if "dark" in capture else None)
-    _require(capture, ("target", "reference") + ((background_name,) if background_name else ()), stage_name)
+    require_variables(capture, ("target", "reference") + ((background_name,) if background_name else ()), stage_name)
     _same_frames(capture, background_name, stage_name)
     level = _saturation_level(capture, saturation_level)
     subtracted = bool(capture.attrs.get("background_subtracted"))
@@ -197,28 +185,6 @@ def _checked_pair(capture: xr.Dataset, stage_name: str, saturation_level: float 
             fix=f"{background_name!r} must be the sensor's offset (counts ≥ 0) in the frames' units: is it already "
             "subtracted from the frames, or from another camera?")
     return value, flags, attrs, shares
-
-
-def sorted_sweep(ds: xr.Dataset, dim: str, stage_name: str) -> xr.Dataset:
-    """``ds`` with its sweep coordinate ``dim`` sorted (warning if it was not); a repeated value is refused."""
-    if dim not in ds.coords:
-        return ds
-    values = np.asarray(ds[dim].values)
-    unique, counts = np.unique(values, return_counts=True)
-    if (counts > 1).any():
-        repeated = unique[counts > 1]
-        raise StageError(Problem(f"stage {stage_name!r}: coordinate {dim!r} repeats {repeated[:5].tolist()} "
-                                 f"({int((counts - 1).sum())} duplicate frame(s)); each {dim} must be captured once",
-                                 path=dim, fix="drop the duplicates (ds.drop_duplicates) or fix the coordinate"))
-    if (np.diff(values) < 0).any():
-        warnings.warn(f"stage {stage_name!r}: coordinate {dim!r} is not sorted; frames were reordered by {dim}",
-                      UnsortedSweepWarning, stacklevel=3)
-        ds = ds.sortby(dim)
-    return ds
-
-
-class UnsortedSweepWarning(UserWarning):
-    """A sweep coordinate (angle, delay, …) was not in increasing order; the stage sorted it."""
 
 
 _PAIR_DOCS = """Parameters

@@ -26,9 +26,9 @@ from pipeline.constraints import Count, Index, NonNegative, Positive, memory_pro
 from pipeline.errors import Problem, SelpathError, StageError
 from pipeline.registry import stage
 from pipeline.spec import StorePath
-from stages.paths import sinogram_coordinates
-from stages.simulate import AngleSweep
-from stages.sinogram import Bins
+from stages.tomography.acquire import AngleSweep
+from stages.tomography.paths import sinogram_coordinates
+from stages.tomography.sinogram import Bins
 
 #: θ_l, the light's angle to the camera axis [degree]
 LightAngle = Annotated[float, pydantic.Field(ge=0, le=180)]

@@ -16,28 +16,23 @@ the area inside the blue line of Fig. 21, where FBP is exact up to discretisatio
 from __future__ import annotations
 
 from functools import lru_cache
-from typing import Annotated, Literal
+from typing import Literal
 
 import dask.array as da
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pydantic
 import xarray as xr
 
+from devices.geometry import geometry_attrs
 from pipeline.constraints import Count, NonNegative, Positive, memory_problems
 from pipeline.errors import Problem, StageError
 from pipeline.registry import stage
-from stages.admm import TVADMM
-from stages.calibrate import _require
-from stages.filters import ramp_filter
-from stages.hull import geometry_attrs
-from stages.projector import Geometry, backproject
-from stages.sinogram import observed_share, support_function
-
-Dtype = Literal["float32", "float64"]
-#: an iteration cap: at least 1, at most a million (solvers keep per-iteration histories and int32 counters)
-MaxIter = Annotated[int, pydantic.Field(ge=1, le=1_000_000)]
+from stages._common import Dtype, MaxIter, require_variables
+from stages.tomography._admm import TVADMM
+from stages.tomography._filters import ramp_filter
+from stages.tomography._projector import Geometry, backproject
+from stages.tomography.sinogram import observed_share, support_function
 
 
 def image_problems(n_pixels: int | None) -> list[str]:
@@ -160,7 +155,7 @@ def _slice_inputs(sinogram: xr.Dataset, hull: xr.Dataset | None, geometry: Geome
 
 
 def _check(sinogram: xr.Dataset, hull: xr.Dataset | None, name: str) -> None:
-    _require(sinogram, ("absorption", "observed"), name)
+    require_variables(sinogram, ("absorption", "observed"), name)
     if "slice" not in sinogram.dims:
         raise StageError(Problem(f"{name}: the sinogram has no slice dim", fix="bin it with bin_sinogram"))
     if hull is not None:

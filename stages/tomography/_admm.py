@@ -4,7 +4,7 @@ Problem, per slice::
 
     min_σ  ½‖M (R σ − A)‖²  +  λ ‖∇σ‖_{2,1}  +  ι_[0, σ_max](σ)
 
-M masks the observed rays, R is :mod:`stages.projector`, ∇ forward differences (isotropic TV, Eq. 30) and
+M masks the observed rays, R is :mod:`stages.tomography._projector`, ∇ forward differences (isotropic TV, Eq. 30) and
 σ_max the per-cell bound of Eq. 26–28 (0 outside the object's support). ADMM splits z₁ = D σ (TV) and
 z₂ = K σ (box). Both splits are scaled to the projector: K = ‖M R‖ and D = (K/‖∇‖)·∇, so the three terms
 of the σ-update matrix RᵀMR + ρ(DᵀD + K²I) have the same norm and one penalty ρ (dimensionless, default
@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 
-from stages.projector import Geometry, adjoint, forward, operator_norm
+from stages.tomography._projector import Geometry, adjoint, forward, operator_norm
 
 _GRADIENT_NORM = np.sqrt(8.0)  # ‖∇‖₂ of 2D forward differences (Neumann boundary)
 

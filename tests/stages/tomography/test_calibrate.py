@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pipeline import StageError
-from stages.calibrate import NO_SIGNAL, NONFINITE, SATURATED, absorption, normalise_reference, subtract_dark
+from stages.tomography.calibrate import NO_SIGNAL, NONFINITE, SATURATED, absorption, normalise_reference, subtract_dark
 
 DIMS = ("angle", "row", "col")
 

@@ -14,11 +14,12 @@ import xarray as xr
 from skimage.data import shepp_logan_phantom
 from skimage.transform import radon, resize
 
-from stages.filters import ramp_response
-from stages.phantom import simulate_sinogram, truth_raster
-from stages.projector import Geometry, adjoint, forward
-from stages.reconstruct import fbp, reconstruct_tv, upper_bound
-from stages.simulate import AngleSweep
+import workflows
+from stages.tomography._filters import ramp_response
+from stages.tomography._projector import Geometry, adjoint, forward
+from stages.tomography.acquire import AngleSweep
+from stages.tomography.phantom import simulate_sinogram, truth_raster
+from stages.tomography.reconstruct import fbp, reconstruct_tv, upper_bound
 
 L = 1.0
 DISKS = (((0.2, -0.1), 0.3, 0.2), ((-0.4, 0.3), 0.2, 0.1), ((0.0, 0.0), 0.8, 0.05))
@@ -141,7 +142,7 @@ def test_physical_bound_never_cuts_the_truth():
 
 def test_simulated_sinogram_is_exact_and_truth_matches_it():
     """simulate_sinogram's values are the exact chords of the scene; its truth raster projects onto them."""
-    scene = "workflows/scenes/phantom-cylinder.yaml"
+    scene = str(workflows.scene("phantom-cylinder"))
     data = simulate_sinogram(scene=scene, light_angle_deg=60.0, n_theta=60, n_x=64, angles=AngleSweep(step=3.0))
     assert 0.5 < float(data["observed"].mean()) < 1.0
     g = Geometry.from_grids(data["theta"].values, data["x"].values, 128, float(data.x_extent))

@@ -16,14 +16,13 @@ from __future__ import annotations
 import numpy as np
 import xarray as xr
 
-from devices.geometry import RigGeometry
+from devices.geometry import RigGeometry, geometry_attrs
 from devices.sim.shapes import convex_polygon
 from pipeline.constraints import Fraction
 from pipeline.errors import Problem, StageError
 from pipeline.quality import usable_share
 from pipeline.registry import stage
-from stages.calibrate import _require
-from stages.hull import geometry_attrs
+from stages._common import require_variables
 
 #: why a pixel gave no ray (``reason`` variable; 0: a ray)
 REASONS = {
@@ -141,7 +140,7 @@ def align_paths(absorption: xr.Dataset, hull: xr.Dataset, /, *, min_exit_cos: Fr
     min_exit_cos : float
         Rays leaving the contour at a smaller |cos| to its normal graze it and are dropped, in [0, 1]; 0: none [1].
     """
-    _require(absorption, ("absorption",), "align_paths")
+    require_variables(absorption, ("absorption",), "align_paths")
     missing = [k for k in ("camera_model", "light_angle_deg", "length_unit") if k not in hull.attrs]
     if missing:
         raise StageError([Problem(f"hull attr {k!r} is missing; align_paths needs the rig geometry") for k in missing])

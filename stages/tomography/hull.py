@@ -18,19 +18,12 @@ from skimage.filters import threshold_otsu
 from skimage.measure import label
 from skimage.morphology import remove_small_holes, remove_small_objects
 
-from devices.geometry import RigGeometry
+from devices.geometry import RigGeometry, geometry_attrs
 from pipeline.constraints import Index, Positive
 from pipeline.errors import Problem, StageError
 from pipeline.quality import usable_share
 from pipeline.registry import stage
-from stages.calibrate import _require, sorted_sweep
-
-GEOMETRY_ATTRS = tuple(set(RigGeometry.__dataclass_fields__) - {"rows", "cols"})
-
-
-def geometry_attrs(attrs) -> dict:
-    """The rig-geometry attrs of a cube (carried from the capture through every tomography stage)."""
-    return {k: v for k, v in attrs.items() if k in GEOMETRY_ATTRS or k == "saturation_level"}
+from stages._common import require_variables, sorted_sweep
 
 
 def _silhouette_kernel(backlit: np.ndarray, dark: np.ndarray, *, threshold: float | None, min_size: int) -> np.ndarray:
@@ -71,7 +64,7 @@ def silhouettes(capture: xr.Dataset, /, *, threshold: Positive | None = None, mi
     min_size : int
         Blobs and holes up to this many pixels are removed (noise, dust); 0: none [px].
     """
-    _require(capture, ("backlit",), "silhouettes")
+    require_variables(capture, ("backlit",), "silhouettes")
     capture = sorted_sweep(capture, "angle", "silhouettes")
     backlit = capture["backlit"].chunk({"row": -1, "col": -1})
     dark = capture["dark"] if "dark" in capture else xr.zeros_like(backlit.isel(angle=0, drop=True))
@@ -158,7 +151,7 @@ def _hull_kernel(masks: np.ndarray, rows: np.ndarray, *, angles: np.ndarray, geo
         if polygon is not None:
             n = min(len(polygon), max_vertices)
             vertices[k, :n], counts[0, k] = polygon[:n], n
-    # one output: the counts ride in two extra "vertex" slots (see stages.paths on multi-output graphs)
+    # one output: the counts ride in two extra "vertex" slots (see stages.tomography.paths on multi-output graphs)
     extra = counts.T.reshape(-1, 2, 2).astype(np.float64)
     return np.concatenate([vertices, extra], axis=1)
 
@@ -174,7 +167,7 @@ def visual_hull(silhouettes: xr.Dataset, /) -> xr.Dataset:
     of pixels (a non-convex object or noise: the hull then uses the outermost edges).
     The contour is exact to ``hull_resolution`` (half a pixel at the rotation axis) for convex objects.
     """
-    _require(silhouettes, ("silhouette",), "visual_hull")
+    require_variables(silhouettes, ("silhouette",), "visual_hull")
     mask = silhouettes["silhouette"]
     problems = [Problem(f"attr {a!r} is missing; visual_hull needs the rig geometry", fix="compute the silhouettes "
                         "from a capture whose attrs carry it") for a in ("camera_model",) if a not in silhouettes.attrs]

@@ -10,19 +10,37 @@ from __future__ import annotations
 
 import hashlib
 from pathlib import Path
-from typing import Literal
+from typing import ClassVar, Literal
 
+import numpy as np
+import pydantic
 import xarray as xr
 
-from devices.acquire import acquire_tomography as sweep
 from devices.hardware import hardware_rig, load_hardware
 from devices.sim.rig import simulated_rig
 from devices.sim.scene import load_scene
+from devices.tomography_acquire import acquire_tomography as sweep
 from pipeline.constraints import memory_problems
 from pipeline.errors import SelpathError
 from pipeline.registry import stage
 from pipeline.spec import StorePath
-from stages.simulate import AngleSweep
+from stages._sweeps import Sweep
+
+
+class AngleSweep(Sweep):
+    """Stage angles start, start+step, … below stop, in degrees: stop > start, step > 0, at most
+    :attr:`MAX_VALUES` angles (a sweep of 0.0036° steps over a full turn; far beyond any stage)."""
+
+    MAX_VALUES: ClassVar[int] = 100_000
+    WHAT: ClassVar[str] = "angles"
+    LABEL: ClassVar[str] = "angle sweep"
+    INCLUSIVE: ClassVar[bool] = False
+    start: float = 0.0
+    stop: float = pydantic.Field(360.0, description="exclusive end, degree")
+    step: float = pydantic.Field(1.0, gt=0, description="degree")
+
+    def values(self) -> np.ndarray:
+        return np.arange(self.start, self.stop - 1e-9 * self.step, self.step)
 
 
 def _precheck(settings) -> list[str]:
@@ -51,7 +69,7 @@ def _identity(settings) -> dict:
 
 
 @stage("acquire_tomography", precheck=_precheck, identity=_identity, writes=lambda settings: settings.store,
-       variables=lambda settings: ["target", "reference", "backlit", "dark"])  # devices.acquire.capture_template
+       variables=lambda settings: ["target", "reference", "backlit", "dark"])  # as capture_template writes
 def acquire_tomography(
     *,
     store: StorePath,

@@ -8,13 +8,13 @@ import xarray as xr
 from hypothesis import given
 from hypothesis import strategies as st
 
-from devices.sim import transport as tr
+from devices.sim import procam_transport as tr
 from devices.sim.procam_scene import ProcamScene
 from pipeline.errors import StageError
-from stages.demux import POOL_BATCHES, demux_plane_to_ray, pixels_per_call, solve_pixels
-from stages.demux_problem import DemuxProblem
-from stages.demux_solver import batch_slots
-from stages.illumination import plane_to_ray_illumination
+from stages.procam._demux_problem import DemuxProblem
+from stages.procam._demux_solver import batch_slots
+from stages.procam._illumination import plane_to_ray_illumination
+from stages.procam.demux import POOL_BATCHES, demux_plane_to_ray, pixels_per_call, solve_pixels
 
 RIG = {"camera_rows": 40, "camera_cols": 48, "projector_rows": 40, "projector_cols": 48, "bits": None}
 OBJECTS = [
@@ -152,7 +152,7 @@ def test_padding_and_masked_pixels_keep_the_other_calls_on_the_unmasked_path(mon
     """A call with any masked observation pays the masked path (twice the products per iteration, and its own
     compile): the padding of the last call is unmasked (a weight of 0 once sent whole calls down that path), and
     scattered masked pixels are solved together in one call, their results put back in place."""
-    import stages.demux as demux_module
+    import stages.procam.demux as demux_module
 
     problem = DemuxProblem.build(plane_to_ray_illumination(np.repeat([-34.0, 0.0, 34.0], 2), [51.0, 153.0] * 3,
                                                            np.arange(-4, 5), scan_speed=1 / 17, line_time=17.0))

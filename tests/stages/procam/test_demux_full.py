@@ -10,14 +10,15 @@ import pytest
 import xarray as xr
 
 from devices.patterns import vertical_line
-from devices.sim import transport as tr
+from devices.sim import procam_transport as tr
 from devices.sim.procam_scene import ProcamScene
 from pipeline.errors import StageError
-from stages.demux import OffsetGrid, demux_full
-from stages.demux_problem import SeparableDemuxProblem
-from stages.demux_solver import solve
-from stages.illumination import box_overlap, line_cells, line_illumination, plane_to_ray_illumination
-from stages.relight import cell_average, checkerboard_relight, profile_2d_figure, relight_full, relighting_full_figure
+from stages.procam._demux_problem import SeparableDemuxProblem
+from stages.procam._demux_solver import solve
+from stages.procam._illumination import box_overlap, line_cells, line_illumination, plane_to_ray_illumination
+from stages.procam.demux import OffsetGrid, demux_full
+from stages.procam.figures import profile_2d_figure, relighting_full_figure
+from stages.procam.relight import cell_average, checkerboard_relight, relight_full
 
 RIG = {"camera_rows": 16, "camera_cols": 24, "projector_rows": 16, "projector_cols": 24, "bits": None}
 OBJECTS = [

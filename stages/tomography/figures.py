@@ -1,51 +1,31 @@
-"""Figures as stages: rendered lazily into a ``figure`` cube (RGBA), saved by the engine as ``<store>.png``.
+"""Tomography figures as stages (capture, sinogram, coverage, reconstructions, convergence).
 
-A figure is data like any other output: it has provenance, is skipped when unchanged, and renders
-only when the workflow computes it (matplotlib's Agg canvas, inside one dask task).
+Each renders lazily into a ``figure`` cube (RGBA), saved by the engine as ``<store>.png``; how is
+:mod:`stages._figures`.
 """
 
 from __future__ import annotations
 
-import dask
-import dask.array as da
-import matplotlib
+import numpy as np
+import xarray as xr
 
-matplotlib.use("Agg")  # headless: figures are files, never windows
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-import xarray as xr  # noqa: E402
-
-from pipeline.constraints import Index  # noqa: E402
-from pipeline.registry import stage  # noqa: E402
-from stages.calibrate import _require  # noqa: E402
-from stages.sinogram import coverage_model, optimal_light_angle  # noqa: E402
-
-_SIZE_IN, _DPI = (9.0, 4.0), 100
-
-
-def _as_figure(render, *args) -> xr.Dataset:
-    h, w = int(_SIZE_IN[1] * _DPI), int(_SIZE_IN[0] * _DPI)
-    image = da.from_delayed(dask.delayed(render)(*args), shape=(h, w, 4), dtype=np.uint8)
-    return xr.Dataset({"image": (("y", "x", "rgba"), image)}, attrs={"selpath_kind": "figure"})
-
-
-def _rgba(fig) -> np.ndarray:
-    fig.canvas.draw()
-    out = np.asarray(fig.canvas.buffer_rgba()).copy()
-    plt.close(fig)
-    return out
+from pipeline.constraints import Index
+from pipeline.registry import stage
+from stages._common import require_variables
+from stages._figures import as_figure, panels, rgba
+from stages.tomography.sinogram import coverage_model, optimal_light_angle
 
 
 def _draw_sinogram(absorption: np.ndarray, observed: np.ndarray, theta: np.ndarray, x: np.ndarray,
                    unit: str, title: str) -> np.ndarray:
-    fig, (left, right) = plt.subplots(1, 2, figsize=_SIZE_IN, dpi=_DPI, constrained_layout=True)
+    fig, (left, right) = panels(1, 2)
     extent = (x[0], x[-1], theta[-1], theta[0])
     shown = left.imshow(np.where(observed, absorption, np.nan), aspect="auto", extent=extent, cmap="magma")
     fig.colorbar(shown, ax=left, label="total absorption A")
     left.set(xlabel=f"X [{unit}]", ylabel="θ [degree]", title=title)
     right.imshow(observed, aspect="auto", extent=extent, cmap="gray", vmin=0, vmax=1)
     right.set(xlabel=f"X [{unit}]", title=f"observed rays (white): {observed.mean() * 100:.1f}% of bins")
-    return _rgba(fig)
+    return rgba(fig)
 
 
 @stage("sinogram_figure")
@@ -57,15 +37,15 @@ def sinogram_figure(sinogram: xr.Dataset, /, *, slice_index: Index = 0) -> xr.Da
     slice_index : int
         Position along the sinogram's ``slice`` dim.
     """
-    _require(sinogram, ("absorption", "observed"), "sinogram_figure")
+    require_variables(sinogram, ("absorption", "observed"), "sinogram_figure")
     one = sinogram.isel(slice=slice_index) if "slice" in sinogram.dims else sinogram
     title = f"sinogram, θ_l = {sinogram.attrs.get('light_angle_deg', '?')}°"
-    return _as_figure(_draw_sinogram, one["absorption"].data, one["observed"].data, sinogram["theta"].values,
+    return as_figure(_draw_sinogram, one["absorption"].data, one["observed"].data, sinogram["theta"].values,
                       sinogram["x"].values, sinogram["x"].attrs.get("units", ""), title)
 
 
 def _draw_coverage(measured: np.ndarray | None, light_angle: float | None) -> np.ndarray:
-    fig, ax = plt.subplots(figsize=_SIZE_IN, dpi=_DPI, constrained_layout=True)
+    fig, ax = panels()
     angles = np.linspace(0, 180, 361)
     for fov, style in ((None, "-"), (30.0, "--"), (60.0, ":")):
         label = "orthographic" if fov is None else f"perspective, FOV = {fov:.0f}°"
@@ -76,25 +56,25 @@ def _draw_coverage(measured: np.ndarray | None, light_angle: float | None) -> np
     ax.set(xlabel="light angle θ_l [degree]", ylabel="coverage d_max − d_min", ylim=(0, 1.05), xlim=(0, 180),
            title="coverage of the sinogram versus θ_l (Eq. 8–19, thesis Fig. 16)")
     ax.legend()
-    return _rgba(fig)
+    return rgba(fig)
 
 
 @stage("coverage_figure")
 def coverage_figure(coverage: xr.Dataset | None = None, /) -> xr.Dataset:
     """Coverage versus θ_l for orthographic and perspective (FOV 30°, 60°) cameras, with measured points."""
     if coverage is None:
-        return _as_figure(_draw_coverage, None, None)
-    return _as_figure(_draw_coverage, coverage["coverage"].data, coverage.attrs.get("light_angle_deg"))
+        return as_figure(_draw_coverage, None, None)
+    return as_figure(_draw_coverage, coverage["coverage"].data, coverage.attrs.get("light_angle_deg"))
 
 
 def _draw_capture(frame: np.ndarray, backlit: np.ndarray, angle: float) -> np.ndarray:
-    fig, (left, right) = plt.subplots(1, 2, figsize=_SIZE_IN, dpi=_DPI, constrained_layout=True)
+    fig, (left, right) = panels(1, 2)
     shown = left.imshow(frame, cmap="gray")
     fig.colorbar(shown, ax=left, label="counts")
     left.set(title=f"target frame at stage angle {angle:g}° (beam exit glow)", xlabel="col", ylabel="row")
     right.imshow(backlit, cmap="gray")
     right.set(title="backlit frame (silhouette)", xlabel="col")
-    return _rgba(fig)
+    return rgba(fig)
 
 
 @stage("capture_figure")
@@ -106,15 +86,15 @@ def capture_figure(capture: xr.Dataset, /, *, angle_index: Index = 0) -> xr.Data
     angle_index : int
         Position along the capture's ``angle`` dim.
     """
-    _require(capture, ("target", "backlit"), "capture_figure")
+    require_variables(capture, ("target", "backlit"), "capture_figure")
     one = capture.isel(angle=angle_index)
-    return _as_figure(_draw_capture, one["target"].data, one["backlit"].data, float(one["angle"]))
+    return as_figure(_draw_capture, one["target"].data, one["backlit"].data, float(one["angle"]))
 
 
 def _draw_reconstructions(images: list[np.ndarray], titles: list[str], truth: np.ndarray | None,
                           extent: tuple[float, float, float, float], unit: str) -> np.ndarray:
-    panels = len(images) + (truth is not None)
-    fig, axes = plt.subplots(1, panels, figsize=_SIZE_IN, dpi=_DPI, constrained_layout=True)
+    count = len(images) + (truth is not None)
+    fig, axes = panels(1, count)
     top = max(float(np.nanmax(truth)) if truth is not None else 0.0, *(float(np.nanpercentile(i, 99.5))
                                                                       for i in images))
     for ax, image, title in zip(axes, ([truth] if truth is not None else []) + images,
@@ -127,7 +107,7 @@ def _draw_reconstructions(images: list[np.ndarray], titles: list[str], truth: np
         ax.set(xlabel=f"x [{unit}]")
     axes[0].set(ylabel=f"y [{unit}]")
     fig.colorbar(shown, ax=axes, label=f"σ [1/{unit}]", shrink=0.8)
-    return _rgba(fig)
+    return rgba(fig)
 
 
 @stage("reconstruction_figure")
@@ -146,12 +126,12 @@ def reconstruction_figure(fbp: xr.Dataset, optimised: xr.Dataset, truth: xr.Data
     extent = (centres[0] - half, centres[-1] + half, centres[0] - half, centres[-1] + half)
     reference = truth["sigma"].isel(slice=0 if truth.sizes.get("slice", 1) == 1 else slice_index).data \
         if truth is not None else None
-    return _as_figure(_draw_reconstructions, images, ["FBP", "optimisation (box + TV, ADMM)"], reference, extent,
+    return as_figure(_draw_reconstructions, images, ["FBP", "optimisation (box + TV, ADMM)"], reference, extent,
                       fbp["x"].attrs.get("units", ""))
 
 
 def _draw_convergence(objective: np.ndarray, primal: np.ndarray, dual: np.ndarray) -> np.ndarray:
-    fig, (left, right) = plt.subplots(1, 2, figsize=_SIZE_IN, dpi=_DPI, constrained_layout=True)
+    fig, (left, right) = panels(1, 2)
     for k in range(objective.shape[0]):
         left.semilogy(objective[k], label=f"slice {k}")
         right.semilogy(primal[k], "-", label=f"primal, slice {k}")
@@ -160,12 +140,12 @@ def _draw_convergence(objective: np.ndarray, primal: np.ndarray, dual: np.ndarra
     right.set(xlabel="ADMM iteration", ylabel="relative residual", title="residuals (stop at tol)")
     left.legend(fontsize=7)
     right.legend(fontsize=7)
-    return _rgba(fig)
+    return rgba(fig)
 
 
 @stage("convergence_figure")
 def convergence_figure(optimised: xr.Dataset, /) -> xr.Dataset:
     """Objective and relative primal/dual residuals per ADMM iteration, every slice."""
-    _require(optimised, ("objective", "primal_residual", "dual_residual"), "convergence_figure")
-    return _as_figure(_draw_convergence, optimised["objective"].data, optimised["primal_residual"].data,
+    require_variables(optimised, ("objective", "primal_residual", "dual_residual"), "convergence_figure")
+    return as_figure(_draw_convergence, optimised["objective"].data, optimised["primal_residual"].data,
                       optimised["dual_residual"].data)

@@ -1,8 +1,8 @@
-"""What transport is for (§5.4.1, §5.4.2, §5.4.5): delay profiles, relighting under any row pattern,
-epipolar, non-epipolar and sharpened epipolar images (Eq. 35–36) from plane-to-ray ``T(offset, row, col)``;
-2-D profiles and relighting under any 2-D pattern from full ``T(du, dv, row, col)``; and their figures.
+"""Projector–camera figures as stages (§5.4): Fig. 38 delay profiles, Fig. 40 relighting, Fig. 47 regular and
+sharpened epipolar images, 2-D profiles and Fig. 41 relighting from full transport.
 
-The functions are lazy (xarray/dask); the figure stages render them.
+Each renders lazily into a ``figure`` cube (RGBA), saved by the engine as ``<store>.png``; how is
+:mod:`stages._figures`.
 """
 
 from __future__ import annotations
@@ -13,96 +13,14 @@ import numpy as np
 import pydantic
 import xarray as xr
 
-from devices.patterns import checkerboard
 from pipeline.constraints import Count, Fraction, Index, Positive
 from pipeline.errors import Problem, StageError
 from pipeline.registry import stage
-from stages.report import _DPI, _SIZE_IN, _as_figure, _rgba, plt
+from stages._figures import as_figure, panels, rgba
+from stages.procam.relight import checkerboard_relight, epipolar_image, relight
 
 #: named pixels, name → [x, y] in image fractions, each in [0, 1]; at least one
 Pixels = Annotated[dict[str, tuple[Fraction, Fraction]], pydantic.Field(min_length=1)]
-
-
-def relight(transport: xr.DataArray, row_pattern: np.ndarray) -> xr.DataArray:
-    """The image under a virtual pattern of projector rows b(v) (rectified onto camera rows, 1 = lit for a
-    whole line time): I(s, t) = Σ_o T(o, s, t) · b(s + o); rows outside the pattern are dark."""
-    rows = transport.sizes["row"]
-    row_pattern = np.asarray(row_pattern, dtype=float)
-    if row_pattern.shape != (rows,):
-        raise ValueError(f"row pattern has shape {row_pattern.shape}; expected ({rows},) camera-rectified rows")
-    v = np.arange(rows)[None, :] + transport["offset"].values[:, None]
-    lit = np.where((v >= 0) & (v < rows), row_pattern[np.clip(v, 0, rows - 1)], 0.0)
-    weights = xr.DataArray(lit.astype(transport.dtype), dims=("offset", "row"))
-    return (transport * weights).sum("offset")
-
-
-def epipolar_image(transport: xr.DataArray, half_width: int = 0) -> xr.DataArray:
-    """Light from the pixel's own epipolar plane (Eq. 35), or from the 2·half_width + 1 planes around it:
-    the *sharpened* epipolar image of §5.4.5, as narrow as the transport's resolution allows."""
-    return transport.where(abs(transport["offset"]) <= half_width, 0).sum("offset")
-
-
-def non_epipolar_image(transport: xr.DataArray) -> xr.DataArray:
-    """Light from every other plane (Eq. 36)."""
-    return transport.where(transport["offset"] != 0, 0).sum("offset")
-
-
-def cell_average(pattern: np.ndarray, centres: np.ndarray, width: float) -> np.ndarray:
-    """The mean of each row of ``pattern`` (pixel u covers columns [u − ½, u + ½)) over the part of each cell
-    [c − width/2, c + width/2] that lies on the projector (a cell's light can only come from real columns);
-    0 for cells wholly off it. (rows, len(centres))."""
-    pattern = np.asarray(pattern, dtype=float)
-    edges = np.arange(pattern.shape[1] + 1) - 0.5
-    integral = np.concatenate([np.zeros((pattern.shape[0], 1)), np.cumsum(pattern, axis=1)], axis=1)
-
-    def at(x):  # ∫ from the first edge to x, piecewise linear between edges (constant pixels)
-        return np.stack([np.interp(x, edges, row) for row in integral])
-
-    low = np.clip(centres - width / 2, edges[0], edges[-1])
-    high = np.clip(centres + width / 2, edges[0], edges[-1])
-    real = high - low
-    return np.where(real > 0, (at(high) - at(low)) / np.where(real > 0, real, 1.0), 0.0)
-
-
-def relight_full(transport: xr.Dataset, pattern: np.ndarray) -> xr.DataArray:
-    """The image under any 2-D projector pattern P(v, u) from full transport (§5.4.2): rows rectified onto
-    camera rows (as :func:`relight`), columns in projector pixels, 1 = lit for a whole line time:
-
-        I(s, t) = Σ_{du, dv} T(du, dv, s, t) · P̄(t + dv, u₀(s, t) + du),
-
-    P̄ the pattern's mean over each u-cell. Cells the sweep never lit (NaN) and pixels without a direct
-    correspondence contribute nothing. Lazy: one task per chunk of rows."""
-    rows = transport.sizes["row"]
-    pattern = np.asarray(pattern, dtype=float)
-    if pattern.ndim != 2 or pattern.shape[0] != rows:
-        raise ValueError(f"pattern has shape {pattern.shape}; expected ({rows}, projector columns), rows rectified")
-    step, first = float(transport.attrs["cell_width_px"]), float(transport.attrs["cells_px"][0])
-    du = np.round(transport["du"].values / step).astype(int)
-    # every cell a pixel can point at: u₀ is a sweep cell, u₀ + du reaches |du| beyond either end
-    n_cells = len(transport.attrs["cells_px"])
-    ks = np.arange(du.min(), n_cells + du.max())
-    table = cell_average(pattern, first + step * ks, step)  # (rows, cells)
-    dv = transport["dv"].values.astype(int)
-
-    def band(block: xr.Dataset, table: np.ndarray) -> xr.DataArray:
-        t, r = block["transport"].values, block["row"].values  # (du, dv, r, c), the block's camera rows
-        k0 = np.round((block["u_direct"].values - first) / step)  # (r, c), NaN where unknown
-        known = np.isfinite(k0)
-        k = np.where(known, k0, 0).astype(int)[None] + du[:, None, None] - ks[0]  # (du, r, c)
-        v = r[None, :] + dv[:, None]  # (dv, r)
-        inside = (v >= 0) & (v < rows)
-        lit = table[np.clip(v, 0, rows - 1)[None, :, :, None], k[:, None, :, :]]  # (du, dv, r, c)
-        lit = np.where(inside[None, :, :, None] & known[None, None], lit, 0.0)
-        image = np.nansum(t * lit, axis=(0, 1))
-        return xr.DataArray(image.astype(t.dtype), dims=("row", "col"), coords=block["u_direct"].coords)
-
-    ds = transport[["transport", "u_direct"]].assign_coords(row=np.arange(rows))
-    # one task per band of T's rows, u_direct cut alike (a store may chunk the two differently)
-    bands = ds["transport"].chunksizes.get("row", -1) if ds["transport"].chunks else -1
-    ds = ds.chunk({"du": -1, "dv": -1, "row": bands, "col": -1})
-    template = ds["u_direct"].astype(ds["transport"].dtype)
-    # the table goes in as an argument, so dask's task names depend on the pattern (a closure's would not)
-    return xr.map_blocks(band, ds, kwargs={"table": table}, template=template)
 
 
 def _pixel(ds: xr.Dataset, where: tuple[float, float]) -> tuple[int, int]:
@@ -113,7 +31,7 @@ def _pixel(ds: xr.Dataset, where: tuple[float, float]) -> tuple[int, int]:
 
 
 def _draw_profiles(delays, measured: dict, offsets, recovered: dict, exposure: float) -> np.ndarray:
-    fig, (left, right) = plt.subplots(1, 2, figsize=_SIZE_IN, dpi=_DPI, constrained_layout=True)
+    fig, (left, right) = panels(1, 2)
     for name, values in measured.items():
         left.plot(delays, values / max(values.max(), 1e-12), marker=".", label=name)
     left.set(xlabel="delay t_d [µs]", ylabel="intensity / its peak", title=f"delay profiles, t_e = {exposure:g} µs")
@@ -122,7 +40,7 @@ def _draw_profiles(delays, measured: dict, offsets, recovered: dict, exposure: f
         right.plot(offsets, values, label=name)
     right.set(xlabel="offset v − s [rows]", ylabel="T [counts]", yscale="symlog",
               title="demultiplexed transport T(v) at the same pixels")
-    return _rgba(fig)
+    return rgba(fig)
 
 
 @stage("delay_profile_figure")
@@ -149,16 +67,16 @@ def delay_profile_figure(capture: xr.Dataset, transport: xr.Dataset, /, *,
         return _draw_profiles(delays, {k: np.asarray(v) for k, v in measured.items()}, offsets,
                               {k: np.asarray(v) for k, v in recovered.items()}, exposure)
 
-    return _as_figure(render, capture["delay"].values, transport["offset"].values,
+    return as_figure(render, capture["delay"].values, transport["offset"].values,
                       {k: v.data for k, v in measured.items()}, {k: v.data for k, v in recovered.items()})
 
 
 def _draw_relit(images: list[np.ndarray], titles: list[str]) -> np.ndarray:
-    fig, axes = plt.subplots(1, len(images), figsize=_SIZE_IN, dpi=_DPI, constrained_layout=True)
+    fig, axes = panels(1, len(images))
     for ax, image, title in zip(np.atleast_1d(axes), images, titles, strict=True):
         ax.imshow(image, cmap="gray", vmin=0, vmax=max(float(np.percentile(image, 99.5)), 1e-12))
         ax.set(title=title, xticks=[], yticks=[])
-    return _rgba(fig)
+    return rgba(fig)
 
 
 @stage("relighting_figure")
@@ -186,11 +104,11 @@ def relighting_figure(transport: xr.Dataset, /, *, lines: tuple[Fraction, ...] =
     def render(*arrays):
         return _draw_relit([np.asarray(a) for a in arrays], titles)
 
-    return _as_figure(render, *images)
+    return as_figure(render, *images)
 
 
 def _draw_epipolar(regular, sharpened, row: int, exposure: float, half_width: int) -> np.ndarray:
-    fig, axes = plt.subplots(1, 3, figsize=_SIZE_IN, dpi=_DPI, constrained_layout=True)
+    fig, axes = panels(1, 3)
     top = max(float(np.percentile(regular, 99.5)), 1e-12)
     for ax, image, title in ((axes[0], regular, f"epipolar frame, t_e = {exposure:g} µs"),
                              (axes[1], sharpened, f"sharpened from T (|offset| ≤ {half_width})")):
@@ -201,7 +119,7 @@ def _draw_epipolar(regular, sharpened, row: int, exposure: float, half_width: in
     axes[2].plot(sharpened[row], label="sharpened")
     axes[2].set(xlabel="column", ylabel="counts", title=f"row {row}")
     axes[2].legend(fontsize="small")
-    return _rgba(fig)
+    return rgba(fig)
 
 
 @stage("epipolar_figure")
@@ -230,7 +148,7 @@ def epipolar_figure(capture: xr.Dataset, transport: xr.Dataset, /, *, exposure: 
     def render(regular, sharpened):
         return _draw_epipolar(np.asarray(regular), np.asarray(sharpened), at, exposure, half_width)
 
-    return _as_figure(render, regular, sharpened)
+    return as_figure(render, regular, sharpened)
 
 
 def _full(transport: xr.Dataset) -> xr.Dataset:
@@ -241,7 +159,7 @@ def _full(transport: xr.Dataset) -> xr.Dataset:
 
 
 def _draw_profiles_2d(du, dv, step: float, overview, profiles: dict, at: dict) -> np.ndarray:
-    fig, axes = plt.subplots(1, len(profiles) + 1, figsize=_SIZE_IN, dpi=_DPI, constrained_layout=True)
+    fig, axes = panels(1, len(profiles) + 1)
     axes[0].imshow(overview, cmap="gray", vmin=0, vmax=max(float(np.nanpercentile(overview, 99.5)), 1e-12))
     for i, (name, (r, c)) in enumerate(at.items()):
         axes[0].plot(c, r, "o", mfc="none", color=f"C{i}", label=name)
@@ -264,7 +182,7 @@ def _draw_profiles_2d(du, dv, step: float, overview, profiles: dict, at: dict) -
         ax.set(title=name, xlabel="du [px]", ylabel="dv [rows]" if i == 0 else None)
         for spine in ax.spines.values():
             spine.set(color=f"C{i}", linewidth=2)
-    return _rgba(fig)
+    return rgba(fig)
 
 
 @stage("profile_2d_figure")
@@ -288,19 +206,7 @@ def profile_2d_figure(transport: xr.Dataset, /, *, pixels: Pixels) -> xr.Dataset
                                  float(transport.attrs["cell_width_px"]), np.asarray(overview),
                                  {k: np.asarray(v) for k, v in profiles.items()}, at)
 
-    return _as_figure(render, overview, profiles)
-
-
-def checkerboard_relight(transport: xr.Dataset, square_px: int, projector_cols: int,
-                         square_rows: int | None = None) -> xr.Dataset:
-    """The scene relit from full transport under a checkerboard of ``square_px`` projector columns ×
-    ``square_rows`` camera-rectified rows (None: square_px) over ``projector_cols`` columns, its complement and
-    white (the two boards sum to it); lazy."""
-    square_rows = square_px if square_rows is None else square_rows
-    board = checkerboard((transport.sizes["row"], projector_cols), (square_rows, square_px))
-    return xr.Dataset({name: relight_full(transport, pattern) for name, pattern in
-                       (("checkerboard", board), ("complement", 1.0 - board), ("white", np.ones_like(board)))},
-                      attrs={"square_px": square_px, "square_rows": square_rows, "projector_cols": projector_cols})
+    return as_figure(render, overview, profiles)
 
 
 @stage("relighting_full_figure")
@@ -334,4 +240,4 @@ def relighting_full_figure(transport: xr.Dataset, /, *, square_px: Count | None 
     def render(*arrays):
         return _draw_relit([np.asarray(a) for a in arrays], titles)
 
-    return _as_figure(render, *(relit[name].data for name in ("checkerboard", "complement", "white")))
+    return as_figure(render, *(relit[name].data for name in ("checkerboard", "complement", "white")))

@@ -1,5 +1,5 @@
 """The shared part of every pixel's demultiplexing problem (§5.2.2, §5.3.1): the illumination, the
-regularisation and the factorised ADMM T-update, built once per sweep in float64 (:mod:`stages.demux_solver`
+regularisation and the factorised ADMM T-update, built once per sweep in float64 (:mod:`stages.procam._demux_solver`
 solves with them).
 
 Plane-to-ray transport (:class:`DemuxProblem`) has one dense (N frames × K offsets) illumination A, so
@@ -20,7 +20,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from stages.illumination import difference_operator
+from stages.procam._illumination import difference_operator
 
 
 @dataclass(frozen=True)
@@ -62,7 +62,7 @@ class DemuxProblem:
         return self.illumination.shape[1]
 
     def arrays(self) -> tuple[np.ndarray, ...]:
-        """The shared matrices the batched solver uses (order fixed by :func:`stages.demux_solver._operators`)."""
+        """The shared matrices the batched solver uses (order fixed by ``_demux_solver._operators``)."""
         return self.illumination, self.gram2, self.update, self.inverse
 
     def objective(self, transport: np.ndarray, data: np.ndarray, weight: np.ndarray | None = None) -> np.ndarray:

@@ -2,21 +2,20 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 
+import workflows
 from pipeline.spec import load_workflow
-from stages.simulate import AngleSweep
-from stages.studies import light_angle_study
+from stages.tomography.acquire import AngleSweep
+from stages.tomography.studies import light_angle_study
 
-WORKFLOWS = sorted((Path(__file__).resolve().parents[2] / "workflows").glob("*.yaml"))
+WORKFLOWS = [workflows.path(name) for name in workflows.names()]
 
 
 def test_light_angle_study_shows_the_thesis_trend():
     """Table 1's trend at a small size: at θ_l = 30° (both sides missing) the optimisation beats FBP and
     does better than at 120° (centre missing, past (180° − 32°)/2 = 74°)."""
-    study = light_angle_study(scene="workflows/scenes/phantom-cylinder.yaml", light_angles=(30.0, 120.0),
+    study = light_angle_study(scene=workflows.scene("phantom-cylinder"), light_angles=(30.0, 120.0),
                               n_theta=45, n_x=48, angles=AngleSweep(step=4.0), max_iter=100).compute()
 
     def rmse(angle, method):  # (``method`` is also a keyword of .sel: select with a dict)

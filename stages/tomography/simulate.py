@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Annotated, ClassVar
+from typing import Annotated
 
 import dask.array as da
 import numpy as np
@@ -13,25 +13,9 @@ from dask.base import tokenize
 from devices.sim.parallel_light import Rod, render
 from pipeline.constraints import Count, Index, NonNegative, Positive, memory_problems
 from pipeline.registry import stage
-from stages.sweeps import Sweep
+from stages.tomography.acquire import AngleSweep
 
 _FRAME_BYTES_PER_CHUNK = 64 * 2**20
-
-
-class AngleSweep(Sweep):
-    """Stage angles start, start+step, … below stop, in degrees: stop > start, step > 0, at most
-    :attr:`MAX_VALUES` angles (a sweep of 0.0036° steps over a full turn; far beyond any stage)."""
-
-    MAX_VALUES: ClassVar[int] = 100_000
-    WHAT: ClassVar[str] = "angles"
-    LABEL: ClassVar[str] = "angle sweep"
-    INCLUSIVE: ClassVar[bool] = False
-    start: float = 0.0
-    stop: float = pydantic.Field(360.0, description="exclusive end, degree")
-    step: float = pydantic.Field(1.0, gt=0, description="degree")
-
-    def values(self) -> np.ndarray:
-        return np.arange(self.start, self.stop - 1e-9 * self.step, self.step)
 
 
 class RodSpec(pydantic.BaseModel):

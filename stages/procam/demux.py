@@ -1,9 +1,9 @@
 """Demultiplexing a delay–exposure stack into plane-to-ray transport T(offset, row, col) (§5.2.2).
 
-Lazy over bands of camera rows (dask, one task per band), JAX inside each band (``stages.demux_solver``). The
-illumination matrix (``stages.illumination``) is built once from the sweep, v_p, t_p and the sync offset —
+Lazy over bands of camera rows (dask, one task per band), JAX inside each band (``stages.procam._demux_solver``). The
+illumination matrix (``stages.procam._illumination``) is built once from the sweep, v_p, t_p and the sync offset —
 from a ``scan_calibration`` store when one is wired in — and shared by every pixel. Frames at the epipolar
-boundary are dropped by the rule of :func:`stages.illumination.epipolar_boundary`; saturated and non-finite
+boundary are dropped by the rule of :func:`stages.procam._illumination.epipolar_boundary`; saturated and non-finite
 observations are masked per pixel. T is in the capture's counts: the image of a row lit for its whole line
 time t_p, so Σ_o T(o) w(o; t_d, t_e) reproduces a frame.
 """
@@ -22,11 +22,11 @@ from pipeline.constraints import Count, Index, NonNegative, Positive
 from pipeline.errors import Problem, StageError
 from pipeline.quality import usable_share
 from pipeline.registry import stage
-from stages.demux_problem import DemuxProblem, SeparableDemuxProblem
-from stages.demux_solver import batch_slots, observed, solve
-from stages.illumination import epipolar_boundary, line_cells, line_illumination, plane_to_ray_illumination
-from stages.reconstruct import Dtype, MaxIter
-from stages.sweeps import Sweep
+from stages._common import Dtype, MaxIter
+from stages._sweeps import Sweep
+from stages.procam._demux_problem import DemuxProblem, SeparableDemuxProblem
+from stages.procam._demux_solver import batch_slots, observed, solve
+from stages.procam._illumination import epipolar_boundary, line_cells, line_illumination, plane_to_ray_illumination
 
 #: streaming batches per solver call: a call's pool (data, warm starts, results: ~8 (P × K) arrays, 64 MB at
 #: K = 128) is bounded while the batch's tail (its last, slowest pixels) is paid once per 16 batches of pixels

@@ -9,10 +9,10 @@ from scipy.spatial.distance import directed_hausdorff
 
 from devices.sim import tomography as tomo
 from devices.sim.scene import Scene
-from stages.calibrate import absorption
-from stages.hull import hull_polygons, silhouettes, visual_hull
-from stages.paths import REASONS, align_paths
-from stages.sinogram import bin_sinogram, coverage, coverage_model, optimal_light_angle
+from stages.tomography.calibrate import absorption
+from stages.tomography.hull import hull_polygons, silhouettes, visual_hull
+from stages.tomography.paths import REASONS, align_paths
+from stages.tomography.sinogram import bin_sinogram, coverage, coverage_model, optimal_light_angle
 
 R = 10.0
 

@@ -24,7 +24,7 @@ detour was slow, DESIGN §6), so this is a batched ADMM in plain JAX:
   per pixel only where it lowers the objective (OSQP's "solution polishing", batched).
 
 The full transport (§5.3.1) uses the same iteration with the Kronecker-factored operators of
-:class:`~stages.demux_problem.SeparableDemuxProblem` (A = L_u ⊗ L, never formed).
+:class:`~stages.procam._demux_problem.SeparableDemuxProblem` (A = L_u ⊗ L, never formed).
 
 Per pixel it returns the iterations to convergence (primal and dual residuals ≤ ``tol`` relative, checked
 every ``check_every`` iterations) and an honest flag. A call's pixels stream through one batch whose rows are
@@ -43,7 +43,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from stages.demux_problem import DemuxProblem, SeparableDemuxProblem
+from stages.procam._demux_problem import DemuxProblem, SeparableDemuxProblem
 
 
 @dataclass(frozen=True)

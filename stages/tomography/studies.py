@@ -1,7 +1,7 @@
 """Experiments of §4.4 as stages: one setting swept, every reconstruction and its error against the truth.
 
 ``light_angle_study`` is §4.4.1 (Fig. 18, Table 1): for each θ_l the rig's sinogram of a scene
-(:func:`stages.phantom.simulate_sinogram`: exact line integrals, the observed mask θ_l gives), FBP and
+(:func:`stages.tomography.phantom.simulate_sinogram`: exact line integrals, the observed mask θ_l gives), FBP and
 the constrained optimisation, and their RMSE and largest absolute error against the scene's true σ.
 Lazy like the stages it wires (the sinograms themselves are cheap and made at once).
 """
@@ -17,10 +17,18 @@ import xarray as xr
 from pipeline.constraints import Count, NonNegative, Positive, memory_problems
 from pipeline.registry import stage
 from pipeline.spec import StorePath
-from stages.phantom import LightAngle, _precheck, phantom_truth, ray_problems, simulate_sinogram, truth_problems
-from stages.reconstruct import MaxIter, fbp, reconstruct_tv
-from stages.simulate import AngleSweep
-from stages.sinogram import Bins
+from stages._common import MaxIter
+from stages.tomography.acquire import AngleSweep
+from stages.tomography.phantom import (
+    LightAngle,
+    _precheck,
+    phantom_truth,
+    ray_problems,
+    simulate_sinogram,
+    truth_problems,
+)
+from stages.tomography.reconstruct import fbp, reconstruct_tv
+from stages.tomography.sinogram import Bins
 
 
 def _study_precheck(settings) -> list[str]:

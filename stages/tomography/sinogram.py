@@ -14,12 +14,12 @@ import numpy as np
 import pydantic
 import xarray as xr
 
+from devices.geometry import geometry_attrs
 from pipeline.constraints import Positive, memory_problems
 from pipeline.errors import Problem, StageError
 from pipeline.quality import usable_share
 from pipeline.registry import stage
-from stages.calibrate import _require
-from stages.hull import geometry_attrs
+from stages._common import require_variables
 
 #: bins of a grid whose step is span / (bins − 1): at least 2
 Bins = Annotated[int, pydantic.Field(ge=2)]
@@ -70,7 +70,7 @@ def bin_sinogram(rays: xr.Dataset, /, *, n_theta: Bins = 180, n_x: Bins = 256, x
     x_extent : float or None
         Half-width of the X grid [length unit]; None: the camera's view half-width at the axis.
     """
-    _require(rays, ("theta", "x", "absorption"), "bin_sinogram")
+    require_variables(rays, ("theta", "x", "absorption"), "bin_sinogram")
     if n_theta < 2 or n_x < 2:
         raise StageError(Problem(f"n_theta = {n_theta}, n_x = {n_x}; both must be at least 2"))
     extent = float(x_extent if x_extent is not None else rays.attrs.get("x_extent", np.nan))
@@ -78,7 +78,7 @@ def bin_sinogram(rays: xr.Dataset, /, *, n_theta: Bins = 180, n_x: Bins = 256, x
         raise StageError(Problem("the X extent of the grid is unknown", fix="set x_extent"))
     whole = {"angle": -1, "col": -1, "row": 1}
     parts = [rays[v].chunk(whole) for v in ("theta", "x", "absorption")]
-    both = xr.apply_ufunc(  # one stacked output (see stages.paths on dask and multi-output graphs)
+    both = xr.apply_ufunc(  # one stacked output (see stages.tomography.paths on dask and multi-output graphs)
         _bin_kernel, *parts, input_core_dims=[["angle", "col"]] * 3, output_core_dims=[["theta", "x", "field"]],
         dask="parallelized", output_dtypes=[np.float64],
         dask_gufunc_kwargs={"output_sizes": {"theta": n_theta, "x": n_x, "field": 2}},
@@ -169,7 +169,7 @@ def coverage(sinogram: xr.Dataset, hull: xr.Dataset, /) -> xr.Dataset:
     closed form uses the cylinder of the contour's mean radius, and for a perspective camera the angle
     it subtends, 2·asin(R / D_c). A global reduction per slice (lazy, small).
     """
-    _require(sinogram, ("observed",), "coverage")
+    require_variables(sinogram, ("observed",), "coverage")
     if "slice" not in sinogram.dims:
         raise StageError(Problem("the sinogram has no slice dim", fix="bin it with bin_sinogram"))
     rows = sinogram["slice"].values

@@ -9,9 +9,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from stages.demux_problem import DemuxProblem
-from stages.demux_solver import MIN_BATCH, solve
-from stages.illumination import epipolar_boundary, plane_to_ray_illumination
+from stages.procam._demux_problem import DemuxProblem
+from stages.procam._demux_solver import MIN_BATCH, solve
+from stages.procam._illumination import epipolar_boundary, plane_to_ray_illumination
 
 
 def cvxpy_optimum(problem: DemuxProblem, data: np.ndarray,

@@ -1,0 +1,55 @@
+"""What the stages of both instruments share: required variables, sorted sweeps and the solver settings' types.
+
+Kept small on purpose: a helper lands here only when both ``stages.tomography`` and ``stages.procam`` use it.
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import Annotated, Literal
+
+import numpy as np
+import pydantic
+import xarray as xr
+
+from pipeline.errors import Problem, StageError
+
+#: the float precision of a solver's arithmetic (a stage setting)
+Dtype = Literal["float32", "float64"]
+
+#: an iteration cap: at least 1, at most a million (solvers keep per-iteration histories and int32 counters)
+MaxIter = Annotated[int, pydantic.Field(ge=1, le=1_000_000)]
+
+
+def require_variables(ds: xr.Dataset, names: tuple[str, ...], stage_name: str) -> None:
+    """Refuse ``ds`` unless it has every data variable in ``names`` (one problem per missing variable)."""
+    problems = [
+        Problem(f"stage {stage_name!r} needs variable {name!r}; the input has {sorted(map(str, ds.data_vars))}",
+                path=name)
+        for name in names
+        if name not in ds.data_vars
+    ]
+    if problems:
+        raise StageError(problems)
+
+
+class UnsortedSweepWarning(UserWarning):
+    """A sweep coordinate (angle, delay, …) was not in increasing order; the stage sorted it."""
+
+
+def sorted_sweep(ds: xr.Dataset, dim: str, stage_name: str) -> xr.Dataset:
+    """``ds`` with its sweep coordinate ``dim`` sorted (warning if it was not); a repeated value is refused."""
+    if dim not in ds.coords:
+        return ds
+    values = np.asarray(ds[dim].values)
+    unique, counts = np.unique(values, return_counts=True)
+    if (counts > 1).any():
+        repeated = unique[counts > 1]
+        raise StageError(Problem(f"stage {stage_name!r}: coordinate {dim!r} repeats {repeated[:5].tolist()} "
+                                 f"({int((counts - 1).sum())} duplicate frame(s)); each {dim} must be captured once",
+                                 path=dim, fix="drop the duplicates (ds.drop_duplicates) or fix the coordinate"))
+    if (np.diff(values) < 0).any():
+        warnings.warn(f"stage {stage_name!r}: coordinate {dim!r} is not sorted; frames were reordered by {dim}",
+                      UnsortedSweepWarning, stacklevel=3)
+        ds = ds.sortby(dim)
+    return ds
