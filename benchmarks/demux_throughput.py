@@ -164,7 +164,7 @@ def measure(mode: str, args) -> dict:
         import cvxpy as cp
 
         from stages.procam._demux_problem import DemuxProblem
-        from stages.procam._demux_solver import solve
+        from stages.procam._demux_solver import DemuxADMM
         from stages.procam.demux import solve_pixels
 
         matrix = _matrix(k, kept=True)
@@ -174,7 +174,7 @@ def measure(mode: str, args) -> dict:
         # DPP: one compiled problem, y and the saturation mask w as parameters (y holds w·data)
         t, y, w = cp.Variable(k), cp.Parameter(matrix.shape[0]), cp.Parameter(matrix.shape[0], nonneg=True)
         qp = cp.Problem(cp.Minimize(cp.sum_squares(cp.multiply(w, matrix @ t) - y)
-                                    + 0.01 * cp.sum_squares(cp.diff(t)) + 0.01 * cp.sum(t)), [t >= 0])
+                                    + problem.alpha * cp.sum_squares(cp.diff(t)) + problem.beta * cp.sum(t)), [t >= 0])
         optimum = []
         start = time.perf_counter()
         for p in range(args.sample):
@@ -187,15 +187,15 @@ def measure(mode: str, args) -> dict:
         for p in range(min(args.sample, 20)):  # the thesis's way: a problem built and solved per pixel
             start = time.perf_counter()
             tp = cp.Variable(k)
-            cp.Problem(cp.Minimize(cp.sum_squares(matrix @ tp - sample[p]) + 0.01 * cp.sum_squares(cp.diff(tp))
-                                   + 0.01 * cp.sum(tp)), [tp >= 0]).solve()
+            cp.Problem(cp.Minimize(cp.sum_squares(matrix @ tp - sample[p]) + problem.alpha
+                                   * cp.sum_squares(cp.diff(tp)) + problem.beta * cp.sum(tp)), [tp >= 0]).solve()
             default_s.append(time.perf_counter() - start)
         # timing as the stage runs: two halves of 16384 pixels at once, in the stage's calls
         halves = np.array_split(np.tile(sample, (16384 // args.sample + 1, 1))[:16384], 2)
 
         def timed(**options) -> float:
             def run(part):
-                return solve_pixels(problem, part, np.ones(part.shape, bool), dtype="float32", **options)
+                return solve_pixels(DemuxADMM(**options), problem, part, np.ones(part.shape, bool))
 
             with ThreadPoolExecutor(2) as pool:
                 list(pool.map(run, halves))  # compile
@@ -206,8 +206,8 @@ def measure(mode: str, args) -> dict:
         rows = []
         for max_iter in (10, 20, 40, 80, 160):
             for polish in (0, 20):
-                result = solve(problem, sample, weight, max_iter=max_iter, tol=1e-7, polish_iter=polish)
-                gap = (problem.objective(result.transport, sample, weight) - optimum) / np.abs(optimum)
+                result = DemuxADMM(max_iter=max_iter, tol=1e-7, polish_iter=polish).solve(problem, sample, weight)
+                gap = (problem.objective(result.value, sample, weight) - optimum) / np.abs(optimum)
                 rows.append({"max_iter": max_iter, "polish": polish, "gap_median": float(np.median(gap)),
                              "gap_p90": float(np.percentile(gap, 90)),
                              "s_per_px": timed(max_iter=max_iter, tol=1e-7, polish_iter=polish)})

@@ -79,7 +79,7 @@ def ours(geometry, sinogram, observed, truth, polygon, caps, weights):
     norm = operator_norm(geometry, mask)
     for weight in weights:
         for cap in caps:
-            solve = jax.jit(TVADMM(geometry, tv_weight=weight, rho=0.1, tol=1e-9, max_iter=cap, cg_steps=2).solve)
+            solve = jax.jit(TVADMM(geometry, tv_weight=weight, tol=1e-9, max_iter=cap, cg_steps=2).solve)
             solve(data, mask, limit, norm).value.block_until_ready()  # compile
             solution, seconds = timed(lambda s=solve: jax.block_until_ready(s(data, mask, limit, norm)))
             rows.append(("ours ADMM", f"λ={weight:g} it={cap}", rmse(solution.value, truth), seconds))
@@ -165,7 +165,7 @@ def main() -> None:
     print(f"phantom {N}×{N}, {N_THETA} angles × {N} bins, σ up to {truth.max():.3f}/mm, noise std {NOISE}")
     results = {}
     for case, observed in masks.items():
-        rows = ours(geometry, sinogram, observed, truth, polygon, caps=(10, 30), weights=(1e-3,))
+        rows = ours(geometry, sinogram, observed, truth, polygon, caps=(10, 30), weights=(TVADMM.DEFAULT_TV_WEIGHT,))
         rows += scikit_image_peers(geometry, sinogram, observed, truth, sweeps=(1, 3))
         rows += astra_peers(geometry, sinogram, observed, truth, iterations=(50, 200))
         results[case] = rows

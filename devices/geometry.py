@@ -1,4 +1,4 @@
-"""Rig geometry of the tomography setup (DESIGN §8): camera rays, the light, lab ↔ object frames.
+"""Rig geometry of the tomography setup (DESIGN §8): the camera, the light, lab ↔ object frames.
 
 The lab holds the camera and the light; the object frame turns with the stage. Object frame: origin on
 the rotation axis, z up; stage angle φ turns the object counter-clockwise seen from +z, so a point p of
@@ -6,17 +6,32 @@ the object is at ``R(φ)·p`` in the lab. The camera looks along +y from (0, −
 with lab x and rows grow downward (decreasing z). The light comes from D_l·(sin θ_l, cos θ_l) and
 travels toward the axis.
 
-The same :class:`RigGeometry` is written into a capture's attrs by an acquisition and read back by the
-processing stages, so the simulator and the light-path alignment can never disagree on a convention.
+**Pixel convention** (here and nowhere else): pixel (r, c) is centred on the sub-pixel position (r, c) and
+covers [r − ½, r + ½] × [c − ½, c + ½]; the principal point defaults to the sensor's centre
+((cols − 1)/2, (rows − 1)/2).
+
+One camera class per model (:class:`PerspectiveCamera`, :class:`OrthographicCamera`) owns projection,
+back-projection, pixel rays and footprints; :class:`RigGeometry` holds the camera and the light. It is
+written into a capture's attrs by an acquisition and built back from them (:meth:`RigGeometry.from_attrs`,
+which checks them against the one declaration of the required attrs in :mod:`pipeline.schema`) by every
+processing stage, the simulator and the phantom, so none of them can disagree on a convention.
+
+>>> camera = OrthographicCamera(rows=3, cols=5, pixel_size=0.5)
+>>> camera.project(np.array([[0.5, 7.0, -0.5]]))  # lab x = 0.5, z = -0.5: right of and below the centre
+(array([2.]), array([3.]))
 """
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
 from collections.abc import Mapping
-from dataclasses import asdict, dataclass
-from typing import Any, Literal
+from dataclasses import asdict, dataclass, fields
+from typing import Any, ClassVar, Literal
 
 import numpy as np
+
+from pipeline.errors import Problem, StageError
+from pipeline.schema import CAMERA_ATTRS, RIG_ATTRS, camera_attr_problems
 
 
 def rotation_z(angle_deg: float) -> np.ndarray:
@@ -36,6 +51,189 @@ def to_lab(points_object: np.ndarray, angle_deg: float) -> np.ndarray:
     return np.asarray(points_object, float) @ rotation_z(angle_deg).T
 
 
+@dataclass(frozen=True, kw_only=True)
+class Camera(ABC):
+    """A camera of ``rows × cols`` pixels looking along +y at the rotation axis; lengths in the rig's unit.
+
+    ``rows``/``cols`` may be None where only the optics matter (coverage closed forms, hull resolution).
+    Subclasses give the model: :meth:`_rays`, :meth:`project`, :meth:`facing`, :meth:`pixel_footprint`,
+    :attr:`axis_pixel_size` and :meth:`subtended_angle_deg`; everything else is shared.
+    """
+
+    model: ClassVar[str]
+    rows: int | None = None
+    cols: int | None = None
+    principal_point_px: tuple[float, float] | None = None
+
+    @property
+    def centre_px(self) -> tuple[float, float]:
+        """(cx, cy): the principal point in (col, row) pixels; by default the sensor's centre."""
+        if self.principal_point_px is not None:
+            return (float(self.principal_point_px[0]), float(self.principal_point_px[1]))
+        if self.rows is None or self.cols is None:
+            raise ValueError(f"a {self.model} camera of unknown sensor size has no default principal point")
+        return ((self.cols - 1) / 2.0, (self.rows - 1) / 2.0)
+
+    # -- the model -------------------------------------------------------------------------------------
+    @abstractmethod
+    def _rays(self, row: np.ndarray, col: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Origins and directions per unit depth (y component 1) in the lab of the rays through sub-pixel
+        (row, col), (N, 3)."""
+
+    @abstractmethod
+    def project(self, points_lab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Sub-pixel (row, col) where the camera sees lab points (N, 3)."""
+
+    @abstractmethod
+    def facing(self, points_lab: np.ndarray, normals_lab: np.ndarray) -> np.ndarray:
+        """Whether surface points (N, 3) with outward normals face the camera."""
+
+    @abstractmethod
+    def pixel_footprint(self, points_lab: np.ndarray, normals_lab: np.ndarray) -> np.ndarray:
+        """Area of the surface patch one pixel sees at each point (with its outward normal)."""
+
+    @property
+    @abstractmethod
+    def axis_pixel_size(self) -> float:
+        """Object-space size of one pixel at the rotation axis [length unit]."""
+
+    @abstractmethod
+    def subtended_angle_deg(self, radius):
+        """Angle a cylinder of ``radius`` on the axis subtends at the camera, 2·asin(R / D_c) [degree] (the
+        field of view it fills); None for an orthographic camera (parallel rays)."""
+
+    # -- shared ----------------------------------------------------------------------------------------
+    def back_project(self, row, col) -> tuple[np.ndarray, np.ndarray]:
+        """Origins and unit directions in the lab of the rays through sub-pixel (row, col), (N, 3)."""
+        origins, directions = self._rays(np.asarray(row, float).ravel(), np.asarray(col, float).ravel())
+        return origins, directions / np.linalg.norm(directions, axis=1, keepdims=True)
+
+    def pixel_rays(self) -> tuple[np.ndarray, np.ndarray]:
+        """Origins and unit directions in the lab of every pixel's ray, shape (rows·cols, 3), row-major."""
+        r, c = np.meshgrid(np.arange(self.rows, dtype=float), np.arange(self.cols, dtype=float), indexing="ij")
+        return self.back_project(r, c)
+
+    def slice_rays(self, col) -> tuple[np.ndarray, np.ndarray]:
+        """The rays of sub-pixel columns projected on the slice plane: origins and directions in lab (x, y),
+        (N, 2), each direction per unit depth (its y component is 1; normalise where a unit vector is needed).
+
+        A camera row is treated as a slice through the x–y projection of its rays (exact for vertical prisms
+        and for an orthographic camera)."""
+        col = np.asarray(col, float).ravel()
+        origins, directions = self._rays(np.full_like(col, self.centre_px[1]), col)
+        return origins[:, :2], directions[:, :2]
+
+    def pixel_index(self, row, col) -> tuple[np.ndarray, np.ndarray]:
+        """Row-major index of the pixel holding each sub-pixel (row, col), and whether it is on the sensor."""
+        r, c = np.rint(row).astype(np.int64), np.rint(col).astype(np.int64)
+        return r * self.cols + c, (r >= 0) & (r < self.rows) & (c >= 0) & (c < self.cols)
+
+    @staticmethod
+    def outer_edges(first, last) -> tuple[float, float]:
+        """Sub-pixel positions of the outer edges of the run of pixels ``first`` … ``last`` (one row or column)."""
+        return first - 0.5, last + 0.5
+
+    def rows_at(self, row: float) -> np.ndarray:
+        """The sensor rows whose pixels hold sub-pixel ``row`` (two where it lies on their common edge)."""
+        rows = np.arange(int(np.floor(row)), int(np.ceil(row)) + 1)
+        return rows[(np.abs(rows - row) <= 0.5) & (rows >= 0) & (rows < self.rows)]
+
+    @property
+    def view_half_width(self) -> float:
+        """Half the width the sensor sees at the rotation axis [length unit]."""
+        return (self.cols / 2) * self.axis_pixel_size
+
+    def attrs(self) -> dict[str, Any]:
+        """The camera's capture attrs (DESIGN §2); None values are left out."""
+        values = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in ("rows", "cols")}
+        return {"camera_model": self.model} | {k: v for k, v in values.items() if v is not None}
+
+
+@dataclass(frozen=True, kw_only=True)
+class PerspectiveCamera(Camera):
+    """A pinhole camera at distance ``camera_distance`` from the axis, focal length ``focal_length_px``."""
+
+    model: ClassVar[str] = "perspective"
+    focal_length_px: float
+    camera_distance: float
+
+    def _rays(self, row, col):
+        cx, cy = self.centre_px
+        f = float(self.focal_length_px)
+        directions = np.stack([(col - cx) / f, np.ones_like(col), (cy - row) / f], axis=1)
+        return np.tile([0.0, -float(self.camera_distance), 0.0], (len(row), 1)), directions
+
+    def project(self, points_lab):
+        q = np.asarray(points_lab, float)
+        cx, cy = self.centre_px
+        f, depth = float(self.focal_length_px), q[:, 1] + float(self.camera_distance)
+        return cy - f * q[:, 2] / depth, cx + f * q[:, 0] / depth
+
+    def facing(self, points_lab, normals_lab):
+        eye = np.array([0.0, -float(self.camera_distance), 0.0])
+        return np.einsum("ij,ij->i", np.asarray(normals_lab, float), eye - np.asarray(points_lab, float)) > 0
+
+    def pixel_footprint(self, points_lab, normals_lab):
+        q, n = np.asarray(points_lab, float), np.asarray(normals_lab, float)
+        view = q - np.array([0.0, -float(self.camera_distance), 0.0])
+        distance = np.linalg.norm(view, axis=1)
+        cos_axis = view[:, 1] / distance
+        cos_view = np.abs(np.einsum("ij,ij->i", n, view)) / distance
+        solid_angle = cos_axis**3 / float(self.focal_length_px) ** 2
+        return solid_angle * distance**2 / np.maximum(cos_view, 1e-12)
+
+    @property
+    def axis_pixel_size(self) -> float:
+        return float(self.camera_distance) / float(self.focal_length_px)
+
+    def subtended_angle_deg(self, radius):
+        return np.rad2deg(2 * np.arcsin(np.clip(radius / float(self.camera_distance), 0, 1)))
+
+    def attrs(self) -> dict[str, Any]:
+        return super().attrs() | {"principal_point_px": list(self.centre_px)}
+
+
+@dataclass(frozen=True, kw_only=True)
+class OrthographicCamera(Camera):
+    """A telecentric camera: parallel rays along +y, ``pixel_size`` in the object's length unit."""
+
+    model: ClassVar[str] = "orthographic"
+    pixel_size: float
+
+    def _rays(self, row, col):
+        cx, cy = self.centre_px
+        s = float(self.pixel_size)
+        origins = np.stack([(col - cx) * s, np.zeros_like(col), (cy - row) * s], axis=1)
+        return origins, np.tile([0.0, 1.0, 0.0], (len(row), 1))
+
+    def project(self, points_lab):
+        q = np.asarray(points_lab, float)
+        cx, cy = self.centre_px
+        s = float(self.pixel_size)
+        return cy - q[:, 2] / s, cx + q[:, 0] / s
+
+    def facing(self, points_lab, normals_lab):
+        return np.asarray(normals_lab, float)[:, 1] < 0
+
+    def pixel_footprint(self, points_lab, normals_lab):
+        n = np.asarray(normals_lab, float)
+        return float(self.pixel_size) ** 2 / np.maximum(np.abs(n[:, 1]), 1e-12)
+
+    @property
+    def axis_pixel_size(self) -> float:
+        return float(self.pixel_size)
+
+    def subtended_angle_deg(self, radius):
+        return None
+
+
+#: the camera class of each model named in a store's ``camera_model`` attr
+#: (the keys of :data:`pipeline.schema.CAMERA_ATTRS`; a test keeps the two in step)
+CAMERAS: dict[str, type[Camera]] = {cls.model: cls for cls in (PerspectiveCamera, OrthographicCamera)}
+#: a ``camera_model`` value, for typed configs
+CameraModel = Literal[tuple(CAMERA_ATTRS)]  # Literal[("a", "b")] is Literal["a", "b"]
+
+
 @dataclass(frozen=True)
 class RigGeometry:
     """Camera and light of a tomography rig; lengths in ``length_unit``.
@@ -44,77 +242,37 @@ class RigGeometry:
     vertical light sheet: every slice lit at its own height).
     """
 
-    camera_model: Literal["perspective", "orthographic"]
-    rows: int
-    cols: int
+    camera: Camera
     light_angle_deg: float
     length_unit: str = "mm"
-    focal_length_px: float | None = None
-    principal_point_px: tuple[float, float] | None = None
-    camera_distance: float | None = None
-    pixel_size: float | None = None
     light_distance: float | None = None
     light_kind: Literal["beam", "sheet"] = "beam"
     beam_height: float = 0.0
 
-    @property
-    def centre_px(self) -> tuple[float, float]:
-        if self.principal_point_px is not None:
-            return (float(self.principal_point_px[0]), float(self.principal_point_px[1]))
-        return ((self.cols - 1) / 2.0, (self.rows - 1) / 2.0)
-
     def attrs(self) -> dict[str, Any]:
         """The capture attrs of DESIGN §2 (``tomography_capture`` kind); None values are left out."""
-        out = {k: v for k, v in asdict(self).items() if v is not None and k not in ("rows", "cols")}
-        if self.camera_model == "perspective":
-            out["principal_point_px"] = list(self.centre_px)
-        return out
+        light = {k: v for k, v in asdict(self).items() if k != "camera" and v is not None}
+        return self.camera.attrs() | light
 
     @classmethod
-    def from_attrs(cls, attrs: Mapping[str, Any], rows: int, cols: int) -> RigGeometry:
-        names = set(cls.__dataclass_fields__) - {"rows", "cols"}
-        values = {k: attrs[k] for k in names if k in attrs}
-        if values.get("principal_point_px") is not None:
+    def from_attrs(cls, attrs: Mapping[str, Any], rows: int | None = None, cols: int | None = None, *,
+                   where: str = "") -> RigGeometry:
+        """The geometry a cube's attrs describe, for a sensor of ``rows × cols`` (None: unknown).
+
+        Raises a :class:`~pipeline.errors.StageError` naming every missing or wrong attr (``where``: whose).
+        """
+        problems = [f"attr {a!r} is missing; the rig geometry needs it ({what})" for a, what in RIG_ATTRS.items()
+                    if a not in attrs] + camera_attr_problems(attrs, sensor_defaults=True)
+        if problems:
+            fix = "compute it from a capture whose attrs carry the rig geometry (docs/format.md)"
+            raise StageError([Problem(p, where=where, fix=fix) for p in problems])
+        camera = CAMERAS[attrs["camera_model"]]
+        names = {f.name for f in fields(camera)} - {"rows", "cols"}
+        values = {k: attrs[k] for k in names if attrs.get(k) is not None}
+        if "principal_point_px" in values:
             values["principal_point_px"] = tuple(values["principal_point_px"])
-        return cls(rows=rows, cols=cols, **values)
-
-    def pixel_rays(self) -> tuple[np.ndarray, np.ndarray]:
-        """Origins and unit directions in the lab of every pixel's ray, shape (rows·cols, 3), row-major."""
-        r, c = np.meshgrid(np.arange(self.rows, dtype=float), np.arange(self.cols, dtype=float), indexing="ij")
-        r, c = r.ravel(), c.ravel()
-        cx, cy = self.centre_px
-        if self.camera_model == "perspective":
-            f = float(self.focal_length_px)
-            directions = np.stack([(c - cx) / f, np.ones_like(c), (cy - r) / f], axis=1)
-            directions /= np.linalg.norm(directions, axis=1, keepdims=True)
-            origins = np.tile([0.0, -float(self.camera_distance), 0.0], (len(r), 1))
-        else:
-            s = float(self.pixel_size)
-            origins = np.stack([(c - cx) * s, np.zeros_like(c), (cy - r) * s], axis=1)
-            directions = np.tile([0.0, 1.0, 0.0], (len(r), 1))
-        return origins, directions
-
-    def project(self, points_lab: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Sub-pixel (row, col) where the camera sees lab points (N, 3)."""
-        q = np.asarray(points_lab, float)
-        cx, cy = self.centre_px
-        if self.camera_model == "perspective":
-            f, depth = float(self.focal_length_px), q[:, 1] + float(self.camera_distance)
-            return cy - f * q[:, 2] / depth, cx + f * q[:, 0] / depth
-        s = float(self.pixel_size)
-        return cy - q[:, 2] / s, cx + q[:, 0] / s
-
-    def pixel_footprint(self, points_lab: np.ndarray, normals_lab: np.ndarray) -> np.ndarray:
-        """Area of the surface patch one pixel sees at each point (with its outward normal)."""
-        q, n = np.asarray(points_lab, float), np.asarray(normals_lab, float)
-        if self.camera_model == "perspective":
-            view = q - np.array([0.0, -float(self.camera_distance), 0.0])
-            distance = np.linalg.norm(view, axis=1)
-            cos_axis = view[:, 1] / distance
-            cos_view = np.abs(np.einsum("ij,ij->i", n, view)) / distance
-            solid_angle = cos_axis**3 / float(self.focal_length_px) ** 2
-            return solid_angle * distance**2 / np.maximum(cos_view, 1e-12)
-        return float(self.pixel_size) ** 2 / np.maximum(np.abs(n[:, 1]), 1e-12)
+        light = {f.name: attrs[f.name] for f in fields(cls) if f.name != "camera" and f.name in attrs}
+        return cls(camera(rows=rows, cols=cols, **values), **light)
 
     def beam(self) -> tuple[np.ndarray, np.ndarray]:
         """Origin and unit direction of the light's central ray in the lab (toward the axis)."""
@@ -123,8 +281,18 @@ class RigGeometry:
         distance = self.light_distance if self.light_distance is not None else 1.0
         return towards * distance + np.array([0.0, 0.0, self.beam_height]), -towards
 
+    def lit_rows(self) -> np.ndarray:
+        """Camera rows whose slice the light reaches: all for a sheet, the beam's height for a beam."""
+        if self.light_kind == "sheet":
+            return np.arange(self.camera.rows)
+        row, _ = self.camera.project(np.array([[0.0, 0.0, self.beam_height]]))
+        return self.camera.rows_at(float(row[0]))
 
-GEOMETRY_ATTRS = tuple(set(RigGeometry.__dataclass_fields__) - {"rows", "cols"})
+
+#: every attr a rig geometry writes (and the tomography stages carry from cube to cube)
+GEOMETRY_ATTRS = tuple(dict.fromkeys(
+    [*RIG_ATTRS, *(f.name for cls in CAMERAS.values() for f in fields(cls) if f.name not in ("rows", "cols")),
+     *(f.name for f in fields(RigGeometry) if f.name != "camera")]))
 
 
 def geometry_attrs(attrs) -> dict:

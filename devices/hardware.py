@@ -16,10 +16,12 @@ from typing import Literal
 
 import pydantic
 
+from devices.geometry import CameraModel, RigGeometry
 from devices.manual import ManualLight, ManualSampleChanger
 from devices.opencv_camera import OpenCVCamera
 from devices.serial_stage import SerialRotaryStage
 from devices.tomography_acquire import TomographyRig
+from pipeline.schema import camera_attr_problems
 from pipeline.yaml_source import load_yaml_model
 
 
@@ -45,9 +47,14 @@ class CameraConfig(_Model):
 
 
 class GeometryConfig(_Model):
-    """Rig geometry written into every capture (DESIGN §8); lengths in ``length_unit``."""
+    """Rig geometry written into every capture (DESIGN §8); lengths in ``length_unit``.
 
-    camera_model: Literal["perspective", "orthographic"]
+    The fields are the attrs of :class:`devices.geometry.RigGeometry` (a test keeps them in step), and which a
+    camera model needs comes from their one declaration, :data:`pipeline.schema.CAMERA_ATTRS`; the principal
+    point defaults to the sensor's centre.
+    """
+
+    camera_model: CameraModel
     light_angle_deg: float = pydantic.Field(ge=0, le=180)
     length_unit: Literal["m", "cm", "mm", "um"]
     light_kind: Literal["beam", "sheet"] = "beam"
@@ -60,11 +67,9 @@ class GeometryConfig(_Model):
 
     @pydantic.model_validator(mode="after")
     def _complete(self):
-        needed = {"perspective": ("focal_length_px", "camera_distance", "light_distance"),
-                  "orthographic": ("pixel_size",)}[self.camera_model]
-        missing = [n for n in needed if getattr(self, n) is None]
-        if missing:
-            raise ValueError(f"a {self.camera_model} camera needs {', '.join(missing)}")
+        problems = camera_attr_problems(self.model_dump(exclude_none=True), sensor_defaults=True)
+        if problems:
+            raise ValueError("; ".join(problems))
         return self
 
 
@@ -91,10 +96,8 @@ def hardware_rig(config: HardwareRigConfig) -> TomographyRig:
     except BaseException:
         stage.close()
         raise
-    geometry = config.geometry.model_dump(exclude_none=True)
-    if "principal_point_px" not in geometry and config.geometry.camera_model == "perspective":
-        rows, cols = camera.shape
-        geometry["principal_point_px"] = [(cols - 1) / 2.0, (rows - 1) / 2.0]
-    attrs = geometry | {"saturation_level": config.saturation_level, "rig": "hardware"}
+    rows, cols = camera.shape
+    geometry = RigGeometry.from_attrs(config.geometry.model_dump(exclude_none=True), rows, cols, where="rig geometry")
+    attrs = geometry.attrs() | {"saturation_level": config.saturation_level, "rig": "hardware"}
     return TomographyRig(stage, camera, ManualLight("beam"), ManualLight("backlight"), ManualSampleChanger(),
                          attrs, tolerance_deg=config.stage.tolerance_deg)

@@ -19,7 +19,9 @@ from pipeline.errors import Problem
 #: :data:`MIGRATIONS`) whenever a kind's dims, units or required attrs change.
 #: Format 2 (2026-11): every chunk carries a crc32c checksum and is written even when it holds only the fill
 #: value, and a manifest in ``_selpath`` records completion and units. Its cubes are those of format 1.
-FORMAT_VERSION = 2
+#: Format 3 (2026-12): the hull is indexed by ``slice`` (a coordinate: the camera row), as sinograms and
+#: reconstructions are; formats 1–2 named that dim ``row``, without a coordinate.
+FORMAT_VERSION = 3
 
 
 def _from_format_1(ds: xr.Dataset) -> xr.Dataset:
@@ -27,9 +29,16 @@ def _from_format_1(ds: xr.Dataset) -> xr.Dataset:
     return ds
 
 
+def _from_format_2(ds: xr.Dataset) -> xr.Dataset:
+    """Format 2 → 3: a hull's dim ``row`` becomes ``slice``, with the camera rows as its coordinate."""
+    if ds.attrs.get("selpath_kind") != "hull" or "row" not in ds.dims or "slice" in ds.dims:
+        return ds
+    return ds.rename({"row": "slice"}).assign_coords(slice=("slice", range(ds.sizes["row"])))
+
+
 #: Migrations from older formats: ``{old_version: function(Dataset) -> Dataset of old_version + 1}``.
 #: Archives are migrated step by step on open, never guessed.
-MIGRATIONS: dict[int, Callable[[xr.Dataset], xr.Dataset]] = {1: _from_format_1}
+MIGRATIONS: dict[int, Callable[[xr.Dataset], xr.Dataset]] = {1: _from_format_1, 2: _from_format_2}
 
 PIXEL_DIMS = ("row", "col")
 CHANNEL_DIM = "channel"
@@ -65,25 +74,36 @@ class CubeKind:
         return tuple(d for d in self.variables[variable].dims if d not in (*PIXEL_DIMS, CHANNEL_DIM))
 
 
-def _camera_model_check(attrs: Mapping) -> list[str]:
-    model = attrs.get("camera_model")
-    if model is None:
-        return []
-    if model not in ("perspective", "orthographic"):
-        return [f"attr camera_model is {model!r}; expected 'perspective' or 'orthographic'"]
-    needed = {
-        "perspective": ("focal_length_px", "principal_point_px", "camera_distance", "light_distance"),
-        "orthographic": ("pixel_size",),
-    }[model]
-    return [f"attr {a!r} is required for a {model} camera" for a in needed if a not in attrs]
-
-
-_FRAME = ("row", "col")
-_GEOMETRY = {
+#: Rig-geometry attrs of a tomography capture (DESIGN §2, §8). This and :data:`CAMERA_ATTRS` are the one
+#: declaration of them: the store check here, ``devices.geometry`` (which builds the cameras from attrs) and
+#: the hardware rig's config read them; ``pipeline`` imports neither of those (DESIGN §1).
+RIG_ATTRS = {
     "camera_model": "'perspective' or 'orthographic'",
     "light_angle_deg": "light angle θ_l between the beam and the camera axis, degree",
     "length_unit": "unit of every length attr and of sinogram x, e.g. 'mm'",
 }
+#: Further attrs each camera model needs. ``principal_point_px`` is in every perspective store; a camera built
+#: from a config (``sensor_defaults``) may leave it out: it defaults to the sensor's centre.
+CAMERA_ATTRS: dict[str, tuple[str, ...]] = {
+    "perspective": ("focal_length_px", "principal_point_px", "camera_distance", "light_distance"),
+    "orthographic": ("pixel_size",),
+}
+SENSOR_DEFAULTS = frozenset({"principal_point_px"})
+
+
+def camera_attr_problems(attrs: Mapping, *, sensor_defaults: bool = False) -> list[str]:
+    """What the attrs of a camera model (``attrs['camera_model']``; none given: nothing to check) lack."""
+    model = attrs.get("camera_model")
+    if model is None:
+        return []
+    if model not in CAMERA_ATTRS:
+        return [f"attr camera_model is {model!r}; expected {' or '.join(map(repr, CAMERA_ATTRS))}"]
+    skip = SENSOR_DEFAULTS if sensor_defaults else frozenset()
+    return [f"attr {a!r} is required for a {model} camera" for a in CAMERA_ATTRS[model]
+            if a not in attrs and a not in skip]
+
+
+_FRAME = ("row", "col")
 KINDS: dict[str, CubeKind] = {
     k.name: k
     for k in (
@@ -97,8 +117,8 @@ KINDS: dict[str, CubeKind] = {
                 "dark": Variable(_FRAME, False, "sensor offset with all lights off"),
             },
             coord_units={"angle": ANGLE_UNITS},
-            attrs=_GEOMETRY,
-            attr_checks=(_camera_model_check,),
+            attrs=RIG_ATTRS,
+            attr_checks=(camera_attr_problems,),
         ),
         CubeKind(
             name="absorption",
@@ -123,20 +143,20 @@ KINDS: dict[str, CubeKind] = {
             description="object masks per angle from backlit frames (§4.2.6)",
             variables={"silhouette": Variable(("angle", *_FRAME), description="True where the object is")},
             coord_units={"angle": ANGLE_UNITS},
-            attrs={"camera_model": _GEOMETRY["camera_model"], "length_unit": _GEOMETRY["length_unit"]},
-            attr_checks=(_camera_model_check,),
+            attrs={"camera_model": RIG_ATTRS["camera_model"], "length_unit": RIG_ATTRS["length_unit"]},
+            attr_checks=(camera_attr_problems,),
         ),
         CubeKind(
             name="hull",
-            description="visual hull: the object's convex contour per slice (camera row), object frame",
+            description="visual hull: the object's convex contour per slice (coordinate: camera row), object frame",
             variables={
-                "vertices": Variable(("row", "vertex", "xy"), description="counter-clockwise, NaN-padded"),
-                "n_vertices": Variable(("row",), description="vertices used per slice; 0: no contour"),
+                "vertices": Variable(("slice", "vertex", "xy"), description="counter-clockwise, NaN-padded"),
+                "n_vertices": Variable(("slice",), description="vertices used per slice; 0: no contour"),
             },
             coord_units={},
-            attrs={"camera_model": _GEOMETRY["camera_model"], "length_unit": _GEOMETRY["length_unit"],
+            attrs={"camera_model": RIG_ATTRS["camera_model"], "length_unit": RIG_ATTRS["length_unit"],
                    "hull_resolution": "largest gap between the silhouette edge and the contour, length unit"},
-            attr_checks=(_camera_model_check,),
+            attr_checks=(camera_attr_problems,),
         ),
         CubeKind(
             name="rays",
@@ -148,7 +168,7 @@ KINDS: dict[str, CubeKind] = {
                 "reason": Variable(("angle", *_FRAME), description="0: ray kept; else why it was dropped"),
             },
             coord_units={"angle": ANGLE_UNITS},
-            attrs={"length_unit": _GEOMETRY["length_unit"], "light_angle_deg": _GEOMETRY["light_angle_deg"]},
+            attrs={"length_unit": RIG_ATTRS["length_unit"], "light_angle_deg": RIG_ATTRS["light_angle_deg"]},
         ),
         CubeKind(
             name="coverage",
@@ -224,6 +244,12 @@ KINDS: dict[str, CubeKind] = {
                        "max_abs_error": Variable(("light_angle", "method")),
                        "sigma": Variable(("light_angle", "method", "y", "x"))},
             coord_units={"light_angle": ANGLE_UNITS, "y": LENGTH_UNITS, "x": LENGTH_UNITS},
+        ),
+        CubeKind(
+            name="reconstruction_error",
+            description="RMSE and largest absolute error of a reconstruction against a known truth",
+            variables={"rmse": Variable(()), "max_abs_error": Variable(())},
+            coord_units={},
         ),
         CubeKind(
             name="reconstruction",

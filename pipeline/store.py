@@ -101,9 +101,9 @@ def _open_raw(path: str | os.PathLike) -> xr.Dataset:
     lazy = {}
     for name, var in ds.data_vars.items():
         disk = tuple(var.encoding.get("chunks") or var.shape)
-        if var.ndim == 0 or var.dtype.kind in "OSUV" or 0 in var.shape:
+        if var.dtype.kind in "OSUV" or 0 in var.shape:
             continue
-        chunks = processing_chunks(var.shape, disk, var.dtype.itemsize)
+        chunks = processing_chunks(var.shape, disk, var.dtype.itemsize) if var.ndim else ()
         data = da.from_array(CheckedArray(var.variable, where, str(name), disk), chunks=chunks, lock=False,
                              name=f"open-{name}-{tokenize(where, str(name), chunks, stamp)}",
                              meta=np.empty((0,) * var.ndim, dtype=var.dtype))

@@ -18,6 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from devices.geometry import OrthographicCamera
+
 
 @dataclass(frozen=True)
 class Rod:
@@ -35,7 +37,9 @@ def chord(x_lab: np.ndarray, centre_x: np.ndarray, radius: float) -> np.ndarray:
 
 
 def column_x(n_cols: int, pixel_size: float) -> np.ndarray:
-    return (np.arange(n_cols) - (n_cols - 1) / 2.0) * pixel_size
+    """Lab x of each column's ray (the camera's pixel convention, :mod:`devices.geometry`)."""
+    origins, _ = OrthographicCamera(rows=1, cols=n_cols, pixel_size=pixel_size).slice_rays(np.arange(n_cols))
+    return origins[:, 0]
 
 
 def line_integrals(angles_deg: np.ndarray, n_cols: int, pixel_size: float, rods: tuple[Rod, ...]) -> np.ndarray:

@@ -24,7 +24,7 @@ from typing import Annotated, Any, Literal
 import numpy as np
 import pydantic
 
-from devices.geometry import RigGeometry
+from devices.geometry import OrthographicCamera, PerspectiveCamera, RigGeometry
 from devices.sim.shapes import Ellipse, Polygon, Prism, convex_polygon
 from pipeline.yaml_source import load_yaml_model
 
@@ -174,7 +174,7 @@ class Light(_Model):
     intensity: float = pydantic.Field(3000.0, gt=0, description="counts of the brightest exit point, about")
 
 
-class PerspectiveCamera(_Model):
+class PerspectiveCameraSpec(_Model):
     model: Literal["perspective"]
     rows: int = pydantic.Field(gt=0)
     cols: int = pydantic.Field(gt=0)
@@ -196,12 +196,19 @@ class PerspectiveCamera(_Model):
             return self.focal_length
         return (self.cols / 2.0) / np.tan(np.deg2rad(self.fov) / 2.0)
 
+    def build(self) -> PerspectiveCamera:
+        return PerspectiveCamera(rows=self.rows, cols=self.cols, principal_point_px=self.principal_point,
+                                 focal_length_px=self.focal_length_px, camera_distance=self.distance)
 
-class OrthographicCamera(_Model):
+
+class OrthographicCameraSpec(_Model):
     model: Literal["orthographic"]
     rows: int = pydantic.Field(gt=0)
     cols: int = pydantic.Field(gt=0)
     pixel_size: Annotated[Length, pydantic.Field(gt=0)]
+
+    def build(self) -> OrthographicCamera:
+        return OrthographicCamera(rows=self.rows, cols=self.cols, pixel_size=self.pixel_size)
 
 
 class Sensor(_Model):
@@ -254,7 +261,7 @@ class Scene(_Model):
     description: str = ""
     object: SceneObject
     light: Light
-    camera: Annotated[PerspectiveCamera | OrthographicCamera, pydantic.Field(discriminator="model")]
+    camera: Annotated[PerspectiveCameraSpec | OrthographicCameraSpec, pydantic.Field(discriminator="model")]
     sensor: Sensor = Sensor()
     effects: Effects = Effects()
 
@@ -266,13 +273,9 @@ class Scene(_Model):
 
     def geometry(self) -> RigGeometry:
         """The rig geometry this scene's camera and light define (lengths in mm)."""
-        cam = self.camera
-        common = dict(rows=cam.rows, cols=cam.cols, light_angle_deg=self.light.angle, length_unit="mm",
-                      light_distance=self.light.distance, light_kind=self.light.kind, beam_height=self.light.height)
-        if isinstance(cam, PerspectiveCamera):
-            return RigGeometry("perspective", focal_length_px=cam.focal_length_px, camera_distance=cam.distance,
-                               principal_point_px=cam.principal_point, **common)
-        return RigGeometry("orthographic", pixel_size=cam.pixel_size, **common)
+        return RigGeometry(self.camera.build(), light_angle_deg=self.light.angle, length_unit="mm",
+                           light_distance=self.light.distance, light_kind=self.light.kind,
+                           beam_height=self.light.height)
 
     def body(self) -> Prism:
         half = self.object.height / 2.0

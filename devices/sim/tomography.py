@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from devices.geometry import RigGeometry, to_lab, to_object
+from devices.geometry import Camera, RigGeometry, to_lab, to_object
 from devices.sim.scene import Scene
 from devices.sim.shapes import segment_length_inside
 
@@ -49,7 +49,7 @@ class ExitPoints:
 
 def exit_points(scene: Scene, angle_deg: float, geometry: RigGeometry | None = None) -> ExitPoints:
     geometry = geometry or scene.geometry()
-    origins, directions = geometry.pixel_rays()
+    origins, directions = geometry.camera.pixel_rays()
     o, d = to_object(origins, angle_deg), to_object(directions, angle_deg)
     iv = scene.body().interval(o, d)
     t = np.where(iv.hit, iv.t_in, 0.0)
@@ -85,11 +85,12 @@ def straight_path(scene: Scene, angle_deg: float, *, reference: bool, seen: Exit
     ``seen`` may pass this angle's :func:`exit_points`, when the caller has them already.
     """
     geometry = scene.geometry()
+    camera = geometry.camera
     seen = seen or exit_points(scene, angle_deg, geometry)
-    image = np.zeros(geometry.rows * geometry.cols)
+    image = np.zeros(camera.rows * camera.cols)
     entry = entry_point(scene, angle_deg)
     if entry is None:
-        return image.reshape(geometry.rows, geometry.cols)
+        return image.reshape(camera.rows, camera.cols)
     p_l, n_l = entry
     p_c, n_c = seen.points[seen.hit], seen.normals[seen.hit]
     start = np.tile(p_l, (len(p_c), 1))
@@ -106,13 +107,13 @@ def straight_path(scene: Scene, angle_deg: float, *, reference: bool, seen: Exit
     scale = scene.light.intensity * scene.object.skin.transmittance**2
     absorbed = path_absorption(scene, start, p_c, reference=reference)
     image[seen.hit] = scale * cos_i * cos_o * (_diameter(scene) / safe) ** power * np.exp(-absorbed)
-    return image.reshape(geometry.rows, geometry.cols)
+    return image.reshape(camera.rows, camera.cols)
 
 
 def silhouette(scene: Scene, angle_deg: float, seen: ExitPoints | None = None) -> np.ndarray:
     """True where the object hides the lit plane behind it, (rows, cols)."""
     geometry = scene.geometry()
-    return (seen or exit_points(scene, angle_deg, geometry)).hit.reshape(geometry.rows, geometry.cols)
+    return (seen or exit_points(scene, angle_deg, geometry)).hit.reshape(geometry.camera.rows, geometry.camera.cols)
 
 
 def _cosine_hemisphere(normal: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
@@ -154,11 +155,12 @@ def monte_carlo(scene: Scene, angle_deg: float, *, reference: bool, batch: int =
     if settings is None:
         raise ValueError("the scene has no scattering effect; use straight_path")
     geometry = scene.geometry()
-    n_pixels = geometry.rows * geometry.cols
+    camera = geometry.camera
+    n_pixels = camera.rows * camera.cols
     sums, squares = np.zeros(n_pixels), np.zeros(n_pixels)
     entry = entry_point(scene, angle_deg)
     if entry is None:
-        zero = np.zeros((geometry.rows, geometry.cols))
+        zero = np.zeros((camera.rows, camera.cols))
         return MonteCarloFrame(zero, zero, settings.photons, 0.0)
     p_l, n_l = entry
     body = scene.body()
@@ -179,34 +181,29 @@ def monte_carlo(scene: Scene, angle_deg: float, *, reference: bool, batch: int =
             step = np.where(leaving, t_exit, free)
             end = pos + step[:, None] * direction
             weight = weight * np.exp(-path_absorption(scene, pos, end, reference=reference))
-            _bin_exits(geometry, angle_deg, end[leaving], iv.normal_out[leaving], weight[leaving], sums, squares)
+            _bin_exits(camera, angle_deg, end[leaving], iv.normal_out[leaving], weight[leaving], sums, squares)
             stay = ~leaving
             events += int(stay.sum())
             pos, weight = end[stay], weight[stay]
             direction = _isotropic(len(pos), rng)
     seen = seen or exit_points(scene, angle_deg, geometry)
     footprint = np.full(n_pixels, np.inf)
-    footprint[seen.hit] = geometry.pixel_footprint(to_lab(seen.points[seen.hit], angle_deg),
-                                                   to_lab(seen.normals[seen.hit], angle_deg))
+    footprint[seen.hit] = camera.pixel_footprint(to_lab(seen.points[seen.hit], angle_deg),
+                                                 to_lab(seen.normals[seen.hit], angle_deg))
     scale = scene.light.intensity * scene.object.skin.transmittance**2 * np.pi * _diameter(scene) ** 2
     per_photon = scale / (settings.photons * footprint)
-    shape = (geometry.rows, geometry.cols)
+    shape = (camera.rows, camera.cols)
     return MonteCarloFrame((sums * per_photon).reshape(shape), (np.sqrt(squares) * per_photon).reshape(shape),
                            settings.photons, events / settings.photons)
 
 
-def _bin_exits(geometry: RigGeometry, angle_deg: float, points: np.ndarray, normals: np.ndarray,
+def _bin_exits(camera: Camera, angle_deg: float, points: np.ndarray, normals: np.ndarray,
                weight: np.ndarray, sums: np.ndarray, squares: np.ndarray) -> None:
     """Add exiting photons to the pixel that sees their exit point (front-facing points only)."""
     q, n = to_lab(points, angle_deg), to_lab(normals, angle_deg)
-    if geometry.camera_model == "perspective":
-        facing = np.einsum("ij,ij->i", n, np.array([0.0, -float(geometry.camera_distance), 0.0]) - q) > 0
-    else:
-        facing = n[:, 1] < 0
-    row, col = geometry.project(q[facing])
-    r, c = np.rint(row).astype(np.int64), np.rint(col).astype(np.int64)
-    ok = (r >= 0) & (r < geometry.rows) & (c >= 0) & (c < geometry.cols)
-    index = r[ok] * geometry.cols + c[ok]
+    facing = camera.facing(q, n)
+    index, ok = camera.pixel_index(*camera.project(q[facing]))
+    index = index[ok]
     w = weight[facing][ok]
     sums += np.bincount(index, w, minlength=len(sums))
     squares += np.bincount(index, w * w, minlength=len(squares))

@@ -11,16 +11,34 @@ never forms A or G: with L_uᵀL_u = QΛQᵀ, 2G + ρI = (Q ⊗ I)·blockdiag_i(
 so the T-update is two (K_u × K_u) products and K_u small (K_v × K_v) ones per pixel — for the thesis's
 sweep (47 × 21 cells) 9× fewer operations than the dense (987 × 987) inverse, and ~100 kB instead of 4 MB
 of shared matrices. The smoothness α acts along dv only (the thesis's ∂T/∂v); du is left to β and T ≥ 0.
+
+Each problem hands the solver its operators by name (:meth:`DemuxProblem.operators`): a small pytree
+(:class:`DenseOperators`, :class:`KroneckerOperators`) of JAX arrays in the solver's dtype with ``forward``,
+``adjoint``, ``update``, ``inverse``, ``gram2`` and ``smoothness`` on flat (P, K) iterates, so the jitted
+kernels of :mod:`stages.procam._demux_kernels` dispatch on its type, never on a string.
+
+Defaults live here once (:data:`DEFAULT_ALPHA`, :data:`DEFAULT_BETA`, :data:`DEFAULT_RHO_FACTOR`); the stages
+take theirs from them. α (smoothness along the offset) and β (sparsity) are not tomography's TV weight λ;
+``rho_factor`` (ρ relative to λ_max(2G)) is not tomography's ``rho`` (relative to ‖MR‖²). ρ belongs to the
+problem because the T-update's inverse (2G + ρI)⁻¹, built once per sweep, depends on it.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import NamedTuple
 
+import jax.numpy as jnp
 import numpy as np
 
 from stages.procam._illumination import difference_operator
+
+#: smoothness weight α of the thesis (§5.2.2), on images scaled to [0, 1]
+DEFAULT_ALPHA = 0.01
+#: sparsity weight β of the thesis (§5.2.2), on images scaled to [0, 1]
+DEFAULT_BETA = 0.01
+#: ADMM penalty ρ = rho_factor · λ_max(2G): 0.01 was the best of 0.003–0.3 on a Fig. 38-like sweep
+DEFAULT_RHO_FACTOR = 0.01
 
 
 @dataclass(frozen=True)
@@ -36,8 +54,8 @@ class DemuxProblem:
     inverse: np.ndarray  # (2G)⁺, (K, K): the warm start's unconstrained solve
 
     @classmethod
-    def build(cls, illumination: np.ndarray, *, alpha: float = 0.01, beta: float = 0.01,
-              rho_factor: float = 0.01) -> DemuxProblem:
+    def build(cls, illumination: np.ndarray, *, alpha: float = DEFAULT_ALPHA, beta: float = DEFAULT_BETA,
+              rho_factor: float = DEFAULT_RHO_FACTOR) -> DemuxProblem:
         illumination = np.asarray(illumination, dtype=np.float64)
         if illumination.ndim != 2 or not np.all(np.isfinite(illumination)):
             raise ValueError("the illumination matrix must be a finite (frames, offsets) array")
@@ -51,8 +69,6 @@ class DemuxProblem:
         update = np.linalg.inv(gram2 + rho * np.eye(k))
         return cls(illumination, float(alpha), float(beta), float(rho), gram2, update, np.linalg.pinv(gram2))
 
-    kind: ClassVar[str] = "dense"
-
     @property
     def frames(self) -> int:
         return self.illumination.shape[0]
@@ -61,9 +77,11 @@ class DemuxProblem:
     def offsets(self) -> int:
         return self.illumination.shape[1]
 
-    def arrays(self) -> tuple[np.ndarray, ...]:
-        """The shared matrices the batched solver uses (order fixed by ``_demux_solver._operators``)."""
-        return self.illumination, self.gram2, self.update, self.inverse
+    def operators(self, dtype) -> DenseOperators:
+        """The operators the solver's kernels apply, as JAX arrays of ``dtype``."""
+        cast = _caster(dtype)
+        return DenseOperators(*map(cast, (self.illumination, self.gram2, self.update, self.inverse, self.alpha,
+                                          self.beta, self.rho)))
 
     def objective(self, transport: np.ndarray, data: np.ndarray, weight: np.ndarray | None = None) -> np.ndarray:
         """The thesis's objective per pixel, in float64 (reference for tests and benchmarks)."""
@@ -92,11 +110,9 @@ class SeparableDemuxProblem:
     inverse_blocks: np.ndarray  # (K_u, K_v, K_v): (2λ_i LᵀL + 2αDᵀD)⁺
     smooth: np.ndarray  # DᵀD, (K_v, K_v)
 
-    kind: ClassVar[str] = "separable"
-
     @classmethod
-    def build(cls, line_matrix: np.ndarray, frame_matrix: np.ndarray, *, alpha: float = 0.01, beta: float = 0.01,
-              rho_factor: float = 0.01) -> SeparableDemuxProblem:
+    def build(cls, line_matrix: np.ndarray, frame_matrix: np.ndarray, *, alpha: float = DEFAULT_ALPHA,
+              beta: float = DEFAULT_BETA, rho_factor: float = DEFAULT_RHO_FACTOR) -> SeparableDemuxProblem:
         line_matrix = np.asarray(line_matrix, dtype=np.float64)
         frame_matrix = np.asarray(frame_matrix, dtype=np.float64)
         for name, m in (("line", line_matrix), ("frame", frame_matrix)):
@@ -128,8 +144,11 @@ class SeparableDemuxProblem:
     def cells(self) -> tuple[int, int]:
         return self.line_matrix.shape[1], self.frame_matrix.shape[1]
 
-    def arrays(self) -> tuple[np.ndarray, ...]:
-        return self.line_matrix, self.frame_matrix, self.basis, self.update_blocks, self.inverse_blocks, self.smooth
+    def operators(self, dtype) -> KroneckerOperators:
+        """The operators the solver's kernels apply, as JAX arrays of ``dtype``."""
+        cast = _caster(dtype)
+        return KroneckerOperators(*map(cast, (self.line_matrix, self.frame_matrix, self.basis, self.update_blocks,
+                                              self.inverse_blocks, self.smooth, self.alpha, self.beta, self.rho)))
 
     def forward(self, transport: np.ndarray) -> np.ndarray:
         """(P, K_u·K_v) transport → (P, N_u·N_v) predicted observations, in float64."""
@@ -145,3 +164,91 @@ class SeparableDemuxProblem:
             residual = residual * weight
         smooth = np.diff(transport.reshape(-1, *self.cells), axis=-1)
         return (residual**2).sum(-1) + self.alpha * (smooth**2).sum((-2, -1)) + self.beta * transport.sum(-1)
+
+
+def _sq(x):
+    return jnp.sum(x * x, axis=-1)
+
+
+class DenseOperators(NamedTuple):
+    """:class:`DemuxProblem`'s operators on flat (P, K) iterates (a pytree of arrays in the solver's dtype)."""
+
+    illumination: jnp.ndarray  # A, (N, K)
+    gram2_matrix: jnp.ndarray  # 2G, (K, K)
+    update_matrix: jnp.ndarray  # (2G + ρI)⁻¹
+    inverse_matrix: jnp.ndarray  # (2G)⁺
+    alpha: jnp.ndarray
+    beta: jnp.ndarray
+    rho: jnp.ndarray
+
+    def forward(self, t):
+        """A T per pixel: (P, K) → (P, N)."""
+        return t @ self.illumination.T
+
+    def adjoint(self, r):
+        """Aᵀ r per pixel: (P, N) → (P, K)."""
+        return r @ self.illumination
+
+    def update(self, v):
+        """(2G + ρI)⁻¹ v: the ADMM T-update."""
+        return v @ self.update_matrix
+
+    def inverse(self, v):
+        """(2G)⁺ v: the unconstrained solve of the warm start."""
+        return v @ self.inverse_matrix
+
+    def gram2(self, v):
+        """2G v."""
+        return v @ self.gram2_matrix
+
+    def smoothness(self, t):
+        """‖D T‖² per pixel."""
+        return _sq(jnp.diff(t, axis=-1))
+
+
+class KroneckerOperators(NamedTuple):
+    """:class:`SeparableDemuxProblem`'s operators on flat (P, K_u·K_v) iterates, A = L_u ⊗ L never formed."""
+
+    line: jnp.ndarray  # L_u, (N_u, K_u)
+    frame: jnp.ndarray  # L, (N_v, K_v)
+    basis: jnp.ndarray  # Q, (K_u, K_u)
+    update_blocks: jnp.ndarray  # (K_u, K_v, K_v)
+    inverse_blocks: jnp.ndarray  # (K_u, K_v, K_v)
+    smooth: jnp.ndarray  # DᵀD, (K_v, K_v)
+    alpha: jnp.ndarray
+    beta: jnp.ndarray
+    rho: jnp.ndarray
+
+    def _cells(self, v):
+        return v.reshape(v.shape[0], self.line.shape[1], self.frame.shape[1])
+
+    def forward(self, t):
+        return jnp.einsum("ju,pun->pjn", self.line, self._cells(t) @ self.frame.T).reshape(t.shape[0], -1)
+
+    def adjoint(self, r):
+        n_u = self.line.shape[0]
+        return jnp.einsum("ju,pjv->puv", self.line, r.reshape(r.shape[0], n_u, -1) @ self.frame).reshape(
+            r.shape[0], -1)
+
+    def _blockwise(self, blocks, v):  # (Q ⊗ I) blockdiag (Q ⊗ I)ᵀ v
+        y = jnp.einsum("ui,puv->piv", self.basis, self._cells(v))
+        y = jnp.einsum("piv,ivw->piw", y, blocks)
+        return jnp.einsum("ui,piw->puw", self.basis, y).reshape(v.shape[0], -1)
+
+    def update(self, v):
+        return self._blockwise(self.update_blocks, v)
+
+    def inverse(self, v):
+        return self._blockwise(self.inverse_blocks, v)
+
+    def gram2(self, v):
+        smooth = (self._cells(v) @ self.smooth).reshape(v.shape[0], -1)
+        return 2.0 * (self.adjoint(self.forward(v)) + self.alpha * smooth)
+
+    def smoothness(self, t):
+        return jnp.sum(jnp.diff(self._cells(t), axis=-1) ** 2, axis=(-2, -1))
+
+
+def _caster(dtype):
+    dtype = jnp.dtype(dtype)
+    return lambda a: jnp.asarray(a, dtype=dtype)

@@ -10,6 +10,7 @@ time t_p, so Σ_o T(o) w(o; t_d, t_e) reproduces a frame.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import ClassVar
 
 import dask.array as da
@@ -23,9 +24,10 @@ from pipeline.errors import Problem, StageError
 from pipeline.quality import usable_share
 from pipeline.registry import stage
 from stages._common import Dtype, MaxIter
+from stages._solution import Solution, raise_if_failed
 from stages._sweeps import Sweep
-from stages.procam._demux_problem import DemuxProblem, SeparableDemuxProblem
-from stages.procam._demux_solver import batch_slots, observed, solve
+from stages.procam._demux_problem import DEFAULT_ALPHA, DEFAULT_BETA, DemuxProblem, SeparableDemuxProblem
+from stages.procam._demux_solver import DemuxADMM, batch_slots, observed
 from stages.procam._illumination import epipolar_boundary, line_cells, line_illumination, plane_to_ray_illumination
 
 #: streaming batches per solver call: a call's pool (data, warm starts, results: ~8 (P × K) arrays, 64 MB at
@@ -107,9 +109,10 @@ def _frames(capture: xr.Dataset, timing: dict, boundary_margin_us: float | None,
     return delays, exposures, keep, margin, grid, matrix
 
 
-def solve_pixels(problem: DemuxProblem | SeparableDemuxProblem, data: np.ndarray, weight: np.ndarray, *,
-                 dtype: str, **options):
-    """``solve`` over (P, N) pixels in calls of :func:`pixels_per_call` (the last one padded with all-zero pixels).
+def solve_pixels(solver: DemuxADMM, problem: DemuxProblem | SeparableDemuxProblem, data: np.ndarray,
+                 weight: np.ndarray) -> Solution:
+    """``solver.solve`` over (P, N) pixels in calls of :func:`pixels_per_call` (the last one padded with all-zero
+    pixels), as one :class:`Solution` over the P pixels (``solver.throw`` judged on all of them at the end).
 
     A call with any masked observation takes the solver's masked path (about twice the products per
     iteration), so the pixels with masked observations (weight 0 or non-finite) are solved last, together:
@@ -117,11 +120,12 @@ def solve_pixels(problem: DemuxProblem | SeparableDemuxProblem, data: np.ndarray
     """
     p, per_call = data.shape[0], pixels_per_call(data.shape[0], problem.offsets)
     if p == 0:  # no pixels (an empty band): nothing to solve, the solver's batches need at least one row
-        return [np.zeros((0, problem.offsets), dtype), np.zeros(0, np.int32), np.zeros(0, bool), np.zeros(0, dtype)]
+        return Solution(np.zeros((0, problem.offsets), solver.dtype), np.zeros(0, np.int8),
+                        {"iterations": np.zeros(0, np.int32), "objective": np.zeros(0, solver.dtype)})
     order = np.argsort(~observed(data, weight).all(axis=1), kind="stable")
     data, weight = data[order], weight[order]
     size = min(per_call, p)  # one call of exactly p pixels, or equal calls with the last one padded
-    parts = []
+    parts, each = [], replace(solver, throw=False)
     for c in range(max(1, -(-p // per_call))):
         chunk_data = data[c * size:(c + 1) * size]
         chunk_weight = weight[c * size:(c + 1) * size]
@@ -129,26 +133,27 @@ def solve_pixels(problem: DemuxProblem | SeparableDemuxProblem, data: np.ndarray
         if pad:  # zero observations, unmasked: a weight of 0 would send the whole call down the masked path
             chunk_data = np.pad(chunk_data, ((0, pad), (0, 0)))
             chunk_weight = np.pad(chunk_weight, ((0, pad), (0, 0)), constant_values=1)
-        with jax.enable_x64(dtype == "float64"):
-            result = solve(problem, chunk_data, chunk_weight, dtype=np.dtype(dtype), **options)
-        keep = slice(0, size - pad)
-        parts.append((result.transport[keep], result.iterations[keep], result.converged[keep],
-                      result.objective[keep]))
+        with jax.enable_x64(bool(np.dtype(solver.dtype) == np.float64)):
+            solution = each.solve(problem, chunk_data, chunk_weight)
+        parts.append(jax.tree.map(lambda a, keep=size - pad: a[:keep], solution))
     inverse = np.argsort(order)
-    return [np.concatenate(column)[inverse] for column in zip(*parts, strict=True)]
+    solution = jax.tree.map(lambda *column: np.concatenate(column)[inverse], *parts)
+    if solver.throw:
+        raise_if_failed(solution, "DemuxADMM", items="pixels")
+    return solution
 
 
-def _solve_band(problem: DemuxProblem | SeparableDemuxProblem, frames: np.ndarray, shape: tuple[int, int], *,
-                dark: float, full_scale: float, saturation: float, dtype: str, options: dict
+def _solve_band(solver: DemuxADMM, problem: DemuxProblem | SeparableDemuxProblem, frames: np.ndarray,
+                shape: tuple[int, int], *, dark: float, full_scale: float, saturation: float
                 ) -> tuple[np.ndarray, dict]:
     """Solve a band's (P, N) raw frames: (T (P, K) in counts, the per-pixel variables beside it)."""
     weight = np.isfinite(frames) & (frames < saturation)
     data = np.where(weight, (frames - dark) / full_scale, 0.0)
-    transport, iterations, converged, objective = solve_pixels(problem, data, weight, dtype=dtype, **options)
-    return transport * full_scale, {
-        "iterations": (("row", "col"), iterations.reshape(shape).astype(np.int32)),
-        "converged": (("row", "col"), converged.reshape(shape)),
-        "objective": (("row", "col"), objective.reshape(shape).astype(np.float32)),
+    solution = solve_pixels(solver, problem, data, weight)
+    return solution.value * full_scale, {
+        "iterations": (("row", "col"), solution.stats["iterations"].reshape(shape).astype(np.int32)),
+        "converged": (("row", "col"), solution.converged.reshape(shape)),
+        "objective": (("row", "col"), solution.stats["objective"].reshape(shape).astype(np.float32)),
         "frames_used": (("row", "col"), weight.sum(-1).reshape(shape).astype(np.int32)),
     }
 
@@ -179,20 +184,23 @@ def _transport_attrs(kind: str, *, timing: dict, delays, exposures, keep, margin
             "full_scale_counts": full_scale, "frames_dropped": dropped, "boundary_margin_us": margin}
 
 
-def _band(block: xr.Dataset, *, problem: DemuxProblem, keep: np.ndarray, levels: dict, dtype: str,
-          options: dict) -> xr.Dataset:
+def _band(block: xr.Dataset, *, solver: DemuxADMM, problem: DemuxProblem, keep: np.ndarray, levels: dict
+          ) -> xr.Dataset:
     image = block["image"].transpose("delay", "exposure", "row", "col").values
     shape = image.shape[-2:]
     frames = image.reshape(-1, shape[0] * shape[1])[keep.ravel()].T  # (P, N kept)
-    transport, per_pixel = _solve_band(problem, frames, shape, dtype=dtype, options=options, **levels)
-    return xr.Dataset({"transport": (("offset", "row", "col"), transport.T.reshape(-1, *shape).astype(dtype)),
+    transport, per_pixel = _solve_band(solver, problem, frames, shape, **levels)
+    return xr.Dataset({"transport": (("offset", "row", "col"),
+                                     transport.T.reshape(-1, *shape).astype(solver.dtype)),
                        **per_pixel}, coords={name: block[name] for name in ("row", "col") if name in block.coords})
 
 
 @stage("demux_plane_to_ray")
 def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, /, *,
-                       offsets: OffsetGrid | None = None, alpha: NonNegative = 0.01, beta: NonNegative = 0.01,
-                       tol: Positive = 5e-3, max_iter: MaxIter = 200, polish_iter: Index = 5,
+                       offsets: OffsetGrid | None = None, alpha: NonNegative = DEFAULT_ALPHA,
+                       beta: NonNegative = DEFAULT_BETA, tol: Positive = DemuxADMM.DEFAULT_TOL,
+                       max_iter: MaxIter = DemuxADMM.DEFAULT_MAX_ITER,
+                       polish_iter: Index = DemuxADMM.DEFAULT_POLISH_ITER,
                        boundary_margin_us: NonNegative | None = None, sync_offset_us: float | None = None,
                        full_scale: Positive | None = None, rows_per_tile: Count = 32,
                        dtype: Dtype = "float32") -> xr.Dataset:
@@ -247,9 +255,9 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
     stack = capture[["image"]].chunk({"delay": -1, "exposure": -1, "row": rows_per_tile, "col": -1})
     template = _template(capture, ("offset",), (grid.size,), stack.chunksizes["row"], dtype)
     levels = {"dark": dark, "full_scale": scale, "saturation": saturation}
-    options = {"tol": tol, "max_iter": max_iter, "polish_iter": polish_iter}
+    solver = DemuxADMM(tol=tol, max_iter=max_iter, polish_iter=polish_iter, dtype=dtype)
     out = xr.map_blocks(_band, stack.assign_attrs({}), kwargs={
-        "problem": problem, "keep": keep, "levels": levels, "dtype": dtype, "options": options}, template=template)
+        "solver": solver, "problem": problem, "keep": keep, "levels": levels}, template=template)
     out = out.assign_coords(offset=("offset", grid, {"units": "px", "long_name": "projector row − camera row"}))
     out["transport"].attrs = {"units": "counts", "long_name": "plane-to-ray transport T(v, s, t)"}
     out["objective"].attrs = {"long_name": "objective at T (images scaled to [0, 1])"}
@@ -273,13 +281,13 @@ def _usable(frames_used: xr.DataArray, frames: int) -> xr.DataArray:
 FULL_TILE_BYTES = 64 * 2**20
 
 
-def _band_full(block: xr.Dataset, *, problem: SeparableDemuxProblem, keep: np.ndarray, levels: dict, dtype: str,
-               options: dict, reach: int, centre_v: int, cells: np.ndarray) -> xr.Dataset:
+def _band_full(block: xr.Dataset, *, solver: DemuxADMM, problem: SeparableDemuxProblem, keep: np.ndarray,
+               levels: dict, reach: int, centre_v: int, cells: np.ndarray) -> xr.Dataset:
     image = block["image"].transpose("line", "delay", "exposure", "row", "col").values
     n_lines, rows, cols = image.shape[0], *image.shape[-2:]
     frames = image.reshape(n_lines, -1, rows * cols)[:, keep.ravel()].reshape(-1, rows * cols).T  # line-major
     shape = (rows, cols)
-    transport, per_pixel = _solve_band(problem, frames, shape, dtype=dtype, options=options, **levels)
+    transport, per_pixel = _solve_band(solver, problem, frames, shape, **levels)
     k_u, k_v = problem.cells
     absolute = transport.reshape(-1, k_u, k_v)  # (P, u-cell, dv)
     # the direct correspondence u₀: the brightest u-cell on the epipolar row (dv = 0)
@@ -294,7 +302,7 @@ def _band_full(block: xr.Dataset, *, problem: SeparableDemuxProblem, keep: np.nd
     relative[~lit] = np.where(inside[~lit, :, None], 0.0, np.nan)
     return xr.Dataset({
         "transport": (("du", "dv", "row", "col"), relative.transpose(1, 2, 0).reshape(du.size, k_v, *shape)
-                      .astype(dtype)),
+                      .astype(solver.dtype)),
         "u_direct": (("row", "col"), np.where(lit, cells[peak], np.nan).reshape(shape).astype(np.float32)),
         **per_pixel,
     }, coords={name: block[name] for name in ("row", "col") if name in block.coords})
@@ -303,8 +311,9 @@ def _band_full(block: xr.Dataset, *, problem: SeparableDemuxProblem, keep: np.nd
 @stage("demux_full")
 def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, /, *,
                offsets: OffsetGrid | None = None, cell_width_px: Positive | None = None,
-               du_reach_px: NonNegative | None = None, alpha: NonNegative = 0.01, beta: NonNegative = 0.01,
-               tol: Positive = 5e-3, max_iter: MaxIter = 200, polish_iter: Index = 5,
+               du_reach_px: NonNegative | None = None, alpha: NonNegative = DEFAULT_ALPHA,
+               beta: NonNegative = DEFAULT_BETA, tol: Positive = DemuxADMM.DEFAULT_TOL,
+               max_iter: MaxIter = DemuxADMM.DEFAULT_MAX_ITER, polish_iter: Index = DemuxADMM.DEFAULT_POLISH_ITER,
                boundary_margin_us: NonNegative | None = None, sync_offset_us: float | None = None,
                full_scale: Positive | None = None, rows_per_tile: Count | None = None,
                dtype: Dtype = "float32") -> xr.Dataset:
@@ -361,9 +370,9 @@ def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, 
     template = _template(capture, ("du", "dv"), (2 * reach + 1, grid.size), stack.chunksizes["row"], dtype,
                          u_direct=np.float32)
     out = xr.map_blocks(_band_full, stack.assign_attrs({}), kwargs={
-        "problem": problem, "keep": keep, "levels": {"dark": dark, "full_scale": scale, "saturation": saturation},
-        "dtype": dtype, "options": {"tol": tol, "max_iter": max_iter, "polish_iter": polish_iter},
-        "reach": reach, "centre_v": int(np.argmin(np.abs(grid))), "cells": cells}, template=template)
+        "solver": DemuxADMM(tol=tol, max_iter=max_iter, polish_iter=polish_iter, dtype=dtype), "problem": problem,
+        "keep": keep, "levels": {"dark": dark, "full_scale": scale, "saturation": saturation}, "reach": reach,
+        "centre_v": int(np.argmin(np.abs(grid))), "cells": cells}, template=template)
     out = out.assign_coords(
         du=("du", np.arange(-reach, reach + 1) * step, {"units": "px", "long_name": "projector column − u₀"}),
         dv=("dv", grid, {"units": "px", "long_name": "projector row − camera row"}))

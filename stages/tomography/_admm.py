@@ -8,24 +8,30 @@ M masks the observed rays, R is :mod:`stages.tomography._projector`, ∇ forward
 σ_max the per-cell bound of Eq. 26–28 (0 outside the object's support). ADMM splits z₁ = D σ (TV) and
 z₂ = K σ (box). Both splits are scaled to the projector: K = ‖M R‖ and D = (K/‖∇‖)·∇, so the three terms
 of the σ-update matrix RᵀMR + ρ(DᵀD + K²I) have the same norm and one penalty ρ (dimensionless, default
-1) balances them whatever the units, grid or mask (DESIGN §6: worth ~3× in RMSE at equal cost). The
-σ-update is solved by a few warm-started conjugate-gradient steps (lineax ``CG``), the z-updates are
-exact (isotropic shrinkage, clipping). The reported iterate is z₂/K, which lies in the box at every
+:attr:`TVADMM.DEFAULT_RHO`) balances them whatever the units, grid or mask (DESIGN §6: worth ~3× in RMSE at
+equal cost). The σ-update is solved by a few warm-started conjugate-gradient steps (lineax ``CG``), the
+z-updates are exact (isotropic shrinkage, clipping). The reported iterate is z₂/K, which lies in the box at every
 iteration by construction. Stops when Boyd's relative primal and dual residuals fall below ``tol`` (the
 dual one relative to the larger of ρ‖Dᵀu₁ + Ku₂‖ and ‖RᵀMA‖: on clean data the former tends to 0), or
-at ``max_iter``; ``converged`` says which.
+at ``max_iter``; the result code (:class:`stages._solution.Result`) says which.
+
+``TVADMM`` is the only home of the reconstruction's defaults (λ, ρ, tol, the caps): ``reconstruct_tv`` and
+``light_angle_study`` take theirs from its ``DEFAULT_*`` constants. λ here (``tv_weight``, TV weight of Eq. 20)
+and ρ (relative to ‖MR‖²) are not the demultiplexing's α, β and ``rho_factor`` (:mod:`stages.procam`).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import NamedTuple
+from dataclasses import dataclass, replace
+from functools import lru_cache
+from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 
+from stages._solution import Solution, outcome, raise_if_failed
 from stages.tomography._projector import Geometry, adjoint, forward, operator_norm
 
 _GRADIENT_NORM = np.sqrt(8.0)  # ‖∇‖₂ of 2D forward differences (Neumann boundary)
@@ -49,31 +55,42 @@ def total_variation(image: jnp.ndarray) -> jnp.ndarray:
     return jnp.sqrt((gradient(image) ** 2).sum(axis=0)).sum()
 
 
-class Solution(NamedTuple):
-    """What :meth:`TVADMM.solve` returns for one slice (batched: a leading slice axis everywhere)."""
-
-    value: jnp.ndarray  # σ, (n, n), inside [0, σ_max]
-    iterations: jnp.ndarray  # int
-    converged: jnp.ndarray  # bool: stopped on tolerance, not on the cap
-    objective: jnp.ndarray  # (max_iter,) ½‖M(Rσ−A)‖² + λ TV(σ) of each reported iterate; NaN after the stop
-    primal_residual: jnp.ndarray  # (max_iter,) relative
-    dual_residual: jnp.ndarray  # (max_iter,) relative
-
-
 @dataclass(frozen=True)
 class TVADMM:
-    """ADMM for Eq. 20 on one geometry. ``solve`` is pure and jit-able; ``vmap`` it over slices."""
+    """ADMM for Eq. 20 on one geometry: an immutable solver whose :meth:`solve` returns a :class:`Solution`.
+
+    :meth:`solve` (one slice) is pure, so ``jax.jit``/``jax.vmap`` it freely; nothing can raise inside a
+    jitted function, so ``throw`` acts in :meth:`solve_slices` (the batched, host-side entry point), which
+    raises :class:`stages._solution.SolverError` when ``throw`` is set and a slice did not converge.
+
+    The :class:`Solution` of one slice: ``value`` σ (n, n) inside [0, σ_max]; ``result`` a scalar
+    :class:`stages._solution.Result` code (``converged``, ``max_steps``, ``nonfinite``); ``stats``:
+    ``iterations`` (int), and per iteration (max_iter,) ``objective`` ½‖M(Rσ−A)‖² + λ TV(σ) of each reported
+    iterate, relative ``primal_residual`` and ``dual_residual``, NaN after the stop. Batched: a leading slice
+    axis everywhere.
+    """
+
+    #: λ of Eq. 20 [absorption² per (1/length)·cell]
+    DEFAULT_TV_WEIGHT: ClassVar[float] = 1e-3
+    #: ADMM penalty relative to ‖MR‖² [1]
+    DEFAULT_RHO: ClassVar[float] = 0.1
+    #: relative primal and dual residual at which to stop [1]
+    DEFAULT_TOL: ClassVar[float] = 1e-3
+    DEFAULT_MAX_ITER: ClassVar[int] = 200
+    #: conjugate-gradient steps per σ-update (warm-started)
+    DEFAULT_CG_STEPS: ClassVar[int] = 3
 
     geometry: Geometry
-    tv_weight: float = 0.01
-    rho: float = 1.0
-    tol: float = 1e-3
-    max_iter: int = 200
-    cg_steps: int = 3
+    tv_weight: float = DEFAULT_TV_WEIGHT
+    rho: float = DEFAULT_RHO
+    tol: float = DEFAULT_TOL
+    max_iter: int = DEFAULT_MAX_ITER
+    cg_steps: int = DEFAULT_CG_STEPS
+    throw: bool = False
 
     def solve(self, sinogram: jnp.ndarray, observed: jnp.ndarray, sigma_max: jnp.ndarray,
               norm: float | None = None) -> Solution:
-        """Reconstruct one slice; ``norm`` is ‖M R‖ (estimated when None)."""
+        """Reconstruct one slice (pure, jit-able, never raises); ``norm`` is ‖M R‖ (estimated when None)."""
         g, dtype = self.geometry, sinogram.dtype
         mask = observed.astype(dtype)
         b = jnp.where(observed, jnp.nan_to_num(sinogram), 0.0).astype(dtype)
@@ -130,4 +147,21 @@ class TVADMM:
         init = (jnp.asarray(0), zeros, jnp.zeros((2, g.n, g.n), dtype), zeros, jnp.zeros((2, g.n, g.n), dtype),
                 zeros, jnp.asarray(False), (nan, nan, nan))
         i, _, _, z2, _, _, done, history = jax.lax.while_loop(keep_going, step, init)
-        return Solution(z2 / k, i, done, *history)
+        sigma = z2 / k
+        stats = {"iterations": i, "objective": history[0], "primal_residual": history[1], "dual_residual": history[2]}
+        return Solution(sigma, outcome(done, jnp.all(jnp.isfinite(sigma)), jnp), stats)
+
+    def solve_slices(self, sinograms: jnp.ndarray, observed: jnp.ndarray, sigma_max: jnp.ndarray) -> Solution:
+        """Every slice of (S, θ, X) sinograms at once (jitted and vmapped once per solver and dtype), as numpy;
+        raises :class:`stages._solution.SolverError` if ``throw`` is set and a slice did not converge."""
+        batched = _batched(replace(self, throw=False), jnp.dtype(sinograms.dtype).name)  # one compile for both
+        solution = jax.tree.map(np.asarray, batched(sinograms, observed, sigma_max))
+        if self.throw:
+            raise_if_failed(solution, "TVADMM", items="slices",
+                            fix="raise max_iter or loosen tol (or cg_steps); throw=False keeps them as data")
+        return solution
+
+
+@lru_cache(maxsize=16)
+def _batched(solver: TVADMM, dtype: str):
+    return jax.jit(jax.vmap(solver.solve))

@@ -5,7 +5,8 @@ silhouette row bounds the slice seen by that camera row from two sides: the rays
 right silhouette edges are tangent to the object, so each gives a half-plane containing it. The visual
 hull of a slice is the intersection of these half-planes over every angle, a convex polygon
 (``scipy.spatial.HalfspaceIntersection``). Camera rows are treated as slices through their x–y
-projections, which is exact for the vertical prisms the rig measures (and for orthographic cameras).
+projections, which is exact for the vertical prisms the rig measures (and for orthographic cameras):
+the hull is indexed by ``slice``, whose coordinate is the camera row, as sinograms and reconstructions are.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from skimage.filters import threshold_otsu
 from skimage.measure import label
 from skimage.morphology import remove_small_holes, remove_small_objects
 
-from devices.geometry import RigGeometry, geometry_attrs
+from devices.geometry import Camera, RigGeometry, geometry_attrs
 from pipeline.constraints import Index, Positive
 from pipeline.errors import Problem, StageError
 from pipeline.quality import usable_share
@@ -85,14 +86,16 @@ def silhouettes(capture: xr.Dataset, /, *, threshold: Positive | None = None, mi
 SILHOUETTE_FLOOR = 0.5
 
 
-def silhouette_half_planes(mask_row: np.ndarray, angles_deg: np.ndarray, geometry: RigGeometry, row: int
+def silhouette_half_planes(mask_row: np.ndarray, angles_deg: np.ndarray, camera: Camera
                            ) -> tuple[np.ndarray, np.ndarray, dict[str, int]]:
     """Half-planes ``n·p ≤ h`` (object frame) from one silhouette row at every angle, and counts of
-    views that give no constraint: empty, touching the image border (that side), non-convex (gaps)."""
+    views that give no constraint: empty, touching the image border (that side), non-convex (gaps).
+
+    The ray through a silhouette's outer pixel edge is tangent to the object: the half-plane is bounded by it,
+    on the object's side."""
     normals, offsets = [], []
     counts = {"empty": 0, "border": 0, "gaps": 0}
     cols = mask_row.shape[-1]
-    cx, _ = geometry.centre_px
     for phi, line in zip(angles_deg, mask_row, strict=True):
         on = np.flatnonzero(line)
         if not len(on):
@@ -102,19 +105,15 @@ def silhouette_half_planes(mask_row: np.ndarray, angles_deg: np.ndarray, geometr
             counts["gaps"] += 1  # not one run: the hull uses the outermost edges (its convex hull)
         rotation = np.array([[np.cos(np.deg2rad(phi)), -np.sin(np.deg2rad(phi))],
                              [np.sin(np.deg2rad(phi)), np.cos(np.deg2rad(phi))]])
-        for edge, side, inside in ((on[0] - 0.5, -1.0, on[0] > 0), (on[-1] + 0.5, 1.0, on[-1] < cols - 1)):
+        origins, directions = camera.slice_rays(camera.outer_edges(on[0], on[-1]))
+        for k, (side, inside) in enumerate(((-1.0, on[0] > 0), (1.0, on[-1] < cols - 1))):
             if not inside:
                 counts["border"] += 1
                 continue
-            if geometry.camera_model == "orthographic":
-                n_lab = np.array([side, 0.0])
-                h = side * (edge - cx) * float(geometry.pixel_size)
-            else:
-                slope = (edge - cx) / float(geometry.focal_length_px)
-                n_lab = side * np.array([1.0, -slope]) / np.hypot(1.0, slope)
-                h = float(n_lab @ np.array([0.0, -float(geometry.camera_distance)]))
+            slope, depth = directions[k]
+            n_lab = side * np.array([depth, -slope]) / np.hypot(depth, slope)  # the ray's normal, away from the object
             normals.append(rotation.T @ n_lab)  # n·R(φ)p = (R(φ)ᵀ n)·p
-            offsets.append(h)
+            offsets.append(float(n_lab @ origins[k]))
     return np.array(normals).reshape(-1, 2), np.array(offsets), counts
 
 
@@ -139,13 +138,12 @@ def intersect_half_planes(normals: np.ndarray, offsets: np.ndarray) -> np.ndarra
     return points[hull.vertices]
 
 
-def _hull_kernel(masks: np.ndarray, rows: np.ndarray, *, angles: np.ndarray, geometry: RigGeometry,
-                 max_vertices: int) -> tuple[np.ndarray, ...]:
-    # masks: (row block, angle, col); one convex polygon per row
+def _hull_kernel(masks: np.ndarray, *, angles: np.ndarray, camera: Camera, max_vertices: int) -> np.ndarray:
+    # masks: (slice block, angle, col); one convex polygon per slice
     vertices = np.full((masks.shape[0], max_vertices, 2), np.nan)
     counts = np.zeros((4, masks.shape[0]), dtype=np.int64)  # vertices, empty, border, gapped views
-    for k, row in enumerate(rows.reshape(-1)):
-        normals, offsets, views = silhouette_half_planes(masks[k], angles, geometry, int(row))
+    for k in range(masks.shape[0]):
+        normals, offsets, views = silhouette_half_planes(masks[k], angles, camera)
         counts[1:, k] = views["empty"], views["border"], views["gaps"]
         polygon = intersect_half_planes(normals, offsets)
         if polygon is not None:
@@ -158,7 +156,8 @@ def _hull_kernel(masks: np.ndarray, rows: np.ndarray, *, angles: np.ndarray, geo
 
 @stage("visual_hull")
 def visual_hull(silhouettes: xr.Dataset, /) -> xr.Dataset:
-    """The convex contour of every slice (camera row) from the silhouettes of all angles.
+    """The convex contour of every slice from the silhouettes of all angles: dim ``slice``, whose coordinate is
+    the camera row the slice is seen in.
 
     Lazy, one task per block of rows; each needs every angle of its rows (a reduction over angles).
     Rows where the object is absent or not bounded by the views get ``n_vertices = 0``; the variables
@@ -169,29 +168,21 @@ def visual_hull(silhouettes: xr.Dataset, /) -> xr.Dataset:
     """
     require_variables(silhouettes, ("silhouette",), "visual_hull")
     mask = silhouettes["silhouette"]
-    problems = [Problem(f"attr {a!r} is missing; visual_hull needs the rig geometry", fix="compute the silhouettes "
-                        "from a capture whose attrs carry it") for a in ("camera_model",) if a not in silhouettes.attrs]
-    if problems:
-        raise StageError(problems)
     rows, cols = mask.sizes["row"], mask.sizes["col"]
-    geometry = RigGeometry.from_attrs(silhouettes.attrs, rows, cols)
+    camera = RigGeometry.from_attrs(silhouettes.attrs, rows, cols, where="visual_hull: silhouettes").camera
     angles = mask["angle"].values
     max_vertices = 2 * len(angles)
-    row_index = xr.DataArray(np.arange(rows), dims="row")
+    slices = mask.rename(row="slice").assign_coords(slice=("slice", np.arange(rows)))  # a camera row sees a slice
     packed = xr.apply_ufunc(
-        _hull_kernel, mask.chunk({"angle": -1, "col": -1}), row_index,
-        input_core_dims=[["angle", "col"], []], output_core_dims=[["vertex", "xy"]],
+        _hull_kernel, slices.chunk({"angle": -1, "col": -1}),
+        input_core_dims=[["angle", "col"]], output_core_dims=[["vertex", "xy"]],
         dask="parallelized", output_dtypes=[np.float64],
         dask_gufunc_kwargs={"output_sizes": {"vertex": max_vertices + 2, "xy": 2}},
-        kwargs={"angles": angles, "geometry": geometry, "max_vertices": max_vertices})
+        kwargs={"angles": angles, "camera": camera, "max_vertices": max_vertices})
     vertices = packed.isel(vertex=slice(0, max_vertices))
     counts, empty, border, gapped = (packed.isel(vertex=max_vertices + i // 2, xy=i % 2, drop=True).astype(np.int64)
                                      for i in range(4))
-    if geometry.camera_model == "orthographic":
-        resolution = float(geometry.pixel_size) / 2
-    else:
-        resolution = float(geometry.camera_distance) / float(geometry.focal_length_px) / 2
-    attrs = geometry_attrs(silhouettes.attrs) | {"selpath_kind": "hull", "hull_resolution": resolution,
+    attrs = geometry_attrs(silhouettes.attrs) | {"selpath_kind": "hull", "hull_resolution": camera.axis_pixel_size / 2,
                                                  "n_views": len(angles)}
     views = {"long_name": "views per slice"}
     return xr.Dataset({"vertices": vertices, "n_vertices": counts, "empty_views": empty.assign_attrs(views),
@@ -203,3 +194,20 @@ def hull_polygons(hull: xr.Dataset) -> list[np.ndarray | None]:
     """The contour of each slice as an (n, 2) array of vertices, or None where the slice has none."""
     vertices, counts = hull["vertices"].values, hull["n_vertices"].values
     return [vertices[i, :n] if n >= 3 else None for i, n in enumerate(counts)]
+
+
+def contours(hull: xr.Dataset, slices: xr.DataArray, stage_name: str) -> xr.Dataset:
+    """``vertices`` and ``n_vertices`` of the hull at ``slices`` (camera rows), indexed like ``slices``.
+
+    Raises a StageError naming the slices the hull lacks, or saying how to read a hull of an earlier layout.
+    """
+    if "slice" not in hull.dims or "slice" not in hull.indexes:
+        fix = ("open its store with pipeline.open_store, which migrates hulls of formats 1-2 (dim 'row')"
+               if "row" in hull.dims else "compute it with visual_hull")
+        raise StageError(Problem(f"{stage_name}: the hull has no slice coordinate (dims {tuple(hull.dims)})",
+                                 fix=fix))
+    missing = sorted(set(np.asarray(slices).tolist()) - set(hull["slice"].values.tolist()))
+    if missing:
+        raise StageError(Problem(f"{stage_name}: slices {missing[:5]} are not in the hull ({hull.sizes['slice']} "
+                                 "slices)", fix="compute both from the same capture"))
+    return hull[["vertices", "n_vertices"]].sel(slice=slices)

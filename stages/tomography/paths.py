@@ -23,6 +23,7 @@ from pipeline.errors import Problem, StageError
 from pipeline.quality import usable_share
 from pipeline.registry import stage
 from stages._common import require_variables
+from stages.tomography.hull import contours
 
 #: why a pixel gave no ray (``reason`` variable; 0: a ray)
 REASONS = {
@@ -34,20 +35,6 @@ REASONS = {
     6: "slice has no contour",
 }
 __doc__ += "\n".join(f"``{k}``: {v}; " for k, v in REASONS.items())
-
-
-def lit_rows(geometry: RigGeometry) -> np.ndarray:
-    """Camera rows whose slice the light reaches: all for a sheet, the beam's height for a beam."""
-    if geometry.light_kind == "sheet":
-        return np.arange(geometry.rows)
-    _, cy = geometry.centre_px
-    if geometry.camera_model == "perspective":
-        row = cy - geometry.beam_height * float(geometry.focal_length_px) / float(geometry.camera_distance)
-    else:
-        row = cy - geometry.beam_height / float(geometry.pixel_size)
-    rows = np.arange(int(np.floor(row)), int(np.ceil(row)) + 1)
-    rows = rows[(np.abs(rows - row) <= 0.5) & (rows >= 0) & (rows < geometry.rows)]
-    return rows
 
 
 def sinogram_coordinates(entry: np.ndarray, exit_: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -83,7 +70,6 @@ def _align_kernel(absorption, flags, angle, row, col, vertices, n_vertices, *, g
     n_vertices = np.broadcast_to(n_vertices, shape)
     theta, x = np.full(shape, np.nan), np.full(shape, np.nan)
     reason = np.zeros(shape, dtype=np.int8)
-    cx, _ = geometry.centre_px
     beam_origin, beam_direction = geometry.beam()
     for r in np.unique(row):
         sel = row == r
@@ -94,12 +80,7 @@ def _align_kernel(absorption, flags, angle, row, col, vertices, n_vertices, *, g
         polygon = convex_polygon(vertices[sel][0][:count])
         phi = np.deg2rad(angle[sel])
         pixel = col[sel].astype(float)
-        if geometry.camera_model == "perspective":
-            cam_o = np.tile([0.0, -float(geometry.camera_distance)], (len(pixel), 1))
-            cam_d = np.stack([(pixel - cx) / float(geometry.focal_length_px), np.ones_like(pixel)], axis=1)
-        else:
-            cam_o = np.stack([(pixel - cx) * float(geometry.pixel_size), np.zeros_like(pixel)], axis=1)
-            cam_d = np.tile([0.0, 1.0], (len(pixel), 1))
+        cam_o, cam_d = geometry.camera.slice_rays(pixel)
         cam_d /= np.linalg.norm(cam_d, axis=1, keepdims=True)
         o, d = _to_object(cam_o, phi), _to_object(cam_d, phi)
         seen = polygon.interval(o, d)
@@ -141,20 +122,18 @@ def align_paths(absorption: xr.Dataset, hull: xr.Dataset, /, *, min_exit_cos: Fr
         Rays leaving the contour at a smaller |cos| to its normal graze it and are dropped, in [0, 1]; 0: none [1].
     """
     require_variables(absorption, ("absorption",), "align_paths")
-    missing = [k for k in ("camera_model", "light_angle_deg", "length_unit") if k not in hull.attrs]
-    if missing:
-        raise StageError([Problem(f"hull attr {k!r} is missing; align_paths needs the rig geometry") for k in missing])
-    if absorption.sizes["row"] != hull.sizes["row"]:
-        raise StageError(Problem(f"absorption has {absorption.sizes['row']} rows, the hull {hull.sizes['row']}",
-                                 fix="compute both from the same capture"))
-    geometry = RigGeometry.from_attrs(hull.attrs, absorption.sizes["row"], absorption.sizes["col"])
-    rows = lit_rows(geometry)
+    geometry = RigGeometry.from_attrs(hull.attrs, absorption.sizes["row"], absorption.sizes["col"],
+                                      where="align_paths: hull")
+    if "slice" in hull.dims and absorption.sizes["row"] != hull.sizes["slice"]:
+        raise StageError(Problem(f"absorption has {absorption.sizes['row']} rows, the hull {hull.sizes['slice']} "
+                                 "slices", fix="compute both from the same capture"))
+    rows = geometry.lit_rows()
     if not len(rows):
         raise StageError(Problem("no camera row sees the beam's height", fix="check beam_height and the camera"))
     flags = absorption["flags"] if "flags" in absorption else xr.zeros_like(absorption["absorption"], dtype=np.int8)
     data = absorption["absorption"].isel(row=rows).assign_coords(row=("row", rows))
     flags = flags.isel(row=rows).assign_coords(row=("row", rows))
-    shell = hull.isel(row=rows).assign_coords(row=("row", rows))
+    shell = contours(hull, data["row"], "align_paths").drop_vars("slice")  # the slice each camera row sees
     angle = data["angle"]
     row = data["row"]
     col = xr.DataArray(np.arange(data.sizes["col"]), dims="col")
@@ -168,8 +147,7 @@ def align_paths(absorption: xr.Dataset, hull: xr.Dataset, /, *, min_exit_cos: Fr
     theta, x, total = (fields.isel(field=i, drop=True) for i in range(3))
     reason = fields.isel(field=3, drop=True).astype(np.int8)
     unit = hull.attrs["length_unit"]
-    half_width = (geometry.cols / 2) * (float(geometry.camera_distance) / float(geometry.focal_length_px)
-                                        if geometry.camera_model == "perspective" else float(geometry.pixel_size))
+    half_width = geometry.camera.view_half_width
     meanings = " ".join(f"{k}={v.replace(' ', '_')}" for k, v in REASONS.items())
     out = xr.Dataset(
         {"theta": theta.assign_attrs(units="degree", long_name="normal angle θ of the ray"),

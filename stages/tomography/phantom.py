@@ -28,7 +28,7 @@ from pipeline.registry import stage
 from pipeline.spec import StorePath
 from stages.tomography.acquire import AngleSweep
 from stages.tomography.paths import sinogram_coordinates
-from stages.tomography.sinogram import Bins
+from stages.tomography.sinogram import Bins, bin_index
 
 #: θ_l, the light's angle to the camera axis [degree]
 LightAngle = Annotated[float, pydantic.Field(ge=0, le=180)]
@@ -85,18 +85,19 @@ def scene_radon(scene: Scene, theta_deg: np.ndarray, x: np.ndarray) -> np.ndarra
 
 def observed_mask(scene: Scene, angles_deg: np.ndarray, theta_deg: np.ndarray, x: np.ndarray,
                   min_exit_cos: float = 0.02) -> np.ndarray:
-    """Bins of the (θ, X) grid that the rig sees: entry-to-exit chords of the slice z = 0 over every angle."""
+    """Bins of the (θ, X) grid that the rig sees: entry-to-exit chords of the slice z = 0 over every angle.
+
+    ``theta_deg`` and ``x`` are a sinogram's grid (X evenly over [−x_extent, x_extent]); chords are binned by the
+    rule of :func:`~stages.tomography.sinogram.bin_index`, as ``bin_sinogram`` bins measured rays."""
     flat = scene.model_copy(update={"camera": scene.camera.model_copy(update={"rows": 1,
                                                                                "principal_point": None})})
-    step_theta = 180.0 / len(theta_deg)
-    step_x = (x[-1] - x[0]) / (len(x) - 1)
     seen = np.zeros((len(theta_deg), len(x)), dtype=bool)
+    _, directions = flat.geometry().camera.pixel_rays()
     for angle in angles_deg:
         entry = tomo.entry_point(flat, angle)
         if entry is None:
             continue
         exits = tomo.exit_points(flat, angle)
-        _, directions = flat.geometry().pixel_rays()
         d = to_object(directions, angle)
         d = d / np.linalg.norm(d, axis=1, keepdims=True)
         grazing = np.abs(np.einsum("ij,ij->i", d, exits.normals)) < min_exit_cos
@@ -104,12 +105,8 @@ def observed_mask(scene: Scene, angles_deg: np.ndarray, theta_deg: np.ndarray, x
         p_c = exits.points[ok, :2]
         p_l = np.broadcast_to(entry[0][:2], p_c.shape)
         far = np.linalg.norm(p_c - p_l, axis=1) > 1e-9
-        theta, offset = sinogram_coordinates(p_l[far], p_c[far])
-        shifted = theta + step_theta / 2
-        wrap = shifted >= 180.0
-        i = np.floor(np.where(wrap, shifted - 180.0, shifted) / step_theta).astype(int)
-        j = np.rint((np.where(wrap, -offset, offset) - x[0]) / step_x).astype(int)
-        keep = (j >= 0) & (j < len(x))
+        i, j, keep = bin_index(*sinogram_coordinates(p_l[far], p_c[far]), n_theta=len(theta_deg), n_x=len(x),
+                               extent=float(x[-1]))
         seen[i[keep], j[keep]] = True
     return seen
 

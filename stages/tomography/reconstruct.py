@@ -15,7 +15,6 @@ the area inside the blue line of Fig. 21, where FBP is exact up to discretisatio
 
 from __future__ import annotations
 
-from functools import lru_cache
 from typing import Literal
 
 import dask.array as da
@@ -32,6 +31,7 @@ from stages._common import Dtype, MaxIter, require_variables
 from stages.tomography._admm import TVADMM
 from stages.tomography._filters import ramp_filter
 from stages.tomography._projector import Geometry, backproject
+from stages.tomography.hull import contours
 from stages.tomography.sinogram import observed_share, support_function
 
 
@@ -159,18 +159,7 @@ def _check(sinogram: xr.Dataset, hull: xr.Dataset | None, name: str) -> None:
     if "slice" not in sinogram.dims:
         raise StageError(Problem(f"{name}: the sinogram has no slice dim", fix="bin it with bin_sinogram"))
     if hull is not None:
-        missing = sorted(set(sinogram["slice"].values.tolist()) - set(range(hull.sizes["row"])))
-        if missing:
-            raise StageError(Problem(f"{name}: sinogram slices {missing[:5]} are not rows of the hull "
-                                     f"({hull.sizes['row']} rows)", fix="compute both from the same capture"))
-
-
-def _hull_for(sinogram: xr.Dataset, hull: xr.Dataset | None) -> xr.Dataset | None:
-    if hull is None:
-        return None
-    rows = sinogram["slice"].values
-    return hull[["vertices", "n_vertices"]].isel(row=rows).rename({"row": "slice"}).assign_coords(
-        slice=("slice", rows))
+        contours(hull, sinogram["slice"], name)  # raises naming the sinogram's slices the hull lacks
 
 
 def _output(sinogram: xr.Dataset, geometry: Geometry, variables: dict, attrs: dict) -> xr.Dataset:
@@ -227,8 +216,8 @@ def _blocks(sinogram: xr.Dataset, hull: xr.Dataset | None) -> xr.Dataset:
     if not inputs.chunks:
         inputs = inputs.chunk({"slice": 1})
     inputs = inputs.chunk({"theta": -1, "x": -1, "slice": inputs.chunksizes["slice"]})
-    shell = _hull_for(sinogram, hull)
-    if shell is not None:
+    if hull is not None:
+        shell = contours(hull, sinogram["slice"], "reconstruction")
         inputs = xr.merge([inputs, shell.chunk({"slice": inputs.chunksizes["slice"]})], join="exact",
                           compat="override", combine_attrs="drop_conflicts")
     return inputs.assign_attrs({})
@@ -263,11 +252,6 @@ def fbp(sinogram: xr.Dataset, hull: xr.Dataset | None = None, /, *, n_pixels: Co
                    {"method": "fbp", "filter": filter, "fill": fill})
 
 
-@lru_cache(maxsize=16)
-def _tv_solver(solver: TVADMM, dtype: str):
-    return jax.jit(jax.vmap(solver.solve))
-
-
 def _tv_block(block: xr.Dataset, *, solver: TVADMM, slack: float, bound: str, dtype: str) -> xr.Dataset:
     geometry = solver.geometry
     hull = block if "vertices" in block else None
@@ -281,26 +265,24 @@ def _tv_block(block: xr.Dataset, *, solver: TVADMM, slack: float, bound: str, dt
             masks.append(observed)
             known = observed | known_zero(polygon, geometry)
             reliable.append(reliable_cells(known, geometry) & support)
-        solution = _tv_solver(solver, dtype)(jnp.asarray(np.array(sinograms), dtype), jnp.asarray(np.array(masks)),
-                                             jnp.asarray(np.array(uppers), dtype))
-        solution = jax.tree.map(np.asarray, solution)
-    dims, hist = ("slice", "y", "x"), ("slice", "iteration")
+        solution = solver.solve_slices(jnp.asarray(np.array(sinograms), dtype), jnp.asarray(np.array(masks)),
+                                       jnp.asarray(np.array(uppers), dtype))
+    dims, hist, stats = ("slice", "y", "x"), ("slice", "iteration"), solution.stats
     return xr.Dataset(
         {"sigma": (dims, solution.value.astype(dtype)), "sigma_max": (dims, np.array(uppers, dtype=dtype)),
-         "reliable": (dims, np.array(reliable)), "iterations": ("slice", solution.iterations.astype(np.int64)),
+         "reliable": (dims, np.array(reliable)), "iterations": ("slice", stats["iterations"].astype(np.int64)),
          "converged": ("slice", solution.converged.astype(bool)),
-         "objective": (hist, solution.objective.astype(dtype)),
-         "primal_residual": (hist, solution.primal_residual.astype(dtype)),
-         "dual_residual": (hist, solution.dual_residual.astype(dtype))},
+         **{name: (hist, stats[name].astype(dtype)) for name in ("objective", "primal_residual", "dual_residual")}},
         coords={"slice": block["slice"]})
 
 
 @stage("reconstruct_tv", precheck=_image_precheck)
-def reconstruct_tv(sinogram: xr.Dataset, hull: xr.Dataset | None = None, /, *, tv_weight: NonNegative = 1e-3,
-                   n_pixels: Count | None = None, bound: Literal["physical", "nonnegative"] = "physical",
-                   bound_slack: NonNegative = 0.0, rho: Positive = 0.1, tol: Positive = 1e-3, max_iter: MaxIter = 200,
-                   cg_steps: Count = 3, projector: Literal["joseph", "binary"] = "joseph",
-                   dtype: Dtype = "float32") -> xr.Dataset:
+def reconstruct_tv(sinogram: xr.Dataset, hull: xr.Dataset | None = None, /, *,
+                   tv_weight: NonNegative = TVADMM.DEFAULT_TV_WEIGHT, n_pixels: Count | None = None,
+                   bound: Literal["physical", "nonnegative"] = "physical", bound_slack: NonNegative = 0.0,
+                   rho: Positive = TVADMM.DEFAULT_RHO, tol: Positive = TVADMM.DEFAULT_TOL,
+                   max_iter: MaxIter = TVADMM.DEFAULT_MAX_ITER, cg_steps: Count = TVADMM.DEFAULT_CG_STEPS,
+                   projector: Literal["joseph", "binary"] = "joseph", dtype: Dtype = "float32") -> xr.Dataset:
     """Constrained TV reconstruction of Eq. 20 by ADMM, per slice (lazy; slices of a chunk are batched).
 
     Data fidelity on observed rays only (Eq. 24), box 0 ≤ σ ≤ σ_max (Eq. 25–29; σ = 0 outside the hull)

@@ -10,6 +10,7 @@ import pydantic
 import xarray as xr
 from dask.base import tokenize
 
+from devices.geometry import OrthographicCamera
 from devices.sim.parallel_light import Rod, render
 from pipeline.constraints import Count, Index, NonNegative, Positive, memory_problems
 from pipeline.registry import stage
@@ -139,10 +140,9 @@ def simulate_parallel_capture(
         coords={"angle": ("angle", angle_values, {"units": "degree", "long_name": "stage angle φ"})},
         attrs={
             "selpath_kind": "tomography_capture",
-            "camera_model": "orthographic",
+            **OrthographicCamera(rows=n_rows, cols=n_cols, pixel_size=pixel_size).attrs(),
             "light_angle_deg": 0.0,
             "length_unit": "mm",
-            "pixel_size": pixel_size,
             "saturation_level": saturation_level,
             "simulator": "devices.sim.parallel_light",
         },

@@ -14,28 +14,43 @@ import numpy as np
 import pydantic
 import xarray as xr
 
-from devices.geometry import geometry_attrs
+from devices.geometry import RigGeometry, geometry_attrs
 from pipeline.constraints import Positive, memory_problems
 from pipeline.errors import Problem, StageError
 from pipeline.quality import usable_share
 from pipeline.registry import stage
 from stages._common import require_variables
+from stages.tomography.hull import contours
 
 #: bins of a grid whose step is span / (bins − 1): at least 2
 Bins = Annotated[int, pydantic.Field(ge=2)]
 
 
-def _bin_kernel(theta, x, absorption, *, n_theta: int, n_x: int, extent: float):
-    # (slice block, angle, col) -> (slice block, n_theta, n_x) sums and counts
+def bin_index(theta, x, *, n_theta: int, n_x: int, extent: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The sinogram bin (i, j) of rays (θ [degree] in [0, 180), X), and whether it is on the grid.
+
+    Bin i spans [θ_i − Δθ/2, θ_i + Δθ/2) around θ_i = i·180°/n_theta; the last half-bin wraps to bin 0 with X
+    flipped (the same line). j is the nearest of the n_x points X_j evenly over [−extent, extent]. Rays with
+    a non-finite θ or X are off the grid.
+
+    >>> bin_index(np.array([0.0, 179.9, np.nan]), np.array([0.4, 0.4, 0.0]), n_theta=4, n_x=3, extent=1.0)
+    (array([0, 0, 0]), array([1, 1, 1]), array([ True,  True, False]))
+    """
     step_theta, step_x = 180.0 / n_theta, 2 * extent / (n_x - 1)
-    shifted = theta + step_theta / 2  # bin i spans [θ_i − Δ/2, θ_i + Δ/2); the last half-bin wraps to 0
+    shifted = theta + step_theta / 2
     wrap = shifted >= 180.0
     shifted = np.where(wrap, shifted - 180.0, shifted)
     x = np.where(wrap, -x, x)
-    finite = np.isfinite(theta) & np.isfinite(x) & np.isfinite(absorption)
+    finite = np.isfinite(theta) & np.isfinite(x)
     i = np.floor(np.where(finite, shifted, 0.0) / step_theta).astype(np.int64)
     j = np.rint((np.where(finite, x, 0.0) + extent) / step_x).astype(np.int64)
-    ok = finite & (j >= 0) & (j < n_x)
+    return i, j, finite & (j >= 0) & (j < n_x)
+
+
+def _bin_kernel(theta, x, absorption, *, n_theta: int, n_x: int, extent: float):
+    # (slice block, angle, col) -> (slice block, n_theta, n_x) sums and counts
+    i, j, on_grid = bin_index(theta, x, n_theta=n_theta, n_x=n_x, extent=extent)
+    ok = on_grid & np.isfinite(absorption)
     sums = np.zeros((theta.shape[0], n_theta * n_x))
     counts = np.zeros((theta.shape[0], n_theta * n_x), dtype=np.int64)
     for k in range(theta.shape[0]):
@@ -172,8 +187,7 @@ def coverage(sinogram: xr.Dataset, hull: xr.Dataset, /) -> xr.Dataset:
     require_variables(sinogram, ("observed",), "coverage")
     if "slice" not in sinogram.dims:
         raise StageError(Problem("the sinogram has no slice dim", fix="bin it with bin_sinogram"))
-    rows = sinogram["slice"].values
-    shell = hull.isel(row=rows).rename({"row": "slice"}).assign_coords(slice=("slice", rows))
+    shell = contours(hull, sinogram["slice"], "coverage")
     fields = xr.apply_ufunc(
         _coverage_kernel, sinogram["observed"].chunk({"theta": -1, "x": -1}), shell["vertices"], shell["n_vertices"],
         input_core_dims=[["theta", "x"], ["vertex", "xy"], []], output_core_dims=[["field"]],
@@ -181,12 +195,10 @@ def coverage(sinogram: xr.Dataset, hull: xr.Dataset, /) -> xr.Dataset:
         kwargs={"theta": sinogram["theta"].values, "x": sinogram["x"].values})
     measured, d_min, d_max, radius = (fields.isel(field=i, drop=True) for i in range(4))
     theta_l = float(sinogram.attrs.get("light_angle_deg", hull.attrs.get("light_angle_deg")))
-    perspective = hull.attrs.get("camera_model") == "perspective"
-    distance = float(hull.attrs.get("camera_distance", np.inf))
+    camera = RigGeometry.from_attrs(hull.attrs, where="coverage: hull").camera
 
     def model(r):
-        fov = np.rad2deg(2 * np.arcsin(np.clip(r / distance, 0, 1))) if perspective else None
-        return coverage_model(theta_l, fov)
+        return coverage_model(theta_l, camera.subtended_angle_deg(r))
 
     def bounds(r):
         return np.stack(np.broadcast_arrays(*model(r), r)[:3], axis=-1)
@@ -200,4 +212,4 @@ def coverage(sinogram: xr.Dataset, hull: xr.Dataset, /) -> xr.Dataset:
          "analytic_coverage": analytic.isel(bound=2, drop=True),
          "radius": radius.assign_attrs(units=hull.attrs.get("length_unit", ""), long_name="mean contour radius")},
         attrs={"selpath_kind": "coverage", "light_angle_deg": theta_l,
-               "camera_model": hull.attrs.get("camera_model", "")})
+               "camera_model": camera.model})

@@ -18,6 +18,7 @@ from pipeline.constraints import Count, NonNegative, Positive, memory_problems
 from pipeline.registry import stage
 from pipeline.spec import StorePath
 from stages._common import MaxIter
+from stages.tomography._admm import TVADMM
 from stages.tomography.acquire import AngleSweep
 from stages.tomography.phantom import (
     LightAngle,
@@ -45,7 +46,8 @@ def light_angle_study(*, scene: StorePath,
                       light_angles: Annotated[tuple[LightAngle, ...], pydantic.Field(min_length=1)] = (
                           0.0, 30.0, 60.0, 90.0, 120.0),
                       n_theta: Count = 180, n_x: Bins = 128, noise_std: NonNegative = 0.0,
-                      tv_weight: NonNegative = 1e-4, tol: Positive = 1e-3, max_iter: MaxIter = 200,
+                      tv_weight: NonNegative = TVADMM.DEFAULT_TV_WEIGHT, tol: Positive = TVADMM.DEFAULT_TOL,
+                      max_iter: MaxIter = TVADMM.DEFAULT_MAX_ITER,
                       angles: AngleSweep = AngleSweep()) -> xr.Dataset:  # noqa: B008 (frozen model)
     """FBP and the optimisation versus θ_l, with RMSE and max |error| against the truth (Table 1).
 
@@ -62,7 +64,8 @@ def light_angle_study(*, scene: StorePath,
     noise_std : float
         Gaussian noise on every bin [absorption].
     tv_weight : float
-        λ of Eq. 20.
+        λ of Eq. 20 (``reconstruct_tv``'s default; the shipped tomography-setup workflow sets 1e-4 for the
+        noise-free phantom).
     tol : float
         ADMM stopping tolerance [1].
     max_iter : int

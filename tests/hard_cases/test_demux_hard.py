@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from stages.procam._demux_problem import DemuxProblem
-from stages.procam._demux_solver import solve
+from stages.procam._demux_solver import DemuxADMM
 from stages.procam._illumination import plane_to_ray_illumination
 
 OFFSETS = np.arange(-32, 33)
@@ -24,28 +24,29 @@ def pixels(a, rng, n=64):
 
 
 def check(result, max_iter):
-    assert np.isfinite(result.transport).all() and (result.transport >= 0).all()
-    assert np.isfinite(result.objective).all()
+    assert np.isfinite(result.value).all() and (result.value >= 0).all()
+    assert np.isfinite(result.stats["objective"]).all()
     # honest flags: a pixel flagged converged stopped before the cap; one that hit the cap is not flagged
-    assert np.all(result.iterations[result.converged] <= max_iter)
-    assert not np.any(result.converged & (result.iterations > max_iter))
+    iterations = result.stats["iterations"]
+    assert np.all(iterations[result.converged] <= max_iter)
+    assert not np.any(result.converged & (iterations > max_iter))
 
 
 def test_rank_deficient_sweep_n_below_k():
     a = matrix([-170.0, 0.0, 170.0], [340.0])  # N = 3 frames, K = 65 offsets
     _, data = pixels(a, np.random.default_rng(0))
-    result = solve(DemuxProblem.build(a), data, tol=1e-3, max_iter=500)
+    result = DemuxADMM(tol=1e-3, max_iter=500, polish_iter=20).solve(DemuxProblem.build(a), data)
     check(result, 500)
     assert result.converged.mean() >= 0.95
-    np.testing.assert_allclose(result.transport @ a.T, data, rtol=0, atol=1e-2 * data.max())
+    np.testing.assert_allclose(result.value @ a.T, data, rtol=0, atol=1e-2 * data.max())
 
 
 def test_exposures_much_wider_than_the_delay_step():
     a = matrix(np.arange(-340.0, 341.0, 17.0), [1020.0])  # 60-row boxes stepped by 1 row
     truth, data = pixels(a, np.random.default_rng(1))
-    result = solve(DemuxProblem.build(a), data, tol=1e-3, max_iter=500)
+    result = DemuxADMM(tol=1e-3, max_iter=500, polish_iter=20).solve(DemuxProblem.build(a), data)
     check(result, 500)
-    np.testing.assert_allclose(result.transport.sum(1), truth.sum(1), rtol=0.05)  # total light is determined
+    np.testing.assert_allclose(result.value.sum(1), truth.sum(1), rtol=0.05)  # total light is determined
 
 
 def test_all_zero_and_saturated_pixels():
@@ -55,23 +56,23 @@ def test_all_zero_and_saturated_pixels():
     weight = np.ones_like(data, bool)
     weight[1] = False  # every frame saturated: no information, T = 0 (the prior's minimum), flagged by frames
     weight[2, ::2] = False  # half saturated
-    result = solve(DemuxProblem.build(a), data, weight, tol=1e-3, max_iter=300)
+    result = DemuxADMM(tol=1e-3, max_iter=300, polish_iter=20).solve(DemuxProblem.build(a), data, weight)
     check(result, 300)
-    assert np.all(result.transport[0] == 0) and result.converged[0]
-    assert np.all(result.transport[1] == 0)
+    assert np.all(result.value[0] == 0) and result.converged[0]
+    assert np.all(result.value[1] == 0)
 
 
 def test_nan_frames_are_masked():
     a = matrix(np.arange(-340.0, 341.0, 85.0), [170.0, 510.0])
     _, data = pixels(a, np.random.default_rng(3), n=16)
-    clean = solve(DemuxProblem.build(a), data, tol=1e-4, max_iter=500)
+    clean = DemuxADMM(tol=1e-4, max_iter=500, polish_iter=20).solve(DemuxProblem.build(a), data)
     data[:, 3] = np.nan
     data[5, :] = np.inf  # one pixel with nothing finite
-    result = solve(DemuxProblem.build(a), data, tol=1e-4, max_iter=500)
+    result = DemuxADMM(tol=1e-4, max_iter=500, polish_iter=20).solve(DemuxProblem.build(a), data)
     check(result, 500)
-    assert np.all(result.transport[5] == 0)
+    assert np.all(result.value[5] == 0)
     keep = np.arange(16) != 5
-    np.testing.assert_allclose(result.transport[keep] @ a.T, clean.transport[keep] @ a.T, rtol=0,
+    np.testing.assert_allclose(result.value[keep] @ a.T, clean.value[keep] @ a.T, rtol=0,
                                atol=0.05 * np.nanmax(data[keep]))
 
 
@@ -82,14 +83,15 @@ def test_data_scaled_by_1e_minus_8_and_1e8_in_float32(scale):
     (both stop at tol 1e-4 on an ill-conditioned problem, where flat directions move freely)."""
     a = matrix(np.arange(-340.0, 341.0, 85.0), [170.0, 510.0])
     _, data = pixels(a, np.random.default_rng(4))
-    base = solve(DemuxProblem.build(a, beta=0.01), data, tol=1e-4, max_iter=400)
-    scaled = solve(DemuxProblem.build(a, beta=0.01 * scale), data * scale, tol=1e-4, max_iter=400)
+    solver = DemuxADMM(tol=1e-4, max_iter=400, polish_iter=20)
+    base = solver.solve(DemuxProblem.build(a, beta=0.01), data)
+    scaled = solver.solve(DemuxProblem.build(a, beta=0.01 * scale), data * scale)
     check(scaled, 400)
-    assert scaled.transport.dtype == np.float32
+    assert scaled.value.dtype == np.float32
     problem = DemuxProblem.build(a, beta=0.01)
-    np.testing.assert_allclose(problem.objective(scaled.transport / scale, data),
-                               problem.objective(base.transport, data), rtol=1e-4)
-    np.testing.assert_allclose(scaled.transport / scale, base.transport, rtol=0, atol=2e-2 * base.transport.max())
+    np.testing.assert_allclose(problem.objective(scaled.value / scale, data),
+                               problem.objective(base.value, data), rtol=1e-4)
+    np.testing.assert_allclose(scaled.value / scale, base.value, rtol=0, atol=2e-2 * base.value.max())
     assert (scaled.converged == base.converged).mean() >= 0.95
 
 
@@ -111,14 +113,15 @@ def test_separable_full_transport_with_nan_and_saturated_frames_at_extreme_scale
     data[3] = np.nan  # nothing finite: T = 0
     # tol 1e-2: with no smoothing along du, L_uᵀL_u's null direction is held only by β and T ≥ 0, and at
     # tol 1e-3 neither this nor the dense kron(L_u, L) problem converges in float32 within 2000 iterations
-    base = solve(SeparableDemuxProblem.build(a_u, a_v), data, tol=1e-2, max_iter=2000)
-    scaled = solve(SeparableDemuxProblem.build(a_u, a_v, beta=0.01 * scale), data * scale, tol=1e-2, max_iter=2000)
+    solver = DemuxADMM(tol=1e-2, max_iter=2000, polish_iter=20)
+    base = solver.solve(SeparableDemuxProblem.build(a_u, a_v), data)
+    scaled = solver.solve(SeparableDemuxProblem.build(a_u, a_v, beta=0.01 * scale), data * scale)
     for result in (base, scaled):
         check(result, 2000)
-    assert scaled.transport.dtype == np.float32 and np.all(scaled.transport[3] == 0)
+    assert scaled.value.dtype == np.float32 and np.all(scaled.value[3] == 0)
     assert base.converged.mean() >= 0.9 and scaled.converged.mean() >= 0.9
     problem = SeparableDemuxProblem.build(a_u, a_v)
     clean = np.nan_to_num(data)
     weight = np.isfinite(data)
-    np.testing.assert_allclose(problem.objective(scaled.transport / scale, clean, weight),
-                               problem.objective(base.transport, clean, weight), rtol=1e-3, atol=1e-9)
+    np.testing.assert_allclose(problem.objective(scaled.value / scale, clean, weight),
+                               problem.objective(base.value, clean, weight), rtol=1e-3, atol=1e-9)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import xarray as xr
 
-from pipeline import SpecError, load_workflow, to_store
+from pipeline import FORMAT_VERSION, SpecError, load_workflow, to_store
 
 
 def _load(tmp_path, text):
@@ -156,7 +156,8 @@ def test_input_store_from_a_newer_format_fails_validation(tmp_path):
 
     zarr.open_group(tmp_path / "cap.zarr", mode="r+").attrs["selpath_format"] = 99
     message, _ = _errors(tmp_path, LOAD.format(store="cap.zarr"))
-    assert re.search(r"format 99 is newer than this selpath reads \(format 2\) \(fix: upgrade selpath", message)
+    assert re.search(rf"format 99 is newer than this selpath reads \(format {FORMAT_VERSION}\) \(fix: upgrade selpath",
+                     message)
 
 
 def test_input_store_with_wrong_dims_fails_validation(tmp_path):

@@ -12,7 +12,7 @@ from devices.sim import procam_transport as tr
 from devices.sim.procam_scene import ProcamScene
 from pipeline.errors import StageError
 from stages.procam._demux_problem import DemuxProblem
-from stages.procam._demux_solver import batch_slots
+from stages.procam._demux_solver import DemuxADMM, batch_slots
 from stages.procam._illumination import plane_to_ray_illumination
 from stages.procam.demux import POOL_BATCHES, demux_plane_to_ray, pixels_per_call, solve_pixels
 
@@ -143,17 +143,15 @@ def test_calls_are_whole_batches_of_equal_size_with_little_padding(pixels, offse
 def test_no_pixels_give_empty_results():
     problem = DemuxProblem.build(plane_to_ray_illumination([0.0, 40.0], [170.0, 170.0], np.arange(-4, 5),
                                                            scan_speed=1 / 17, line_time=17.0))
-    transport, iterations, converged, objective = solve_pixels(problem, np.zeros((0, 2)), np.zeros((0, 2), bool),
-                                                               dtype="float32", tol=1e-3)
-    assert transport.shape == (0, 9) and iterations.shape == converged.shape == objective.shape == (0,)
+    solution = solve_pixels(DemuxADMM(tol=1e-3, polish_iter=20), problem, np.zeros((0, 2)), np.zeros((0, 2), bool))
+    transport, iterations, objective = solution.value, solution.stats["iterations"], solution.stats["objective"]
+    assert transport.shape == (0, 9) and iterations.shape == solution.converged.shape == objective.shape == (0,)
 
 
 def test_padding_and_masked_pixels_keep_the_other_calls_on_the_unmasked_path(monkeypatch):
     """A call with any masked observation pays the masked path (twice the products per iteration, and its own
     compile): the padding of the last call is unmasked (a weight of 0 once sent whole calls down that path), and
     scattered masked pixels are solved together in one call, their results put back in place."""
-    import stages.procam.demux as demux_module
-
     problem = DemuxProblem.build(plane_to_ray_illumination(np.repeat([-34.0, 0.0, 34.0], 2), [51.0, 153.0] * 3,
                                                            np.arange(-4, 5), scan_speed=1 / 17, line_time=17.0))
     pixels = batch_slots(problem.offsets) * POOL_BATCHES + 3  # two calls, the second mostly padding
@@ -161,25 +159,26 @@ def test_padding_and_masked_pixels_keep_the_other_calls_on_the_unmasked_path(mon
     data = rng.uniform(0, 1, (pixels, problem.frames))
     weight = np.ones(data.shape, bool)
     weights = []
-    spied = demux_module.solve
+    spied = DemuxADMM.solve
 
-    def spy(problem, data, weight, **options):
+    def spy(self, problem, data, weight):
         weights.append(weight.copy())
-        return spied(problem, data, weight, **options)
+        return spied(self, problem, data, weight)
 
-    monkeypatch.setattr(demux_module, "solve", spy)
-    transport, *_ = solve_pixels(problem, data, weight, dtype="float32", tol=1e-4)
+    monkeypatch.setattr(DemuxADMM, "solve", spy)
+    solver = DemuxADMM(tol=1e-4, polish_iter=20)
+    transport = solve_pixels(solver, problem, data, weight).value
     assert len(weights) == 2 and all(w.all() for w in weights)
     # the same pixels, padded or not: the same optimum to the solver's accuracy (other batch sizes round otherwise)
-    alone, *_ = solve_pixels(problem, data[-3:], weight[-3:], dtype="float32", tol=1e-4)
+    alone = solve_pixels(solver, problem, data[-3:], weight[-3:]).value
     np.testing.assert_allclose(*(problem.objective(t, data[-3:]) for t in (transport[-3:], alone)), rtol=1e-5)
 
     masked = np.array([0, 7, pixels // 2, pixels - 1])
     weight[masked, 1], data[masked[0], 2] = False, np.nan
     weights.clear()
-    transport, *_ = solve_pixels(problem, data, weight, dtype="float32", tol=1e-4)
+    transport = solve_pixels(solver, problem, data, weight).value
     assert [bool(w.all()) for w in weights] == [True, False]
     every = weight & np.isfinite(data)
-    alone, *_ = solve_pixels(problem, data[masked], weight[masked], dtype="float32", tol=1e-4)
+    alone = solve_pixels(solver, problem, data[masked], weight[masked]).value
     np.testing.assert_allclose(problem.objective(transport[masked], data[masked], every[masked]),
                                problem.objective(alone, data[masked], every[masked]), rtol=1e-5)

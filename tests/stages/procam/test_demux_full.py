@@ -14,7 +14,7 @@ from devices.sim import procam_transport as tr
 from devices.sim.procam_scene import ProcamScene
 from pipeline.errors import StageError
 from stages.procam._demux_problem import SeparableDemuxProblem
-from stages.procam._demux_solver import solve
+from stages.procam._demux_solver import DemuxADMM
 from stages.procam._illumination import box_overlap, line_cells, line_illumination, plane_to_ray_illumination
 from stages.procam.demux import OffsetGrid, demux_full
 from stages.procam.figures import profile_2d_figure, relighting_full_figure
@@ -203,7 +203,7 @@ def test_kronecker_solver_matches_cvxpy_on_the_dense_problem():
     truth = rng.random((6, cells.size, offsets.size)) ** 6
     data = np.einsum("ju,puv,nv->pjn", a_u, truth, a_v).reshape(6, -1) + rng.normal(0, 0.005, (6, 30))
     with jax.enable_x64(True):
-        ours = solve(problem, data, tol=1e-9, max_iter=20000, polish_iter=40, dtype=np.float64)
+        ours = DemuxADMM(tol=1e-9, max_iter=20000, polish_iter=40, dtype="float64").solve(problem, data)
     dense = np.kron(a_u, a_v)
     t, y = cp.Variable((cells.size, offsets.size)), cp.Parameter(dense.shape[0])
     qp = cp.Problem(cp.Minimize(cp.sum_squares(dense @ cp.vec(t, order="C") - y) + problem.alpha
@@ -211,7 +211,7 @@ def test_kronecker_solver_matches_cvxpy_on_the_dense_problem():
     for p in range(data.shape[0]):
         y.value = data[p]
         qp.solve(solver=cp.CLARABEL)
-        value = problem.objective(ours.transport[p:p + 1], data[p:p + 1])[0]
+        value = problem.objective(ours.value[p:p + 1], data[p:p + 1])[0]
         assert (value - qp.value) / abs(qp.value) <= 1e-4
         # the objective helper is the dense formula
         assert problem.objective(t.value.reshape(1, -1), data[p:p + 1])[0] == pytest.approx(qp.value, rel=1e-6)

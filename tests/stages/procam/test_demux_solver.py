@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import cvxpy as cp
 import jax
 import numpy as np
@@ -9,8 +11,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from stages._solution import Result, SolverError
 from stages.procam._demux_problem import DemuxProblem
-from stages.procam._demux_solver import MIN_BATCH, solve
+from stages.procam._demux_solver import MIN_BATCH, DemuxADMM
 from stages.procam._illumination import epipolar_boundary, plane_to_ray_illumination
 
 
@@ -63,18 +66,18 @@ def test_objective_and_solution_match_cvxpy(case):
     data = truth @ matrix.T + rng.normal(0, 0.01, (24, matrix.shape[0]))
     problem = DemuxProblem.build(matrix)
     with jax.enable_x64(True):
-        ours = solve(problem, data, tol=1e-9, max_iter=20000, polish_iter=40, dtype=np.float64)
+        ours = DemuxADMM(tol=1e-9, max_iter=20000, polish_iter=40, dtype="float64").solve(problem, data)
     reference, optimum = cvxpy_optimum(problem, data)
-    value = problem.objective(ours.transport, data)
+    value = problem.objective(ours.value, data)
     # objective: within 1e-4 relative of CVXPY's optimum (the issue's bar); below it by no more than
     # Clarabel's own tolerance (1e-8 relative)
     gap = (value - optimum) / np.abs(optimum)
     assert gap.max() <= 1e-4 and gap.min() >= -1e-6, gap
     assert ours.converged.all()
-    assert (ours.transport >= 0).all()
+    assert (ours.value >= 0).all()
     # solution: the problem is strictly convex (α > 0 and A·1 ≠ 0), so the minimiser is unique; the
     # rank-deficient case is ill-conditioned (κ ≈ 1e4), hence 2 % of the solution's norm
-    err = np.linalg.norm(ours.transport - reference, axis=1) / np.linalg.norm(reference, axis=1)
+    err = np.linalg.norm(ours.value - reference, axis=1) / np.linalg.norm(reference, axis=1)
     assert err.max() <= 2e-2, err
 
 
@@ -86,9 +89,9 @@ def test_float32_default_reaches_the_issue_gap_on_a_realistic_sweep():
     truth = sparse_transport(rng, 40, offsets)
     data = rng.poisson(truth @ matrix.T * 1000) / 4095.0
     problem = DemuxProblem.build(matrix)
-    ours = solve(problem, data, tol=1e-2, max_iter=100)
+    ours = DemuxADMM(tol=1e-2, max_iter=100, polish_iter=20).solve(problem, data)
     _, optimum = cvxpy_optimum(problem, data)
-    gap = (problem.objective(ours.transport, data) - optimum) / np.abs(optimum)
+    gap = (problem.objective(ours.value, data) - optimum) / np.abs(optimum)
     assert np.median(gap) <= 1e-4 and gap.max() <= 1e-2, (np.median(gap), gap.max())
 
 
@@ -101,9 +104,9 @@ def test_masked_frames_solve_the_masked_problem():
     data[~weight] = rng.choice([np.nan, np.inf, 1e6], size=(~weight).sum())  # garbage where masked
     problem = DemuxProblem.build(matrix)
     with jax.enable_x64(True):
-        ours = solve(problem, data, weight, tol=1e-9, max_iter=20000, dtype=np.float64)
+        ours = DemuxADMM(tol=1e-9, max_iter=20000, dtype="float64", polish_iter=20).solve(problem, data, weight)
     _, optimum = cvxpy_optimum(problem, np.where(weight, data, 0.0), weight)
-    value = problem.objective(ours.transport, np.where(weight, data, 0.0), weight)
+    value = problem.objective(ours.value, np.where(weight, data, 0.0), weight)
     assert np.all((value - optimum) / np.abs(optimum) <= 1e-4)
 
 
@@ -121,20 +124,37 @@ def test_compacting_or_streaming_the_pixels_changes_no_pixel(slots, max_iter):
     data[100:200] *= rng.uniform(1e-3, 1e3, (100, 1))
     problem = DemuxProblem.build(matrix)
     with jax.enable_x64(True):
-        big = solve(problem, data, tol=1e-5, max_iter=max_iter, slots=slots, dtype=np.float64)
-        small = [solve(problem, data[i:i + MIN_BATCH], tol=1e-5, max_iter=max_iter, dtype=np.float64)
-                 for i in range(0, 400, MIN_BATCH)]
-    iterations = np.concatenate([s.iterations for s in small])
+        solver = DemuxADMM(tol=1e-5, max_iter=max_iter, dtype="float64", polish_iter=20)
+        big = replace(solver, slots=slots).solve(problem, data)
+        small = [solver.solve(problem, data[i:i + MIN_BATCH]) for i in range(0, 400, MIN_BATCH)]
+    iterations = np.concatenate([s.stats["iterations"] for s in small])
     assert len(np.unique(iterations)) >= 5  # the batch did shrink several times
-    np.testing.assert_array_equal(big.iterations, iterations)
+    np.testing.assert_array_equal(big.stats["iterations"], iterations)
     np.testing.assert_array_equal(big.converged, np.concatenate([s.converged for s in small]))
     # objective: where both converged to tol 1e-5 they differ by the extra iterations the early pixels ran before
     # their batch was compacted or refilled (relative 1e-6 here); a capped pixel may run on while it waits
     # (never to a worse objective)
-    value = problem.objective(np.concatenate([s.transport for s in small]), data)
-    ours = problem.objective(big.transport, data)
+    value = problem.objective(np.concatenate([s.value for s in small]), data)
+    ours = problem.objective(big.value, data)
     np.testing.assert_allclose(ours[big.converged], value[big.converged], rtol=1e-5, atol=1e-12)
     assert np.all(ours <= value * (1 + 1e-5) + 1e-12)
+
+
+def test_capped_pixels_are_data_unless_throw():
+    """A pixel that reaches the cap is ``max_steps`` (and its iterations read max_iter); a solver built with
+    ``throw=True`` raises instead, naming the code and how many pixels failed."""
+    delays, exposures, offsets = CASES["well-posed"]
+    matrix = sweep_matrix(delays, exposures, offsets)
+    data = sparse_transport(np.random.default_rng(2), 8, offsets) @ matrix.T
+    problem = DemuxProblem.build(matrix)
+    converged = DemuxADMM(tol=1e-2, max_iter=400, throw=True).solve(problem, data)
+    assert (converged.result == Result.converged).all() and converged.converged.all()
+    solution = DemuxADMM(tol=1e-9, max_iter=5).solve(problem, data)
+    assert solution.result.tolist() == [Result.max_steps] * 8
+    assert not solution.converged.any() and (solution.stats["iterations"] == 5).all()
+    with pytest.raises(SolverError, match=r"DemuxADMM: 8 of 8 pixels did not converge: 8 max_steps \(stopped at the "
+                                          r"iteration cap"):
+        DemuxADMM(tol=1e-9, max_iter=5, throw=True).solve(problem, data)
 
 
 def test_illumination_is_the_time_overlap_of_line_and_exposure():

@@ -9,9 +9,12 @@ from scipy.spatial.distance import directed_hausdorff
 
 from devices.sim import tomography as tomo
 from devices.sim.scene import Scene
+from pipeline import FORMAT_VERSION, StageError, open_store
+from pipeline.integrity import write_manifest
 from stages.tomography.calibrate import absorption
 from stages.tomography.hull import hull_polygons, silhouettes, visual_hull
 from stages.tomography.paths import REASONS, align_paths
+from stages.tomography.reconstruct import fbp, reconstruct_tv
 from stages.tomography.sinogram import bin_sinogram, coverage, coverage_model, optimal_light_angle
 
 R = 10.0
@@ -174,11 +177,44 @@ def test_empty_rows_and_a_missed_beam_give_explicit_masks():
     assert (rays["reason"].isel(row=1) == 3).any()  # the beam along the axis misses an off-axis cylinder
 
 
-def test_stages_stay_lazy(no_compute):
+def lazy_chain() -> tuple[xr.Dataset, xr.Dataset, xr.Dataset, xr.Dataset]:
+    """A small capture and its hull, sinogram and coverage, as graphs (nothing computed)."""
     scene = make_scene({"kind": "cylinder", "radius": f"{R} mm"}, cylinder_camera(None, 64), 60.0)
     with xr.set_options(keep_attrs=True):
         cap = capture(scene, np.arange(0.0, 360.0, 30.0))
     hull = visual_hull(silhouettes(cap))
     sino = bin_sinogram(align_paths(absorption(cap), hull), n_theta=12, n_x=16, x_extent=R)
-    coverage(sino, hull)
+    return cap, hull, sino, coverage(sino, hull)
+
+
+def test_stages_stay_lazy(no_compute):
+    lazy_chain()
     assert no_compute.count == 0
+
+
+@pytest.mark.parametrize("old_format", [1, 2])
+def test_a_hull_of_the_old_layout_opens_and_feeds_every_stage(tmp_path, old_format):
+    """Formats 1–2 indexed the hull by ``row``, without a coordinate: open_store migrates it to ``slice`` (the
+    camera rows as coordinate), and align_paths, coverage, fbp and reconstruct_tv give exactly what they give
+    with a new hull. The old layout handed over in memory is refused, saying how to read it."""
+    camera = {"model": "perspective", "rows": 3, "cols": 128, "distance": "60 mm", "focal_length": "200 px"}
+    scene = make_scene({"kind": "cylinder", "radius": f"{R} mm"}, camera, 60.0)
+    cap = capture(scene, np.arange(0.0, 360.0, 15.0))
+    hull = visual_hull(silhouettes(cap)).compute()
+    old = hull.drop_vars("slice").rename(slice="row").assign_attrs(selpath_format=old_format, selpath_kind="hull")
+    old.to_zarr(tmp_path / "hull.zarr", consolidated=False, write_empty_chunks=True)
+    write_manifest(tmp_path / "hull.zarr", old)
+    opened = open_store(tmp_path / "hull.zarr")
+    xr.testing.assert_identical(opened.load(), hull.assign_attrs(selpath_format=FORMAT_VERSION, selpath_kind="hull"))
+
+    rays = align_paths(absorption(cap), opened)
+    xr.testing.assert_identical(rays.compute(), align_paths(absorption(cap), hull).compute())
+    sino = bin_sinogram(rays, n_theta=24, n_x=32, x_extent=1.02 * R).compute()
+    xr.testing.assert_identical(coverage(sino, opened).compute(), coverage(sino, hull).compute())
+    xr.testing.assert_identical(fbp(sino, opened).compute(), fbp(sino, hull).compute())
+    xr.testing.assert_identical(reconstruct_tv(sino, opened, max_iter=5).compute(),
+                                reconstruct_tv(sino, hull, max_iter=5).compute())
+    for stage in (lambda h: align_paths(absorption(cap), h), lambda h: coverage(sino, h), lambda h: fbp(sino, h)):
+        with pytest.raises(StageError, match=r"the hull has no slice coordinate .*fix: open its store with "
+                                             r"pipeline\.open_store, which migrates"):
+            stage(old)

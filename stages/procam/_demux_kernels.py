@@ -1,0 +1,285 @@
+"""The jitted kernels of :class:`stages.procam._demux_solver.DemuxADMM` (the method is described there).
+
+JAX needs pure functions, so the iteration lives here as functions of few arguments: the problem's
+operators (a :class:`~stages.procam._demux_problem.DenseOperators` or
+:class:`~stages.procam._demux_problem.KroneckerOperators` pytree: its type picks the code path), the stopping
+limits (:class:`Limits`), the per-pixel rows (:class:`Rows`) and the iterates (:class:`State`,
+:class:`Batch`), with the few static settings (``check_every``, ``masked``, batch sizes) as keywords.
+"""
+
+from __future__ import annotations
+
+from functools import partial
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+
+class Limits(NamedTuple):
+    """When a pixel stops: relative residual ``tol`` (solver dtype) and the cap ``max_iter`` (int32)."""
+
+    tol: jnp.ndarray
+    max_iter: jnp.ndarray
+
+
+class Rows(NamedTuple):
+    """Per pixel, on the scaled data: observations y, 0/1 weights, 2Aᵀwy and β/scale (P, 1)."""
+
+    y: jnp.ndarray
+    weight: jnp.ndarray
+    two_aty: jnp.ndarray
+    beta: jnp.ndarray
+
+
+class State(NamedTuple):
+    """Fast ADMM's iterates per pixel: the extrapolated (Ẑ, Û), the last accepted (Z, U), the momentum and the
+    combined residual c of the last accepted step."""
+
+    z_hat: jnp.ndarray
+    u_hat: jnp.ndarray
+    z: jnp.ndarray
+    u: jnp.ndarray
+    momentum: jnp.ndarray
+    residual: jnp.ndarray
+
+
+class Batch(NamedTuple):
+    """A batch of pixels being iterated: their state, iterations to convergence, flags and own ages."""
+
+    state: State
+    iters: jnp.ndarray
+    done: jnp.ndarray
+    age: jnp.ndarray
+
+
+def _sq(x):
+    return jnp.sum(x * x, axis=-1)
+
+
+def _scaled(data, weight, beta):
+    """Per-pixel scale: the objective at (s x; s y, β) is s² times the one at (x; y, β/s)."""
+    scale = jnp.max(jnp.abs(data) * weight, axis=-1, keepdims=True)
+    scale = jnp.where(scale > 0, scale, 1.0)
+    return data / scale, beta / scale, scale
+
+
+def _objective(ops, rows: Rows, t):
+    """Each pixel's objective on the scaled data (float32 arithmetic)."""
+    return _sq((ops.forward(t) - rows.y) * rows.weight) + ops.alpha * ops.smoothness(t) + rows.beta[:, 0] * jnp.sum(
+        t, axis=-1)
+
+
+def _rhs(ops, rows: Rows, z, masked: bool):
+    """2Aᵀỹ; with masked frames by majorisation: masked frames observe the current prediction."""
+    if masked:
+        return 2.0 * ops.adjoint(rows.weight * rows.y + (1 - rows.weight) * ops.forward(z))
+    return rows.two_aty
+
+
+def _in_chunks(fn, rows: int, *arrays):
+    """``fn`` over ``rows``-row chunks of the (P, …) arrays (``lax.map``; the last chunk padded with zero rows).
+
+    On a whole pool (P = 16384, K = 128: 8 MB per array) every elementwise pass streams from memory; on
+    chunks of the batch size the temporaries stay in cache (start and polish ~3× cheaper).
+    """
+    p = arrays[0].shape[0]
+    if p <= rows:
+        return fn(*arrays)
+    count = -(-p // rows)
+    chunks = tuple(jnp.pad(a, [(0, count * rows - p)] + [(0, 0)] * (a.ndim - 1)).reshape(count, rows, *a.shape[1:])
+                   for a in arrays)
+    out = jax.lax.map(lambda xs: fn(*xs), chunks)
+    return jax.tree.map(lambda o: o.reshape(count * rows, *o.shape[2:])[:p], out)
+
+
+@partial(jax.jit, static_argnames=("masked", "chunk"))
+def start(ops, data, weight, *, masked: bool, chunk: int):
+    """(the pool's :class:`Rows`, scale, the warm start). The warm start is the unconstrained minimiser
+    (2G)⁺(2Aᵀỹ − β), clipped (worth ~5× fewer iterations on Fig. 38-like pixels), or, where its objective is
+    over twice as high, the same with β through the ρ-damped (2G + ρI)⁻¹. Along G's weak directions (those
+    only α holds, e.g. a u-cell no line separates from its neighbour in the full transport) (2G)⁺β is huge
+    (1e5 on the Fig. 39 sweep) while Aᵀy has no component there: that start left every pixel unconverged."""
+
+    def rows_of(data, weight):
+        y, b_pixel, scale = _scaled(data, weight, ops.beta)
+        two_aty = 2.0 * ops.adjoint(weight * y)
+        rows = Rows(y, weight, two_aty, b_pixel)
+        least_squares = ops.inverse(_rhs(ops, rows, jnp.zeros_like(two_aty), masked))
+        # β is the same on every offset: M(β 1) = β (M 1), one row for all pixels instead of two products
+        ones = jnp.ones((1, two_aty.shape[1]), two_aty.dtype)
+        exact, damped = (jnp.maximum(least_squares - b_pixel * apply(ones), 0.0) for apply in (ops.inverse, ops.update))
+        objective = partial(_objective, ops, rows)
+        z0 = jnp.where((objective(exact) <= 2.0 * objective(damped))[:, None], exact, damped)
+        return rows, scale, z0
+
+    return _in_chunks(rows_of, chunk, data, weight)
+
+
+def _admm_block(ops, limits: Limits, *, check_every: int, masked: bool):
+    """One block of ``check_every`` ADMM iterations: (rows, batch) → batch.
+
+    Goldstein et al.'s fast ADMM with restart, per pixel: Nesterov momentum on (Z, U) while the combined
+    residual c falls by the factor η, else back to the last iterate without momentum. Only the four (P, K)
+    iterates are carried (the loop is memory-bound between the products); the residuals are formed on the
+    last iteration of each block. ``age`` counts each pixel's own iterations (the pixels of a refilled batch
+    started at different times); a pixel converges at the first check where its residuals meet ``tol``
+    within ``max_iter`` (rounded up to a whole block).
+    """
+    rho, tol = ops.rho, limits.tol
+    eta = jnp.asarray(0.999, tol.dtype)
+
+    def step(rows: Rows, state: State, check=False):
+        z_hat, u_hat, z_old, u_old, momentum, c_old = state
+        x = ops.update(_rhs(ops, rows, z_hat, masked) + rho * (z_hat - u_hat))
+        z = jnp.maximum(x + u_hat - rows.beta / rho, 0.0)
+        u = u_hat + x - z
+        c = _sq(u - u_hat)[:, None] + _sq(z - z_hat)[:, None]
+        ok = c < eta * c_old
+        grown = jnp.where(ok, (1 + jnp.sqrt(1 + 4 * momentum * momentum)) / 2, 1.0)
+        weight_m = jnp.where(ok, (momentum - 1) / grown, 0.0)
+        new = State(jnp.where(ok, z + weight_m * (z - z_old), z_old), jnp.where(ok, u + weight_m * (u - u_old), u_old),
+                    jnp.where(ok, z, z_old), jnp.where(ok, u, u_old), grown, jnp.where(ok, c, c_old / eta))
+        if not check:
+            return new
+        primal = jnp.sqrt(_sq(x - z))
+        dual = rho * jnp.sqrt(_sq(z - z_old))
+        size = jnp.maximum(jnp.sqrt(jnp.maximum(_sq(x), _sq(z))), 1e-6)
+        now = (primal <= tol * size) & (dual <= tol * jnp.maximum(rho * jnp.sqrt(_sq(u)), 1e-6))
+        return new, now
+
+    def block(rows: Rows, batch: Batch) -> Batch:
+        state = jax.lax.fori_loop(0, check_every - 1, lambda _, s: step(rows, s), batch.state)
+        state, now = step(rows, state, check=True)
+        age = batch.age + check_every
+        now = now & (age < limits.max_iter + check_every)
+        iters = jnp.where(batch.done | ~now, batch.iters, age)
+        return Batch(state, iters, batch.done | now, age)
+
+    return block
+
+
+def alive(done, age, max_iter):
+    """The pixels still iterating: not converged and under the cap."""
+    return ~done & (age < max_iter)
+
+
+@partial(jax.jit, static_argnames=("check_every", "masked"), donate_argnames=("batch",))
+def iterate(ops, limits: Limits, rows: Rows, batch: Batch, stop_at, *, check_every: int, masked: bool) -> Batch:
+    """ADMM blocks on one batch until at most ``stop_at`` of its pixels are alive."""
+    block = _admm_block(ops, limits, check_every=check_every, masked=masked)
+
+    def keep_going(batch):
+        return jnp.sum(alive(batch.done, batch.age, limits.max_iter)) > stop_at
+
+    return jax.lax.while_loop(keep_going, lambda batch: block(rows, batch), batch)
+
+
+def _fresh(pool: Rows, z0, index) -> tuple[Rows, State]:
+    """The pool's rows and a first ADMM state (the warm start, no momentum) for the pixels ``index``."""
+    z = z0[index]
+    u = jnp.zeros_like(z)
+    ones = jnp.ones((z.shape[0], 1), z.dtype)
+    return Rows(*(a[index] for a in pool)), State(z, u, z, u, ones, jnp.full_like(ones, jnp.inf))
+
+
+#: the smallest batch the active set is compacted into (below it a call's fixed cost dominates)
+MIN_BATCH = 64
+
+
+#: the factor a batch's tail shrinks by between compactions: each batch size compiles once per process (~0.5 s),
+#: so a factor of 4 (1024 → 256 → 64) halves the compiles of a factor of 2 for a little more tail iteration
+COMPACTION = 4
+
+
+def compact_at(size: int) -> int:
+    """Unconverged pixels at which a batch of ``size`` is compacted (never below MIN_BATCH: run to the end)."""
+    return size // COMPACTION if size > MIN_BATCH else 0
+
+
+@partial(jax.jit, static_argnames=("check_every", "masked", "slots"))
+def stream(ops, limits: Limits, pool: Rows, z0, *, check_every: int, masked: bool, slots: int):
+    """Every pixel of the pool through one batch of ``slots`` rows, refilled as its pixels finish.
+
+    A batch iterated to the end runs as long as its slowest pixel while most converge in a fraction of that
+    (on the benchmark's stack: median 20 iterations, a batch's slowest 40–200). So after each block the
+    finished rows (converged or at the cap) are written out and refilled with the pool's next pixels: each
+    pixel costs about its own iterations and the products stay full-sized. Returns once the pool is
+    exhausted and at most 1/COMPACTION of the batch is alive: (pixel index per row, P for an empty row; the
+    rows; the :class:`Batch`; the queue position; the transport, iterations and flags written out so far).
+    """
+    block = _admm_block(ops, limits, check_every=check_every, masked=masked)
+    p, max_iter = z0.shape[0], limits.max_iter
+
+    def refill(carry):
+        pixel, rows, batch, queue, out = carry
+        free = ~alive(batch.done, batch.age, max_iter)
+        target = jnp.where(free, pixel, p)  # living rows and empty ones (pixel = P) are dropped
+        out = tuple(o.at[target].set(v, mode="drop")
+                    for o, v in zip(out, (batch.state.z, batch.iters, batch.done), strict=True))
+        new = queue + jnp.cumsum(free) - 1
+        take = free & (new < p)
+        pixel = jnp.where(take, new, jnp.where(free, p, pixel))
+        new_rows, new_state = _fresh(pool, z0, jnp.minimum(new, p - 1))
+        rows, state = (jax.tree.map(lambda a, b: jnp.where(take[:, None], b, a), old, fresh)
+                       for old, fresh in ((rows, new_rows), (batch.state, new_state)))
+        batch = Batch(state, jnp.where(take, max_iter, batch.iters), batch.done & ~take, jnp.where(take, 0, batch.age))
+        return pixel, rows, batch, queue + jnp.sum(take), out
+
+    def body(carry):
+        pixel, rows, batch, queue, out = carry
+        batch = block(rows, batch)
+        return jax.lax.cond(queue < p, refill, lambda c: c, (pixel, rows, batch, queue, out))
+
+    def keep_going(carry):
+        pixel, _, batch, queue, _ = carry
+        return (queue < p) | (jnp.sum(alive(batch.done, batch.age, max_iter) & (pixel < p)) > compact_at(slots))
+
+    pixel = jnp.arange(slots)
+    rows, state = _fresh(pool, z0, pixel)
+    out = (jnp.zeros_like(z0), jnp.full((p,), max_iter, jnp.int32), jnp.zeros((p,), bool))
+    batch = Batch(state, jnp.full((slots,), max_iter, jnp.int32), jnp.zeros((slots,), bool),
+                  jnp.zeros((slots,), jnp.int32))
+    return jax.lax.while_loop(keep_going, body, (pixel, rows, batch, jnp.asarray(slots, pixel.dtype), out))
+
+
+@partial(jax.jit, static_argnames=("polish_iter", "masked", "chunk"))
+def finish(ops, pool: Rows, scale, z, *, polish_iter: int, masked: bool, chunk: int):
+    """The polish (conjugate gradients on the free offsets' KKT system, kept where it lowers the objective), then
+    T and its objective back in the data's units."""
+
+    def rows_of(y, weight, two_aty, b_pixel, scale, z):
+        return _finish_rows(ops, Rows(y, weight, two_aty, b_pixel), scale, z, polish_iter=polish_iter, masked=masked)
+
+    return _in_chunks(rows_of, chunk, *pool, scale, z)
+
+
+def _finish_rows(ops, rows: Rows, scale, z, *, polish_iter: int, masked: bool):
+    dtype = rows.y.dtype
+    objective = partial(_objective, ops, rows)
+    if polish_iter:
+        free = (z > 0).astype(dtype)
+        target = free * (0.5 * _rhs(ops, rows, z, masked) - rows.beta / 2)
+
+        def mv(v):
+            return free * ops.gram2(v) / 2
+
+        r0 = target - mv(z)
+
+        def cg(_, s):
+            x, r, d, rs = s
+            ad = mv(d)
+            step_len = rs / jnp.maximum(jnp.sum(d * ad, -1, keepdims=True), jnp.finfo(dtype).tiny)
+            x, r = x + step_len * d, r - step_len * ad
+            rs_new = jnp.sum(r * r, -1, keepdims=True)
+            d = r + rs_new / jnp.maximum(rs, jnp.finfo(dtype).tiny) * d
+            return x, r, d, rs_new
+
+        polished, *_ = jax.lax.fori_loop(0, polish_iter, cg, (z, r0, r0, jnp.sum(r0 * r0, -1, keepdims=True)))
+        polished = jnp.maximum(jnp.where(jnp.all(jnp.isfinite(polished), -1, keepdims=True), polished, z), 0.0)
+        value, before = objective(polished), objective(z)
+        better = value < before
+        z, value = jnp.where(better[:, None], polished, z), jnp.where(better, value, before)
+    else:
+        value = objective(z)
+    return z * scale, value * scale[:, 0] ** 2
