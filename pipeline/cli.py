@@ -1,9 +1,10 @@
-"""The ``selpath`` command line: run, validate, stages, inspect, demo."""
+"""The ``selpath`` command line: run, validate, stages, schema, inspect, workflows, demo."""
 
 from __future__ import annotations
 
 import json
 import os
+import shutil
 import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -15,6 +16,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
+import workflows as shipped
 from pipeline.compute import enable_compile_cache
 from pipeline.constraints import describe
 from pipeline.engine import RunReport, run_workflow
@@ -23,7 +25,7 @@ from pipeline.integrity import verify_store
 from pipeline.locks import store_lock
 from pipeline.provenance import read_provenance
 from pipeline.registry import default_registry
-from pipeline.report import write_html
+from pipeline.report import summary_lines, write_html
 from pipeline.spec import load_workflow
 from pipeline.store import forget_frames, is_complete, missing_frames, open_store
 
@@ -32,11 +34,6 @@ app = typer.Typer(help="selpath: selected light path measurement, from capture t
 console = Console()
 errors = Console(stderr=True)
 
-#: the workflows `selpath demo` runs on the built-in simulated rigs: instrument → (workflow, report name)
-DEMO_WORKFLOWS = {
-    "tomography": (Path(__file__).resolve().parent.parent / "workflows" / "tomography-sim.yaml", "report.html"),
-    "procam": (Path(__file__).resolve().parent.parent / "workflows" / "procam-sim.yaml", "procam-report.html"),
-}
 
 
 def _fail(exc: SelpathError) -> None:
@@ -88,13 +85,57 @@ def run(
     scheduler: Annotated[str | None, typer.Option(help="override the workflow's scheduler")] = None,
     force: Annotated[bool, typer.Option(help="recompute every output even if up to date")] = False,
     progress: Annotated[bool, typer.Option(help="show a progress bar")] = True,
+    report: Annotated[bool, typer.Option(help="write the workflow's HTML report (its `report:` section, else "
+                                         "every figure beside the first output)")] = False,
 ) -> None:
     """Validate and run a workflow; steps whose stored output is up to date are skipped."""
     enable_compile_cache()
     with _guard():
         workflow = load_workflow(file)
-        report = run_workflow(workflow, scheduler=scheduler, progress=progress, reuse=not force, log=console.print)
-    _print_report(report)
+        result = run_workflow(workflow, scheduler=scheduler, progress=progress, reuse=not force, log=console.print)
+    _print_report(result)
+    if report:
+        with _guard():
+            _write_report(workflow, result)
+
+
+def _write_report(workflow, result: RunReport) -> None:
+    summary = summary_lines(workflow)
+    page = write_html(workflow, result, summary=summary)
+    for line in summary:
+        console.print(line)
+    console.print(f"report: {escape(str(page))}")
+
+
+@app.command()
+def schema() -> None:
+    """Print the workflow file's JSON Schema, with every installed stage's settings, for YAML editors
+    (``selpath schema > workflow.schema.json``; see the README)."""
+    from pipeline.workflow_schema import workflow_schema
+
+    print(json.dumps(workflow_schema(), indent=1, ensure_ascii=False))
+
+
+@app.command()
+def workflows(
+    copy: Annotated[Path | None, typer.Option(help="copy every shipped workflow and its scenes into this "
+                                              "folder, to run or edit")] = None,
+) -> None:
+    """List the workflows selpath ships (or copy them, with their scenes, to edit)."""
+    if copy is None:
+        for name in shipped.names():
+            console.print(f"{name}  {escape(str(shipped.path(name)))}")
+        return
+    with _guard():
+        copy.mkdir(parents=True, exist_ok=True)
+        taken = [p.name for p in (*shipped.folder().glob("*.yaml"), shipped.folder() / "scenes") if
+                 (copy / p.name).exists()]
+        if taken:
+            _fail(SelpathError(f"{copy} already holds {', '.join(taken)}; copy into an empty folder"))
+        for name in shipped.names():
+            shutil.copy(shipped.path(name), copy / f"{name}.yaml")
+        shutil.copytree(shipped.folder() / "scenes", copy / "scenes")
+    console.print(f"copied {len(shipped.names())} workflows and their scenes to {escape(str(copy))}")
 
 
 @app.command()
@@ -188,64 +229,27 @@ def _print_bad(bad: list, recapture_store: Path | bool) -> None:
         console.print(f"marked {frames} frame(s) as not captured: run the acquisition again to capture them")
 
 
-def _tomography_summary(workflow) -> list[str]:
-    absorption = open_store(workflow.outputs["absorption"].store)
-    valid = absorption["flags"] == 0
-    summary = [f"absorption: {float(valid.mean()) * 100:.1f}% of pixels valid, "
-               f"max A = {float(absorption['absorption'].where(valid).max()):.4f}"]
-    truth = open_store(workflow.outputs["truth"].store)["sigma"].isel(slice=0)
-    for name in ("fbp", "optimised"):
-        recon = open_store(workflow.outputs[name].store)
-        error = recon["sigma"] - truth
-        line = (f"{name}: RMSE {float((error**2).mean() ** 0.5):.3e}, max |error| {float(abs(error).max()):.3e}"
-                f" over {recon.sizes['slice']} slice(s)")
-        if "iterations" in recon:
-            line += (f"; ADMM iterations {recon['iterations'].values.tolist()}, converged "
-                     f"{recon['converged'].values.tolist()}")
-        summary.append(line)
-    return summary
-
-
-def _procam_summary(workflow) -> list[str]:
-    speed = open_store(workflow.outputs["scan_speed"].store)
-    transport = open_store(workflow.outputs["transport"].store)
-    t = transport["transport"]
-    return [f"scan calibration: v_p = {speed.attrs['scan_speed_px_per_us']:.5f} rows/µs, "
-            f"sync offset {speed.attrs['sync_offset_us']:.1f} µs",
-            f"plane-to-ray transport: {t.sizes['offset']} offsets × {t.sizes['row']} × {t.sizes['col']} pixels, "
-            f"{float(transport['converged'].mean()) * 100:.1f}% converged, mean "
-            f"{float(transport['iterations'].mean()):.0f} iterations, {len(transport.attrs['frames_dropped'])} "
-            f"boundary frames dropped; epipolar share of the light "
-            f"{float(t.sel(offset=0).sum() / t.sum()) * 100:.0f}%"]
-
-
 @app.command()
 def demo(
     out: Annotated[Path, typer.Option(help="folder for the demo's stores")] = Path("selpath-demo"),
-    instrument: Annotated[str, typer.Option(help="tomography, procam or all")] = "all",
+    instrument: Annotated[str, typer.Option(help=f"{', '.join(shipped.DEMO)} or all")] = "all",
     scheduler: Annotated[str | None, typer.Option(help="override the scheduler")] = None,
 ) -> None:
-    """The main jobs on the built-in simulated rigs: the gelatin bin (acquire, process, reconstruct) and the
-    projector–camera rig (calibrate, acquire a delay–exposure stack, demultiplex, draw Fig. 38/40/47).
+    """The main jobs on the built-in simulated rigs: the shipped workflows of ``workflows.DEMO`` (the gelatin
+    bin's tomography and the projector–camera rig's plane-to-ray transport).
 
-    Writes every store and figure under ``--out``, and ``report.html`` / ``procam-report.html`` beside them.
+    Writes every store and figure under ``--out``, and the report each workflow declares beside them.
     """
     enable_compile_cache()
-    names = list(DEMO_WORKFLOWS) if instrument == "all" else [instrument]
-    if any(name not in DEMO_WORKFLOWS for name in names):
-        _fail(SelpathError(f"unknown instrument {instrument!r}: choose tomography, procam or all"))
-    summaries = {"tomography": _tomography_summary, "procam": _procam_summary}
+    names = list(shipped.DEMO) if instrument == "all" else [instrument]
+    if any(name not in shipped.DEMO for name in names):
+        _fail(SelpathError(f"unknown instrument {instrument!r}: choose {', '.join(shipped.DEMO)} or all"))
     with _guard():
         for name in names:
-            path, page_name = DEMO_WORKFLOWS[name]
-            workflow = load_workflow(path).rerooted(out)
-            report = run_workflow(workflow, scheduler=scheduler, log=console.print)
-            _print_report(report)
-            summary = summaries[name](workflow)
-            page = write_html(workflow, report, Path(out) / page_name, summary=summary)
-            for line in summary:
-                console.print(line)
-            console.print(f"report: {escape(str(page))}")
+            workflow = load_workflow(shipped.path(shipped.DEMO[name])).rerooted(out)
+            result = run_workflow(workflow, scheduler=scheduler, log=console.print)
+            _print_report(result)
+            _write_report(workflow, result)
 
 
 def main() -> None:

@@ -1,7 +1,19 @@
-"""An HTML page for a finished workflow run: every figure output (its PNG, embedded) and the steps table.
+"""A workflow's report: an HTML page of its figure outputs, the numbers its ``report:`` section names, and the steps.
 
-Generic on purpose (the engine's floor imports no stage): a figure is any output whose store has a
-``<store>.png`` beside it, which the engine writes for ``figure`` cubes.
+Generic on purpose (the engine's floor imports no stage): a workflow declares its report, and any workflow can
+have one (``selpath run FILE --report``)::
+
+    report:
+      file: out/procam/procam-report.html          # relative to the workflow file, like stores
+      figures: [delay_profiles, relighting]        # outputs whose <store>.png is shown (default: every figure)
+      summary:                                     # lines; {output.name[.reduction]:format} fields are filled
+        - "v_p = {scan_speed.scan_speed_px_per_us:.5f} rows/µs"
+        - "{transport.converged.mean:.1%} converged"
+
+A summary field is ``output.name`` where ``name`` is an attr of the output's store (a number or text), or a data
+variable: a 0-d variable is its value, a larger one needs a reduction after it: ``mean``, ``min``, ``max``,
+``sum`` (NaN skipped), ``list`` (every value) or ``share_zero`` (the share of values equal to 0, e.g. of
+unflagged pixels in a ``flags`` variable). The format after ``:`` is Python's format mini-language.
 """
 
 from __future__ import annotations
@@ -9,19 +21,148 @@ from __future__ import annotations
 import base64
 import html
 import os
+import string
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
-from pipeline.engine import RunReport
+import numpy as np
+import pydantic
+
 from pipeline.errors import Problem, StoreError
-from pipeline.spec import Workflow
+
+if TYPE_CHECKING:
+    from pipeline.engine import RunReport
+    from pipeline.spec import Workflow
+
+REDUCTIONS = ("mean", "min", "max", "sum", "list", "share_zero")
 
 
-def write_html(workflow: Workflow, report: RunReport, path: str | Path, *, summary: list[str] = ()) -> Path:
-    """Write ``path`` (one self-contained file) and return it; a file there that selpath did not write (no
-    generator tag) is refused, never replaced."""
+class ReportSpec(pydantic.BaseModel):
+    """The ``report:`` section of a workflow file."""
+
+    model_config = pydantic.ConfigDict(extra="forbid", strict=True)
+    file: str = pydantic.Field(description="HTML file to write, relative to the workflow file's folder "
+                               "(must end in .html)")
+    figures: list[str] | None = pydantic.Field(None, description="outputs whose figure (<store>.png) the page "
+                                               "shows, in order; default: every output with a figure")
+    summary: list[str] = pydantic.Field(default_factory=list, description="lines of text with "
+                                        "{output.name[.reduction]:format} fields filled from the outputs' stores")
+
+
+def summary_fields(line: str) -> list[tuple[str, str, str | None]]:
+    """The ``(output, name, reduction)`` of every field in a summary line; ValueError names a malformed one."""
+    fields = []
+    for _, field, spec, conversion in string.Formatter().parse(line):
+        if field is None:
+            continue
+        parts = field.split(".")
+        if "{" in (spec or ""):
+            raise ValueError(f"field {{{field}}}: a format may not hold another field")
+        if conversion is not None or len(parts) not in (2, 3) or not all(p.strip() for p in parts) or any(
+                c in field for c in "[]"):
+            raise ValueError(f"field {{{field}}} is not output.name or output.name.reduction")
+        if len(parts) == 3 and parts[2] not in REDUCTIONS:
+            raise ValueError(f"field {{{field}}}: unknown reduction {parts[2]!r}; one of {', '.join(REDUCTIONS)}")
+        fields.append((parts[0], parts[1], parts[2] if len(parts) == 3 else None))
+    return fields
+
+
+def report_problems(report: ReportSpec, outputs: list[str]) -> list[tuple[tuple, str, str]]:
+    """What is wrong with a ``report:`` section, as ``(location, message, fix)``."""
+    problems = []
+    if not report.file.endswith(".html"):
+        problems.append((("report", "file"), f"report file {report.file!r} must end in .html", "name a .html file"))
+    for i, name in enumerate(report.figures or []):
+        if name not in outputs:
+            problems.append((("report", "figures", i), f"figure {name!r} is not an output of this workflow",
+                             f"one of: {', '.join(outputs)}"))
+    for i, line in enumerate(report.summary):
+        try:
+            fields = summary_fields(line)
+        except ValueError as exc:
+            problems.append((("report", "summary", i), str(exc), "write {output.name} or {output.name.mean:.3g}"))
+            continue
+        for output, _, _ in fields:
+            if output not in outputs:
+                problems.append((("report", "summary", i), f"field names {output!r}, not an output of this workflow",
+                                 f"one of: {', '.join(outputs)}"))
+    return problems
+
+
+def _value(store, output: str, name: str, reduction: str | None) -> Any:
+    if name in store.data_vars:
+        values = np.asarray(store[name].values)
+        if reduction is None:
+            if values.ndim:
+                raise StoreError(Problem(f"report: variable {name!r} of output {output!r} has dims "
+                                         f"{store[name].dims}; a summary field needs a reduction",
+                                         fix=f"write {{{output}.{name}.mean}} ({', '.join(REDUCTIONS)})"))
+            return values.item()
+        if reduction == "list":
+            return values.tolist()
+        if reduction == "share_zero":
+            return float((values == 0).mean())
+        with np.errstate(all="ignore"):
+            return float({"mean": np.nanmean, "min": np.nanmin, "max": np.nanmax, "sum": np.nansum}[reduction](
+                values.astype(float)))
+    if name in store.attrs and reduction is None:
+        return store.attrs[name]
+    raise StoreError(Problem(f"report: output {output!r} has no attr or variable {name!r}"
+                             + (" to reduce" if reduction else ""),
+                             fix=f"its variables: {sorted(map(str, store.data_vars))}; attrs: {sorted(store.attrs)}"))
+
+
+def summary_lines(workflow: Workflow) -> list[str]:
+    """The report's summary lines with their fields filled from the written output stores."""
+    from pipeline.store import open_store
+
+    if workflow.report is None:
+        return []
+    stores: dict[str, Any] = {}
+    lines = []
+    for line in workflow.report.summary:
+        values = {}
+        for output, name, reduction in summary_fields(line):
+            if output not in stores:
+                stores[output] = open_store(workflow.outputs[output].store)
+            key = f"{output}.{name}" + (f".{reduction}" if reduction else "")
+            values[key] = _value(stores[output], output, name, reduction)
+        lines.append(_Filled(values).format(line))
+    return lines
+
+
+class _Filled(string.Formatter):
+    """Fills whole dotted field names from a mapping (never attribute access on Python objects)."""
+
+    def __init__(self, values: dict[str, Any]):
+        self.values = values
+
+    def get_field(self, field_name, args, kwargs):
+        return self.values[field_name], field_name
+
+
+def default_report_file(workflow: Workflow) -> Path:
+    """Where a workflow without a ``report:`` section has its report: beside its first output's store."""
+    stores = [o.store for o in workflow.outputs.values() if "://" not in o.store]
+    folder = Path(stores[0]).parent if stores else workflow.base_dir
+    return folder / f"{workflow.name}-report.html"
+
+
+def write_html(workflow: Workflow, report: RunReport, path: str | Path | None = None, *,
+               summary: list[str] | None = None) -> Path:
+    """Write the workflow's report page (one self-contained file) and return its path.
+
+    ``path`` defaults to the ``report:`` section's file, else :func:`default_report_file`; ``summary`` to the
+    section's filled lines. A file there that selpath did not write (no generator tag) is refused, never replaced.
+    """
+    spec = workflow.report
+    target = Path(path) if path is not None else Path(spec.file) if spec is not None else default_report_file(
+        workflow)
+    summary = summary_lines(workflow) if summary is None else summary
+    names = spec.figures if spec is not None and spec.figures is not None else list(workflow.outputs)
     figures = []
-    for name, out in workflow.outputs.items():
-        png = Path(out.store.removesuffix(".zarr") + ".png")
+    for name in names:
+        png = Path(workflow.outputs[name].store.removesuffix(".zarr") + ".png")
         if png.is_file():
             data = base64.b64encode(png.read_bytes()).decode()
             figures.append(f"<figure><img src='data:image/png;base64,{data}' alt='{html.escape(name)}'>"
@@ -34,10 +175,10 @@ def write_html(workflow: Workflow, report: RunReport, path: str | Path, *, summa
 td{{padding:2px 8px;border-bottom:1px solid #ddd;font-size:90%}}</style></head><body>
 <h1>selpath: {html.escape(workflow.name)}</h1><p>{len(report.written)} output(s) written in {report.seconds:.1f} s.</p>
 <ul>{notes}</ul>{''.join(figures)}<h2>Steps</h2><table>{rows}</table></body></html>"""
-    target = Path(path)
     if target.exists() and _GENERATOR not in target.read_text(encoding="utf-8", errors="replace"):
         raise StoreError(Problem("a report would replace this file, which selpath did not write", where=str(target),
-                                 fix="move it away, or give the demo another --out folder"))
+                                 fix="move it away, or name another report file (or --out folder)"))
+    target.parent.mkdir(parents=True, exist_ok=True)
     staging = target.with_name(f".{target.name}.partial")
     staging.write_text(page, encoding="utf-8")
     os.replace(staging, target)

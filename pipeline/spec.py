@@ -24,6 +24,7 @@ from pipeline.constraints import describe
 from pipeline.errors import Problem, SpecError
 from pipeline.outputs import OutputPath, output_problems
 from pipeline.registry import Stage, StageRegistry, default_registry
+from pipeline.report import ReportSpec, report_problems
 from pipeline.schema import KINDS
 from pipeline.yaml_source import Located, format_path, parse_yaml, pydantic_message, read_source
 
@@ -84,6 +85,8 @@ class WorkflowFile(_Strict):
     scheduler: str = pydantic.Field("threads", description="synchronous | threads | processes | tcp://host:port")
     steps: list[StepSpec] = pydantic.Field(min_length=1, description="the stages to run, wired by $id")
     outputs: dict[str, OutputSpec] = pydantic.Field(default_factory=dict, description="results stored as zarr")
+    report: ReportSpec | None = pydantic.Field(None, description="the HTML report `selpath run --report` and "
+                                               "`selpath demo` write: figures and summary numbers")
 
     @pydantic.field_validator("scheduler")
     @classmethod
@@ -116,6 +119,8 @@ class Workflow:
     base_dir: Path
     #: stores that a step's stage fills itself (acquisitions): outputs the engine must not rewrite
     self_written: frozenset[str] = frozenset()
+    #: the ``report:`` section, its file already resolved (None: the workflow declares no report)
+    report: ReportSpec | None = None
 
     def rerooted(self, folder: str | os.PathLike) -> Workflow:
         """The same workflow with every output store (and the stores stages fill) moved into ``folder``."""
@@ -127,7 +132,9 @@ class Workflow:
                       and (value := getattr(step.settings, name)) in moved}
             steps[step_id] = dataclasses.replace(step, settings=step.settings.model_copy(update=update))
         outputs = {n: o.model_copy(update={"store": moved[o.store]}) for n, o in self.outputs.items()}
-        return dataclasses.replace(self, steps=steps, outputs=outputs,
+        report = self.report and self.report.model_copy(
+            update={"file": str((Path(folder) / Path(self.report.file).name).resolve())})
+        return dataclasses.replace(self, steps=steps, outputs=outputs, report=report,
                                    self_written=frozenset(moved[s] for s in self.self_written))
 
 
@@ -150,9 +157,10 @@ def load_workflow(path_or_text: str | os.PathLike, registry: StageRegistry | Non
     outputs = _check_outputs(spec, steps, located, base_dir)
     self_written = _self_written_outputs(steps, outputs, located)
     order = _topological_order(steps, located)
+    report = _check_report(spec.report, outputs, located, base_dir)
     if not located.problems:
         workflow = Workflow(spec.workflow, spec.scheduler, {i: steps[i] for i in order}, outputs, text, source,
-                            base_dir, frozenset(self_written))
+                            base_dir, frozenset(self_written), report)
         for field, message, fix in output_path_problems(workflow):
             located.add(field, message, fix)
     if located.problems:
@@ -334,6 +342,22 @@ def _check_outputs(spec: WorkflowFile, steps: dict[str, Step], located: Located,
         stores[store] = name
         outputs[name] = out.model_copy(update={"store": store})
     return outputs
+
+
+def _check_report(report: ReportSpec | None, outputs: dict[str, OutputSpec], located: Located,
+                  base_dir: Path) -> ReportSpec | None:
+    """The ``report:`` section with its file resolved; its figures and summary fields must name outputs, and its
+    file may not lie inside an output store."""
+    if report is None:
+        return None
+    for field, message, fix in report_problems(report, list(outputs)):
+        located.add(field, message, fix)
+    file = (base_dir / report.file).resolve()
+    for name, out in outputs.items():
+        if "://" not in out.store and (file == Path(out.store) or Path(out.store) in file.parents):
+            located.add(("report", "file"), f"report file {report.file!r} lies in output {name!r}'s store",
+                        "write the report beside the stores, not into one")
+    return report.model_copy(update={"file": str(file)})
 
 
 def _topological_order(steps: dict[str, Step], located: Located) -> list[str]:

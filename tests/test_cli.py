@@ -7,6 +7,7 @@ import re
 import pytest
 from typer.testing import CliRunner
 
+from pipeline import FORMAT_VERSION
 from pipeline.cli import app
 
 runner = CliRunner()
@@ -32,7 +33,8 @@ def test_run_then_inspect(small_workflow):
     store = small_workflow.parent / "out" / "absorption.zarr"
     shown = runner.invoke(app, ["inspect", str(store)])
     assert shown.exit_code == 0, shown.output
-    assert "absorption cube, format 2" in shown.output and '"workflow": "small-absorption"' in shown.output
+    assert f"absorption cube, format {FORMAT_VERSION}" in shown.output
+    assert '"workflow": "small-absorption"' in shown.output
     missing = runner.invoke(app, ["inspect", str(small_workflow.parent / "nothing.zarr")])
     assert missing.exit_code == 2 and "no store at this path" in missing.output
 
@@ -117,3 +119,17 @@ def test_a_report_never_replaces_a_file_selpath_did_not_write(tmp_path, small_wo
     for _ in range(2):  # its own report it replaces
         write_html(load_workflow(small_workflow), RunReport("small"), page)
     assert 'content="selpath"' in page.read_text()
+
+
+def test_shipped_workflows_are_listed_and_copied_with_their_scenes(tmp_path):
+    import workflows
+
+    listed = runner.invoke(app, ["workflows"], env={"COLUMNS": "300"})
+    assert listed.exit_code == 0 and all(name in listed.output for name in workflows.names())
+    copied = runner.invoke(app, ["workflows", "--copy", str(tmp_path / "mine")])
+    assert copied.exit_code == 0, copied.output
+    for name in workflows.names():  # a copy validates where it lies: its scenes came along
+        ok = runner.invoke(app, ["validate", str(tmp_path / "mine" / f"{name}.yaml")])
+        assert ok.exit_code == 0, ok.output
+    again = runner.invoke(app, ["workflows", "--copy", str(tmp_path / "mine")])
+    assert again.exit_code == 2 and "already holds" in again.output

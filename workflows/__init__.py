@@ -10,6 +10,9 @@ from __future__ import annotations
 from importlib.resources import files
 from pathlib import Path
 
+#: what ``selpath demo`` runs: instrument → shipped workflow (each writes the report its ``report:`` names)
+DEMO = {"tomography": "tomography-sim", "procam": "procam-sim"}
+
 
 def folder() -> Path:
     """The folder holding the shipped workflow files (``*.yaml``) and ``scenes/``."""

@@ -1,0 +1,72 @@
+"""A workflow declares its report; `selpath run --report` writes it for any workflow; the summary's numbers are
+read from the written stores (checked against the same numbers computed here with numpy)."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from pipeline import SpecError, load_workflow
+from pipeline.cli import app
+from pipeline.report import summary_fields
+from pipeline.store import open_store
+
+runner = CliRunner()
+
+REPORT = """\
+report:
+  file: out/small-report.html
+  summary:
+    - "valid {absorption.flags.share_zero:.3%}, max A {absorption.absorption.max:.6f}, usable
+      {absorption.usable_fraction:.4f}, min signal {absorption.min_signal}"
+"""
+
+
+def test_declared_report_fills_its_summary_from_the_stores(small_workflow):
+    small_workflow.write_text(small_workflow.read_text() + REPORT)
+    result = runner.invoke(app, ["run", str(small_workflow), "--no-progress", "--report"], env={"COLUMNS": "300"})
+    assert result.exit_code == 0, result.output
+    absorption = open_store(small_workflow.parent / "out" / "absorption.zarr", keep_flags=True)
+    flags, a = absorption["flags"].values, absorption["absorption"].values
+    expected = (f"valid {(flags == 0).mean():.3%}, max A {np.nanmax(a):.6f}, usable "
+                f"{float(absorption['usable_fraction']):.4f}, min signal 1.0")
+    page = (small_workflow.parent / "out" / "small-report.html").read_text()
+    assert expected in result.output.replace("\n", "") and expected in page
+
+
+def test_any_workflow_gets_a_report_beside_its_first_output(small_workflow):
+    result = runner.invoke(app, ["run", str(small_workflow), "--no-progress", "--report"])
+    assert result.exit_code == 0, result.output
+    assert (small_workflow.parent / "out" / "small-absorption-report.html").is_file()
+    assert not (small_workflow.parent / "small-absorption-report.html").exists()
+
+
+@pytest.mark.parametrize(("section", "message"), [
+    ("  file: out/r.txt\n", r"report.file: report file 'out/r.txt' must end in .html"),
+    ("  file: out/absorption.zarr/r.html\n", r"report file .* lies in output 'absorption'"),
+    ("  file: r.html\n  figures: [nope]\n", r"report.figures\[0\]: figure 'nope' is not an output"),
+    ("  file: r.html\n  summary: ['{capture.x.median}']\n", r"unknown reduction 'median'"),
+    ("  file: r.html\n  summary: ['{absorption}']\n", r"is not output.name"),
+    ("  file: r.html\n  summary: ['{nope.x}']\n", r"field names 'nope', not an output"),
+    ("  file: r.html\n  summary: ['{capture.x:{w}}']\n", r"a format may not hold another field"),
+])
+def test_a_bad_report_section_is_refused_before_anything_runs(small_workflow, section, message):
+    small_workflow.write_text(small_workflow.read_text() + "report:\n" + section)
+    with pytest.raises(SpecError, match=message):
+        load_workflow(small_workflow)
+
+
+def test_summary_fields_parse_output_name_and_reduction():
+    assert summary_fields("a {x.y:.2f} b {x.z.mean:.1%} {{literal}}") == [("x", "y", None), ("x", "z", "mean")]
+
+
+def test_a_summary_of_an_array_needs_a_reduction(small_workflow):
+    small_workflow.write_text(small_workflow.read_text() + "report:\n  file: out/r.html\n"
+                              "  summary: ['{absorption.absorption}']\n")
+    result = runner.invoke(app, ["run", str(small_workflow), "--no-progress", "--report"], env={"COLUMNS": "300"})
+    assert result.exit_code == 2
+    assert re.search(r"variable 'absorption' of output 'absorption' has dims .* needs a reduction",
+                     result.output.replace("\n", ""))
