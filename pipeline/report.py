@@ -90,21 +90,21 @@ def report_problems(report: ReportSpec, outputs: list[str]) -> list[tuple[tuple,
 
 
 def _value(store, output: str, name: str, reduction: str | None) -> Any:
+    """One summary field's value; reductions run chunk by chunk on the store's dask arrays (bounded memory)."""
     if name in store.data_vars:
-        values = np.asarray(store[name].values)
+        variable = store[name]
         if reduction is None:
-            if values.ndim:
+            if variable.ndim:
                 raise StoreError(Problem(f"report: variable {name!r} of output {output!r} has dims "
-                                         f"{store[name].dims}; a summary field needs a reduction",
+                                         f"{variable.dims}; a summary field needs a reduction",
                                          fix=f"write {{{output}.{name}.mean}} ({', '.join(REDUCTIONS)})"))
-            return values.item()
+            return variable.values.item()
         if reduction == "list":
-            return values.tolist()
+            return variable.values.tolist()
         if reduction == "share_zero":
-            return float((values == 0).mean())
+            return float((variable == 0).mean())
         with np.errstate(all="ignore"):
-            return float({"mean": np.nanmean, "min": np.nanmin, "max": np.nanmax, "sum": np.nansum}[reduction](
-                values.astype(float)))
+            return float(getattr(variable.astype(float), reduction)(skipna=True))
     if name in store.attrs and reduction is None:
         return store.attrs[name]
     raise StoreError(Problem(f"report: output {output!r} has no attr or variable {name!r}"
