@@ -3,6 +3,7 @@ workflow that runs never writes (or deletes) anything outside its declared outpu
 
 from __future__ import annotations
 
+import copy
 import math
 import os
 from pathlib import Path
@@ -58,8 +59,10 @@ def mutated(draw, texts):
         if not paths:
             break
         path = draw(st.sampled_from(paths))
+        # a copy: the sampled lists and mappings are shared between examples and a later mutation would edit
+        # them (even into a list that holds itself)
         document = _mutate(document, path, draw(st.sampled_from(["delete", "replace", "replace", "duplicate"])),
-                           draw(VALUES))
+                           copy.deepcopy(draw(VALUES)))
     return yaml.safe_dump(document, allow_unicode=True)
 
 
