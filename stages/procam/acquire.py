@@ -114,8 +114,30 @@ def _simulated_rig(scene: StorePath, sensor: SensorSize | None) -> Iterator[Proc
         instruments.close()
 
 
-@stage("acquire_plane_to_ray", precheck=_precheck, identity=_identity, writes=lambda settings: settings.store,
-       variables=lambda settings: ["image"])
+def _acquisition(name: str):
+    """``@stage(name)`` for a projector–camera acquisition: validated against the scene and the controller's
+    limits, identified by the scene file, filling its own store; the settings every acquisition shares (rig,
+    sensor, progress) are documented once, here."""
+
+    def register(func):
+        func.__doc__ = func.__doc__.rstrip() + "\n" + _SHARED_DOCS
+        return stage(name, precheck=_precheck, identity=_identity, writes=lambda settings: settings.store,
+                     variables=lambda settings: ["image"])(func)
+
+    return register
+
+
+_SHARED_DOCS = """    rig : str
+        ``sim``: the transport simulator.
+    sensor : [rows, cols] or None
+        Render at this sensor size instead of the scene rig's (scenes are drawn in fractions of the image); a
+        frame that would not fit in memory is refused.
+    progress : bool
+        Show a progress bar.
+    """
+
+
+@_acquisition("acquire_plane_to_ray")
 def acquire_plane_to_ray(
     *,
     store: StorePath,
@@ -138,20 +160,12 @@ def acquire_plane_to_ray(
         Sync delays t_d {start, stop, step} [µs], stop included (stop ≥ start), at most 100 000 delays.
     exposures : list of float
         Exposures t_e [µs].
-    rig : str
-        ``sim``: the transport simulator.
-    sensor : [rows, cols] or None
-        Render at this sensor size instead of the scene rig's (scenes are drawn in fractions of the image); a
-        frame that would not fit in memory is refused.
-    progress : bool
-        Show a progress bar.
     """
     with _simulated_rig(scene, sensor) as instruments:
         return plane_sweep(instruments, store, delays.values(), exposures, progress=progress, log=_log(progress))
 
 
-@stage("acquire_full_transport", precheck=_precheck, identity=_identity, writes=lambda settings: settings.store,
-       variables=lambda settings: ["image"])
+@_acquisition("acquire_full_transport")
 def acquire_full_transport(
     *,
     store: StorePath,
@@ -180,20 +194,13 @@ def acquire_full_transport(
         Line centres l_p {start, stop, step} [px], stop included (stop ≥ start), at most 100 000 lines.
     line_width : float
         Line width l_w [px].
-    rig : str
-        ``sim``: the transport simulator.
-    sensor : [rows, cols] or None
-        Render at this sensor size instead of the scene rig's.
-    progress : bool
-        Show a progress bar.
     """
     with _simulated_rig(scene, sensor) as instruments:
         return full_sweep(instruments, store, delays.values(), exposures, lines.values(), line_width,
                           progress=progress, log=_log(progress))
 
 
-@stage("acquire_scan_calibration", precheck=_precheck, identity=_identity, writes=lambda settings: settings.store,
-       variables=lambda settings: ["image"])
+@_acquisition("acquire_scan_calibration")
 def acquire_scan_calibration(
     *,
     store: StorePath,
@@ -218,12 +225,6 @@ def acquire_scan_calibration(
         inside the sensor.
     exposures : list of float
         Exposures [µs]; each must exceed t_p plus one row period for a fully lit row.
-    rig : str
-        ``sim``: the transport simulator.
-    sensor : [rows, cols] or None
-        Render at this sensor size instead of the scene rig's.
-    progress : bool
-        Show a progress bar.
     """
     with _simulated_rig(scene, sensor) as instruments:
         if not hasattr(instruments.camera, "set_shutter"):
