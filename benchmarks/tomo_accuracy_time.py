@@ -27,6 +27,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+import workflows
 from devices.sim.scene import load_scene
 from stages.tomography._admm import TVADMM
 from stages.tomography._projector import Geometry, operator_norm
@@ -34,7 +35,7 @@ from stages.tomography.phantom import observed_mask, scene_radon, truth_raster
 from stages.tomography.reconstruct import fbp_slice, known_zero, support_mask, upper_bound
 
 ROOT = Path(__file__).resolve().parent
-SCENE = ROOT.parent / "workflows" / "scenes" / "phantom-cylinder.yaml"
+SCENE = workflows.scene("phantom-cylinder")
 N, N_THETA, NOISE = 256, 360, 0.002
 
 

@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import argparse
 import time
-from pathlib import Path
 
+import workflows
 from devices.sim.scene import Scene, load_scene
 from devices.sim.tomography import lit_frame
 
-SCENE = Path(__file__).resolve().parents[1] / "workflows" / "scenes" / "cylinder-in-cylinder-s1.yaml"
+SCENE = workflows.scene("cylinder-in-cylinder-s1")
 
 
 def timed(scene: Scene, repeats: int) -> float:

@@ -90,6 +90,10 @@ def run(
 ) -> None:
     """Validate and run a workflow; steps whose stored output is up to date are skipped."""
     enable_compile_cache()
+    if not file.exists() and file.suffix == "" and file.name in shipped.names():
+        _fail(SelpathError(f"{file} is a shipped workflow, not a file here: copy it to run it where its stores "
+                           f"should land (`selpath workflows --copy DIR`, then `selpath run DIR/{file.name}.yaml`), "
+                           "or run the demo (`selpath demo`)"))
     with _guard():
         workflow = load_workflow(file)
         result = run_workflow(workflow, scheduler=scheduler, progress=progress, reuse=not force, log=console.print)
@@ -125,8 +129,11 @@ def workflows(
     if copy is None:
         for name in shipped.names():
             console.print(f"{name}  {escape(str(shipped.path(name)))}")
+        console.print("(read-only where selpath is installed: `selpath workflows --copy DIR` to run or edit them)")
         return
     with _guard():
+        if copy.exists() and not copy.is_dir():
+            _fail(SelpathError(f"{copy} is a file; --copy needs a folder (absent or empty of the shipped files)"))
         copy.mkdir(parents=True, exist_ok=True)
         taken = [p.name for p in (*shipped.folder().glob("*.yaml"), shipped.folder() / "scenes") if
                  (copy / p.name).exists()]

@@ -10,10 +10,12 @@ have one (``selpath run FILE --report``)::
         - "v_p = {scan_speed.scan_speed_px_per_us:.5f} rows/µs"
         - "{transport.converged.mean:.1%} converged"
 
-A summary field is ``output.name`` where ``name`` is an attr of the output's store (a number or text), or a data
-variable: a 0-d variable is its value, a larger one needs a reduction after it: ``mean``, ``min``, ``max``,
-``sum`` (NaN skipped), ``list`` (every value) or ``share_zero`` (the share of values equal to 0, e.g. of
-unflagged pixels in a ``flags`` variable). The format after ``:`` is Python's format mini-language.
+A summary field is ``output.name`` where ``name`` is an attr of the output's store (a number, text or list), or a
+data variable: a 0-d variable is its value, a larger one needs a reduction after it: ``mean``, ``min``, ``max``,
+``sum`` (NaN skipped; computed chunk by chunk), ``share_zero`` (the share of values equal to 0, e.g. of
+unflagged pixels in a ``flags`` variable), ``shape`` (the sizes of its dims), ``size`` (how many values) or
+``list`` (every value, for at most :data:`LIST_LIMIT` of them). An attr takes ``size`` (a list attr's length)
+or no reduction. The format after ``:`` is Python's format mini-language.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from __future__ import annotations
 import base64
 import html
 import os
+import re
 import string
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -34,7 +37,9 @@ if TYPE_CHECKING:
     from pipeline.engine import RunReport
     from pipeline.spec import Workflow
 
-REDUCTIONS = ("mean", "min", "max", "sum", "list", "share_zero")
+REDUCTIONS = ("mean", "min", "max", "sum", "share_zero", "shape", "size", "list")
+#: the most values a ``list`` reduction prints (the line goes into the terminal and the page)
+LIST_LIMIT = 1000
 
 
 class ReportSpec(pydantic.BaseModel):
@@ -99,16 +104,29 @@ def _value(store, output: str, name: str, reduction: str | None) -> Any:
                                          f"{variable.dims}; a summary field needs a reduction",
                                          fix=f"write {{{output}.{name}.mean}} ({', '.join(REDUCTIONS)})"))
             return variable.values.item()
+        if reduction == "shape":
+            return tuple(variable.shape)
+        if reduction == "size":
+            return int(variable.size)
         if reduction == "list":
+            if variable.size > LIST_LIMIT:
+                raise StoreError(Problem(f"report: {{{output}.{name}.list}} would print {variable.size:,} values "
+                                         f"(at most {LIST_LIMIT})", fix="reduce it (mean, min, max, sum, shape)"))
             return variable.values.tolist()
         if reduction == "share_zero":
             return float((variable == 0).mean())
         with np.errstate(all="ignore"):
             return float(getattr(variable.astype(float), reduction)(skipna=True))
-    if name in store.attrs and reduction is None:
-        return store.attrs[name]
-    raise StoreError(Problem(f"report: output {output!r} has no attr or variable {name!r}"
-                             + (" to reduce" if reduction else ""),
+    if name in store.attrs:
+        value = store.attrs[name]
+        if reduction is None:
+            return value
+        if reduction == "size" and isinstance(value, list | tuple):
+            return len(value)
+        raise StoreError(Problem(f"report: {{{output}.{name}.{reduction}}}: {name!r} is an attr "
+                                 f"({type(value).__name__}); an attr takes no reduction but size (of a list)",
+                                 fix=f"write {{{output}.{name}}}"))
+    raise StoreError(Problem(f"report: output {output!r} has no attr or variable {name!r}",
                              fix=f"its variables: {sorted(map(str, store.data_vars))}; attrs: {sorted(store.attrs)}"))
 
 
@@ -120,14 +138,20 @@ def summary_lines(workflow: Workflow) -> list[str]:
         return []
     stores: dict[str, Any] = {}
     lines = []
-    for line in workflow.report.summary:
+    for number, line in enumerate(workflow.report.summary):
         values = {}
         for output, name, reduction in summary_fields(line):
             if output not in stores:
                 stores[output] = open_store(workflow.outputs[output].store)
             key = f"{output}.{name}" + (f".{reduction}" if reduction else "")
             values[key] = _value(stores[output], output, name, reduction)
-        lines.append(_Filled(values).format(line))
+        try:
+            lines.append(_Filled(values).format(line))
+        except (ValueError, TypeError) as exc:
+            shown = ", ".join(f"{k} = {v!r:.60} ({type(v).__name__})" for k, v in values.items())
+            raise StoreError(Problem(f"report: summary line {number} cannot be formatted ({exc}); its fields: {shown}",
+                                     where=workflow.source, path=f"report.summary[{number}]",
+                                     fix="give each field a format its value takes (e.g. :.3g for a number)")) from None
     return lines
 
 
@@ -145,7 +169,8 @@ def default_report_file(workflow: Workflow) -> Path:
     """Where a workflow without a ``report:`` section has its report: beside its first output's store."""
     stores = [o.store for o in workflow.outputs.values() if "://" not in o.store]
     folder = Path(stores[0]).parent if stores else workflow.base_dir
-    return folder / f"{workflow.name}-report.html"
+    name = re.sub(r"[^A-Za-z0-9_.-]+", "-", workflow.name).strip(".-") or "workflow"
+    return folder / f"{name}-report.html"
 
 
 def write_html(workflow: Workflow, report: RunReport, path: str | Path | None = None, *,

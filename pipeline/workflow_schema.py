@@ -42,8 +42,12 @@ def workflow_schema(registry: StageRegistry | None = None) -> dict[str, Any]:
                        "description": s.summary}
         if required:
             with_schema["required"] = required
+        then = {"properties": {"with": with_schema}}
+        if required:
+            then["required"] = ["with"]
         step["allOf"].append({"if": {"properties": {"stage": {"const": s.name}}, "required": ["stage"]},
-                              "then": {"properties": {"with": with_schema}}})
+                              "then": then})
+    defs["ReportSpec"]["properties"]["file"]["pattern"] = r"\.html$"
     root["$defs"] = defs
     root["$schema"] = "https://json-schema.org/draft/2020-12/schema"
     root["title"] = "selpath workflow"

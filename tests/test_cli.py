@@ -133,3 +133,13 @@ def test_shipped_workflows_are_listed_and_copied_with_their_scenes(tmp_path):
         assert ok.exit_code == 0, ok.output
     again = runner.invoke(app, ["workflows", "--copy", str(tmp_path / "mine")])
     assert again.exit_code == 2 and "already holds" in again.output
+
+
+def test_a_shipped_name_is_not_run_in_place_and_copy_needs_a_folder(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    named = runner.invoke(app, ["run", "tomography-sim"])
+    assert named.exit_code == 2 and "selpath workflows --copy DIR" in named.output.replace("\n", " ")
+    (tmp_path / "file").write_text("mine")
+    onto = runner.invoke(app, ["workflows", "--copy", str(tmp_path / "file")])
+    assert onto.exit_code == 2 and "is a file" in onto.output
+    assert (tmp_path / "file").read_text() == "mine"

@@ -1,8 +1,8 @@
 """The workflows (and the scenes they simulate) that selpath ships, as package data.
 
-Run one by name (``selpath run tomography-sim``), or copy its file and edit it: relative paths in a workflow
-resolve against the workflow file's folder, so a copied workflow keeps finding ``scenes/`` beside it only if
-the scenes are copied too (``selpath workflows --copy DIR`` copies both).
+Copy them to run or edit (``selpath workflows --copy DIR`` copies the workflows and their ``scenes/``: relative
+paths in a workflow resolve against the workflow file's folder, and that is where its stores land); ``selpath
+demo`` runs :data:`DEMO` into a folder of its own.
 """
 
 from __future__ import annotations

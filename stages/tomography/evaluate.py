@@ -6,6 +6,7 @@ reductions).
 
 from __future__ import annotations
 
+import numpy as np
 import xarray as xr
 
 from pipeline.errors import Problem, StageError
@@ -26,13 +27,20 @@ def reconstruction_error(reconstruction: xr.Dataset, truth: xr.Dataset, /) -> xr
     if "slice" in expected.dims and expected.sizes["slice"] == 1:
         expected = expected.isel(slice=0, drop=True)
     for dim in ("y", "x"):
-        if reconstruction.sizes.get(dim) != expected.sizes.get(dim):
-            raise StageError(Problem(f"reconstruction_error: the reconstruction has {dim} size "
-                                     f"{reconstruction.sizes.get(dim)}, the truth {expected.sizes.get(dim)}",
+        ours, theirs = reconstruction["sigma"][dim].values, expected[dim].values
+        if ours.shape != theirs.shape or not np.allclose(ours, theirs, rtol=1e-6, atol=1e-9 * np.ptp(ours)):
+            raise StageError(Problem(f"reconstruction_error: the reconstruction's {dim} grid ({ours.size} cells, "
+                                     f"{_span(ours)}) is not the truth's ({theirs.size} cells, {_span(theirs)})",
                                      where=dim, fix="rasterise the truth on the reconstruction's grid "
                                      "(phantom_truth with the reconstruction's sinogram and n_pixels)"))
-    error = reconstruction["sigma"] - expected.drop_vars(["y", "x"], errors="ignore").assign_coords(
-        y=reconstruction["y"], x=reconstruction["x"])
+    if "slice" in expected.dims:
+        missing = sorted(set(reconstruction["sigma"]["slice"].values.tolist())
+                         - set(expected["slice"].values.tolist()))
+        if missing:
+            raise StageError(Problem(f"reconstruction_error: the truth has no slice {missing[:5]}", where="slice",
+                                     fix="give a truth of one slice or of every reconstructed slice"))
+        expected = expected.sel(slice=reconstruction["sigma"]["slice"])
+    error = reconstruction["sigma"] - expected.assign_coords(y=reconstruction["y"], x=reconstruction["x"])
     slices = reconstruction.sizes.get("slice", 1)
     unit = reconstruction["sigma"].attrs.get("units", "")
     return xr.Dataset(
@@ -40,3 +48,7 @@ def reconstruction_error(reconstruction: xr.Dataset, truth: xr.Dataset, /) -> xr
          "max_abs_error": ((), abs(error).max().data, {"units": unit})},
         attrs={"selpath_kind": "reconstruction_error", "slices": int(slices),
                "method": reconstruction.attrs.get("method", "")})
+
+
+def _span(values: np.ndarray) -> str:
+    return f"{values.min():.4g} … {values.max():.4g}" if values.size else "empty"

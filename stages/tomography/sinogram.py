@@ -194,8 +194,10 @@ def coverage(sinogram: xr.Dataset, hull: xr.Dataset, /) -> xr.Dataset:
         dask="parallelized", output_dtypes=[np.float64], dask_gufunc_kwargs={"output_sizes": {"field": 4}},
         kwargs={"theta": sinogram["theta"].values, "x": sinogram["x"].values})
     measured, d_min, d_max, radius = (fields.isel(field=i, drop=True) for i in range(4))
-    theta_l = float(sinogram.attrs.get("light_angle_deg", hull.attrs.get("light_angle_deg")))
-    camera = RigGeometry.from_attrs(hull.attrs, where="coverage: hull").camera
+    # the camera from the hull; the light angle and length unit from the sinogram where the hull lacks them
+    carried = {k: sinogram.attrs[k] for k in ("light_angle_deg", "length_unit") if k in sinogram.attrs}
+    geometry = RigGeometry.from_attrs(hull.attrs | carried, where="coverage: hull and sinogram")
+    theta_l, camera = float(geometry.light_angle_deg), geometry.camera
 
     def model(r):
         return coverage_model(theta_l, camera.subtended_angle_deg(r))

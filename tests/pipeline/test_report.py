@@ -70,3 +70,32 @@ def test_a_summary_of_an_array_needs_a_reduction(small_workflow):
     assert result.exit_code == 2
     assert re.search(r"variable 'absorption' of output 'absorption' has dims .* needs a reduction",
                      result.output.replace("\n", ""))
+
+
+@pytest.mark.parametrize(("line", "message"), [
+    ("{absorption.min_signal:d}", r"summary line 0 cannot be formatted .*absorption.min_signal = 1.0 \(float\)"),
+    ("{absorption.absorption.list}", r"would print [\d,]+ values \(at most 1000\)"),
+    ("{absorption.min_signal.mean}", r"'min_signal' is an attr \(float\); an attr takes no reduction but size"),
+    ("{absorption.nope}", r"output 'absorption' has no attr or variable 'nope'"),
+])
+def test_a_summary_that_cannot_be_filled_names_the_line_and_field(small_workflow, line, message):
+    small_workflow.write_text(small_workflow.read_text() + f"report:\n  file: out/r.html\n  summary: ['{line}']\n")
+    result = runner.invoke(app, ["run", str(small_workflow), "--no-progress", "--report"], env={"COLUMNS": "400"})
+    assert result.exit_code == 2, result.output
+    assert re.search(message, result.output.replace("\n", "")), result.output
+
+
+def test_shape_and_size_reductions(small_workflow):
+    small_workflow.write_text(small_workflow.read_text() + "report:\n  file: out/r.html\n  summary: "
+                              "['{absorption.absorption.shape} {absorption.flags.size} {capture.target.size}']\n")
+    result = runner.invoke(app, ["run", str(small_workflow), "--no-progress", "--report"], env={"COLUMNS": "300"})
+    assert result.exit_code == 0, result.output
+    assert "(8, 3, 48) 1152 1152" in result.output  # 8 angles (0…35 every 5°) × 3 rows × 48 columns
+
+
+def test_a_default_report_name_never_leaves_the_outputs_folder(small_workflow):
+    small_workflow.write_text(small_workflow.read_text().replace("workflow: small-absorption",
+                                                                 "workflow: ../../up/there"))
+    result = runner.invoke(app, ["run", str(small_workflow), "--no-progress", "--report"])
+    assert result.exit_code == 0, result.output
+    assert (small_workflow.parent / "out" / "up-there-report.html").is_file()

@@ -36,6 +36,8 @@ def test_every_shipped_workflow_conforms(validator, name):
                                                                           "min_signal_relative"]),
     (lambda wf: wf["steps"][1]["with"].update(capture="capture"), ["steps", 1, "with", "capture"]),
     (lambda wf: wf.update(scheduler=3), ["scheduler"]),
+    (lambda wf: wf["steps"][1].pop("with"), ["steps", 1]),
+    (lambda wf: wf.update(report={"file": "r.txt"}), ["report", "file"]),
 ])
 def test_a_wrong_step_is_caught_where_validate_catches_it(validator, workflow_text, edit, where):
     workflow = yaml.safe_load(workflow_text)

@@ -218,3 +218,12 @@ def test_a_hull_of_the_old_layout_opens_and_feeds_every_stage(tmp_path, old_form
         with pytest.raises(StageError, match=r"the hull has no slice coordinate .*fix: open its store with "
                                              r"pipeline\.open_store, which migrates"):
             stage(old)
+
+
+def test_coverage_takes_the_light_angle_from_the_sinogram_when_the_hull_lacks_it():
+    """As before the geometry refactor: a hull without light_angle_deg (valid for its kind) is enough."""
+    _, hull, sino, cover = lazy_chain()
+    bare = hull.assign_attrs({k: v for k, v in hull.attrs.items() if k != "light_angle_deg"})
+    bare.attrs.pop("light_angle_deg", None)
+    assert "light_angle_deg" not in bare.attrs and "light_angle_deg" in sino.attrs
+    xr.testing.assert_identical(coverage(sino, bare).compute(), cover.compute())
