@@ -21,7 +21,7 @@ from devices.manual import ManualLight, ManualSampleChanger
 from devices.opencv_camera import OpenCVCamera
 from devices.serial_stage import SerialRotaryStage
 from devices.tomography_acquire import TomographyRig
-from pipeline.schema import camera_attr_problems
+from pipeline.schema import CAMERA_ATTRS, camera_attr_problems
 from pipeline.yaml_source import load_yaml_model
 
 
@@ -67,7 +67,13 @@ class GeometryConfig(_Model):
 
     @pydantic.model_validator(mode="after")
     def _complete(self):
-        problems = camera_attr_problems(self.model_dump(exclude_none=True), sensor_defaults=True)
+        given = self.model_dump(exclude_none=True)
+        problems = camera_attr_problems(given, sensor_defaults=True)
+        own = set(CAMERA_ATTRS[self.camera_model])
+        foreign = {a for model, names in CAMERA_ATTRS.items() if model != self.camera_model for a in names}
+        article = "an" if self.camera_model[0] in "aeiou" else "a"
+        problems += [f"{a} is not a setting of {article} {self.camera_model} camera (it would be ignored)"
+                     for a in sorted(foreign - own - {"light_distance"}) if a in given]
         if problems:
             raise ValueError("; ".join(problems))
         return self

@@ -47,6 +47,18 @@ def test_the_hardware_config_takes_exactly_the_geometry_attrs():
                    camera_distance=400, light_distance=300)  # the principal point defaults to the sensor's centre
 
 
+def test_the_hardware_config_refuses_the_other_camera_models_settings():
+    """They used to be written into the capture's attrs and now would be ignored: a config mistake, said so."""
+    with pytest.raises(ValueError, match="focal_length_px is not a setting of an orthographic camera"):
+        GeometryConfig(camera_model="orthographic", light_angle_deg=0, length_unit="mm", pixel_size=0.1,
+                       focal_length_px=2400)
+    with pytest.raises(ValueError, match="pixel_size is not a setting of a perspective camera"):
+        GeometryConfig(camera_model="perspective", light_angle_deg=45, length_unit="mm", focal_length_px=2400,
+                       camera_distance=400, light_distance=300, pixel_size=0.1)
+    GeometryConfig(camera_model="orthographic", light_angle_deg=0, length_unit="mm", pixel_size=0.1,
+                   light_distance=300)  # the light's distance is the light's, for either camera
+
+
 @pytest.mark.parametrize("model", CAMERA_CASES)
 def test_attrs_round_trip(model):
     geometry = rig(CAMERA_CASES[model])
