@@ -52,9 +52,12 @@ def units_of(ds: xr.Dataset) -> dict[str, str | None]:
 
 def write_manifest(path: str | os.PathLike, ds: xr.Dataset, *, complete: bool = True) -> None:
     """Record that ``path`` holds ``ds`` completely (or, for captures filled frame by frame, that its frame
-    flags say what is complete), with the units of every coordinate and variable."""
+    flags say what is complete), with the units of every coordinate and variable as the store holds them
+    (its kind's metadata applied when it was written: read back, not taken from ``ds``)."""
     group = zarr.open_group(os.fspath(path), mode="r+")
-    group.require_group(PROVENANCE_GROUP).attrs[MANIFEST] = {"complete": complete, "units": units_of(ds)}
+    stored = {name: array.attrs.get("units") for name, array in group.arrays()}
+    units = {name: stored.get(name, units) for name, units in units_of(ds).items()}
+    group.require_group(PROVENANCE_GROUP).attrs[MANIFEST] = {"complete": complete, "units": units}
 
 
 def read_manifest(path: str | os.PathLike) -> dict[str, Any] | None:

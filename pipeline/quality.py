@@ -32,7 +32,7 @@ def usable_share(share: xr.DataArray | float, *, floor: float, what: str, fix: s
     ``floor``: ``what`` names the input in words ("lit reference pixels whose target is usable"), ``fix``
     the setting to change or the data to look at."""
     share = share if isinstance(share, xr.DataArray) else xr.DataArray(float(share))
-    return share.astype(np.float64).assign_attrs({
+    return share.astype(np.float64).drop_attrs(deep=False).assign_attrs({
         "long_name": f"share of {what}", "units": "1", FLOOR: float(floor), WHAT: what, FIX: fix})
 
 

@@ -16,29 +16,15 @@ import xarray as xr
 from pipeline.errors import Problem
 
 #: Schema version written into every store as ``selpath_format``. Bump it (and add a migration in
-#: :data:`MIGRATIONS`) whenever a kind's dims, units or required attrs change.
+#: :data:`pipeline.migrations.MIGRATIONS`) whenever a kind's dims, units or required attrs change.
 #: Format 2 (2026-11): every chunk carries a crc32c checksum and is written even when it holds only the fill
 #: value, and a manifest in ``_selpath`` records completion and units. Its cubes are those of format 1.
 #: Format 3 (2026-12): the hull is indexed by ``slice`` (a coordinate: the camera row), as sinograms and
 #: reconstructions are; formats 1–2 named that dim ``row``, without a coordinate.
-FORMAT_VERSION = 3
+#: Format 4 (2026-12): every variable a kind declares has the ``units`` and ``long_name`` the kind fixes
+#: (:class:`Variable`), written by :func:`with_metadata` and checked on open.
+FORMAT_VERSION = 4
 
-
-def _from_format_1(ds: xr.Dataset) -> xr.Dataset:
-    """Format 1 → 2: the cubes are unchanged (only how chunks are encoded differs, which zarr reads per array)."""
-    return ds
-
-
-def _from_format_2(ds: xr.Dataset) -> xr.Dataset:
-    """Format 2 → 3: a hull's dim ``row`` becomes ``slice``, with the camera rows as its coordinate."""
-    if ds.attrs.get("selpath_kind") != "hull" or "row" not in ds.dims or "slice" in ds.dims:
-        return ds
-    return ds.rename({"row": "slice"}).assign_coords(slice=("slice", range(ds.sizes["row"])))
-
-
-#: Migrations from older formats: ``{old_version: function(Dataset) -> Dataset of old_version + 1}``.
-#: Archives are migrated step by step on open, never guessed.
-MIGRATIONS: dict[int, Callable[[xr.Dataset], xr.Dataset]] = {1: _from_format_1, 2: _from_format_2}
 
 PIXEL_DIMS = ("row", "col")
 CHANNEL_DIM = "channel"
@@ -50,9 +36,18 @@ PX_UNITS = frozenset({"px"})
 
 @dataclass(frozen=True)
 class Variable:
+    """One variable of a kind: dims in order, whether required, and its CF metadata.
+
+    ``units``: the ``units`` attr every store of the kind gives it (``{length}`` is the store's length unit:
+    its ``length_unit`` attr, else its x/y coordinates'); ``None``: none (flags, masks, images); ``""``:
+    not fixed by the kind. ``long_name`` is written with it.
+    """
+
     dims: tuple[str, ...]
     required: bool = True
     description: str = ""
+    units: str | None = ""
+    long_name: str = ""
 
 
 @dataclass(frozen=True)
@@ -104,6 +99,10 @@ def camera_attr_problems(attrs: Mapping, *, sensor_defaults: bool = False) -> li
 
 
 _FRAME = ("row", "col")
+_COUNTS = {"units": "counts", "long_name": "sensor counts"}
+_FLAGS = {"units": None, "long_name": "why a pixel is invalid (CF flags; 0: valid)"}
+_ABSORPTION = "total absorption A = log I_reference − log I_target"
+_SIGMA, _SIGMA_NAME = "1/{length}", "absorption coefficient σ"
 KINDS: dict[str, CubeKind] = {
     k.name: k
     for k in (
@@ -111,10 +110,10 @@ KINDS: dict[str, CubeKind] = {
             name="tomography_capture",
             description="frames of the rotating object: target, reference (no inclusion), backlit, dark",
             variables={
-                "target": Variable(("angle", *_FRAME), description="object with the inclusion"),
-                "reference": Variable(("angle", *_FRAME), description="same object without it (§4.4.2)"),
-                "backlit": Variable(("angle", *_FRAME), False, "silhouettes against a lit plane (§4.2.6)"),
-                "dark": Variable(_FRAME, False, "sensor offset with all lights off"),
+                "target": Variable(("angle", *_FRAME), description="object with the inclusion", **_COUNTS),
+                "reference": Variable(("angle", *_FRAME), description="same object without it (§4.4.2)", **_COUNTS),
+                "backlit": Variable(("angle", *_FRAME), False, "silhouettes against a lit plane (§4.2.6)", **_COUNTS),
+                "dark": Variable(_FRAME, False, "sensor offset with all lights off", **_COUNTS),
             },
             coord_units={"angle": ANGLE_UNITS},
             attrs=RIG_ATTRS,
@@ -124,8 +123,8 @@ KINDS: dict[str, CubeKind] = {
             name="absorption",
             description="total absorption A = log I_reference − log I_target per pixel, with flags",
             variables={
-                "absorption": Variable(("angle", *_FRAME)),
-                "flags": Variable(("angle", *_FRAME), description="CF flag bits; 0 means valid"),
+                "absorption": Variable(("angle", *_FRAME), units="1", long_name=_ABSORPTION),
+                "flags": Variable(("angle", *_FRAME), description="CF flag bits; 0 means valid", **_FLAGS),
             },
             coord_units={"angle": ANGLE_UNITS},
         ),
@@ -133,15 +132,17 @@ KINDS: dict[str, CubeKind] = {
             name="transmittance",
             description="I_target / I_reference per pixel, with flags",
             variables={
-                "transmittance": Variable(("angle", *_FRAME)),
-                "flags": Variable(("angle", *_FRAME), description="CF flag bits; 0 means valid"),
+                "transmittance": Variable(("angle", *_FRAME), units="1",
+                                          long_name="transmittance I_target / I_reference"),
+                "flags": Variable(("angle", *_FRAME), description="CF flag bits; 0 means valid", **_FLAGS),
             },
             coord_units={"angle": ANGLE_UNITS},
         ),
         CubeKind(
             name="silhouettes",
             description="object masks per angle from backlit frames (§4.2.6)",
-            variables={"silhouette": Variable(("angle", *_FRAME), description="True where the object is")},
+            variables={"silhouette": Variable(("angle", *_FRAME), description="True where the object is", units=None,
+                                               long_name="object mask")},
             coord_units={"angle": ANGLE_UNITS},
             attrs={"camera_model": RIG_ATTRS["camera_model"], "length_unit": RIG_ATTRS["length_unit"]},
             attr_checks=(camera_attr_problems,),
@@ -150,8 +151,10 @@ KINDS: dict[str, CubeKind] = {
             name="hull",
             description="visual hull: the object's convex contour per slice (coordinate: camera row), object frame",
             variables={
-                "vertices": Variable(("slice", "vertex", "xy"), description="counter-clockwise, NaN-padded"),
-                "n_vertices": Variable(("slice",), description="vertices used per slice; 0: no contour"),
+                "vertices": Variable(("slice", "vertex", "xy"), description="counter-clockwise, NaN-padded",
+                                     units="{length}", long_name="contour vertex (x, y), object frame"),
+                "n_vertices": Variable(("slice",), description="vertices used per slice; 0: no contour", units="1",
+                                       long_name="vertices of the contour"),
             },
             coord_units={},
             attrs={"camera_model": RIG_ATTRS["camera_model"], "length_unit": RIG_ATTRS["length_unit"],
@@ -162,10 +165,14 @@ KINDS: dict[str, CubeKind] = {
             name="rays",
             description="aligned light paths per pixel: sinogram coordinates and total absorption (§4.2.6)",
             variables={
-                "theta": Variable(("angle", *_FRAME), description="normal angle of the ray, degree in [0, 180)"),
-                "x": Variable(("angle", *_FRAME), description="signed distance of the ray from the axis"),
-                "absorption": Variable(("angle", *_FRAME), description="total absorption; NaN where dropped"),
-                "reason": Variable(("angle", *_FRAME), description="0: ray kept; else why it was dropped"),
+                "theta": Variable(("angle", *_FRAME), description="normal angle of the ray, degree in [0, 180)",
+                                  units="degree", long_name="normal angle θ of the ray"),
+                "x": Variable(("angle", *_FRAME), description="signed distance of the ray from the axis",
+                              units="{length}", long_name="signed distance X of the ray from the axis"),
+                "absorption": Variable(("angle", *_FRAME), description="total absorption; NaN where dropped", units="1",
+                                       long_name=_ABSORPTION),
+                "reason": Variable(("angle", *_FRAME), description="0: ray kept; else why it was dropped", units=None,
+                                   long_name="why the ray was dropped (0: kept)"),
             },
             coord_units={"angle": ANGLE_UNITS},
             attrs={"length_unit": RIG_ATTRS["length_unit"], "light_angle_deg": RIG_ATTRS["light_angle_deg"]},
@@ -173,16 +180,19 @@ KINDS: dict[str, CubeKind] = {
         CubeKind(
             name="coverage",
             description="observation rate of a sinogram: measured and analytic d_min, d_max (§4.2.7)",
-            variables={"coverage": Variable(("slice",)), "d_min": Variable(("slice",)),
-                       "d_max": Variable(("slice",))},
+            variables={"coverage": Variable(("slice",), units="1", long_name="observed share d_max − d_min"),
+                       "d_min": Variable(("slice",), units="1", long_name="lowest observed |X| / R, d_min"),
+                       "d_max": Variable(("slice",), units="1", long_name="highest observed |X| / R, d_max")},
             coord_units={},
         ),
         CubeKind(
             name="scan_calibration",
             description="scan speed v_p and sync offset t_o from global-shutter frames of a white target (§5.3.2)",
             variables={
-                "count": Variable(("delay", "exposure"), description="illuminated rows counted per frame"),
-                "centroid": Variable(("delay", "exposure"), description="row centroid of the lit band"),
+                "count": Variable(("delay", "exposure"), description="illuminated rows counted per frame", units="1",
+                                  long_name="illuminated camera rows"),
+                "centroid": Variable(("delay", "exposure"), description="row centroid of the lit band", units="px",
+                                     long_name="camera row at the lit band's centroid"),
             },
             coord_units={"delay": TIME_UNITS, "exposure": TIME_UNITS},
             attrs={"scan_speed_px_per_us": "fitted v_p, camera rows per µs", "scan_speed_std": "its standard error",
@@ -191,13 +201,13 @@ KINDS: dict[str, CubeKind] = {
         CubeKind(
             name="figure",
             description="a rendered figure (RGBA); the engine also saves it as <store>.png",
-            variables={"image": Variable(("y", "x", "rgba"))},
+            variables={"image": Variable(("y", "x", "rgba"), units=None, long_name="RGBA image")},
             coord_units={},
         ),
         CubeKind(
             name="plane_to_ray_capture",
             description="image stacks over sync delay and exposure (§5.2.3)",
-            variables={"image": Variable(("delay", "exposure", *_FRAME))},
+            variables={"image": Variable(("delay", "exposure", *_FRAME), **_COUNTS)},
             coord_units={"delay": TIME_UNITS, "exposure": TIME_UNITS},
             attrs={
                 "scan_speed_px_per_us": "projector scan speed v_p, projector rows per µs",
@@ -207,7 +217,7 @@ KINDS: dict[str, CubeKind] = {
         CubeKind(
             name="full_transport_capture",
             description="stacks over delay, exposure and projected line position (§5.3.1)",
-            variables={"image": Variable(("delay", "exposure", "line", *_FRAME))},
+            variables={"image": Variable(("delay", "exposure", "line", *_FRAME), **_COUNTS)},
             coord_units={"delay": TIME_UNITS, "exposure": TIME_UNITS, "line": PX_UNITS},
             attrs={
                 "scan_speed_px_per_us": "projector scan speed v_p, projector rows per µs",
@@ -218,43 +228,49 @@ KINDS: dict[str, CubeKind] = {
         CubeKind(
             name="plane_to_ray_transport",
             description="T(v, s, t) indexed by offset = projector row − camera row",
-            variables={"transport": Variable(("offset", *_FRAME))},
+            variables={"transport": Variable(("offset", *_FRAME), units="counts",
+                                                 long_name="plane-to-ray transport T(v, s, t)")},
             coord_units={"offset": PX_UNITS},
         ),
         CubeKind(
             name="full_transport",
             description="T(u, v, s, t) indexed by offsets from the direct correspondence",
-            variables={"transport": Variable(("du", "dv", *_FRAME))},
+            variables={"transport": Variable(("du", "dv", *_FRAME), units="counts",
+                                                 long_name="full transport T(u, v, s, t)")},
             coord_units={"du": PX_UNITS, "dv": PX_UNITS},
         ),
         CubeKind(
             name="sinogram",
             description="total absorption on a (θ, X) grid with a mask of observed rays",
             variables={
-                "absorption": Variable(("theta", "x")),
-                "observed": Variable(("theta", "x"), description="True where a ray was measured"),
-                "count": Variable(("theta", "x"), False, "rays averaged into the bin"),
+                "absorption": Variable(("theta", "x"), units="1", long_name=_ABSORPTION),
+                "observed": Variable(("theta", "x"), description="True where a ray was measured", units=None,
+                                     long_name="bin holds a measured ray"),
+                "count": Variable(("theta", "x"), False, "rays averaged into the bin", units="1",
+                                  long_name="rays averaged into the bin"),
             },
             coord_units={"theta": ANGLE_UNITS, "x": LENGTH_UNITS},
         ),
         CubeKind(
             name="light_angle_study",
             description="reconstructions and their errors versus the light angle θ_l (§4.4.1, Table 1)",
-            variables={"rmse": Variable(("light_angle", "method")),
-                       "max_abs_error": Variable(("light_angle", "method")),
-                       "sigma": Variable(("light_angle", "method", "y", "x"))},
+            variables={"rmse": Variable(("light_angle", "method"), units=_SIGMA, long_name="RMSE of σ"),
+                       "max_abs_error": Variable(("light_angle", "method"), units=_SIGMA, long_name="max |error| of σ"),
+                       "sigma": Variable(("light_angle", "method", "y", "x"), units=_SIGMA, long_name=_SIGMA_NAME)},
             coord_units={"light_angle": ANGLE_UNITS, "y": LENGTH_UNITS, "x": LENGTH_UNITS},
         ),
         CubeKind(
             name="reconstruction_error",
             description="RMSE and largest absolute error of a reconstruction against a known truth",
-            variables={"rmse": Variable(()), "max_abs_error": Variable(())},
+            variables={"rmse": Variable((), units=_SIGMA, long_name="RMSE of σ"),
+                       "max_abs_error": Variable((), units=_SIGMA, long_name="max |error| of σ")},
             coord_units={},
         ),
         CubeKind(
             name="reconstruction",
             description="absorption coefficient σ per slice",
-            variables={"sigma": Variable(("y", "x"), description="absorption coefficient per unit length")},
+            variables={"sigma": Variable(("y", "x"), description="absorption coefficient per unit length", units=_SIGMA,
+                                        long_name=_SIGMA_NAME)},
             coord_units={"y": LENGTH_UNITS, "x": LENGTH_UNITS},
         ),
     )
@@ -269,6 +285,30 @@ def _dims_ok(actual: tuple[str, ...], expected: tuple[str, ...], kind: str) -> b
     if core and core[-1] == CHANNEL_DIM:
         core = core[:-1]
     return core == expected
+
+
+def metadata(ds: xr.Dataset, kind: str) -> dict[str, tuple[str | None, str]]:
+    """``{variable: (units, long_name)}`` the kind fixes for the variables ``ds`` has (``{length}`` resolved;
+    a variable whose length unit ``ds`` does not tell is left out)."""
+    length = ds.attrs.get("length_unit") or next(
+        (ds[c].attrs["units"] for c in ("x", "y") if c in ds.coords and "units" in ds[c].attrs), None)
+    out = {}
+    for name, var in KINDS[kind].variables.items():
+        if name not in ds.data_vars or var.units == "" or (var.units and "{length}" in var.units and not length):
+            continue
+        out[name] = (var.units.replace("{length}", str(length)) if var.units else None, var.long_name)
+    return out
+
+
+def with_metadata(ds: xr.Dataset, kind: str) -> xr.Dataset:
+    """``ds`` with the ``units`` and ``long_name`` its kind fixes (no ``units`` where it fixes none)."""
+    fixed = {}
+    for name, (units, long_name) in metadata(ds, kind).items():
+        attrs = {k: v for k, v in ds[name].attrs.items() if k != "units"}
+        attrs |= ({"units": units} if units is not None else {}) | ({"long_name": long_name} if long_name else {})
+        fixed[name] = ds[name].copy(deep=False)
+        fixed[name].attrs = attrs
+    return ds.assign(fixed) if fixed else ds
 
 
 def check_dataset(ds: xr.Dataset, kind: str) -> list[Problem]:
@@ -305,6 +345,12 @@ def check_dataset(ds: xr.Dataset, kind: str) -> list[Problem]:
                     fix="transpose or rename the dims (xarray .transpose / .rename)",
                 )
             )
+    for name, (units, _) in metadata(ds, kind).items():
+        got = ds[name].attrs.get("units")
+        if got != units:
+            problems.append(Problem(f"variable {name!r} is in {got!r}; a {kind} holds it in {units!r}", path=name,
+                                    fix="convert the values, or correct attrs['units'] if only the label is wrong"
+                                    if units is not None else "drop its units attr (it has none)"))
     for dim, units in spec.coord_units.items():
         if not any(dim in ds[v].dims for v in spec.variables if v in ds):
             continue  # the variables using this dim are missing: already reported
@@ -337,7 +383,9 @@ def describe_kinds() -> str:
     rows = ["| kind | what | variable: dims | coordinate units | required attrs |", "|---|---|---|---|---|"]
     for kind in KINDS.values():
         variables = "<br>".join(
-            f"`{n}`{'' if v.required else ' (optional)'}: ({', '.join(v.dims)})" for n, v in kind.variables.items()
+            f"`{n}`{'' if v.required else ' (optional)'}: ({', '.join(v.dims)})"
+            + ("" if v.units == "" else " [no units]" if v.units is None else f" [{v.units}]")
+            for n, v in kind.variables.items()
         )
         units = "<br>".join(f"{d}: {'/'.join(sorted(u))}" for d, u in kind.coord_units.items()) or "—"
         attrs = "<br>".join(f"`{a}`" for a in kind.attrs) or "—"

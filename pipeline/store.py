@@ -44,9 +44,10 @@ from pipeline.integrity import (
     write_manifest,
     written_frames,
 )
+from pipeline.migrations import MIGRATIONS
 from pipeline.outputs import Staging
 from pipeline.provenance import jsonable, read_provenance
-from pipeline.schema import FORMAT_VERSION, KINDS, MIGRATIONS, check_dataset
+from pipeline.schema import FORMAT_VERSION, KINDS, check_dataset, with_metadata
 
 
 class IncompleteCaptureWarning(UserWarning):
@@ -204,7 +205,10 @@ def is_complete(path: str | os.PathLike, manifest: Mapping[str, Any] | None = No
 
 
 def stamp(ds: xr.Dataset, kind: str) -> xr.Dataset:
-    """``ds`` with ``selpath_format`` and ``selpath_kind`` attrs set, after checking it against ``kind``."""
+    """``ds`` with ``selpath_format`` and ``selpath_kind`` attrs and its kind's variable metadata set, after
+    checking it against ``kind``."""
+    if kind in KINDS:
+        ds = with_metadata(ds, kind)
     problems = check_dataset(ds, kind)
     if problems:
         raise StoreError(problems)

@@ -73,6 +73,26 @@ def test_demo_acquires_on_the_simulated_rig_into_its_own_folder(tmp_path):
     assert procam_page.count("<img src='data:image/png;base64,") >= 3 and "plane-to-ray transport" in procam_page
     second = runner.invoke(app, ["demo", "--out", str(out)], env={"COLUMNS": "200"})
     assert second.exit_code == 0 and "computed" not in second.output
+    _every_store_carries_its_kinds_metadata(out)
+
+
+def _every_store_carries_its_kinds_metadata(folder):
+    """Each store the shipped demo writes opens (its units checked against its kind), every variable its kind
+    declares has the kind's units and long name, and no other variable borrowed a coordinate's."""
+    from pipeline.schema import metadata
+    from pipeline.store import open_store
+
+    stores = sorted(folder.glob("*.zarr"))
+    assert len(stores) >= 20
+    for path in stores:
+        ds = open_store(path)
+        kind = ds.attrs["selpath_kind"]
+        for name, (units, long_name) in metadata(ds, kind).items():
+            assert (ds[name].attrs.get("units"), ds[name].attrs.get("long_name")) == (units, long_name), (path, name)
+        for name, var in ds.data_vars.items():
+            for coord in ds.coords.values():
+                if name != coord.name and coord.attrs.get("long_name"):
+                    assert var.attrs.get("long_name") != coord.attrs["long_name"], (path, name, coord.name)
 
 
 def test_errors_keep_bracketed_text_and_never_show_a_traceback(tmp_path, monkeypatch):

@@ -90,11 +90,12 @@ def calibrate_scan_speed(capture: xr.Dataset, /, *, min_rows: NonNegative = 2.0)
     fitted_count, fitted_centroid = full.copy(), full.copy()
     fitted_count[use], fitted_centroid[use] = fitted[:n], fitted[n:]
     coords = {"delay": capture["delay"], "exposure": capture["exposure"]}
-    rows = {"units": "px"}
+    counted = {"units": "1", "long_name": "illuminated camera rows"}
+    row = {"units": "px", "long_name": "camera row at the lit band's centroid"}
     return xr.Dataset(
-        {"count": (("delay", "exposure"), count, rows), "centroid": (("delay", "exposure"), centroid, rows),
-         "fitted_count": (("delay", "exposure"), fitted_count, rows),
-         "fitted_centroid": (("delay", "exposure"), fitted_centroid, rows),
+        {"count": (("delay", "exposure"), count, counted), "centroid": (("delay", "exposure"), centroid, row),
+         "fitted_count": (("delay", "exposure"), fitted_count, counted | {"long_name": "fitted v_p · t_e"}),
+         "fitted_centroid": (("delay", "exposure"), fitted_centroid, row | {"long_name": "fitted band centre"}),
          "used": (("delay", "exposure"), use)},
         coords=coords,
         attrs={"selpath_kind": "scan_calibration", "scan_speed_px_per_us": float(value[0]),

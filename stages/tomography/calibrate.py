@@ -160,9 +160,10 @@ def _checked_pair(capture: xr.Dataset, stage_name: str, saturation_level: float 
         kwargs=dict(subtracted=subtracted, level=level, dtype=dtype, absorption=absorption),
         output_core_dims=[[], []], dask="parallelized", output_dtypes=[dtype, np.uint8],
     )
-    value = value.transpose(*capture["target"].dims)
-    flags = flags.transpose(*capture["target"].dims)
-    flags.attrs.update(flag_masks=FLAG_MASKS, flag_meanings=FLAG_MEANINGS, long_name="why a pixel is invalid")
+    value = value.transpose(*capture["target"].dims).drop_attrs(deep=False)  # (apply_ufunc copied the frames' attrs)
+    flags = flags.transpose(*capture["target"].dims).drop_attrs(deep=False)
+    flags.attrs.update(flag_masks=FLAG_MASKS, flag_meanings=FLAG_MEANINGS,
+                       long_name="why a pixel is invalid (CF flags; 0: valid)")
     attrs = {k: v for k, v in capture.attrs.items() if k != "selpath_kind"}
     attrs.update(saturation_level=level, min_signal=min_signal, min_signal_relative=min_signal_relative)
     lit = (flags >> 3) == 0  # the reference pixel is finite, unsaturated and above min_signal
@@ -221,7 +222,7 @@ def normalise_reference(capture: xr.Dataset, /, *, saturation_level: Positive | 
     """
     value, flags, attrs, shares = _checked_pair(capture, "normalise_reference", saturation_level, min_signal,
                                                 min_signal_relative, absorption=False)
-    value.attrs.update(units="1", long_name="I_target / I_reference")
+    value.attrs.update(units="1", long_name="transmittance I_target / I_reference")
     return xr.Dataset({"transmittance": value, "flags": flags, **shares},
                       attrs={**attrs, "selpath_kind": "transmittance"})
 
@@ -239,5 +240,5 @@ def absorption(capture: xr.Dataset, /, *, saturation_level: Positive | None = No
     """
     value, flags, attrs, shares = _checked_pair(capture, "absorption", saturation_level, min_signal,
                                                 min_signal_relative, absorption=True)
-    value.attrs.update(units="1", long_name="total absorption log I_reference - log I_target")
+    value.attrs.update(units="1", long_name="total absorption A = log I_reference − log I_target")
     return xr.Dataset({"absorption": value, "flags": flags, **shares}, attrs={**attrs, "selpath_kind": "absorption"})

@@ -24,6 +24,7 @@ from pipeline.constraints import Index, Positive
 from pipeline.errors import Problem, StageError
 from pipeline.quality import usable_share
 from pipeline.registry import stage
+from pipeline.schema import with_metadata
 from stages._common import require_variables, sorted_sweep
 
 
@@ -184,10 +185,15 @@ def visual_hull(silhouettes: xr.Dataset, /) -> xr.Dataset:
                                      for i in range(4))
     attrs = geometry_attrs(silhouettes.attrs) | {"selpath_kind": "hull", "hull_resolution": camera.axis_pixel_size / 2,
                                                  "n_views": len(angles)}
-    views = {"long_name": "views per slice"}
-    return xr.Dataset({"vertices": vertices, "n_vertices": counts, "empty_views": empty.assign_attrs(views),
-                       "border_views": border.assign_attrs(views), "gapped_views": gapped.assign_attrs(views)},
+    def views(count: xr.DataArray, what: str) -> xr.DataArray:
+        return count.drop_attrs(deep=False).assign_attrs(units="1", long_name=f"views per slice {what}")
+
+    hull = xr.Dataset({"vertices": vertices, "n_vertices": counts,
+                       "empty_views": views(empty, "with no silhouette"),
+                       "border_views": views(border, "whose silhouette touches the border"),
+                       "gapped_views": views(gapped, "whose silhouette has gaps")},
                       attrs=attrs | {"xy": "x, y in the object frame"})
+    return with_metadata(hull, "hull")
 
 
 def hull_polygons(hull: xr.Dataset) -> list[np.ndarray | None]:

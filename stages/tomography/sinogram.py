@@ -19,6 +19,7 @@ from pipeline.constraints import Positive, memory_problems
 from pipeline.errors import Problem, StageError
 from pipeline.quality import usable_share
 from pipeline.registry import stage
+from pipeline.schema import with_metadata
 from stages._common import require_variables
 from stages.tomography.hull import contours
 
@@ -98,7 +99,9 @@ def bin_sinogram(rays: xr.Dataset, /, *, n_theta: Bins = 180, n_x: Bins = 256, x
         dask="parallelized", output_dtypes=[np.float64],
         dask_gufunc_kwargs={"output_sizes": {"theta": n_theta, "x": n_x, "field": 2}},
         kwargs={"n_theta": n_theta, "n_x": n_x, "extent": extent})
-    mean, count = both.isel(field=0, drop=True), both.isel(field=1, drop=True).astype(np.int64)
+    # (apply_ufunc gives its outputs the first input's attrs, θ's: dropped, the kind's metadata set below)
+    mean = both.isel(field=0, drop=True).drop_attrs(deep=False)
+    count = both.isel(field=1, drop=True).astype(np.int64).drop_attrs(deep=False)
     unit = rays.attrs.get("length_unit", "px")
     coords = {"theta": ("theta", np.arange(n_theta) * 180.0 / n_theta, {"units": "degree"}),
               "x": ("x", np.linspace(-extent, extent, n_x), {"units": unit})}
@@ -107,9 +110,9 @@ def bin_sinogram(rays: xr.Dataset, /, *, n_theta: Bins = 180, n_x: Bins = 256, x
     out = out.rename({"row": "slice"})
     if tuple(out["absorption"].dims) != ("slice", "theta", "x"):
         out = out.transpose("slice", "theta", "x")
-    return out.assign_attrs(geometry_attrs(rays.attrs) | {
+    return with_metadata(out.assign_attrs(geometry_attrs(rays.attrs) | {
         "selpath_kind": "sinogram", "theta_step_deg": 180.0 / n_theta, "x_step": 2 * extent / (n_x - 1),
-        "x_extent": extent})
+        "x_extent": extent}), "sinogram")
 
 
 #: floor of ``observed_fraction``: the demo observes 72 % of its bins; one or two views under 2 %
@@ -208,10 +211,15 @@ def coverage(sinogram: xr.Dataset, hull: xr.Dataset, /) -> xr.Dataset:
     analytic = xr.apply_ufunc(bounds, radius, output_core_dims=[["bound"]],
                               dask="parallelized", output_dtypes=[np.float64],
                               dask_gufunc_kwargs={"output_sizes": {"bound": 3}})
-    return xr.Dataset(
+    def share(array, what):
+        return array.drop_attrs(deep=False).assign_attrs(units="1", long_name=what)
+
+    return with_metadata(xr.Dataset(
         {"coverage": measured, "d_min": d_min, "d_max": d_max,
-         "analytic_d_min": analytic.isel(bound=0, drop=True), "analytic_d_max": analytic.isel(bound=1, drop=True),
-         "analytic_coverage": analytic.isel(bound=2, drop=True),
-         "radius": radius.assign_attrs(units=hull.attrs.get("length_unit", ""), long_name="mean contour radius")},
+         "analytic_d_min": share(analytic.isel(bound=0, drop=True), "d_min of Eq. 8–19 (cylinder of this radius)"),
+         "analytic_d_max": share(analytic.isel(bound=1, drop=True), "d_max of Eq. 8–19 (cylinder of this radius)"),
+         "analytic_coverage": share(analytic.isel(bound=2, drop=True), "coverage of Eq. 8–19"),
+         "radius": radius.drop_attrs(deep=False).assign_attrs(units=hull.attrs.get("length_unit", ""),
+                                                    long_name="mean contour radius")},
         attrs={"selpath_kind": "coverage", "light_angle_deg": theta_l,
-               "camera_model": camera.model})
+               "camera_model": camera.model}), "coverage")

@@ -150,7 +150,8 @@ def test_a_crash_while_writing_leaves_the_old_store_whole_and_no_partial_store(t
 
 
 def test_leftovers_of_a_killed_writer_are_tidied_and_a_lost_store_restored(tmp_path):
-    ds = xr.Dataset({"sigma": (("y", "x"), np.ones((2, 2)))},
+    sigma = {"units": "1/mm", "long_name": "absorption coefficient σ"}  # as the reconstruction kind fixes them
+    ds = xr.Dataset({"sigma": (("y", "x"), np.ones((2, 2)), sigma)},
                     coords={"y": ("y", [0.0, 1.0], {"units": "mm"}), "x": ("x", [0.0, 1.0], {"units": "mm"})})
     final = tmp_path / "r.zarr"
     to_store(ds, final, "reconstruction")

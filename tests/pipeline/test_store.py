@@ -37,8 +37,9 @@ def capture(n_angles=3, rows=4, cols=5, dtype=np.float32, data=None, lazy=False)
     if data is None:
         data = np.arange(np.prod(shape), dtype=dtype).reshape(shape)
     frames = da.zeros(shape, dtype=dtype, chunks=(1, rows, cols)) if lazy else data
+    counts = {"units": "counts", "long_name": "sensor counts"}  # what the kind fixes (checked on open)
     return xr.Dataset(
-        {"target": (("angle", "row", "col"), frames), "reference": (("angle", "row", "col"), frames)},
+        {"target": (("angle", "row", "col"), frames, counts), "reference": (("angle", "row", "col"), frames, counts)},
         coords={"angle": ("angle", np.arange(n_angles) * 1.5, {"units": "degree"})},
         attrs=dict(GEOMETRY),
     )

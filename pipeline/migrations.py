@@ -1,0 +1,39 @@
+"""Migrations of stores written by older selpath versions (``selpath_format``), applied step by step on open.
+
+Each takes a Dataset of format n and returns it as format n + 1; :func:`pipeline.store.open_store` runs them in
+memory (the store on disk is never rewritten), so an archive is read, checked and migrated, never guessed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import xarray as xr
+
+from pipeline.schema import KINDS, with_metadata
+
+
+def _from_format_1(ds: xr.Dataset) -> xr.Dataset:
+    """Format 1 → 2: the cubes are unchanged (only how chunks are encoded differs, which zarr reads per array)."""
+    return ds
+
+
+def _from_format_2(ds: xr.Dataset) -> xr.Dataset:
+    """Format 2 → 3: a hull's dim ``row`` becomes ``slice``, with the camera rows as its coordinate."""
+    if ds.attrs.get("selpath_kind") != "hull" or "row" not in ds.dims or "slice" in ds.dims:
+        return ds
+    return ds.rename({"row": "slice"}).assign_coords(slice=("slice", range(ds.sizes["row"])))
+
+
+def _from_format_3(ds: xr.Dataset) -> xr.Dataset:
+    """Format 3 → 4: variables get the units and long names their kind fixes. Formats 1–3 could carry a
+    coordinate's attrs on a sinogram's or a coverage's variables, or ``counts`` on flags and hull vertices (a
+    labelling bug: the values are the same quantity)."""
+    kind = ds.attrs.get("selpath_kind")
+    return with_metadata(ds, kind) if kind in KINDS else ds
+
+
+#: Migrations from older formats: ``{old_version: function(Dataset) -> Dataset of old_version + 1}``.
+#: Archives are migrated step by step on open, never guessed.
+MIGRATIONS: dict[int, Callable[[xr.Dataset], xr.Dataset]] = {1: _from_format_1, 2: _from_format_2,
+                                                                3: _from_format_3}

@@ -1,0 +1,84 @@
+"""Every variable a kind declares carries the units and long name the kind fixes: written so whatever a stage
+(or a user) handed in, checked on open, and corrected on open for stores of formats 1–3 (whose sinograms and
+coverages carried θ's attrs, and flags and hull vertices "counts")."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import zarr
+
+from pipeline import StoreError, open_store, to_store
+from pipeline.schema import KINDS, metadata
+from pipeline.store import IncompleteStoreWarning
+from tests.pipeline.test_corruption import minimal
+
+
+def expected(kind: str, length: str = "mm") -> dict[str, tuple[str | None, str]]:
+    """The kind's declared (units, long_name), resolved by hand (an independent reading of the table)."""
+    out = {}
+    for name, var in KINDS[kind].variables.items():
+        if var.units == "":
+            continue
+        units = None if var.units is None else var.units.replace("{length}", length)
+        out[name] = (units, var.long_name)
+    return out
+
+
+@pytest.mark.parametrize("kind", sorted(KINDS))
+def test_a_store_of_every_kind_carries_its_kinds_metadata_whatever_it_was_given(tmp_path, kind):
+    ds = minimal(kind).assign_attrs(length_unit="mm")
+    for name in ds.data_vars:  # what apply_ufunc hands a stage: the first input's attrs
+        ds[name].attrs.update(units="degree", long_name="normal angle θ of the ray")
+    to_store(ds, tmp_path / "s.zarr", kind)
+    back = open_store(tmp_path / "s.zarr")
+    want = expected(kind)
+    assert want, f"{kind} declares no variable metadata"
+    for name, (units, long_name) in want.items():
+        assert back[name].attrs.get("units") == units, name
+        assert back[name].attrs.get("long_name") == long_name, name
+    assert metadata(back, kind) == want
+
+
+def test_a_store_whose_units_were_edited_is_refused(tmp_path):
+    to_store(minimal("sinogram"), tmp_path / "s.zarr", "sinogram")
+    zarr.open_array(str(tmp_path / "s.zarr" / "absorption"), mode="r+").attrs["units"] = "degree"
+    with pytest.raises(StoreError, match=r"'absorption' has units 'degree' but was written in '1'"):
+        open_store(tmp_path / "s.zarr")
+
+
+def test_a_format_3_store_with_a_coordinates_attrs_opens_with_the_right_ones(tmp_path):
+    """The reported case: sinogram.zarr's absorption, count and observed said 'degree', 'normal angle θ'."""
+    ds = minimal("sinogram").assign_attrs(selpath_format=3, selpath_kind="sinogram")
+    theta = {"units": "degree", "long_name": "normal angle θ of the ray"}
+    for name in ("absorption", "observed", "count"):
+        ds[name].attrs.update(theta)
+    ds.to_zarr(tmp_path / "old.zarr", consolidated=False)
+    with pytest.warns(IncompleteStoreWarning):  # written by plain xarray: no completion record
+        back = open_store(tmp_path / "old.zarr")
+    assert back["absorption"].attrs["units"] == "1" and back["count"].attrs["units"] == "1"
+    assert "units" not in back["observed"].attrs
+    assert back["absorption"].attrs["long_name"].startswith("total absorption")
+
+
+def test_a_current_store_in_wrong_units_is_refused_naming_the_variable(tmp_path):
+    ds = minimal("reconstruction").assign_attrs(selpath_format=4, selpath_kind="reconstruction")
+    ds["sigma"].attrs["units"] = "1/cm"  # the grid is in mm
+    ds.to_zarr(tmp_path / "r.zarr", consolidated=False)
+    wrong = r"variable 'sigma' is in '1/cm'; a reconstruction holds it in '1/mm'"
+    with pytest.raises(StoreError, match=wrong):  # (refused before the missing completion record is reported)
+        open_store(tmp_path / "r.zarr")
+
+
+def test_stage_outputs_carry_the_metadata_before_they_are_stored():
+    """In a notebook, without a store: the sinogram and coverage no longer inherit θ's attrs."""
+    from tests.stages.tomography.test_tomography_processing import lazy_chain
+
+    _, hull, sino, cover = lazy_chain()
+    for ds, kind in ((hull, "hull"), (sino, "sinogram"), (cover, "coverage")):
+        for name, (units, long_name) in metadata(ds, kind).items():
+            assert ds[name].attrs.get("units") == units and ds[name].attrs.get("long_name") == long_name, name
+    for name in ("analytic_d_min", "analytic_d_max", "analytic_coverage", "radius", "observed_fraction"):
+        ds = cover if name in cover else sino
+        assert ds[name].attrs.get("units") != "degree", name
+    assert np.isfinite(float(sino["observed_fraction"].compute()))
