@@ -35,6 +35,20 @@ console = Console()
 errors = Console(stderr=True)
 
 
+def _version(show: bool) -> None:
+    if show:
+        from importlib.metadata import version
+
+        console.print(f"selpath {version('selpath')}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _main(version: Annotated[bool, typer.Option("--version", help="print the version and exit", callback=_version,
+                                                is_eager=True)] = False) -> None:
+    """selpath: selected light path measurement, from capture to science."""
+
+
 
 def _fail(exc: SelpathError) -> None:
     errors.print(f"[bold red]error:[/] {escape(str(exc))}", markup=True, highlight=False, soft_wrap=True)
@@ -150,18 +164,30 @@ def validate(file: Annotated[Path, typer.Argument(help="workflow YAML file")]) -
     """Check a workflow without running it; lists every problem with file:line and the fix."""
     with _guard():
         workflow = load_workflow(file)
-    console.print(f"[green]ok[/]: {escape(workflow.name)}: {len(workflow.steps)} steps, outputs "
+    steps = len(workflow.steps)
+    console.print(f"[green]ok[/]: {escape(workflow.name)}: {steps} step{'s' if steps != 1 else ''}, outputs "
                   + escape(", ".join(f"{n} -> {o.store}" for n, o in workflow.outputs.items())))
 
 
 @app.command()
-def stages(name: Annotated[str | None, typer.Argument(help="show one stage in full")] = None) -> None:
-    """List the registered stages with their inputs, settings, defaults, units and docs."""
+def stages(
+    name: Annotated[str | None, typer.Argument(help="show one stage in full")] = None,
+    all_: Annotated[bool, typer.Option("--all", help="show every stage in full")] = False,
+) -> None:
+    """List the registered stages, one line each; NAME (or --all) shows inputs, settings, defaults, units and docs."""
     with _guard():
         registry = default_registry()
     if name and name not in registry:
         errors.print(f"[bold red]error:[/] unknown stage {escape(repr(name))}; known: {', '.join(registry.names())}")
         raise typer.Exit(2)
+    if not name and not all_:
+        table = Table(title="stages (selpath stages NAME for one in full)", show_lines=False)
+        for column in ("stage", "module", "what it does"):
+            table.add_column(column, overflow="fold")
+        for s in registry:
+            table.add_row(s.name, escape(s.func.__module__.removeprefix("stages.")), escape(s.summary))
+        console.print(table)
+        return
     chosen = [registry[name]] if name else list(registry)
     for s in chosen:
         table = Table(title=f"[bold]{s.name}[/]  ({s.source})", caption=escape(s.summary), show_lines=False)

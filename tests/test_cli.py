@@ -163,3 +163,24 @@ def test_a_shipped_name_is_not_run_in_place_and_copy_needs_a_folder(tmp_path, mo
     onto = runner.invoke(app, ["workflows", "--copy", str(tmp_path / "file")])
     assert onto.exit_code == 2 and "is a file" in onto.output
     assert (tmp_path / "file").read_text() == "mine"
+
+
+def test_version_short_stage_list_and_plural(small_workflow):
+    from importlib.metadata import version
+
+    shown = runner.invoke(app, ["--version"])
+    assert shown.exit_code == 0 and shown.output.strip() == f"selpath {version('selpath')}"
+    listed = runner.invoke(app, ["stages"], env={"COLUMNS": "300"})
+    from pipeline.registry import default_registry
+
+    names = [s.name for s in default_registry()]
+    rows = [line for line in listed.output.splitlines() if any(f"│ {n} " in line for n in names)]
+    assert listed.exit_code == 0 and len(rows) == len(names)  # one line each
+    assert "parameter" not in listed.output  # no settings tables without NAME or --all
+    full = runner.invoke(app, ["stages", "--all"], env={"COLUMNS": "300"})
+    assert full.output.count("parameter") == len(names)
+    small_workflow.write_text(small_workflow.read_text().replace(
+        "  - id: absorption\n    stage: absorption\n    with:\n      capture: $capture\n      min_signal: 1.0\n", "")
+        .replace("  absorption: {from: absorption, store: out/absorption.zarr}\n", ""))
+    one = runner.invoke(app, ["validate", str(small_workflow)])
+    assert one.exit_code == 0 and "1 step, outputs" in one.output, one.output
