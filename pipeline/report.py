@@ -28,8 +28,10 @@ import string
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import dask
 import numpy as np
 import pydantic
+import xarray as xr
 
 from pipeline.errors import Problem, StoreError
 
@@ -95,7 +97,8 @@ def report_problems(report: ReportSpec, outputs: list[str]) -> list[tuple[tuple,
 
 
 def _value(store, output: str, name: str, reduction: str | None) -> Any:
-    """One summary field's value; reductions run chunk by chunk on the store's dask arrays (bounded memory)."""
+    """One summary field's value, or for a reduction of a variable a lazy 0-d DataArray: every field of the report
+    is then computed in one pass, chunk by chunk on the stores' dask arrays (bounded memory)."""
     if name in store.data_vars:
         variable = store[name]
         if reduction is None:
@@ -103,7 +106,7 @@ def _value(store, output: str, name: str, reduction: str | None) -> Any:
                 raise StoreError(Problem(f"report: variable {name!r} of output {output!r} has dims "
                                          f"{variable.dims}; a summary field needs a reduction",
                                          fix=f"write {{{output}.{name}.mean}} ({', '.join(REDUCTIONS)})"))
-            return variable.values.item()
+            return variable
         if reduction == "shape":
             return tuple(variable.shape)
         if reduction == "size":
@@ -114,9 +117,8 @@ def _value(store, output: str, name: str, reduction: str | None) -> Any:
                                          f"(at most {LIST_LIMIT})", fix="reduce it (mean, min, max, sum, shape)"))
             return variable.values.tolist()
         if reduction == "share_zero":
-            return float((variable == 0).mean())
-        with np.errstate(all="ignore"):
-            return float(getattr(variable.astype(float), reduction)(skipna=True))
+            return (variable == 0).mean()
+        return getattr(variable.astype(float), reduction)(skipna=True)
     if name in store.attrs:
         value = store.attrs[name]
         if reduction is None:
@@ -137,18 +139,25 @@ def summary_lines(workflow: Workflow) -> list[str]:
     if workflow.report is None:
         return []
     stores: dict[str, Any] = {}
-    lines = []
-    for number, line in enumerate(workflow.report.summary):
-        values = {}
-        for output, name, reduction in summary_fields(line):
+    fields = [summary_fields(line) for line in workflow.report.summary]
+    values: dict[str, Any] = {}
+    for output, name, reduction in (field for line in fields for field in line):
+        key = f"{output}.{name}" + (f".{reduction}" if reduction else "")
+        if key not in values:
             if output not in stores:
                 stores[output] = open_store(workflow.outputs[output].store)
-            key = f"{output}.{name}" + (f".{reduction}" if reduction else "")
             values[key] = _value(stores[output], output, name, reduction)
+    lazy = [k for k, v in values.items() if isinstance(v, xr.DataArray)]
+    with np.errstate(all="ignore"):
+        computed = dask.compute(*(values[k].data for k in lazy))
+    values |= {k: np.asarray(v).item() for k, v in zip(lazy, computed, strict=True)}
+    lines = []
+    for number, line in enumerate(workflow.report.summary):
         try:
             lines.append(_Filled(values).format(line))
         except (ValueError, TypeError) as exc:
-            shown = ", ".join(f"{k} = {v!r:.60} ({type(v).__name__})" for k, v in values.items())
+            used = {f"{o}.{n}" + (f".{r}" if r else "") for o, n, r in fields[number]}
+            shown = ", ".join(f"{k} = {values[k]!r:.60} ({type(values[k]).__name__})" for k in sorted(used))
             raise StoreError(Problem(f"report: summary line {number} cannot be formatted ({exc}); its fields: {shown}",
                                      where=workflow.source, path=f"report.summary[{number}]",
                                      fix="give each field a format its value takes (e.g. :.3g for a number)")) from None

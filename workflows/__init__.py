@@ -26,16 +26,17 @@ def names() -> list[str]:
 
 def path(name: str) -> Path:
     """The file of the shipped workflow ``name`` (``tomography-sim`` or ``tomography-sim.yaml``)."""
-    file = folder() / (name if name.endswith(".yaml") else f"{name}.yaml")
-    if not file.is_file():
-        raise KeyError(f"no shipped workflow {name!r}; shipped: {', '.join(names())}")
-    return file
+    return _shipped(folder(), name, "workflow")
 
 
 def scene(name: str) -> Path:
     """The file of the shipped scene ``name`` (``gelatin-bin`` or ``gelatin-bin.yaml``)."""
-    file = folder() / "scenes" / (name if name.endswith(".yaml") else f"{name}.yaml")
+    return _shipped(folder() / "scenes", name, "scene")
+
+
+def _shipped(where: Path, name: str, what: str) -> Path:
+    file = where / (name if name.endswith(".yaml") else f"{name}.yaml")
     if not file.is_file():
-        raise KeyError(f"no shipped scene {name!r}; shipped: "
-                       f"{', '.join(sorted(p.stem for p in (folder() / 'scenes').glob('*.yaml')))}")
+        shipped = ", ".join(sorted(p.stem for p in where.glob("*.yaml")))
+        raise KeyError(f"no shipped {what} {name!r}; shipped: {shipped}")
     return file

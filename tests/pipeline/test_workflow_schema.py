@@ -25,7 +25,8 @@ def validator():
 
 @pytest.mark.parametrize("name", workflows.names())
 def test_every_shipped_workflow_conforms(validator, name):
-    validator.validate(yaml.safe_load(workflows.path(name).read_text()))
+    errors = list(validator.iter_errors(yaml.safe_load(workflows.path(name).read_text())))
+    assert errors == [], [(list(e.absolute_path), e.message) for e in errors]
 
 
 @pytest.mark.parametrize(("edit", "where"), [
