@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 import os
+import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -19,10 +20,11 @@ from typing import Any
 import dask.array as da
 import numpy as np
 import xarray as xr
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.progress import Progress, TextColumn, TimeElapsedColumn
 
 from devices.patterns import vertical_line, white
 from devices.protocols import Camera, Projector, SyncController
+from pipeline.compute import BAR_COLUMNS, show_bars
 from pipeline.errors import DeviceError, Problem, SpecError
 from pipeline.locks import store_lock
 from pipeline.store import create_capture, missing_frames, open_store, write_frame
@@ -62,8 +64,13 @@ class SweepPlan:
         shape = f"{self.delays} delays × {self.exposures} exposures"
         if self.lines > 1:
             shape += f" × {self.lines} lines"
-        return (f"{self.captures} captures ({shape}) versus {self.pixel_to_pixel} for pixel-to-pixel scanning "
-                f"of the same range and resolution ({self.pixel_to_pixel / max(self.captures, 1):.1f}×)")
+        ratio = self.pixel_to_pixel / max(self.captures, 1)
+        verdict = (f"this sweep takes {ratio:.1f}× fewer captures" if ratio >= 1 else
+                   f"this sweep takes {1 / ratio:.1f}× as many captures here (it pays off on taller sensors and "
+                   "for the full transport)")
+        return (f"{self.captures} captures ({shape}); pixel-to-pixel scanning (§5.2.4: one block of projector rows "
+                f"lit per capture, as tall as the rows the scan crosses in one delay step) needs "
+                f"{self.pixel_to_pixel:,} for the same rows: {verdict}")
 
 
 def plan_sweep(delays: Sequence[float], exposures: Sequence[float], lines: Sequence[float] | None = None, *,
@@ -117,22 +124,25 @@ def _sweep_frames(instruments: ProcamInstruments, store, template: xr.Dataset, k
     if speed > 0 and len(delays) > 1:  # the §5.2.4 comparison: lighting one block of rows at a time instead
         step = float(np.min(np.diff(np.sort(delays))))
         lines = template["line"].values if "line" in template.dims else None
-        log("plan: " + plan_sweep(delays, exposures, lines, row_block=max(speed * step, 1.0),
+        log("   plan: " + plan_sweep(delays, exposures, lines, row_block=max(speed * step, 1.0),
                                   row_span=instruments.camera.shape[0]).describe())
     create_capture(store, template, kind)
     todo = missing_frames(store)["image"]
     if not todo:
-        log(f"{store}: every frame is already captured")
+        log(f"   every frame is already captured in {store}")
         return open_store(store)
     dims = [d for d in ("delay", "exposure", "line") if d in template.dims]
     index = {d: {float(v): i for i, v in enumerate(template[d].values)} for d in dims}
     todo = sorted(todo, key=lambda f: (f["exposure"], f.get("line", 0.0), f["delay"]))
     total = int(np.prod([template.sizes[d] for d in dims]))
-    log(f"{store}: capturing {len(todo)} frame(s)" + (" (resuming)" if len(todo) < total else ""))
-    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
+    resuming = len(todo) < total
+    log(f"   capturing {len(todo)} frame(s) into {store}" + (" (resuming: the others are already captured)"
+                                                           if resuming else ""))
     current: dict[str, Any] = {}
-    with Progress(*columns, disable=not progress) as bar:
-        task = bar.add_task(kind, total=len(todo))
+    began = time.perf_counter()
+    with Progress(*BAR_COLUMNS, TextColumn("frames"), TimeElapsedColumn(), disable=not show_bars(progress),
+                  transient=True) as bar:
+        task = bar.add_task("capture", total=len(todo))
         for frame in todo:
             if current.get("line", object()) != frame.get("line"):
                 instruments.projector.show(pattern_of(frame.get("line")))
@@ -144,8 +154,9 @@ def _sweep_frames(instruments: ProcamInstruments, store, template: xr.Dataset, k
             instruments.sync.arm()
             image = instruments.camera.capture()
             write_frame(store, "image", {d: index[d][float(frame[d])] for d in dims}, image)
-            bar.update(task, advance=1, description=f"{kind} t_d={frame['delay']:g} µs t_e={frame['exposure']:g} µs"
-                       + (f" l_p={frame['line']:g} px" if "line" in frame else ""))
+            bar.update(task, advance=1, description=f"capture: t_d = {frame['delay']:g} µs, t_e = "
+                       f"{frame['exposure']:g} µs" + (f", l_p = {frame['line']:g} px" if "line" in frame else ""))
+    log(f"   captured {len(todo)} frame(s) in {time.perf_counter() - began:.1f} s")
     return open_store(store)
 
 

@@ -12,6 +12,7 @@ angle (beam frame, then backlit frame), the dark frame, then the reference at ea
 from __future__ import annotations
 
 import os
+import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -19,10 +20,11 @@ from typing import Any
 import dask.array as da
 import numpy as np
 import xarray as xr
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.progress import Progress, TextColumn, TimeElapsedColumn
 
 from devices.protocols import Camera, LightSource, RotaryStage, SampleChanger
 from devices.serial_stage import angular_distance
+from pipeline.compute import BAR_COLUMNS, show_bars
 from pipeline.errors import DeviceError
 from pipeline.locks import store_lock
 from pipeline.store import create_capture, missing_frames, open_store, write_frame
@@ -86,17 +88,21 @@ def _sweep(rig: TomographyRig, store: str | os.PathLike, angles: Sequence[float]
             for name, frames in missing.items()}
     total = sum(len(v) for v in todo.values())
     if not total:
-        log(f"{store}: every frame is already captured")
+        log(f"   every frame is already captured in {store}")
         return open_store(store)
-    log(f"{store}: capturing {total} frame(s)" + (" (resuming)" if total < 3 * len(angles) + 1 else ""))
-    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
-    with Progress(*columns, disable=not progress) as bar:
-        task = bar.add_task("acquire_tomography", total=total)
+    resuming = total < 3 * len(angles) + 1
+    log(f"   capturing {total} frame(s) into {store}" + (" (resuming: the others are already captured)" if resuming
+                                                         else ""))
+    began = time.perf_counter()
+    with Progress(*BAR_COLUMNS, TextColumn("frames"), TimeElapsedColumn(), disable=not show_bars(progress),
+                  transient=True) as bar:
+        task = bar.add_task("capture", total=total)
 
         def shoot(variable: str, position: dict[str, int]) -> None:
             frame = rig.camera.capture()
             write_frame(store, variable, position, frame)
-            bar.update(task, advance=1, description=f"{variable} {position or ''}")
+            where = f" at φ = {angles[position['angle']]:g}°" if "angle" in position else ""
+            bar.update(task, advance=1, description=f"capture: {variable} frame{where}")
 
         rig.stage.home()
         target_like = sorted(set(todo["target"]) | set(todo["backlit"]))
@@ -124,6 +130,7 @@ def _sweep(rig: TomographyRig, store: str | os.PathLike, angles: Sequence[float]
                 _move(rig, angles[i])
                 shoot("reference", {"angle": i})
         rig.beam.set(False)
+    log(f"   captured {total} frame(s) in {time.perf_counter() - began:.1f} s")
     return open_store(store)
 
 

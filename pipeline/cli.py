@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import shutil
@@ -11,9 +12,14 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated
 
+import dask
+import numpy as np
 import typer
+import typer.core
+import typer.models
 from rich.console import Console
 from rich.markup import escape
+from rich.padding import Padding
 from rich.table import Table
 
 import workflows as shipped
@@ -24,13 +30,40 @@ from pipeline.errors import SelpathError, StoreError
 from pipeline.integrity import verify_store
 from pipeline.locks import store_lock
 from pipeline.provenance import read_provenance
-from pipeline.registry import default_registry
-from pipeline.report import summary_lines, write_html
+from pipeline.registry import default_registry, plain_text
+from pipeline.report import report_tables, summary_lines, write_html
 from pipeline.spec import load_workflow
 from pipeline.store import forget_frames, is_complete, missing_frames, open_store
 
-app = typer.Typer(help="selpath: selected light path measurement, from capture to science.",
-                  no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False)
+
+class _Command(typer.core.TyperCommand):
+    """A command whose help shows no ``<bool>`` type beside ``--help`` (flags say what they do)."""
+
+    def get_help_option(self, ctx):
+        return _untyped(super().get_help_option(ctx))
+
+
+class _Group(typer.core.TyperGroup):
+    def get_help_option(self, ctx):
+        return _untyped(super().get_help_option(ctx))
+
+
+def _untyped(option):
+    if option is not None:
+        option.metavar = ""
+    return option
+
+
+# docstrings and help texts are Markdown: ``code`` renders as code, never as raw backticks
+app = typer.Typer(help="selpath: selected light path measurement, from capture to science.", cls=_Group,
+                  no_args_is_help=True, add_completion=False, pretty_exceptions_enable=False,
+                  rich_markup_mode="markdown")
+command = functools.partial(app.command, cls=_Command)
+
+
+def _flag(name: str, help: str) -> typer.models.OptionInfo:  # noqa: A002 - typer's own keyword
+    """An on/off option shown as ``--name`` alone (off unless given)."""
+    return typer.Option(f"--{name}", help=help, metavar="")
 console = Console()
 errors = Console(stderr=True)
 
@@ -45,7 +78,7 @@ def _version(show: bool) -> None:
 
 @app.callback()
 def _main(version: Annotated[bool, typer.Option("--version", help="print the version and exit", callback=_version,
-                                                is_eager=True)] = False) -> None:
+                                                is_eager=True, metavar="")] = False) -> None:
     """selpath: selected light path measurement, from capture to science."""
 
 
@@ -82,27 +115,50 @@ def _guard() -> Iterator[None]:
 
 
 def _print_report(report: RunReport) -> None:
-    table = Table(title=f"workflow {report.workflow}: {report.seconds:.1f} s")
-    for column in ("step", "status", "why"):
-        table.add_column(column)
+    """One row per step: what happened and how long it took (the reasons were printed with each step's heading)."""
+    table = Table(title=f"workflow {escape(report.workflow)}: {report.seconds:.1f} s, {len(report.written)} "
+                  "output(s) written")
+    for column in ("step", "stage", "status", "time"):
+        table.add_column(column, justify="right" if column == "time" else "left")
     colours = {"computed": "green", "reused": "cyan", "not needed": "dim"}
     for step in report.steps.values():
-        table.add_row(step.id, f"[{colours[step.status]}]{step.status}[/]", escape(step.reason))
+        seconds = "" if step.seconds is None else f"{step.seconds:.1f} s"
+        if step.seconds is None and step.status == "computed":
+            seconds = "[dim]in its reader[/]"
+        table.add_row(escape(step.id), escape(step.stage), f"[{colours[step.status]}]{step.status}[/]", seconds)
     console.print(table)
-    for store in report.written:
-        console.print(f"wrote {escape(store)}")
 
 
-@app.command()
+def _print_results(workflow) -> tuple[list[str], list]:
+    """The ``report:`` section's summary lines and tables, printed; returned for the page."""
+    summary, tables = summary_lines(workflow), report_tables(workflow)
+    for line in summary:
+        console.print(escape(line), highlight=False)
+    for view in tables:
+        table = Table(title=escape(view.title))
+        for column in view.columns:
+            table.add_column(escape(column), overflow="fold")
+        for row in view.rows:
+            table.add_row(*map(escape, row))
+        console.print(table)
+    return summary, tables
+
+
+@command()
 def run(
-    file: Annotated[Path, typer.Argument(help="workflow YAML file")],
-    scheduler: Annotated[str | None, typer.Option(help="override the workflow's scheduler")] = None,
-    force: Annotated[bool, typer.Option(help="recompute every output even if up to date")] = False,
-    progress: Annotated[bool, typer.Option(help="show a progress bar")] = True,
-    report: Annotated[bool, typer.Option(help="write the workflow's HTML report (its `report:` section, else "
-                                         "every figure beside the first output)")] = False,
+    file: Annotated[Path, typer.Argument(help="workflow YAML file", metavar="FILE", show_default=False)],
+    scheduler: Annotated[str | None, typer.Option(help="override the workflow's scheduler: synchronous, threads, "
+                                                  "processes or tcp://host:port", metavar="NAME")] = None,
+    force: Annotated[bool, _flag("force", "recompute every output even if up to date")] = False,
+    progress: Annotated[bool, typer.Option(help="show progress bars", metavar="")] = True,
+    report: Annotated[bool, _flag("report", "also write the workflow's HTML report (its `report:` section's "
+                                  "file, else beside the first output)")] = False,
 ) -> None:
-    """Validate and run a workflow; steps whose stored output is up to date are skipped."""
+    """Validate and run a workflow; steps whose stored output is up to date are reused, never recomputed.
+
+    Prints one heading per step (why it runs), then the steps' table and the `report:` section's summary and
+    tables.
+    """
     enable_compile_cache()
     if not file.exists() and file.suffix == "" and file.name in shipped.names():
         _fail(SelpathError(f"{file} is a shipped workflow, not a file here: copy it to run it where its stores "
@@ -112,20 +168,18 @@ def run(
         workflow = load_workflow(file)
         result = run_workflow(workflow, scheduler=scheduler, progress=progress, reuse=not force, log=console.print)
     _print_report(result)
-    if report:
-        with _guard():
-            _write_report(workflow, result)
+    with _guard():
+        summary, tables = _print_results(workflow)
+        if report:
+            _write_report(workflow, result, summary, tables)
 
 
-def _write_report(workflow, result: RunReport) -> None:
-    summary = summary_lines(workflow)
-    page = write_html(workflow, result, summary=summary)
-    for line in summary:
-        console.print(line)
+def _write_report(workflow, result: RunReport, summary: list[str], tables: list) -> None:
+    page = write_html(workflow, result, summary=summary, tables=tables)
     console.print(f"report: {escape(str(page))}")
 
 
-@app.command()
+@command()
 def schema() -> None:
     """Print the workflow file's JSON Schema, with every installed stage's settings, for YAML editors
     (``selpath schema > workflow.schema.json``; see the README)."""
@@ -134,10 +188,10 @@ def schema() -> None:
     print(json.dumps(workflow_schema(), indent=1, ensure_ascii=False))
 
 
-@app.command()
+@command()
 def workflows(
     copy: Annotated[Path | None, typer.Option(help="copy every shipped workflow and its scenes into this "
-                                              "folder, to run or edit")] = None,
+                                              "folder, to run or edit", metavar="DIR")] = None,
 ) -> None:
     """List the workflows selpath ships (or copy them, with their scenes, to edit)."""
     if copy is None:
@@ -159,8 +213,9 @@ def workflows(
     console.print(f"copied {len(shipped.names())} workflows and their scenes to {escape(str(copy))}")
 
 
-@app.command()
-def validate(file: Annotated[Path, typer.Argument(help="workflow YAML file")]) -> None:
+@command()
+def validate(file: Annotated[Path, typer.Argument(help="workflow YAML file", metavar="FILE",
+                                                 show_default=False)]) -> None:
     """Check a workflow without running it; lists every problem with file:line and the fix."""
     with _guard():
         workflow = load_workflow(file)
@@ -169,10 +224,11 @@ def validate(file: Annotated[Path, typer.Argument(help="workflow YAML file")]) -
                   + escape(", ".join(f"{n} -> {o.store}" for n, o in workflow.outputs.items())))
 
 
-@app.command()
+@command()
 def stages(
-    name: Annotated[str | None, typer.Argument(help="show one stage in full")] = None,
-    all_: Annotated[bool, typer.Option("--all", help="show every stage in full")] = False,
+    name: Annotated[str | None, typer.Argument(help="show one stage in full", metavar="NAME",
+                                               show_default=False)] = None,
+    all_: Annotated[bool, _flag("all", "show every stage in full")] = False,
 ) -> None:
     """List the registered stages, one line each; NAME (or --all) shows inputs, settings, defaults, units and docs."""
     with _guard():
@@ -185,30 +241,41 @@ def stages(
         for column in ("stage", "module", "what it does"):
             table.add_column(column, overflow="fold")
         for s in registry:
-            table.add_row(s.name, escape(s.func.__module__.removeprefix("stages.")), escape(s.summary))
+            table.add_row(s.name, escape(s.func.__module__.removeprefix("stages.")), escape(plain_text(s.summary)))
         console.print(table)
         return
-    chosen = [registry[name]] if name else list(registry)
-    for s in chosen:
-        table = Table(title=f"[bold]{s.name}[/]  ({s.source})", caption=escape(s.summary), show_lines=False)
-        for column in ("parameter", "kind", "type", "default", "description"):
-            table.add_column(column, overflow="fold")
-        for i in s.inputs:
-            table.add_row(i, "input", "Dataset/DataArray", "required" if i in s.required_inputs else "None", "")
-        for field_name, field in s.params.model_fields.items():
-            default = "required" if field.is_required() else repr(field.default)
-            table.add_row(field_name, "setting", escape(describe(field)), escape(default),
-                          escape(field.description or ""))
-        console.print(table)
+    for s in [registry[name]] if name else list(registry):
+        _print_stage(s)
 
 
-@app.command()
+def _print_stage(s) -> None:
+    """One stage in full: its summary, then each input and setting with its type, default and description."""
+    console.print(f"[bold]{escape(s.name)}[/]  [dim]({escape(s.source)})[/]")
+    console.print(escape(plain_text(s.summary)), highlight=False)
+    sections = (("inputs (data: $step or $step.variable)", [
+        (i, "required" if i in s.required_inputs else "optional", s.param_docs.get(i, "")) for i in s.inputs]),
+        ("settings", [(n, f"{describe(f)} = {'required' if f.is_required() else repr(f.default)}", f.description or "")
+                      for n, f in s.params.model_fields.items()]))
+    for title, rows in sections:
+        if not rows:
+            continue
+        console.print(f"\n  [underline]{title}[/]")
+        for field_name, kind, text in rows:
+            console.print(f"  [bold cyan]{escape(field_name)}[/]  {escape(kind)}", highlight=False)
+            if text:
+                console.print(Padding(escape(plain_text(text)), (0, 0, 0, 6)), highlight=False)
+    console.print()
+
+
+@command()
 def inspect(
-    store: Annotated[Path, typer.Argument(help="a selpath zarr store")],
-    verify: Annotated[bool, typer.Option(help="read every chunk and list the missing and corrupt ones")] = False,
-    recapture: Annotated[bool, typer.Option(help="with --verify: mark capture frames with bad chunks as not "
-                                                   "captured, so the next run of the acquisition captures them "
-                                                   "again")] = False,
+    store: Annotated[Path, typer.Argument(help="a selpath zarr store", metavar="STORE", show_default=False)],
+    verify: Annotated[bool, _flag("verify", "read every chunk and list the missing and corrupt ones")] = False,
+    recapture: Annotated[bool, _flag("recapture", "with --verify: mark capture frames with bad chunks as not "
+                                     "captured, so the next run of the acquisition captures them again")] = False,
+    valid: Annotated[bool | None, typer.Option("--valid/--no-valid", metavar="",
+                                               help="compute each variable's valid share (reads every value; "
+                                               f"default: for stores of at most {VALID_LIMIT:.0e} values)")] = None,
 ) -> None:
     """Check a store and show its kind, dims, coords with units, variables, missing frames and provenance.
 
@@ -230,9 +297,9 @@ def inspect(
         bad = verify_store(store) if verify else []
         provenance = read_provenance(store)
         complete = is_complete(store) or bool(missing)
-    console.print(f"[bold]{escape(str(store))}[/]: {ds.attrs.get('selpath_kind')} cube, format "
-                  f"{ds.attrs.get('selpath_format')}")
-    console.print(ds.drop_vars([v for v in ds.data_vars if str(v).startswith("written__")]))
+    with _guard():
+        _describe_store(store, ds.drop_vars([v for v in ds.data_vars if str(v).startswith("written__")]), valid,
+                        readable=not bad)
     incomplete = not complete
     for variable, frames in missing.items():
         state = "[green]complete[/]" if not frames else f"[yellow]{len(frames)} frames missing[/], first {frames[0]}"
@@ -246,10 +313,74 @@ def inspect(
     if verify:
         _print_bad(bad, recapture and store)
     if provenance:
-        summary = {k: provenance.get(k) for k in ("workflow", "output", "created", "step_hash", "versions")}
-        console.print_json(json.dumps(summary))
+        console.print("[underline]provenance[/]")
+        step = provenance.get("step_record", {})
+        lines = {"workflow": f"{provenance.get('workflow')} ({provenance.get('workflow_source')}), output "
+                             f"{provenance.get('output')}",
+                 "step": f"stage {step.get('stage')}, settings {json.dumps(step.get('settings', {}))}",
+                 "created": f"{provenance.get('created')} with selpath {provenance.get('versions', {}).get('selpath')}"
+                            f" ({provenance.get('scheduler')} scheduler)",
+                 "step hash": str(provenance.get("step_hash"))}
+        for key, value in lines.items():
+            console.print(f"  {key}: {escape(value)}", highlight=False, soft_wrap=True)
+    else:
+        console.print("provenance: none (a store selpath did not write, or one still being written)")
     if incomplete or bad:
         raise typer.Exit(1)
+
+
+#: ``inspect`` computes valid shares by default for stores of at most this many values (reading more takes long)
+VALID_LIMIT = 2e8
+
+
+def _describe_store(path: Path, ds, valid: bool | None, readable: bool) -> None:
+    """Kind, dims, coordinates with units, attrs and each variable with units and valid share."""
+    from pipeline.quality import valid_shares
+    from pipeline.schema import KINDS
+
+    kind = ds.attrs.get("selpath_kind")
+    about = KINDS[kind].description if kind in KINDS else "unknown kind"
+    console.print(f"[bold]{escape(str(path))}[/]: {escape(str(kind))} store, format {ds.attrs.get('selpath_format')}"
+                  f" ({escape(about)})", highlight=False)
+    console.print("dims: " + ", ".join(f"{d} {n:,}" for d, n in ds.sizes.items()), highlight=False)
+    total = sum(int(v.size) for v in ds.data_vars.values())
+    shares, scalar_values, unread = {}, {}, "valid share not computed (--valid reads every value)"
+    if readable:
+        try:
+            shares = valid_shares(ds) if valid or (valid is None and total <= VALID_LIMIT) else {}
+            scalars = [n for n, v in ds.data_vars.items() if v.ndim == 0]
+            scalar_values = dict(zip(scalars, dask.compute(*(ds[n].data for n in scalars)), strict=True))
+        except StoreError:
+            shares, unread = {}, "values not read: a chunk is bad (--verify lists every bad chunk)"
+    else:
+        unread = "values not read: bad chunks (below)"
+    for title, group in (("coordinates", ds.coords), ("variables", ds.data_vars)):
+        console.print(f"[underline]{title}[/]")
+        for name, array in group.items():
+            units = array.attrs.get("units")
+            head = (f"  [bold cyan]{escape(str(name))}[/] ({escape(', '.join(map(str, array.dims)))}) {array.dtype}"
+                    + (f" \\[{escape(str(units))}]" if units else ""))
+            if name in scalar_values:
+                head += f" = {np.asarray(scalar_values[name]).item():.6g}"
+            elif title == "coordinates" and array.size and np.issubdtype(array.dtype, np.number):
+                head += f": {array.values.min():g} … {array.values.max():g}"
+            elif title == "variables":
+                share = shares.get(str(name))
+                head += (f": {unread}" if not shares else
+                         "" if share is None else f": {share:.1%} {'true' if array.dtype == bool else 'finite'}"
+                         if isinstance(share, float) else
+                         ": " + ", ".join(f"{k} {v:.1%}" for k, v in share.items() if v or k == "valid"))
+            console.print(head, highlight=False, soft_wrap=True)
+            if array.attrs.get("long_name"):
+                console.print(f"      {escape(str(array.attrs['long_name']))}", highlight=False, soft_wrap=True)
+    hidden = ("selpath_kind", "selpath_format")
+    attrs = {k: v for k, v in ds.attrs.items() if k not in hidden and not k.startswith("_")}
+    if attrs:
+        console.print("[underline]attrs[/]")
+        for key, value in attrs.items():
+            text = json.dumps(value, default=str, ensure_ascii=False)
+            console.print(f"  {escape(key)}: {escape(text if len(text) <= 200 else text[:197] + '…')}",
+                          highlight=False, soft_wrap=True)
 
 
 def _print_bad(bad: list, recapture_store: Path | bool) -> None:
@@ -262,16 +393,16 @@ def _print_bad(bad: list, recapture_store: Path | bool) -> None:
         console.print(f"marked {frames} frame(s) as not captured: run the acquisition again to capture them")
 
 
-@app.command()
+@command()
 def demo(
-    out: Annotated[Path, typer.Option(help="folder for the demo's stores")] = Path("selpath-demo"),
-    instrument: Annotated[str, typer.Option(help=f"{', '.join(shipped.DEMO)} or all")] = "all",
-    scheduler: Annotated[str | None, typer.Option(help="override the scheduler")] = None,
+    out: Annotated[Path, typer.Option(help="folder for the demo's stores", metavar="DIR")] = Path("selpath-demo"),
+    instrument: Annotated[str, typer.Option(help=f"{', '.join(shipped.DEMO)} or all", metavar="NAME")] = "all",
+    scheduler: Annotated[str | None, typer.Option(help="override the scheduler", metavar="NAME")] = None,
 ) -> None:
-    """The main jobs on the built-in simulated rigs: the shipped workflows of ``workflows.DEMO`` (the gelatin
-    bin's tomography and the projector–camera rig's plane-to-ray transport).
+    """The main jobs on the built-in simulated rigs: the gelatin bin's tomography (workflow `tomography-sim`) and the
+    projector–camera rig's plane-to-ray transport (`procam-sim`).
 
-    Writes every store and figure under ``--out``, and the report each workflow declares beside them.
+    Writes every store and figure under `--out`, and each workflow's HTML report beside them.
     """
     enable_compile_cache()
     names = list(shipped.DEMO) if instrument == "all" else [instrument]
@@ -282,7 +413,7 @@ def demo(
             workflow = load_workflow(shipped.path(shipped.DEMO[name])).rerooted(out)
             result = run_workflow(workflow, scheduler=scheduler, log=console.print)
             _print_report(result)
-            _write_report(workflow, result)
+            _write_report(workflow, result, *_print_results(workflow))
 
 
 def main() -> None:

@@ -16,6 +16,7 @@ from typing import Any
 
 import dask
 from dask.callbacks import Callback
+from rich import get_console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
 #: Environment of worker processes: one thread for XLA and BLAS each, since dask owns the parallelism.
@@ -47,6 +48,15 @@ def enable_compile_cache() -> Path | None:
         jax.config.update(name, value)
         os.environ[name.upper()] = str(value)  # inherited by dask worker processes
     return folder
+
+
+def show_bars(progress: bool) -> bool:
+    """Whether to draw progress bars: asked for, and on a terminal (a log file gets the engine's lines only)."""
+    return progress and get_console().is_terminal
+
+
+#: the columns every progress bar of selpath starts with (the unit and elapsed time follow): what, bar, done/total
+BAR_COLUMNS = (TextColumn("   {task.description}"), BarColumn(bar_width=30), MofNCompleteColumn())
 
 
 class _RichCallback(Callback):
@@ -102,6 +112,7 @@ def compute(collections: Sequence[Any], *, scheduler: str, client: Any = None, p
     local = scheduler if scheduler in ("synchronous", "threads") else "threads"
     if not progress:
         return dask.compute(*collections, scheduler=local, optimize_graph=optimize)
-    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
-    with Progress(*columns, transient=False) as bar, _RichCallback(bar, description):
+    # transient: a finished bar gives way to the engine's one line per output (what was written, how long)
+    with Progress(*BAR_COLUMNS, TextColumn("tasks"), TimeElapsedColumn(), transient=True,
+                  disable=not show_bars(True)) as bar, _RichCallback(bar, description):
         return dask.compute(*collections, scheduler=local, optimize_graph=optimize)

@@ -80,6 +80,12 @@ class StepReport:
     id: str
     status: str  # "computed" | "reused" | "not needed"
     reason: str
+    #: the step's stage name
+    stage: str = ""
+    #: wall-clock seconds the step took in this run: its stage call (an acquisition captures there) plus the writing
+    #: of its outputs (where a lazy step's work happens, with that of the unstored steps it reads); None for an
+    #: unstored (intermediate) step, whose work is counted in the output that reads it
+    seconds: float | None = None
 
 
 @dataclass
@@ -166,19 +172,26 @@ class _Graph:
         for out in self._outputs_of.get(step_id, []):
             if out.store in self.report.fresh:
                 self.results[step_id] = open_store(out.store)
-                self.report.steps[step_id] = StepReport(step_id, "reused", f"{out.store} has the same provenance")
-                self.log(f"[dim]skip[/] {escape(step_id)}: {escape(out.store)} is up to date")
+                self.report.steps[step_id] = StepReport(step_id, "reused", f"{out.store} has the same provenance",
+                                                        step.stage.name)
+                self.log(f"[dim]── {escape(step_id)} ({escape(step.stage.name)}): reused, {escape(out.store)} is up "
+                         "to date[/]")
                 return self.results[step_id]
-            reasons.append(_why_changed(self._stored[out.store], record, out.store) if self.reuse else "forced")
+            reasons.append(_why_changed(self._stored[out.store], record, out.store) if self.reuse else
+                           "forced (--force)")
         inputs = {name: _select(self.resolve(ref.step), ref, step) for name, ref in step.inputs.items()}
         own = [o.store for o in self._outputs_of.get(step_id, []) if o.store in self.workflow.self_written]
         recaptured = [s for s in own if self._stored[s] is not None]  # frames captured again into a finished store
+        stored = bool(self._outputs_of.get(step_id))
+        reason = "; ".join(reasons) if stored else "intermediate step: computed while writing the outputs that read it"
+        self.report.steps[step_id] = StepReport(step_id, "computed", reason, step.stage.name)
+        self.log(f"[bold]── {escape(step_id)}[/] ({escape(step.stage.name)}): {escape(reason)}")
+        start = time.perf_counter()
         self.results[step_id] = _call(step, inputs)
+        if stored:
+            self.report.steps[step_id].seconds = time.perf_counter() - start
         if recaptured:
             self._stale_after(step_id)
-        reason = "; ".join(reasons) if reasons else "no stored output (intermediate step)"
-        self.report.steps[step_id] = StepReport(step_id, "computed", reason)
-        self.log(f"[bold]run[/]  {escape(step_id)} ({step.stage.name}): {escape(reason)}")
         return self.results[step_id]
 
     def _stale_after(self, step_id: str) -> None:
@@ -195,8 +208,9 @@ class _Graph:
                 if i not in self.checked and self.report.steps.get(i, StepReport(i, "", "")).status == "computed"]
 
     def finish(self) -> None:
-        for step_id in self.workflow.steps:
-            self.report.steps.setdefault(step_id, StepReport(step_id, "not needed", "no output depends on it"))
+        for step_id, step in self.workflow.steps.items():
+            self.report.steps.setdefault(step_id, StepReport(step_id, "not needed", "no output depends on it",
+                                                             step.stage.name))
 
 
 def build(workflow: Workflow, *, reuse: bool = True, log: Callable[[str], None] = lambda _: None):
@@ -243,12 +257,16 @@ def run_workflow(workflow: Workflow, *, scheduler: str | None = None, progress: 
                 result = graph.resolve(out.from_)
                 if out.store in graph.report.fresh:
                     continue
+                began = time.perf_counter()
                 if out.store in workflow.self_written:  # the stage filled it as it ran: record, never rewrite
                     _record(workflow, graph.records, name, out, scheduler, out.store)
                 else:
                     _write_output(graph, name, out, _as_dataset(result, name), scheduler, client, progress,
-                                  f"{workflow.name}: {name} ({number}/{len(outputs)})")
+                                  f"output {number}/{len(outputs)}: writing {os.path.basename(out.store)}")
                 graph.report.written.append(out.store)
+                step = graph.report.steps[out.from_]
+                step.seconds = (step.seconds or 0.0) + time.perf_counter() - began
+                log(f"   wrote {escape(out.store)} ({step.seconds:.1f} s)")
                 graph.results[out.from_] = open_store(out.store)  # the steps after it read the stored cube
     graph.finish()
     graph.report.seconds = time.perf_counter() - start
@@ -317,7 +335,7 @@ def _usable(staging: str, step_id: str, data: xr.Dataset, carried: dict[str, tup
     problems = [p for step, values in found.items() for p in below_floor(step, values, attrs[step])]
     for step, values in found.items():
         for var, value in values.items():
-            graph.log(f"[dim]usable[/] {escape(step)}: {escape(attrs[step][var][WHAT])}: {value:.1%}")
+            graph.log(f"   usable ({escape(step)}): {value:.1%} of {escape(attrs[step][var][WHAT])}")
     if problems and explain:
         upstream = [(step, var, share) for step in explain for var, share in shares(graph.results[step]).items()]
         scheduler, client = compute_on

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import itertools
 import os
+import warnings
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -34,6 +35,25 @@ MANIFEST = "manifest"
 WRITTEN_PREFIX = "written__"
 #: format from which chunks carry checksums, fill-valued chunks are written and a manifest marks completion
 CHECKSUMMED_FORMAT = 2
+
+
+def open_group(path: str | os.PathLike, mode: str = "r") -> zarr.Group:
+    """The store's root group as its nodes' own ``zarr.json`` files say, never the consolidated copy in the
+    root's: selpath reads and writes stores through this, so a copy made stale (a units attr edited with zarr,
+    a store written by plain xarray) never decides what selpath sees."""
+    return zarr.open_group(os.fspath(path), mode=mode, use_consolidated=False)
+
+
+def consolidate(path: str | os.PathLike) -> None:
+    """Copy the metadata of every node into the root ``zarr.json`` (zarr-python's consolidated metadata), so
+    plain ``xr.open_zarr(path)`` opens the store at once, without its warning about missing consolidated
+    metadata. Called last on every path that writes metadata (:func:`write_manifest`,
+    :func:`pipeline.provenance.write_provenance`); chunk writes (frames) change no metadata and leave it valid.
+    zarr replaces ``zarr.json`` atomically, so a kill here leaves the old root metadata, never a torn one."""
+    with warnings.catch_warnings():  # zarr warns that v3 has no consolidated metadata in its spec; selpath knows
+        warnings.filterwarnings("ignore", message="Consolidated metadata is currently not part",
+                                category=UserWarning)
+        zarr.consolidate_metadata(os.fspath(path))
 
 
 def compressors() -> tuple:
@@ -54,15 +74,16 @@ def write_manifest(path: str | os.PathLike, ds: xr.Dataset, *, complete: bool = 
     """Record that ``path`` holds ``ds`` completely (or, for captures filled frame by frame, that its frame
     flags say what is complete), with the units of every coordinate and variable as the store holds them
     (its kind's metadata applied when it was written: read back, not taken from ``ds``)."""
-    group = zarr.open_group(os.fspath(path), mode="r+")
+    group = open_group(path, mode="r+")
     stored = {name: array.attrs.get("units") for name, array in group.arrays()}
     units = {name: stored.get(name, units) for name, units in units_of(ds).items()}
     group.require_group(PROVENANCE_GROUP).attrs[MANIFEST] = {"complete": complete, "units": units}
+    consolidate(path)
 
 
 def read_manifest(path: str | os.PathLike) -> dict[str, Any] | None:
     try:
-        group = zarr.open_group(os.fspath(path), mode="r")
+        group = open_group(path)
         return dict(group[PROVENANCE_GROUP].attrs[MANIFEST])
     except (FileNotFoundError, KeyError, zarr.errors.GroupNotFoundError, zarr.errors.NodeTypeValidationError):
         return None
@@ -113,7 +134,7 @@ def present_chunks(path: str | os.PathLike, name: str, array: zarr.Array) -> np.
 
 def written_frames(path: str | os.PathLike, variable: str, flags: np.ndarray) -> np.ndarray:
     """Frames flagged written whose chunks are all on disk: a deleted chunk makes its frame missing again."""
-    group = zarr.open_group(os.fspath(path), mode="r")
+    group = open_group(path)
     array = group[variable]
     present = present_chunks(path, variable, array)
     if present is None:
@@ -130,7 +151,7 @@ def written_frames(path: str | os.PathLike, variable: str, flags: np.ndarray) ->
 
 def absent_chunks(path: str | os.PathLike, variables: Iterable[str]) -> list[Problem]:
     """Chunks missing from a store that says it is complete (format ≥ 2 writes every chunk)."""
-    group = zarr.open_group(os.fspath(path), mode="r")
+    group = open_group(path)
     problems = []
     for name in variables:
         array = group[name]
@@ -168,7 +189,7 @@ def verify_store(path: str | os.PathLike) -> list[BadChunk]:
     """
     where = os.fspath(path)
     try:
-        group = zarr.open_group(where, mode="r")
+        group = open_group(where)
     except Exception as exc:  # noqa: BLE001 - absent, not zarr, or metadata unreadable
         raise StoreError(Problem(f"cannot be read as a zarr store ({type(exc).__name__}: {exc})", where=where,
                                  fix="check the path; a store whose metadata is gone cannot be verified")) from exc
@@ -236,7 +257,7 @@ class CheckedArray:
             size = self.disk_chunks[axis]
             ranges.append(range(start // size, max(start // size + 1, -(-stop // size))))
         bad = []
-        group = zarr.open_group(self.where, mode="r")
+        group = open_group(self.where)
         for coords in itertools.product(*ranges):
             try:
                 group[self.name].get_block_selection(coords)

@@ -33,7 +33,13 @@ def _from_format_3(ds: xr.Dataset) -> xr.Dataset:
     return with_metadata(ds, kind) if kind in KINDS else ds
 
 
+def _from_format_4(ds: xr.Dataset) -> xr.Dataset:
+    """Format 4 → 5: the solvers' extra variables (iterations, converged, objective, residuals, masks) get the
+    units and long names their kind now declares; format 4 wrote them bare."""
+    return _from_format_3(ds)
+
+
 #: Migrations from older formats: ``{old_version: function(Dataset) -> Dataset of old_version + 1}``.
 #: Archives are migrated step by step on open, never guessed.
 MIGRATIONS: dict[int, Callable[[xr.Dataset], xr.Dataset]] = {1: _from_format_1, 2: _from_format_2,
-                                                                3: _from_format_3}
+                                                                3: _from_format_3, 4: _from_format_4}

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import zarr
 
-from pipeline.integrity import PROVENANCE_GROUP
+from pipeline.integrity import PROVENANCE_GROUP, consolidate, open_group
 
 
 def jsonable(value: Any) -> Any:
@@ -34,16 +34,18 @@ def _json_default(value: Any) -> Any:
 
 
 def write_provenance(path: str | os.PathLike, provenance: Mapping[str, Any]) -> None:
-    """Record how a store was made, in its ``_selpath`` child group (safe from appends)."""
-    group = zarr.open_group(os.fspath(path), mode="r+")
+    """Record how a store was made, in its ``_selpath`` child group (safe from appends), and consolidate the
+    store's metadata again (written last, provenance would otherwise be missing from the consolidated copy)."""
+    group = open_group(path, mode="r+")
     child = group.require_group(PROVENANCE_GROUP)
     child.attrs["provenance"] = jsonable(dict(provenance))
+    consolidate(path)
 
 
 def read_provenance(path: str | os.PathLike) -> dict[str, Any] | None:
     """The provenance recorded by :func:`write_provenance`, or None if the store has none (or is absent)."""
     try:
-        group = zarr.open_group(os.fspath(path), mode="r")
+        group = open_group(path)
         return dict(group[PROVENANCE_GROUP].attrs["provenance"])
     except (FileNotFoundError, KeyError, zarr.errors.GroupNotFoundError, zarr.errors.NodeTypeValidationError):
         return None

@@ -63,3 +63,34 @@ def enforce(result: xr.Dataset, step: str = "result") -> dict[str, float]:
     if problems:
         raise StageError(problems)
     return values
+
+
+def valid_shares(ds: xr.Dataset) -> dict[str, dict[str, float] | float | None]:
+    """What share of each data variable holds a value, for people (``selpath inspect``), in one pass.
+
+    A floating variable: the share of finite values (flagged pixels hold NaN). A CF flags variable (attrs
+    ``flag_masks``, ``flag_meanings``): the share of values 0 (valid) under ``"valid"`` and the share with each
+    flag bit set under its meaning. A boolean variable: the share true. Other variables (counts, images): None.
+    """
+    lazy: dict[str, dict[str, xr.DataArray] | xr.DataArray] = {}
+    for name, array in ds.data_vars.items():
+        masks, meanings = array.attrs.get("flag_masks"), array.attrs.get("flag_meanings")
+        if masks is not None and meanings is not None and np.issubdtype(array.dtype, np.integer):
+            bits = dict(zip(str(meanings).split(), np.atleast_1d(masks).tolist(), strict=False))
+            lazy[str(name)] = {"valid": (array == 0).mean()} | {m: ((array & int(b)) != 0).mean()
+                                                                 for m, b in bits.items()}
+        elif np.issubdtype(array.dtype, np.floating) and array.ndim:
+            lazy[str(name)] = np.isfinite(array).mean()
+        elif array.dtype == bool and array.ndim:
+            lazy[str(name)] = array.mean()
+    flat = [(name, key, value) for name, entry in lazy.items()
+            for key, value in (entry.items() if isinstance(entry, dict) else [(None, entry)])]
+    values = dask.compute(*(value.data for _, _, value in flat))
+    out: dict[str, dict[str, float] | float | None] = {str(n): None for n in ds.data_vars}
+    for (name, key, _), value in zip(flat, values, strict=True):
+        if key is None:
+            out[name] = float(value)
+        else:
+            entry = out[name] if isinstance(out[name], dict) else {}
+            out[name] = entry | {key: float(value)}
+    return out

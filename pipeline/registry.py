@@ -65,6 +65,15 @@ class Stage:
         return self.func(*args, **kwargs)
 
 
+_ROLE = re.compile(r":(?:func|class|mod|data|meth|attr|obj|exc):`~?([^`]+)`")
+
+
+def plain_text(doc: str) -> str:
+    """Docstring text for people: reST roles (``:func:`x```) and literals (````x````) as plain ``x``."""
+    return _ROLE.sub(lambda m: m.group(1).rsplit(".", 1)[-1] if m.group(0).count("~") else m.group(1),
+                     doc).replace("``", "")
+
+
 def _param_docs(doc: str) -> dict[str, str]:
     """Descriptions of parameters from a numpydoc ``Parameters`` section."""
     docs: dict[str, str] = {}
@@ -79,10 +88,11 @@ def _param_docs(doc: str) -> dict[str, str]:
         if i + 1 < len(lines) and re.match(r"^-{3,}$", lines[i + 1].strip()):
             break  # the next section begins
         if line and not line.startswith(" "):
-            current = line.split(":")[0].strip()
-            docs[current] = ""
+            current = [name.strip() for name in line.split(":")[0].split(",")]  # "alpha, beta : float" documents both
+            docs.update(dict.fromkeys(current, ""))
         elif current and line.strip():
-            docs[current] = (docs[current] + " " + line.strip()).strip()
+            for name in current:
+                docs[name] = (docs[name] + " " + line.strip()).strip()
     return docs
 
 

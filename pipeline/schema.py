@@ -23,7 +23,9 @@ from pipeline.errors import Problem
 #: reconstructions are; formats 1–2 named that dim ``row``, without a coordinate.
 #: Format 4 (2026-12): every variable a kind declares has the ``units`` and ``long_name`` the kind fixes
 #: (:class:`Variable`), written by :func:`with_metadata` and checked on open.
-FORMAT_VERSION = 4
+#: Format 5 (2026-12): the solvers' and calibrations' extra variables (iterations, convergence, objective,
+#: residuals, masks) are declared too, optional, with their units and long names; format 4 left them bare.
+FORMAT_VERSION = 5
 
 
 PIXEL_DIMS = ("row", "col")
@@ -99,10 +101,34 @@ def camera_attr_problems(attrs: Mapping, *, sensor_defaults: bool = False) -> li
 
 
 _FRAME = ("row", "col")
+#: the per-pixel solver's results beside a transport (:mod:`stages.procam.demux`)
+_DEMUX_EXTRAS = {
+    "iterations": Variable(_FRAME, required=False, units="1", long_name="ADMM iterations run for the pixel"),
+    "converged": Variable(_FRAME, required=False, units=None, long_name="the pixel's solve met its tolerance"),
+    "frames_used": Variable(_FRAME, required=False, units="1",
+                            long_name="frames used for the pixel (neither saturated nor missing)"),
+    "objective": Variable(_FRAME, required=False, units="1",
+                          long_name="objective at T (images scaled to [0, 1])"),
+}
 _COUNTS = {"units": "counts", "long_name": "sensor counts"}
 _FLAGS = {"units": None, "long_name": "why a pixel is invalid (CF flags; 0: valid)"}
 _ABSORPTION = "total absorption A = log I_reference − log I_target"
 _SIGMA, _SIGMA_NAME = "1/{length}", "absorption coefficient σ"
+#: what a reconstruction holds beside σ (:mod:`stages.tomography.reconstruct`; ADMM's only with ``reconstruct_tv``)
+_RECONSTRUCTION_EXTRAS = {
+    "reliable": Variable(("y", "x"), required=False, units=None,
+                         long_name="cell every ray through which is observed or known"),
+    "sigma_max": Variable(("y", "x"), required=False, units=_SIGMA,
+                          long_name="upper bound σ_max of the box constraint"),
+    "iterations": Variable((), required=False, units="1", long_name="ADMM iterations run"),
+    "converged": Variable((), required=False, units=None, long_name="ADMM met its tolerance"),
+    "objective": Variable(("iteration",), required=False, units="1",
+                          long_name="objective of Eq. 20 per ADMM iteration (NaN after the stop)"),
+    "primal_residual": Variable(("iteration",), required=False, units="1",
+                                long_name="relative primal residual per ADMM iteration (NaN after the stop)"),
+    "dual_residual": Variable(("iteration",), required=False, units="1",
+                              long_name="relative dual residual per ADMM iteration (NaN after the stop)"),
+}
 KINDS: dict[str, CubeKind] = {
     k.name: k
     for k in (
@@ -193,6 +219,8 @@ KINDS: dict[str, CubeKind] = {
                                   long_name="illuminated camera rows"),
                 "centroid": Variable(("delay", "exposure"), description="row centroid of the lit band", units="px",
                                      long_name="camera row at the lit band's centroid"),
+                "used": Variable(("delay", "exposure"), required=False, units=None,
+                                 long_name="frame used in the fit (a band inside the frame)"),
             },
             coord_units={"delay": TIME_UNITS, "exposure": TIME_UNITS},
             attrs={"scan_speed_px_per_us": "fitted v_p, camera rows per µs", "scan_speed_std": "its standard error",
@@ -229,14 +257,14 @@ KINDS: dict[str, CubeKind] = {
             name="plane_to_ray_transport",
             description="T(v, s, t) indexed by offset = projector row − camera row",
             variables={"transport": Variable(("offset", *_FRAME), units="counts",
-                                                 long_name="plane-to-ray transport T(v, s, t)")},
+                                                 long_name="plane-to-ray transport T(v, s, t)"), **_DEMUX_EXTRAS},
             coord_units={"offset": PX_UNITS},
         ),
         CubeKind(
             name="full_transport",
             description="T(u, v, s, t) indexed by offsets from the direct correspondence",
             variables={"transport": Variable(("du", "dv", *_FRAME), units="counts",
-                                                 long_name="full transport T(u, v, s, t)")},
+                                                 long_name="full transport T(u, v, s, t)"), **_DEMUX_EXTRAS},
             coord_units={"du": PX_UNITS, "dv": PX_UNITS},
         ),
         CubeKind(
@@ -270,7 +298,7 @@ KINDS: dict[str, CubeKind] = {
             name="reconstruction",
             description="absorption coefficient σ per slice",
             variables={"sigma": Variable(("y", "x"), description="absorption coefficient per unit length", units=_SIGMA,
-                                        long_name=_SIGMA_NAME)},
+                                        long_name=_SIGMA_NAME), **_RECONSTRUCTION_EXTRAS},
             coord_units={"y": LENGTH_UNITS, "x": LENGTH_UNITS},
         ),
     )

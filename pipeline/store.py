@@ -1,6 +1,6 @@
 """Zarr stores of capture cubes: open with a schema check, write lazily, capture frame by frame, resume.
 
-Layout of a store (zarr v3 group, no consolidated metadata; see ``docs/format.md``):
+Layout of a store (zarr v3 group; see ``docs/format.md``):
 
 * the xarray variables and coords of the cube, with group attrs ``selpath_format`` (int) and
   ``selpath_kind`` plus the kind's required attrs;
@@ -13,7 +13,10 @@ Layout of a store (zarr v3 group, no consolidated metadata; see ``docs/format.md
 
 Every chunk carries a crc32c checksum; reading a corrupt one raises a StoreError naming store, variable
 and chunk. Whole stores are written into a temporary sibling and moved into place when complete
-(:mod:`pipeline.outputs`).
+(:mod:`pipeline.outputs`). Strings are written as zarr's variable-length UTF-8, never numpy's fixed-width
+``<U`` (zarr v3 has no specification for it and warns). The root ``zarr.json`` carries consolidated metadata,
+rewritten whenever the manifest or provenance is (:func:`pipeline.integrity.consolidate`), so plain
+``xr.open_zarr(path)`` opens a store quietly; selpath itself always reads each node's own metadata.
 """
 
 from __future__ import annotations
@@ -28,7 +31,6 @@ import dask
 import dask.array as da
 import numpy as np
 import xarray as xr
-import zarr
 from dask.base import tokenize
 
 from pipeline.errors import Problem, StoreError
@@ -39,6 +41,7 @@ from pipeline.integrity import (
     CheckedArray,
     absent_chunks,
     compressors,
+    open_group,
     read_manifest,
     units_problems,
     write_manifest,
@@ -102,7 +105,7 @@ def _open_raw(path: str | os.PathLike) -> xr.Dataset:
     lazy = {}
     for name, var in ds.data_vars.items():
         disk = tuple(var.encoding.get("chunks") or var.shape)
-        if var.dtype.kind in "OSUV" or 0 in var.shape:
+        if var.dtype.kind in "OSUVT" or 0 in var.shape:  # strings (T: numpy's StringDType) are read as they are
             continue
         chunks = processing_chunks(var.shape, disk, var.dtype.itemsize) if var.ndim else ()
         data = da.from_array(CheckedArray(var.variable, where, str(name), disk), chunks=chunks, lock=False,
@@ -215,10 +218,22 @@ def stamp(ds: xr.Dataset, kind: str) -> xr.Dataset:
     return ds.assign_attrs(selpath_format=FORMAT_VERSION, selpath_kind=kind)
 
 
+def _portable_strings(ds: xr.Dataset) -> xr.Dataset:
+    """``ds`` with its fixed-width numpy strings (``<U…``) as Python ``str`` objects, which zarr writes as its
+    variable-length UTF-8 type: zarr v3 has no specification for fixed-length UTF-32 and warns
+    (``UnstableSpecificationWarning``) on every write of it. xarray reads them back as numpy ``StringDType``."""
+    fixed = {name: var.astype(object) for name, var in ds.variables.items() if var.dtype.kind == "U"}
+    if not fixed:
+        return ds
+    coords = {name: var for name, var in fixed.items() if name in ds.coords}
+    return ds.assign_coords(coords).assign({name: var for name, var in fixed.items() if name not in coords})
+
+
 def _writable(ds: xr.Dataset) -> xr.Dataset:
-    """A copy whose dask chunks zarr can take (regular but for the last), stale encodings dropped and numeric
-    data and coordinates compressed and checksummed (:func:`pipeline.integrity.compressors`)."""
-    ds = ds.copy()
+    """A copy whose dask chunks zarr can take (regular but for the last), stale encodings dropped, strings
+    variable-length (:func:`_portable_strings`) and numeric data and coordinates compressed and checksummed
+    (:func:`pipeline.integrity.compressors`)."""
+    ds = _portable_strings(ds.copy())
     for name, var in ds.variables.items():
         ds[name].encoding = {"compressors": compressors()} if var.dtype.kind in "fiub" else {}
     if not ds.chunks:
@@ -332,7 +347,7 @@ def write_frame(path: str | os.PathLike, variable: str, index: Mapping[str, int]
     The pixels land before the flag, so an interrupted write is seen as missing and captured again.
     """
     where = os.fspath(path)
-    group = zarr.open_group(where, mode="r+")
+    group = open_group(where, mode="r+")
     flag_name = f"{WRITTEN_PREFIX}{variable}"
     if variable not in group or flag_name not in group:
         raise StoreError(Problem(f"variable {variable!r} was not pre-allocated for capture", where=where,
@@ -377,7 +392,7 @@ def forget_frames(path: str | os.PathLike, bad: Iterable[BadChunk]) -> int:
     """Mark the frames holding ``bad`` chunks (from :func:`~pipeline.integrity.verify_store`) as not captured,
     so the acquisition captures them again when it next runs. Returns how many frames were marked."""
     where = os.fspath(path)
-    group = zarr.open_group(where, mode="r+")
+    group = open_group(where, mode="r+")
     frames = set()
     for chunk in bad:
         flag_name = f"{WRITTEN_PREFIX}{chunk.variable}"

@@ -21,6 +21,18 @@ Dtype = Literal["float32", "float64"]
 MaxIter = Annotated[int, pydantic.Field(ge=1, le=1_000_000)]
 
 
+def sweep_log(progress: bool):
+    """Where an acquisition's messages (its plan, resuming, frames captured) go: the terminal, under the step's
+    heading, when it shows progress; nowhere otherwise."""
+    if not progress:
+        return lambda _: None
+    from rich.console import Console
+    from rich.markup import escape
+
+    console = Console()
+    return lambda message: console.print(escape(message), highlight=False)
+
+
 def require_variables(ds: xr.Dataset, names: tuple[str, ...], stage_name: str) -> None:
     """Refuse ``ds`` unless it has every data variable in ``names`` (one problem per missing variable)."""
     problems = [

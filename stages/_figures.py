@@ -4,6 +4,10 @@ A figure is data like any other output: it has provenance, is skipped when uncha
 workflow computes it (inside one dask task). Figures are built from :class:`matplotlib.figure.Figure` with their
 own Agg canvas, never through pyplot, so importing a figure stage leaves a notebook's backend and pyplot's figure
 list alone.
+
+Every figure carries a ``caption`` attr: one paragraph of plain text saying what it shows, which thesis figure
+it reproduces, the settings that matter and the units. It is known before the figure is drawn, so numbers only
+the data give (errors, iterations) are printed in the figure itself.
 """
 
 from __future__ import annotations
@@ -15,13 +19,13 @@ import xarray as xr
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-#: every figure's size in inches and its resolution (dots per inch)
+#: the standard figure size in inches and every figure's resolution (dots per inch)
 SIZE_IN, DPI = (9.0, 4.0), 100
 
 
-def panels(*args, **kwargs):
-    """A new figure of the standard size and its axes: ``Figure.subplots(*args, **kwargs)``."""
-    figure = Figure(figsize=SIZE_IN, dpi=DPI, layout="constrained")
+def panels(*args, size: tuple[float, float] = SIZE_IN, **kwargs):
+    """A new figure of ``size`` inches and its axes: ``Figure.subplots(*args, **kwargs)``."""
+    figure = Figure(figsize=size, dpi=DPI, layout="constrained")
     FigureCanvasAgg(figure)
     return figure, figure.subplots(*args, **kwargs)
 
@@ -33,8 +37,57 @@ def rgba(figure: Figure) -> np.ndarray:
     return np.asarray(canvas.buffer_rgba()).copy()
 
 
-def as_figure(render, *args) -> xr.Dataset:
-    """A lazy ``figure`` Dataset whose ``image`` is ``render(*args)``, computed in one dask task."""
-    h, w = int(SIZE_IN[1] * DPI), int(SIZE_IN[0] * DPI)
-    image = da.from_delayed(dask.delayed(render)(*args), shape=(h, w, 4), dtype=np.uint8)
-    return xr.Dataset({"image": (("y", "x", "rgba"), image)}, attrs={"selpath_kind": "figure"})
+def shape_of(size: tuple[float, float] = SIZE_IN) -> tuple[int, int, int]:
+    """The (height, width, 4) of a figure of ``size`` inches."""
+    return int(size[1] * DPI), int(size[0] * DPI), 4
+
+
+def one_line(text: str) -> str:
+    """``text`` with its runs of white space (line breaks of a source literal) made single spaces."""
+    return " ".join(text.split())
+
+
+def as_figure(render, *args, caption: str, size: tuple[float, float] = SIZE_IN) -> xr.Dataset:
+    """A lazy ``figure`` Dataset whose ``image`` is ``render(*args)``, computed in one dask task.
+
+    ``render`` draws a figure of ``size`` inches (:func:`panels` with the same ``size``); ``caption`` is the
+    figure's one-paragraph description, stored as the ``caption`` attr (white space collapsed).
+    """
+    shape = shape_of(size)
+
+    def checked(*arrays):
+        image = render(*arrays)
+        if image.shape != shape:
+            raise ValueError(f"a figure drew {image.shape}, not the {shape} its size of {size} in declares")
+        return image
+
+    caption = one_line(caption)
+    if not caption:
+        raise ValueError("a figure needs a caption")
+    image = da.from_delayed(dask.delayed(checked)(*args), shape=shape, dtype=np.uint8)
+    return xr.Dataset({"image": (("y", "x", "rgba"), image)}, attrs={"selpath_kind": "figure", "caption": caption})
+
+
+def image_colorbar(figure: Figure, ax, mappable, label: str):
+    """A colour bar as tall as the image drawn in ``ax`` (not its slot), just right of it."""
+    bar = ax.inset_axes([1.02, 0.0, 0.035, 1.0])
+    colorbar = figure.colorbar(mappable, cax=bar)
+    colorbar.set_label(label, fontsize=8)
+    bar.tick_params(labelsize=7)
+    return colorbar
+
+
+def shared_colorbar(figure: Figure, axes, mappable, label: str, *, shrink: float = 0.85, ticks=None):
+    """One colour bar for several panels (``Figure.colorbar(ax=axes)``), labelled in the figures' small type."""
+    colorbar = figure.colorbar(mappable, ax=list(np.ravel(axes)), shrink=shrink, ticks=ticks)
+    colorbar.set_label(label, fontsize=8)
+    colorbar.ax.tick_params(labelsize=7)
+    return colorbar
+
+
+def pixel_axes(ax, xlabel: str = "col [px]", ylabel: str | None = "row [px]", fontsize: float = 8) -> None:
+    """Label an image's axes in pixels, with small tick labels."""
+    ax.set_xlabel(xlabel, fontsize=fontsize)
+    if ylabel:
+        ax.set_ylabel(ylabel, fontsize=fontsize)
+    ax.tick_params(labelsize=fontsize - 1)

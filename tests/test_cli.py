@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import re
 
+import numpy as np
 import pytest
 from typer.testing import CliRunner
 
@@ -28,13 +29,27 @@ def test_run_then_inspect(small_workflow):
     first = runner.invoke(app, ["run", str(small_workflow), "--no-progress"])
     assert first.exit_code == 0, first.output
     assert "computed" in first.output and "wrote" in first.output
+    # one heading per step, with its reason, before it runs; the reason is not repeated in the closing table
+    assert first.output.count("no finished output at") == 2, first.output
+    headings = [first.output.index(f"── {step}") for step in ("capture (simulate_parallel_capture)",
+                                                               "absorption (absorption)")]
+    assert headings == sorted(headings)
     second = runner.invoke(app, ["run", str(small_workflow), "--no-progress"])
     assert "reused" in second.output and "computed" not in second.output
     store = small_workflow.parent / "out" / "absorption.zarr"
-    shown = runner.invoke(app, ["inspect", str(store)])
+    shown = runner.invoke(app, ["inspect", str(store)], env={"COLUMNS": "200"})
     assert shown.exit_code == 0, shown.output
-    assert f"absorption cube, format {FORMAT_VERSION}" in shown.output
-    assert '"workflow": "small-absorption"' in shown.output
+    assert f"absorption store, format {FORMAT_VERSION}" in shown.output
+    assert "workflow: small-absorption" in shown.output
+    assert "angle (angle) float64 [degree]: " in shown.output  # coordinates with units and range
+    # each variable with its units and valid share, against a count of the store's own finite values
+    from pipeline.store import open_store
+
+    ds = open_store(store)
+    finite = float(np.isfinite(ds["absorption"]).mean())
+    assert f"absorption (angle, row, col) float32 [1]: {finite:.1%} finite" in shown.output
+    assert f"flags (angle, row, col) uint8: valid {float((ds['flags'] == 0).mean()):.1%}" in shown.output
+    assert f"signal_fraction () float64 [1] = {float(ds['signal_fraction']):.6g}" in shown.output
     missing = runner.invoke(app, ["inspect", str(small_workflow.parent / "nothing.zarr")])
     assert missing.exit_code == 2 and "no store at this path" in missing.output
 
@@ -42,8 +57,15 @@ def test_run_then_inspect(small_workflow):
 def test_stages_lists_settings_with_units():
     listed = runner.invoke(app, ["stages", "absorption"], env={"COLUMNS": "200"})
     assert listed.exit_code == 0
-    assert "min_signal" in listed.output and "[counts]" in listed.output and "float > 0 | None" in listed.output
+    assert "min_signal" in listed.output and "[counts]" in listed.output and "float > 0 | None = None" in listed.output
     assert "float ≥ 0, ≤ 1" in listed.output  # the range of min_signal_relative
+    assert "``" not in listed.output and ":func:" not in listed.output  # docstring markup rendered as text
+    assert "capture  required" in listed.output  # inputs too
+    short = runner.invoke(app, ["stages"], env={"COLUMNS": "200"})
+    from pipeline.registry import default_registry
+
+    assert all(s.name in short.output for s in default_registry())
+    assert len(short.output.splitlines()) < 2 * len(default_registry().names()) + 10  # one line per stage
     unknown = runner.invoke(app, ["stages", "nope"])
     assert unknown.exit_code == 2 and "unknown stage 'nope'" in unknown.output
 
@@ -58,8 +80,10 @@ def test_demo_acquires_on_the_simulated_rig_into_its_own_folder(tmp_path):
     first = runner.invoke(app, ["demo", "--out", str(out)], env={"COLUMNS": "200"})
     assert first.exit_code == 0, first.output
     assert (out / "capture.zarr").is_dir() and (out / "absorption.zarr").is_dir()
-    match = re.search(r"absorption: ([\d.]+)% of pixels valid, max A = ([\d.]+)", first.output)
-    assert match and 50 < float(match[1]) < 100
+    # summaries over the object: the background (off the backlit silhouette) is flagged, so max A is the object's
+    match = re.search(r"absorption: ([\d.]+)% of object pixels valid \(([\d.]+)% of pixels off the object, "
+                      r"flagged background\), max A on the object = ([\d.]+)", " ".join(first.output.split()))
+    assert match and 90 < float(match[1]) <= 100 and 5 < float(match[2]) < 50 and float(match[3]) < 1.5, match
     rmse = {m[1]: float(m[2]) for m in re.finditer(r"(fbp|optimised): RMSE ([\d.e+-]+)", first.output)}
     assert rmse["optimised"] < rmse["fbp"], rmse
     page = (out / "report.html").read_text()
@@ -74,6 +98,38 @@ def test_demo_acquires_on_the_simulated_rig_into_its_own_folder(tmp_path):
     second = runner.invoke(app, ["demo", "--out", str(out)], env={"COLUMNS": "200"})
     assert second.exit_code == 0 and "computed" not in second.output
     _every_store_carries_its_kinds_metadata(out)
+    for report in ("report.html", "procam-report.html"):
+        _every_figure_loads(out / report)
+
+
+def _every_figure_loads(page):
+    """Each figure of a report decodes to a non-blank image of the size of its PNG beside the stores, and, where a
+    Chromium is installed, loads in the headless browser at that size (its naturalWidth × naturalHeight)."""
+    import base64
+    import io
+    import shutil
+    import subprocess
+
+    import matplotlib.image
+
+    text = page.read_text()
+    shapes = []
+    for data in re.findall(r"<img src='data:image/png;base64,([^']+)'", text):
+        image = matplotlib.image.imread(io.BytesIO(base64.b64decode(data)), format="png")
+        assert image.shape[0] >= 200 and image.shape[1] >= 400 and float(image[..., :3].std()) > 0.01, page
+        shapes.append(f"{image.shape[1]}x{image.shape[0]}")
+    assert shapes and all("<figcaption><b>" in part for part in text.split("<figure>")[1:])  # each captioned
+    browser = next((shutil.which(b) for b in ("chromium", "chromium-browser", "google-chrome") if shutil.which(b)),
+                   None)
+    if browser is None:
+        return
+    probe = page.with_name("probe.html")
+    probe.write_text(text.replace("</body>", "<script>window.addEventListener('load', () => document.body."
+                                  "setAttribute('data-images', [...document.images].map(i => i.naturalWidth + 'x' + "
+                                  "i.naturalHeight).join(',')))</script></body>"))
+    shown = subprocess.run([browser, "--headless", "--no-sandbox", "--disable-gpu", "--virtual-time-budget=10000",
+                            "--dump-dom", probe.as_uri()], capture_output=True, text=True, timeout=180)
+    assert re.findall(r'data-images="([^"]*)"', shown.stdout) == [",".join(shapes)], shown.stderr[-500:]
 
 
 def _every_store_carries_its_kinds_metadata(folder):
@@ -93,6 +149,14 @@ def _every_store_carries_its_kinds_metadata(folder):
             for coord in ds.coords.values():
                 if name != coord.name and coord.attrs.get("long_name"):
                     assert var.attrs.get("long_name") != coord.attrs["long_name"], (path, name, coord.name)
+
+
+@pytest.mark.parametrize("command", ["run", "demo", "inspect", "stages", "validate", "workflows", "schema"])
+def test_help_is_rendered_not_raw(command):
+    """Every flag showed `<bool>`, `demo --help` showed ``--out`` literally."""
+    shown = runner.invoke(app, [command, "--help"], env={"COLUMNS": "120"})
+    assert shown.exit_code == 0
+    assert "<bool>" not in shown.output and "``" not in shown.output and ":func:" not in shown.output
 
 
 def test_errors_keep_bracketed_text_and_never_show_a_traceback(tmp_path, monkeypatch):
@@ -176,9 +240,10 @@ def test_version_short_stage_list_and_plural(small_workflow):
     names = [s.name for s in default_registry()]
     rows = [line for line in listed.output.splitlines() if any(f"│ {n} " in line for n in names)]
     assert listed.exit_code == 0 and len(rows) == len(names)  # one line each
-    assert "parameter" not in listed.output  # no settings tables without NAME or --all
+    assert "settings" not in listed.output  # no settings without NAME or --all
     full = runner.invoke(app, ["stages", "--all"], env={"COLUMNS": "300"})
-    assert full.output.count("parameter") == len(names)
+    assert sum(line.strip().startswith("inputs (data") for line in full.output.splitlines()) == sum(
+        bool(s.inputs) for s in default_registry())
     small_workflow.write_text(small_workflow.read_text().replace(
         "  - id: absorption\n    stage: absorption\n    with:\n      capture: $capture\n      min_signal: 1.0\n", "")
         .replace("  absorption: {from: absorption, store: out/absorption.zarr}\n", ""))

@@ -16,6 +16,7 @@ names** under ``effects:`` (``scattering``, ``noise``); an unknown effect is an 
 
 from __future__ import annotations
 
+import hashlib
 import math
 import os
 import re
@@ -289,3 +290,12 @@ class Scene(_Model):
 def load_scene(path: str | os.PathLike) -> Scene:
     """Read and check a scene file; one SpecError lists every problem with its file:line and field."""
     return load_yaml_model(path, Scene, what="scene")
+
+
+def scene_identity(path: str | os.PathLike) -> dict[str, str]:
+    """What a store's attrs record of the scene file it was simulated from: ``scene``, the name the file
+    declares (as captures record it), and ``scene_sha256``, the SHA-256 of the file's bytes. No path: a store
+    stays the same wherever the scene file was, and the hash tells whether a scene file is that one."""
+    with open(path, "rb") as file:
+        digest = hashlib.sha256(file.read()).hexdigest()
+    return {"scene": load_scene(path).scene, "scene_sha256": digest}

@@ -29,6 +29,7 @@ from pipeline.constraints import Count, Positive, memory_problems
 from pipeline.errors import SelpathError
 from pipeline.registry import stage
 from pipeline.spec import StorePath
+from stages._common import sweep_log
 from stages._sweeps import Sweep
 
 
@@ -93,17 +94,6 @@ def _identity(settings) -> dict:
     return {"rig": settings.rig, "file": str(source), "sha256": digest, "sensor": settings.sensor}
 
 
-def _log(progress: bool):
-    """Where a sweep's messages (its plan, resuming) go: the terminal's stderr when showing progress."""
-    if not progress:
-        return lambda _: None
-    from rich.console import Console
-    from rich.markup import escape
-
-    console = Console(stderr=True)
-    return lambda message: console.print(escape(message), highlight=False)
-
-
 @contextmanager
 def _simulated_rig(scene: StorePath, sensor: SensorSize | None) -> Iterator[ProcamInstruments]:
     """The simulated rig showing ``scene`` (at ``sensor`` size when given), closed when the sweep ends."""
@@ -162,7 +152,7 @@ def acquire_plane_to_ray(
         Exposures t_e [µs].
     """
     with _simulated_rig(scene, sensor) as instruments:
-        return plane_sweep(instruments, store, delays.values(), exposures, progress=progress, log=_log(progress))
+        return plane_sweep(instruments, store, delays.values(), exposures, progress=progress, log=sweep_log(progress))
 
 
 @_acquisition("acquire_full_transport")
@@ -197,7 +187,7 @@ def acquire_full_transport(
     """
     with _simulated_rig(scene, sensor) as instruments:
         return full_sweep(instruments, store, delays.values(), exposures, lines.values(), line_width,
-                          progress=progress, log=_log(progress))
+                          progress=progress, log=sweep_log(progress))
 
 
 @_acquisition("acquire_scan_calibration")
@@ -234,4 +224,4 @@ def acquire_scan_calibration(
                                     extra_attrs={"shutter": "global"})
         pattern = white(instruments.projector.shape)
         return sweep_frames(instruments, store, template, "plane_to_ray_capture", lambda _: pattern, progress,
-                            _log(progress))
+                            sweep_log(progress))

@@ -46,6 +46,9 @@ def calibrate_scan_speed(capture: xr.Dataset, /, *, min_rows: NonNegative = 2.0)
 
     Parameters
     ----------
+    capture : xr.Dataset
+        A ``plane_to_ray_capture`` store of global-shutter frames (``acquire_scan_calibration``): ``image`` over
+        (delay, exposure, row, col), delay and exposure [µs]; attr ``line_time_us`` (``scan_speed_px_per_us``: start).
     min_rows : float
         Frames counting fewer illuminated rows are left out (the peak row is not fully exposed there).
     """

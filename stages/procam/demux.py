@@ -212,6 +212,12 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
 
     Parameters
     ----------
+    capture : xr.Dataset
+        A ``plane_to_ray_capture`` store (``acquire_plane_to_ray``): ``image`` [counts] over (delay, exposure, row,
+        col), delay and exposure [µs]; attrs ``scan_speed_px_per_us``, ``line_time_us``, ``saturation_counts``.
+    scan_calibration : xr.Dataset or None
+        A ``scan_calibration`` store (``calibrate_scan_speed``): its attrs ``scan_speed_px_per_us`` and
+        ``sync_offset_us`` replace the capture's v_p and t_o = 0 (sync_offset_us wins); None: the nominal values.
     offsets : {start, stop, step} or None
         Offset grid [rows], stop included, at most 10 000 offsets; None: every offset some frame of the sweep
         lights.
@@ -328,6 +334,12 @@ def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, 
 
     Parameters
     ----------
+    capture : xr.Dataset
+        A ``full_transport_capture`` store (``acquire_full_transport``): ``image`` over (delay, exposure, line [px],
+        row, col) [counts]; attrs ``scan_speed_px_per_us``, ``line_time_us``, ``line_width_px``, ``saturation_counts``.
+    scan_calibration : xr.Dataset or None
+        A ``scan_calibration`` store (``calibrate_scan_speed``): its attrs ``scan_speed_px_per_us`` and
+        ``sync_offset_us`` replace the capture's v_p and t_o = 0 (sync_offset_us wins); None: the nominal values.
     offsets : {start, stop, step} or None
         dv grid [rows], stop included, at most 10 000 offsets; None: every offset some frame of the sweep lights.
     cell_width_px : float or None

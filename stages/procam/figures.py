@@ -1,26 +1,31 @@
 """Projector–camera figures as stages (§5.4): Fig. 38 delay profiles, Fig. 40 relighting, Fig. 47 regular and
-sharpened epipolar images, 2-D profiles and Fig. 41 relighting from full transport.
+sharpened epipolar images, Fig. 39 2-D profiles and Fig. 41 relighting from full transport.
 
-Each renders lazily into a ``figure`` cube (RGBA), saved by the engine as ``<store>.png``; how is
-:mod:`stages._figures`.
+Each renders lazily into a ``figure`` cube (RGBA), saved by the engine as ``<store>.png``, with a one-paragraph
+``caption`` attr; how is :mod:`stages._figures`.
 """
 
 from __future__ import annotations
 
+import textwrap
 from typing import Annotated
 
 import numpy as np
 import pydantic
 import xarray as xr
+from matplotlib.colors import Normalize, PowerNorm
 
 from pipeline.constraints import Count, Fraction, Index, Positive
 from pipeline.errors import Problem, StageError
 from pipeline.registry import stage
-from stages._figures import as_figure, panels, rgba
+from stages._figures import as_figure, image_colorbar, panels, pixel_axes, rgba, shared_colorbar
 from stages.procam.relight import checkerboard_relight, epipolar_image, relight
 
 #: named pixels, name → [x, y] in image fractions, each in [0, 1]; at least one
 Pixels = Annotated[dict[str, tuple[Fraction, Fraction]], pydantic.Field(min_length=1)]
+
+#: sizes [in] of the figures that are not of the standard size
+PROFILES_SIZE, EPIPOLAR_SIZE, CHECKERBOARD_SIZE = (9.0, 3.2), (9.0, 3.0), (9.0, 2.6)
 
 
 def _pixel(ds: xr.Dataset, where: tuple[float, float]) -> tuple[int, int]:
@@ -30,16 +35,40 @@ def _pixel(ds: xr.Dataset, where: tuple[float, float]) -> tuple[int, int]:
     return (min(int(y * ds.sizes["row"]), ds.sizes["row"] - 1), min(int(x * ds.sizes["col"]), ds.sizes["col"] - 1))
 
 
-def _draw_profiles(delays, measured: dict, offsets, recovered: dict, exposure: float) -> np.ndarray:
-    fig, (left, right) = panels(1, 2)
-    for name, values in measured.items():
-        left.plot(delays, values / max(values.max(), 1e-12), marker=".", label=name)
-    left.set(xlabel="delay t_d [µs]", ylabel="intensity / its peak", title=f"delay profiles, t_e = {exposure:g} µs")
-    left.legend(fontsize="small")
-    for name, values in recovered.items():
-        right.plot(offsets, values, label=name)
-    right.set(xlabel="offset v − s [rows]", ylabel="T [counts]", yscale="symlog",
-              title="demultiplexed transport T(v) at the same pixels")
+def _named_pixels(at: dict[str, tuple[int, int]]) -> str:
+    return "; ".join(f"{name} at row {r}, col {c}" for name, (r, c) in at.items())
+
+
+def _top(image: np.ndarray) -> float:
+    """The display maximum of an image: its 99.5th percentile, at least a tiny positive number."""
+    finite = np.asarray(image, dtype=float)[np.isfinite(image)]
+    return max(float(np.percentile(finite, 99.5)) if finite.size else 0.0, 1e-12)
+
+
+def _mark_pixels(ax, at: dict[str, tuple[int, int]], *, legend: bool = False) -> None:
+    for i, (name, (r, c)) in enumerate(at.items()):
+        ax.plot(c, r, "o", ms=8, mfc="none", mew=1.5, color=f"C{i}", label=name)
+    if legend:
+        ax.legend(fontsize=6, loc="upper center", bbox_to_anchor=(0.5, -0.22), ncols=2, frameon=False)
+
+
+def _draw_profiles(frame, delays, measured: dict, offsets, recovered: dict, at: dict, exposure: float,
+                   frame_delay: float) -> np.ndarray:
+    fig, axes = panels(1, 3, size=PROFILES_SIZE, width_ratios=[1.3, 1, 1])
+    shown = axes[0].imshow(frame, cmap="gray", vmin=0, vmax=_top(frame), interpolation="nearest")
+    image_colorbar(fig, axes[0], shown, "counts")
+    _mark_pixels(axes[0], at)
+    axes[0].set_title(f"(a) frame at t_d = {frame_delay:g} µs, t_e = {exposure:g} µs", fontsize=9)
+    pixel_axes(axes[0])
+    for i, (name, values) in enumerate(measured.items()):
+        axes[1].plot(delays, values / max(float(np.nanmax(values)), 1e-12), marker=".", color=f"C{i}", label=name)
+    axes[1].set(xlabel="sync delay t_d [µs]", ylabel="I(t_d) / its peak [1]")
+    axes[1].set_title(f"(b) delay profiles, t_e = {exposure:g} µs", fontsize=9)
+    axes[1].legend(fontsize=6, loc="upper left")
+    for i, (name, values) in enumerate(recovered.items()):
+        axes[2].plot(offsets, values, color=f"C{i}", label=name)
+    axes[2].set(xlabel="offset v − s [rows]", ylabel="T [counts] (symlog)", yscale="symlog")
+    axes[2].set_title("(c) demultiplexed T, same pixels", fontsize=9)
     return rgba(fig)
 
 
@@ -50,6 +79,11 @@ def delay_profile_figure(capture: xr.Dataset, transport: xr.Dataset, /, *,
 
     Parameters
     ----------
+    capture : xr.Dataset
+        A ``plane_to_ray_capture`` store (``acquire_plane_to_ray``): ``image`` over (delay, exposure, row, col).
+    transport : xr.Dataset
+        A ``plane_to_ray_transport`` store demultiplexed from it (``demux_plane_to_ray``): ``transport`` over
+        (offset, row, col).
     pixels : dict
         name → [x, y] in image fractions (the scene files' units), each in [0, 1]; at least one pixel.
     exposure : float or None
@@ -62,20 +96,58 @@ def delay_profile_figure(capture: xr.Dataset, transport: xr.Dataset, /, *,
     at = {name: _pixel(capture, where) for name, where in pixels.items()}
     measured = {name: capture["image"].sel(exposure=exposure).isel(row=r, col=c) for name, (r, c) in at.items()}
     recovered = {name: transport["transport"].isel(row=r, col=c) for name, (r, c) in at.items()}
+    delays = capture["delay"].values
+    frame_delay = float(delays[np.argmin(np.abs(delays))])
+    frame = capture["image"].sel(exposure=exposure, delay=frame_delay).data
+    caption = f"""Delay profiles of single pixels (thesis Fig. 38): (a) the captured frame at the sync delay
+        nearest 0 (t_d = {frame_delay:g} µs, the epipolar frame) and exposure t_e = {exposure:g} µs, in counts,
+        with the named pixels marked ({_named_pixels(at)}); (b) each pixel's intensity over the sync delay t_d
+        [µs] at that exposure, scaled to its own peak: direct light peaks at t_d = 0, light that travelled
+        between rows (inter-reflection, subsurface scattering) arrives at other delays; (c) the plane-to-ray
+        transport T [counts] demultiplexed from the whole delay–exposure stack at the same pixels, over the
+        offset v − s between the lit projector row and the camera row [rows], on a symmetric log scale. A
+        specular inter-reflection shows a second peak, a translucent material (the candle) a broad one."""
 
-    def render(delays, offsets, measured, recovered):
-        return _draw_profiles(delays, {k: np.asarray(v) for k, v in measured.items()}, offsets,
-                              {k: np.asarray(v) for k, v in recovered.items()}, exposure)
+    def render(frame, delays, offsets, measured, recovered):
+        return _draw_profiles(np.asarray(frame), delays, {k: np.asarray(v) for k, v in measured.items()}, offsets,
+                              {k: np.asarray(v) for k, v in recovered.items()}, at, exposure, frame_delay)
 
-    return as_figure(render, capture["delay"].values, transport["offset"].values,
-                      {k: v.data for k, v in measured.items()}, {k: v.data for k, v in recovered.items()})
+    return as_figure(render, frame, delays, transport["offset"].values,
+                     {k: v.data for k, v in measured.items()}, {k: v.data for k, v in recovered.items()},
+                     caption=caption, size=PROFILES_SIZE)
 
 
-def _draw_relit(images: list[np.ndarray], titles: list[str]) -> np.ndarray:
-    fig, axes = panels(1, len(images))
-    for ax, image, title in zip(np.atleast_1d(axes), images, titles, strict=True):
-        ax.imshow(image, cmap="gray", vmin=0, vmax=max(float(np.percentile(image, 99.5)), 1e-12))
-        ax.set(title=title, xticks=[], yticks=[])
+def _grid(count: int) -> tuple[int, int]:
+    """Rows and columns of a grid of ``count`` 4:3 panels on a wide figure."""
+    cols = count if count <= 3 else int(np.ceil(count / 2)) if count <= 8 else int(np.ceil(np.sqrt(2 * count)))
+    return int(np.ceil(count / cols)), cols
+
+
+def _draw_relit(images: list[np.ndarray], titles: list[str], size: tuple[float, float], extra=None,
+                gamma: float = 1.0) -> np.ndarray:
+    """Images on one colour scale (0 to the last image's, white's, 99.5th percentile; a power law ``gamma``)
+    with one colour bar; ``extra(ax, images)`` draws into one more panel after them."""
+    count = len(images) + (extra is not None)
+    rows, cols = _grid(count)
+    fig, axes = panels(rows, cols, size=size, squeeze=False)
+    axes = axes.ravel()
+    top = _top(images[-1])
+    norm = Normalize(0, top) if gamma == 1 else PowerNorm(gamma, vmin=0, vmax=top)
+    for ax, image, title in zip(axes, images, titles, strict=False):
+        shown = ax.imshow(image, cmap="gray", norm=norm,
+                          interpolation="nearest")
+        ax.set_title(title, fontsize=8)
+        pixel_axes(ax, fontsize=7)
+    label = "counts" if gamma == 1 else f"counts (colour ∝ counts^{gamma:g})"
+    ticks = None
+    if gamma != 1:  # ticks evenly spaced in colour, rounded to two significant digits
+        ticks = np.unique([float(f"{top * (k / 5) ** (1 / gamma):.2g}") for k in range(6)])
+        ticks = ticks[ticks <= top]
+    shared_colorbar(fig, axes[:len(images)], shown, label, ticks=ticks)
+    if extra is not None:
+        extra(axes[len(images)], images)
+    for ax in axes[count:]:
+        ax.set_visible(False)
     return rgba(fig)
 
 
@@ -86,6 +158,8 @@ def relighting_figure(transport: xr.Dataset, /, *, lines: tuple[Fraction, ...] =
 
     Parameters
     ----------
+    transport : xr.Dataset
+        A ``plane_to_ray_transport`` store (``demux_plane_to_ray``): ``transport`` over (offset, row, col).
     lines : list of float
         Line centres as fractions of the image height, each in [0, 1].
     line_rows : int
@@ -93,32 +167,66 @@ def relighting_figure(transport: xr.Dataset, /, *, lines: tuple[Fraction, ...] =
     """
     t = transport["transport"]
     rows = t.sizes["row"]
-    images, titles = [], []
-    for centre in lines:
+    images, titles, lit = [], [], []
+    for i, centre in enumerate(lines):
         pattern = (np.abs(np.arange(rows) - centre * rows) < line_rows / 2).astype(float)
+        on = np.flatnonzero(pattern)
+        span = f"v = {on[0]}–{on[-1]}" if on.size > 1 else f"v = {on[0]}" if on.size else "no row"
         images.append(relight(t, pattern).data)
-        titles.append(f"line at {centre:.0%} height")
+        titles.append(f"({chr(97 + i)}) line {span} ({centre:.0%} of height)")
+        lit.append(on)
     images.append(relight(t, np.ones(rows)).data)
-    titles.append("white (regular image)")
+    titles.append(f"({chr(97 + len(lines))}) white: every row lit (regular image)")
+    letter = chr(98 + len(lines))
+
+    def profiles(ax, images):
+        for i, image in enumerate(images[:-1]):
+            ax.semilogy(np.nanmean(image, axis=1), color=f"C{i}", lw=1, label=f"({chr(97 + i)})")
+            if lit[i].size:
+                ax.axvspan(lit[i][0] - 0.5, lit[i][-1] + 0.5, color=f"C{i}", alpha=0.25, lw=0)
+        white = np.nanmean(images[-1], axis=1)
+        ax.semilogy(white, color="0.3", lw=1, label=f"({chr(97 + len(lines))})")
+        if np.nanmax(white) > 0:
+            ax.set_ylim(bottom=1e-3 * float(np.nanmax(white)))
+        ax.set_xlabel("camera row s [px]", fontsize=7)
+        ax.set_ylabel("row mean [counts]", fontsize=7)
+        ax.tick_params(labelsize=6)
+        ax.set_title(f"({letter}) mean over each row; shaded: lit rows", fontsize=8)
+        ax.legend(fontsize=6, ncols=2, loc="lower right")
+
+    caption = f"""The scene relit from its plane-to-ray transport T by single virtual lines of {line_rows}
+        projector rows (rows rectified onto camera rows, so row v lights the camera's epipolar row v) centred
+        at {", ".join(f"{c:.0%}" for c in lines)} of the image height and sweeping down, and under white (every
+        row lit: the regular image), all on one colour scale in counts (a square-root scale, so that dim indirect
+        light shows), axes in camera pixels; the last panel
+        gives each image's mean over camera columns per camera row on a log scale, with the lit rows shaded,
+        so light that lands away from the line (inter-reflection, scattering) shows as counts outside the
+        shading. Reproduces thesis Fig. 40."""
+    size = (9.0, 2.6 * _grid(len(images) + 1)[0])
 
     def render(*arrays):
-        return _draw_relit([np.asarray(a) for a in arrays], titles)
+        return _draw_relit([np.asarray(a, dtype=float) for a in arrays], titles, size, profiles, gamma=0.5)
 
-    return as_figure(render, *images)
+    return as_figure(render, *images, caption=caption, size=size)
 
 
-def _draw_epipolar(regular, sharpened, row: int, exposure: float, half_width: int) -> np.ndarray:
-    fig, axes = panels(1, 3)
-    top = max(float(np.percentile(regular, 99.5)), 1e-12)
-    for ax, image, title in ((axes[0], regular, f"epipolar frame, t_e = {exposure:g} µs"),
-                             (axes[1], sharpened, f"sharpened from T (|offset| ≤ {half_width})")):
-        ax.imshow(image, cmap="gray", vmin=0, vmax=top)
+def _draw_epipolar(regular, sharpened, row: int, exposure: float, half_width: int, delay: float) -> np.ndarray:
+    fig, axes = panels(1, 3, size=EPIPOLAR_SIZE)
+    top = _top(regular)
+    for ax, image, title in ((axes[0], regular, f"(a) epipolar frame, t_d = {delay:g} µs, t_e = {exposure:g} µs"),
+                             (axes[1], sharpened, f"(b) sharpened from T: |v − s| ≤ {half_width} rows")):
+        shown = ax.imshow(image, cmap="gray", vmin=0, vmax=top, interpolation="nearest")
         ax.axhline(row, color="tab:red", lw=0.8)
-        ax.set(title=title, xticks=[], yticks=[])
-    axes[2].plot(regular[row], label="epipolar frame")
-    axes[2].plot(sharpened[row], label="sharpened")
-    axes[2].set(xlabel="column", ylabel="counts", title=f"row {row}")
-    axes[2].legend(fontsize="small")
+        ax.set_title(title, fontsize=8)
+        pixel_axes(ax, fontsize=7)
+    shared_colorbar(fig, axes[:2], shown, "counts", shrink=0.8)
+    axes[2].plot(regular[row], lw=0.8, label="(a) epipolar frame")
+    axes[2].plot(sharpened[row], lw=0.8, label="(b) sharpened")
+    axes[2].set_xlabel("col [px]", fontsize=8)
+    axes[2].set_ylabel("counts", fontsize=8)
+    axes[2].tick_params(labelsize=7)
+    axes[2].set_title(f"(c) cross-section at row {row} (red line)", fontsize=8)
+    axes[2].legend(fontsize=7)
     return rgba(fig)
 
 
@@ -130,6 +238,10 @@ def epipolar_figure(capture: xr.Dataset, transport: xr.Dataset, /, *, exposure: 
 
     Parameters
     ----------
+    capture : xr.Dataset
+        A ``plane_to_ray_capture`` store (``acquire_plane_to_ray``) whose delays include 0.
+    transport : xr.Dataset
+        A ``plane_to_ray_transport`` store demultiplexed from it (``demux_plane_to_ray``).
     exposure : float or None
         Exposure of the captured epipolar frame [µs]; None: the longest.
     half_width : int
@@ -144,11 +256,20 @@ def epipolar_figure(capture: xr.Dataset, transport: xr.Dataset, /, *, exposure: 
     regular = capture["image"].sel(delay=0.0, exposure=exposure).data
     sharpened = epipolar_image(transport["transport"], half_width).data
     at = min(int(row * capture.sizes["row"]), capture.sizes["row"] - 1)
+    speed = capture.attrs.get("scan_speed_px_per_us")
+    band = f"the band of about v_p·t_e = {speed * exposure:.0f} projector rows" if speed else "a band of projector rows"
+    caption = f"""Regular against sharpened epipolar imaging (thesis Fig. 47): (a) the captured epipolar frame
+        (sync delay t_d = 0) at exposure t_e = {exposure:g} µs, which admits light from {band} around each
+        camera row, and so some subsurface scattering and inter-reflection; (b)
+        the epipolar image synthesised from the demultiplexed transport T, keeping only offsets |v − s| ≤
+        {half_width} projector rows; both on one colour scale in counts, axes in camera pixels; (c) both along
+        camera row {at} ({row:.0%} of the height, red line). Light that the long exposure lets in from farther
+        rows (the candle's scattering) is removed in (b)."""
 
     def render(regular, sharpened):
-        return _draw_epipolar(np.asarray(regular), np.asarray(sharpened), at, exposure, half_width)
+        return _draw_epipolar(np.asarray(regular), np.asarray(sharpened), at, exposure, half_width, 0.0)
 
-    return as_figure(render, regular, sharpened)
+    return as_figure(render, regular, sharpened, caption=caption, size=EPIPOLAR_SIZE)
 
 
 def _full(transport: xr.Dataset) -> xr.Dataset:
@@ -159,12 +280,13 @@ def _full(transport: xr.Dataset) -> xr.Dataset:
 
 
 def _draw_profiles_2d(du, dv, step: float, overview, profiles: dict, at: dict) -> np.ndarray:
-    fig, axes = panels(1, len(profiles) + 1)
-    axes[0].imshow(overview, cmap="gray", vmin=0, vmax=max(float(np.nanpercentile(overview, 99.5)), 1e-12))
-    for i, (name, (r, c)) in enumerate(at.items()):
-        axes[0].plot(c, r, "o", mfc="none", color=f"C{i}", label=name)
-    axes[0].set(title="white (Σ T)", xticks=[], yticks=[])
-    axes[0].legend(fontsize="x-small", loc="lower left")
+    count = len(profiles)
+    fig, axes = panels(1, count + 1, size=PROFILES_SIZE, width_ratios=[2.2] + [1] * count)
+    shown = axes[0].imshow(overview, cmap="gray", vmin=0, vmax=_top(overview), interpolation="nearest")
+    image_colorbar(fig, axes[0], shown, "counts")
+    _mark_pixels(axes[0], at)
+    axes[0].set_title("(a) white image Σ T, pixels marked", fontsize=8)
+    pixel_axes(axes[0], fontsize=7)
     # the window where any shown profile holds ≥ 1 % of its peak, two cells/rows wider
     lit = np.zeros((du.size, dv.size), bool)
     for t in profiles.values():
@@ -178,10 +300,17 @@ def _draw_profiles_2d(du, dv, step: float, overview, profiles: dict, at: dict) -
     for i, (ax, (name, t)) in enumerate(zip(axes[1:], profiles.items(), strict=True)):
         t = t[u_sl, v_sl]
         top = float(np.nanmax(t)) if np.isfinite(t).any() and np.nanmax(t) > 0 else 1.0
-        ax.imshow(t.T / top, extent=extent, aspect="auto", cmap="magma", vmin=0, vmax=1, interpolation="nearest")
-        ax.set(title=name, xlabel="du [px]", ylabel="dv [rows]" if i == 0 else None)
+        shown = ax.imshow(t.T / top, extent=extent, aspect="auto", cmap="magma", vmin=0, vmax=1,
+                          interpolation="nearest")
+        title = textwrap.wrap(f"({chr(98 + i)}) {name}", 16, break_on_hyphens=False)
+        ax.set_title("\n".join(title), fontsize=8, color=f"C{i}")
+        ax.set_xlabel("du [projector px]", fontsize=7)
+        if i == 0:
+            ax.set_ylabel("dv = v − s [projector rows]", fontsize=7)
+        ax.tick_params(labelsize=6)
         for spine in ax.spines.values():
             spine.set(color=f"C{i}", linewidth=2)
+    shared_colorbar(fig, axes[1:], shown, "T / its peak [1]", shrink=0.8)
     return rgba(fig)
 
 
@@ -193,6 +322,9 @@ def profile_2d_figure(transport: xr.Dataset, /, *, pixels: Pixels) -> xr.Dataset
 
     Parameters
     ----------
+    transport : xr.Dataset
+        A ``full_transport`` store (``demux_full``): ``transport`` over (du, dv, row, col), with the
+        ``cell_width_px`` attr.
     pixels : dict
         name → [x, y] in image fractions (the scene files' units), each in [0, 1]; at least one pixel.
     """
@@ -200,13 +332,21 @@ def profile_2d_figure(transport: xr.Dataset, /, *, pixels: Pixels) -> xr.Dataset
     at = {name: _pixel(transport, where) for name, where in pixels.items()}
     profiles = {name: t.isel(row=r, col=c).transpose("du", "dv").data for name, (r, c) in at.items()}
     overview = t.sum(("du", "dv"), skipna=True).data
+    step = float(transport.attrs["cell_width_px"])
+    caption = f"""Two-dimensional profiles of full light transport at single camera pixels (thesis Fig. 39):
+        (a) the white image Σ T (every projector pixel lit) in counts, axes in camera pixels, with the named
+        pixels marked ({_named_pixels(at)}); then, for each pixel, T(du, dv) scaled to its own peak
+        (dimensionless), over du, the projector column relative to the pixel's direct correspondence u₀, in
+        cells of {step:g} projector px, and dv = v − s, the projector row relative to the camera row [rows],
+        cropped to where any profile holds at least 1 % of its peak; cells the sweep never lit are blank. A
+        diffuse surface gives a compact peak at (0, 0), subsurface scattering a wider one, inter-reflection
+        an extent along du, a specular inter-reflection a second, separate peak."""
 
     def render(overview, profiles):
-        return _draw_profiles_2d(transport["du"].values, transport["dv"].values,
-                                 float(transport.attrs["cell_width_px"]), np.asarray(overview),
+        return _draw_profiles_2d(transport["du"].values, transport["dv"].values, step, np.asarray(overview),
                                  {k: np.asarray(v) for k, v in profiles.items()}, at)
 
-    return as_figure(render, overview, profiles)
+    return as_figure(render, overview, profiles, caption=caption, size=PROFILES_SIZE)
 
 
 @stage("relighting_full_figure")
@@ -217,6 +357,9 @@ def relighting_full_figure(transport: xr.Dataset, /, *, square_px: Count | None 
 
     Parameters
     ----------
+    transport : xr.Dataset
+        A ``full_transport`` store (``demux_full``): ``transport`` over (du, dv, row, col), ``u_direct``, and
+        the ``cell_width_px`` and ``cells_px`` attrs.
     square_px : int or None
         Checkerboard square [projector px]; None: four u-cells (T resolves a pattern only to a cell).
     projector_cols : int or None
@@ -235,9 +378,17 @@ def relighting_full_figure(transport: xr.Dataset, /, *, square_px: Count | None 
     per_col = transport.sizes["col"] / projector_cols
     square_rows = max(1, round(square * per_col)) if shape is not None else square
     relit = checkerboard_relight(transport, square, projector_cols, square_rows)
-    titles = [f"checkerboard, {square} px squares", "its complement", "white"]
+    titles = [f"(a) checkerboard, {square} px squares", "(b) its complement", "(c) white: every pixel lit"]
+    caption = f"""The scene relit from its full light transport T under virtual projector patterns (thesis Fig.
+        41): (a) a checkerboard of {square} × {square_rows} projector-px squares ({square} columns by
+        {square_rows} rows rectified onto camera rows) over {projector_cols} projector columns, (b) its
+        complement and (c) white, every projector pixel lit; all on one colour scale in counts, axes in camera
+        pixels. (a) + (b) = (c); light in the dark squares is light that left a lit square and reached the
+        pixel indirectly (inter-reflection, scattering). T resolves a pattern only to its u-cells of {step:g}
+        projector columns."""
 
     def render(*arrays):
-        return _draw_relit([np.asarray(a) for a in arrays], titles)
+        return _draw_relit([np.asarray(a) for a in arrays], titles, CHECKERBOARD_SIZE)
 
-    return as_figure(render, *(relit[name].data for name in ("checkerboard", "complement", "white")))
+    return as_figure(render, *(relit[name].data for name in ("checkerboard", "complement", "white")),
+                     caption=caption, size=CHECKERBOARD_SIZE)

@@ -24,6 +24,7 @@ from pipeline.constraints import memory_problems
 from pipeline.errors import SelpathError
 from pipeline.registry import stage
 from pipeline.spec import StorePath
+from stages._common import sweep_log
 from stages._sweeps import Sweep
 
 
@@ -102,6 +103,6 @@ def acquire_tomography(
     else:
         instruments = hardware_rig(load_hardware(hardware))
     try:
-        return sweep(instruments, store, angles.values(), progress=progress)
+        return sweep(instruments, store, angles.values(), progress=progress, log=sweep_log(progress))
     finally:
         instruments.close()

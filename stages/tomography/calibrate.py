@@ -7,7 +7,11 @@ absorbing inclusion and the skin's BTDF cancels. (Eq. 3 as printed, ``log I_o �
 
 Pixels where the log is meaningless are never silently NaN/inf: each output carries a ``flags``
 variable (CF ``flag_masks``/``flag_meanings``) whose bits say why, and flagged pixels hold NaN.
-All stages are elementwise xarray operations on dask arrays, hence lazy and tile-parallel.
+When the capture has ``backlit`` frames, pixels off the object (outside the silhouette of the backlit
+frame at that angle, :func:`stages.tomography.hull.object_masks`) are flagged ``background`` (bit 64):
+there target and reference are both the dark level, and their log difference is the sensor's noise.
+All stages are elementwise xarray operations on dask arrays, hence lazy and tile-parallel (the
+silhouettes one task per angle chunk, on whole frames).
 """
 
 from __future__ import annotations
@@ -20,12 +24,14 @@ from pipeline.errors import Problem, StageError
 from pipeline.quality import usable_share
 from pipeline.registry import stage
 from stages._common import require_variables, sorted_sweep
+from stages.tomography.hull import object_masks
 
-#: bits of ``flags``; target bits are shifted by 0, reference bits by 3
+#: bits of ``flags``; target bits are shifted by 0, reference bits by 3; BACKGROUND: not on the object
 SATURATED, NO_SIGNAL, NONFINITE = 1, 2, 4
-FLAG_MASKS = [1, 2, 4, 8, 16, 32]
+BACKGROUND = 64
+FLAG_MASKS = [1, 2, 4, 8, 16, 32, 64]
 FLAG_MEANINGS = ("target_saturated target_no_signal target_nonfinite "
-                 "reference_saturated reference_no_signal reference_nonfinite")
+                 "reference_saturated reference_no_signal reference_nonfinite background")
 FRAME_VARIABLES = ("target", "reference", "backlit")
 
 
@@ -43,6 +49,8 @@ def subtract_background(capture: xr.Dataset, /, *, background: str = "dark",
 
     Parameters
     ----------
+    capture : xr.Dataset
+        A ``tomography_capture`` store (frames over (angle, row, col) [counts] and the background frame).
     background : str
         Variable holding the background frame (dims ``row, col``), e.g. ``dark``.
     variables : list of str
@@ -60,7 +68,13 @@ def subtract_background(capture: xr.Dataset, /, *, background: str = "dark",
 
 @stage("subtract_dark")
 def subtract_dark(capture: xr.Dataset, /) -> xr.Dataset:
-    """Subtract the ``dark`` frame from target, reference and backlit frames (see subtract_background)."""
+    """Subtract the ``dark`` frame from target, reference and backlit frames (see subtract_background).
+
+    Parameters
+    ----------
+    capture : xr.Dataset
+        A ``tomography_capture`` store with a ``dark`` frame (row, col) [counts].
+    """
     return subtract_background(capture, background="dark")
 
 
@@ -85,9 +99,10 @@ def frame_flags(raw: np.ndarray, corrected: np.ndarray, *, saturation_level: flo
     return (saturated * SATURATED + no_signal * NO_SIGNAL + nonfinite * NONFINITE).astype(np.uint8)
 
 
-def _pair_kernel(target, reference, background, min_signal, *, subtracted: bool, level: float, dtype,
+def _pair_kernel(target, reference, background, min_signal, on_object, *, subtracted: bool, level: float, dtype,
                  absorption: bool):
-    """One tile, one pass: flags of both frames, then log difference (or ratio) of the valid pixels.
+    """One tile, one pass: flags of both frames (and BACKGROUND where not ``on_object``), then log difference
+    (or ratio) of the valid pixels.
 
     Fused by hand into a single NumPy function: the same arithmetic as ~15 separate lazy xarray
     operations ran at 60 Mpx/s on 2 cores, this kernel at 80 Mpx/s (benchmarks/absorption_throughput.py).
@@ -99,7 +114,8 @@ def _pair_kernel(target, reference, background, min_signal, *, subtracted: bool,
 
     (raw_t, cor_t), (raw_r, cor_r) = split(target), split(reference)
     flags = (frame_flags(raw_t, cor_t, saturation_level=level, min_signal=min_signal)
-             | (frame_flags(raw_r, cor_r, saturation_level=level, min_signal=min_signal) << 3)).astype(np.uint8)
+             | (frame_flags(raw_r, cor_r, saturation_level=level, min_signal=min_signal) << 3)
+             | np.where(on_object, 0, BACKGROUND)).astype(np.uint8)
     valid = flags == 0
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         value = np.log(cor_r) - np.log(cor_t) if absorption else cor_t / cor_r
@@ -140,9 +156,10 @@ SIGNAL_FLOOR, USABLE_FLOOR, DARK_FLOOR = 0.001, 0.05, 0.05
 
 
 def _checked_pair(capture: xr.Dataset, stage_name: str, saturation_level: float | None, min_signal: float,
-                  min_signal_relative: float, *, absorption: bool) -> tuple[xr.DataArray, xr.DataArray, dict, dict]:
-    """Absorption (or transmittance) and flags of dark-subtracted target and reference, lazily per tile, and the
-    usable shares of the input (:mod:`pipeline.quality`)."""
+                  min_signal_relative: float, *, absorption: bool, flag_background: bool = True,
+                  silhouette_threshold: float | None = None) -> tuple[xr.DataArray, xr.DataArray, dict, dict]:
+    """Absorption (or transmittance) and flags of dark-subtracted target and reference, lazily per tile, the
+    usable shares of the input (:mod:`pipeline.quality`) and the object's shares (plain 0-d variables)."""
     capture = sorted_sweep(capture, "angle", stage_name)
     background_name = capture.attrs.get("background_subtracted") or ("dark" if "dark" in capture else None)
     require_variables(capture, ("target", "reference") + ((background_name,) if background_name else ()), stage_name)
@@ -155,8 +172,20 @@ def _checked_pair(capture: xr.Dataset, stage_name: str, saturation_level: float 
     if min_signal_relative > 0:
         peak = frame_peak(capture["reference"].astype(dtype), background, subtracted=subtracted, level=level)
         threshold = np.maximum(threshold, min_signal_relative * peak.fillna(np.inf))
+    object_mask = xr.DataArray(True)  # without backlit frames (or flag_background off) every pixel is the object's
+    if flag_background and "backlit" in capture:
+        backlit = capture["backlit"]
+        if set(backlit.dims) != set(capture["target"].dims):
+            raise StageError(Problem(f"stage {stage_name!r}: backlit has dims {backlit.dims}, target "
+                                     f"{capture['target'].dims}; they must match to flag the background",
+                                     path="backlit", fix="film a backlit frame at every angle of the target, or set "
+                                     "flag_background: false"))
+        # backlit frames were dark-subtracted with the others (subtract_background's default variables); a pixel
+        # whose backlit value is missing (NaN, inf: e.g. a frame never filmed) is not known to be off the object
+        object_mask = object_masks(backlit, None if subtracted or not background_name else background,
+                                   threshold=silhouette_threshold) | ~np.isfinite(backlit)
     value, flags = xr.apply_ufunc(
-        _pair_kernel, capture["target"], capture["reference"], background, threshold,
+        _pair_kernel, capture["target"], capture["reference"], background, threshold, object_mask,
         kwargs=dict(subtracted=subtracted, level=level, dtype=dtype, absorption=absorption),
         output_core_dims=[[], []], dask="parallelized", output_dtypes=[dtype, np.uint8],
     )
@@ -165,19 +194,30 @@ def _checked_pair(capture: xr.Dataset, stage_name: str, saturation_level: float 
     flags.attrs.update(flag_masks=FLAG_MASKS, flag_meanings=FLAG_MEANINGS,
                        long_name="why a pixel is invalid (CF flags; 0: valid)")
     attrs = {k: v for k, v in capture.attrs.items() if k != "selpath_kind"}
-    attrs.update(saturation_level=level, min_signal=min_signal, min_signal_relative=min_signal_relative)
-    lit = (flags >> 3) == 0  # the reference pixel is finite, unsaturated and above min_signal
+    attrs.update(saturation_level=level, min_signal=min_signal, min_signal_relative=min_signal_relative,
+                 background_flagged=int(object_mask.ndim > 0))  # 1: pixels off the object carry BACKGROUND
+    if object_mask.ndim and silhouette_threshold is not None:
+        attrs["silhouette_threshold"] = float(silhouette_threshold)
+    on_object = (flags & BACKGROUND) == 0
+    objects = np.maximum(on_object.sum(), 1)
+    lit = on_object & (((flags >> 3) & 7) == 0)  # on the object, the reference is finite, unsaturated, above min_signal
     shares = {
         "signal_fraction": usable_share(
-            lit.mean(), floor=SIGNAL_FLOOR, what="reference pixels with usable signal (finite, below saturation_level, "
-            "above min_signal)", fix="check the frames' scale: min_signal is in counts above dark (for data on another "
-            "scale set min_signal_relative, e.g. 0.01 of each frame's brightest reference pixel); check the dark "
-            "frame, saturation_level and NaN frames"),
+            lit.sum() / objects, floor=SIGNAL_FLOOR, what="reference pixels with usable signal (finite, below "
+            "saturation_level, above min_signal) among the object's pixels (not flagged background)",
+            fix="check the frames' scale: min_signal is in counts above dark (for data on another scale set "
+            "min_signal_relative, e.g. 0.01 of each frame's brightest reference pixel); check the dark frame, "
+            "saturation_level and NaN frames; if the backlit frames show no object, set flag_background: false"),
         "usable_fraction": usable_share(
             (flags == 0).sum() / np.maximum(lit.sum(), 1), floor=USABLE_FLOOR,
-            what="lit reference pixels whose target is usable too (finite, below saturation_level, above min_signal)",
+            what="lit reference pixels on the object whose target is usable too (finite, below saturation_level, "
+            "above min_signal)",
             fix="most target frames are saturated, NaN or dark where the reference is lit: check them and "
             "saturation_level"),
+        "object_valid_fraction": ((flags == 0).sum() / objects).astype(np.float64).assign_attrs(
+            units="1", long_name="share of the object's pixels (not flagged background) that are valid"),
+        "background_fraction": (~on_object).mean().astype(np.float64).assign_attrs(
+            units="1", long_name="share of pixels flagged background (off the object in the backlit frames)"),
     }
     if background_name and not subtracted:
         shares["dark_fraction"] = usable_share(
@@ -190,6 +230,9 @@ def _checked_pair(capture: xr.Dataset, stage_name: str, saturation_level: float 
 
 _PAIR_DOCS = """Parameters
     ----------
+    capture : xr.Dataset
+        A ``tomography_capture`` store (or one with its ``target``, ``reference`` and ``dark`` frames over
+        (angle, row, col) [counts]; ``backlit`` optional, for the background flag), raw or dark-subtracted.
     saturation_level : float or None
         Raw count at or above which a pixel is saturated [counts]; default: the capture's
         ``saturation_level`` attr, else the integer dtype's maximum.
@@ -199,11 +242,25 @@ _PAIR_DOCS = """Parameters
         Also no usable signal at or below this share of the frame's brightest unsaturated reference pixel
         (dark-subtracted) [1]: a threshold meaningful on any intensity scale (radiance renders, 16-bit
         cameras); 0 turns it off. A pixel must pass both.
+    flag_background : bool
+        With ``backlit`` frames in the capture, flag pixels off the object ``background`` (bit 64, NaN): those
+        outside the silhouette of the backlit frame at that angle (where the object does not hide the lit
+        plane; the ``silhouettes`` stage's kernel and ``min_size``), whose target and reference are both the
+        dark level and whose log difference is noise. Without backlit frames no pixel is flagged background,
+        nor where a backlit value is NaN or inf (a frame never filmed: nothing says the pixel is off the
+        object). False: none is.
+    silhouette_threshold : float or None
+        Backlit counts above dark below which a pixel is on the object, as the ``silhouettes`` stage's
+        ``threshold`` (give both the same); None: Otsu's threshold per frame [counts].
 
-    Besides the result and ``flags``, the shares ``signal_fraction`` (reference pixels with usable signal;
-    floor 0.1 %), ``usable_fraction`` (of those, pixels whose target is usable too; floor 5 %) and
-    ``dark_fraction`` (dark pixels ≥ 0 counts; floor 5 %): below a floor the workflow stops, naming the cause
-    (:mod:`pipeline.quality`). A repeated angle is refused and unsorted angles are sorted (with a warning)."""
+    Besides the result and ``flags``, the shares ``signal_fraction`` (the object's pixels whose reference has
+    usable signal; floor 0.1 %), ``usable_fraction`` (of those, pixels whose target is usable too; floor 5 %)
+    and ``dark_fraction`` (dark pixels ≥ 0 counts; floor 5 %): below a floor the workflow stops, naming the
+    cause (:mod:`pipeline.quality`). The object's pixels are those not flagged background (every pixel
+    without backlit frames). Two informative 0-d variables, never checked against a floor, say what a
+    summary of the object needs: ``object_valid_fraction`` (the object's pixels that are valid) and
+    ``background_fraction`` (pixels flagged background). A repeated angle is refused and unsorted angles are
+    sorted (with a warning)."""
 
 
 def _pair_docs(func):
@@ -215,13 +272,16 @@ def _pair_docs(func):
 @stage("normalise_reference")
 @_pair_docs
 def normalise_reference(capture: xr.Dataset, /, *, saturation_level: Positive | None = None,
-                        min_signal: NonNegative = 0.0, min_signal_relative: Fraction = 0.0) -> xr.Dataset:
+                        min_signal: NonNegative = 0.0, min_signal_relative: Fraction = 0.0,
+                        flag_background: bool = True, silhouette_threshold: Positive | None = None) -> xr.Dataset:
     """Transmittance I_target / I_reference per pixel (dark-subtracted), with flags for unusable pixels.
 
     {pair}
     """
     value, flags, attrs, shares = _checked_pair(capture, "normalise_reference", saturation_level, min_signal,
-                                                min_signal_relative, absorption=False)
+                                                min_signal_relative, absorption=False,
+                                                flag_background=flag_background,
+                                                silhouette_threshold=silhouette_threshold)
     value.attrs.update(units="1", long_name="transmittance I_target / I_reference")
     return xr.Dataset({"transmittance": value, "flags": flags, **shares},
                       attrs={**attrs, "selpath_kind": "transmittance"})
@@ -230,7 +290,8 @@ def normalise_reference(capture: xr.Dataset, /, *, saturation_level: Positive | 
 @stage("absorption")
 @_pair_docs
 def absorption(capture: xr.Dataset, /, *, saturation_level: Positive | None = None,
-               min_signal: NonNegative = 0.0, min_signal_relative: Fraction = 0.0) -> xr.Dataset:
+               min_signal: NonNegative = 0.0, min_signal_relative: Fraction = 0.0, flag_background: bool = True,
+               silhouette_threshold: Positive | None = None) -> xr.Dataset:
     """Total absorption A = log I_reference − log I_target per pixel (thesis Eq. 3), with flags.
 
     Computed as a difference of logs, never as the log of a ratio, so float32 frames spanning
@@ -239,6 +300,8 @@ def absorption(capture: xr.Dataset, /, *, saturation_level: Positive | None = No
     {pair}
     """
     value, flags, attrs, shares = _checked_pair(capture, "absorption", saturation_level, min_signal,
-                                                min_signal_relative, absorption=True)
+                                                min_signal_relative, absorption=True,
+                                                flag_background=flag_background,
+                                                silhouette_threshold=silhouette_threshold)
     value.attrs.update(units="1", long_name="total absorption A = log I_reference − log I_target")
     return xr.Dataset({"absorption": value, "flags": flags, **shares}, attrs={**attrs, "selpath_kind": "absorption"})

@@ -20,6 +20,15 @@ def reconstruction_error(reconstruction: xr.Dataset, truth: xr.Dataset, /) -> xr
 
     A truth of one slice is compared with every slice of the reconstruction (a prism's σ is the same at every
     height); otherwise slices are matched by their ``slice`` coordinate. Both must share the (y, x) grid.
+
+    Parameters
+    ----------
+    reconstruction : xr.Dataset
+        A ``reconstruction`` store (``fbp`` or ``reconstruct_tv``): ``sigma`` over (slice, y, x); its ``units``
+        label the errors.
+    truth : xr.Dataset
+        A ``reconstruction`` store of the true σ (``phantom_truth``) on the same (y, x) grid and in the same units,
+        of one slice or of every reconstructed slice.
     """
     require_variables(reconstruction, ("sigma",), "reconstruction_error")
     require_variables(truth, ("sigma",), "reconstruction_error")

@@ -1,30 +1,51 @@
 """Tomography figures as stages (capture, sinogram, coverage, reconstructions, convergence).
 
-Each renders lazily into a ``figure`` cube (RGBA), saved by the engine as ``<store>.png``; how is
-:mod:`stages._figures`.
+Each renders lazily into a ``figure`` cube (RGBA), saved by the engine as ``<store>.png``, with a one-paragraph
+``caption`` attr; how is :mod:`stages._figures`.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import xarray as xr
+from matplotlib import colormaps
+from matplotlib.patches import Rectangle
 
 from pipeline.constraints import Index
 from pipeline.registry import stage
 from stages._common import require_variables
-from stages._figures import as_figure, panels, rgba
+from stages._figures import as_figure, image_colorbar, panels, pixel_axes, rgba, shared_colorbar
 from stages.tomography.sinogram import coverage_model, optimal_light_angle
+
+#: sizes [in] of the figures that are not of the standard size
+CAPTURE_SIZE, RECONSTRUCTION_SIZE, RECONSTRUCTION_SIZE_NO_TRUTH = (9.0, 2.2), (9.0, 6.0), (9.0, 3.2)
+
+
+def _slice_name(ds: xr.Dataset, index: int) -> str:
+    """'slice 0 of 2 (camera row 59)': a slice's position and, where the dataset has one, its coordinate."""
+    if "slice" not in ds.dims:
+        return "the one slice"
+    name = f"slice {index} of {ds.sizes['slice']}"
+    if "slice" in ds.coords:
+        name += f" (camera row {ds['slice'].values[index]:g})"
+    return name
 
 
 def _draw_sinogram(absorption: np.ndarray, observed: np.ndarray, theta: np.ndarray, x: np.ndarray,
                    unit: str, title: str) -> np.ndarray:
     fig, (left, right) = panels(1, 2)
-    extent = (x[0], x[-1], theta[-1], theta[0])
-    shown = left.imshow(np.where(observed, absorption, np.nan), aspect="auto", extent=extent, cmap="magma")
-    fig.colorbar(shown, ax=left, label="total absorption A")
-    left.set(xlabel=f"X [{unit}]", ylabel="θ [degree]", title=title)
-    right.imshow(observed, aspect="auto", extent=extent, cmap="gray", vmin=0, vmax=1)
-    right.set(xlabel=f"X [{unit}]", title=f"observed rays (white): {observed.mean() * 100:.1f}% of bins")
+    fig.suptitle(title, fontsize=10)
+    step_t = (theta[1] - theta[0]) / 2 if theta.size > 1 else 0.5
+    step_x = (x[1] - x[0]) / 2 if x.size > 1 else 0.5
+    extent = (x[0] - step_x, x[-1] + step_x, theta[-1] + step_t, theta[0] - step_t)
+    shown = left.imshow(np.where(observed, absorption, np.nan), aspect="auto", extent=extent,
+                        cmap=colormaps["magma"].with_extremes(bad="0.7"), interpolation="nearest")
+    fig.colorbar(shown, ax=left, label="total absorption A [1]")
+    left.set(xlabel=f"ray position X [{unit}]", ylabel="ray angle θ [degree]")
+    left.set_title("(a) A(θ, X); grey: no ray observed", fontsize=9)
+    right.imshow(observed, aspect="auto", extent=extent, cmap="gray", vmin=0, vmax=1, interpolation="nearest")
+    right.set(xlabel=f"ray position X [{unit}]", ylabel="ray angle θ [degree]")
+    right.set_title(f"(b) observed bins (white): {observed.mean() * 100:.1f} % of all", fontsize=9)
     return rgba(fig)
 
 
@@ -34,46 +55,81 @@ def sinogram_figure(sinogram: xr.Dataset, /, *, slice_index: Index = 0) -> xr.Da
 
     Parameters
     ----------
+    sinogram : xr.Dataset
+        A ``sinogram`` store (``bin_sinogram``): ``absorption`` and ``observed`` over (slice, theta, x).
     slice_index : int
         Position along the sinogram's ``slice`` dim.
     """
     require_variables(sinogram, ("absorption", "observed"), "sinogram_figure")
     one = sinogram.isel(slice=slice_index) if "slice" in sinogram.dims else sinogram
-    title = f"sinogram, θ_l = {sinogram.attrs.get('light_angle_deg', '?')}°"
+    where = _slice_name(sinogram, slice_index)
+    light = sinogram.attrs.get("light_angle_deg")
+    light_text = f"θ_l = {light:g}°" if light is not None else "θ_l unknown"
+    unit = sinogram["x"].attrs.get("units", "")
+    caption = f"""Sinogram of {where}, light at {light_text}: (a) the total absorption A = log I_reference − log
+        I_target (dimensionless) of every ray, binned by ray angle θ [degree] and signed distance X of the ray
+        from the rotation axis [{unit}]; bins no ray reached are grey. (b) the mask of observed bins, with their
+        share. A small object traces one sinusoid; the side bands no ray reaches are the missing areas of the
+        sinogram. Reproduces thesis Fig. 20 (acquired sinogram, shortest-path measurement) and the missing
+        areas of Fig. 14."""
     return as_figure(_draw_sinogram, one["absorption"].data, one["observed"].data, sinogram["theta"].values,
-                      sinogram["x"].values, sinogram["x"].attrs.get("units", ""), title)
+                     sinogram["x"].values, unit, f"sinogram of {where}, light at {light_text}", caption=caption)
 
 
-def _draw_coverage(measured: np.ndarray | None, light_angle: float | None) -> np.ndarray:
+def _draw_coverage(measured: np.ndarray | None, analytic: np.ndarray | None, light_angle: float | None) -> np.ndarray:
     fig, ax = panels()
     angles = np.linspace(0, 180, 361)
-    for fov, style in ((None, "-"), (30.0, "--"), (60.0, ":")):
+    for i, (fov, style) in enumerate(((None, "-"), (30.0, "--"), (60.0, ":"))):
         label = "orthographic" if fov is None else f"perspective, FOV = {fov:.0f}°"
-        ax.plot(angles, coverage_model(angles, fov)[2], style, label=label)
-        ax.axvline(optimal_light_angle(fov), color="0.8", lw=0.8)
+        ax.plot(angles, coverage_model(angles, fov)[2], style, color=f"C{i}", label=label)
+    for i, fov in enumerate((None, 30.0, 60.0)):
+        ax.axvline(optimal_light_angle(fov), color="0.6", lw=0.8, zorder=0,
+                   label="optimal θ_l = (180° − FOV) / 2" if i == 0 else None)
     if measured is not None and light_angle is not None:
-        ax.plot([light_angle] * len(measured), measured, "ko", label="measured")
-    ax.set(xlabel="light angle θ_l [degree]", ylabel="coverage d_max − d_min", ylim=(0, 1.05), xlim=(0, 180),
-           title="coverage of the sinogram versus θ_l (Eq. 8–19, thesis Fig. 16)")
-    ax.legend()
+        ax.plot([light_angle] * len(measured), measured, "ko", label=f"measured ({len(measured)} slice(s))")
+        if analytic is not None:
+            ax.plot([light_angle] * len(analytic), analytic, "kx", ms=9,
+                    label="Eq. 8–19 for this rig (hull radius, camera distance)")
+    ax.set(xlabel="light angle θ_l [degree]", ylabel="coverage d_max − d_min [1]", ylim=(0, 1.05), xlim=(0, 180),
+           xticks=np.arange(0, 181, 15))
+    ax.set_title("coverage of the sinogram versus the light angle θ_l (Eq. 8–19)", fontsize=10)
+    ax.legend(fontsize=8, loc="lower left")
     return rgba(fig)
 
 
 @stage("coverage_figure")
 def coverage_figure(coverage: xr.Dataset | None = None, /) -> xr.Dataset:
-    """Coverage versus θ_l for orthographic and perspective (FOV 30°, 60°) cameras, with measured points."""
+    """Coverage versus θ_l for orthographic and perspective (FOV 30°, 60°) cameras, with measured points.
+
+    Parameters
+    ----------
+    coverage : xr.Dataset or None
+        A ``coverage`` store (the ``coverage`` stage): measured ``coverage`` per slice, and
+        ``analytic_coverage`` where present, drawn at its ``light_angle_deg``; None: the model curves only.
+    """
+    caption = """Coverage d_max − d_min (dimensionless share of the sinogram's X range that holds observed rays)
+        versus the light angle θ_l [degree], by the closed forms of Eq. 8–19 for a cylinder seen by an
+        orthographic camera and by perspective cameras whose field of view spans 30° and 60°; grey vertical
+        lines mark each camera's optimal θ_l = (180° − FOV) / 2, the largest coverage that keeps the
+        sinogram's centre. Reproduces thesis Fig. 16."""
     if coverage is None:
-        return as_figure(_draw_coverage, None, None)
-    return as_figure(_draw_coverage, coverage["coverage"].data, coverage.attrs.get("light_angle_deg"))
+        return as_figure(_draw_coverage, None, None, None, caption=caption)
+    light = coverage.attrs.get("light_angle_deg")
+    caption += f""" Dots: the coverage measured in each reconstructed slice at θ_l = {light}°; crosses: Eq. 8–19
+        for a cylinder of the hull's mean radius at this rig's camera distance."""
+    analytic = coverage["analytic_coverage"].data if "analytic_coverage" in coverage else None
+    return as_figure(_draw_coverage, coverage["coverage"].data, analytic, light, caption=caption)
 
 
 def _draw_capture(frame: np.ndarray, backlit: np.ndarray, angle: float) -> np.ndarray:
-    fig, (left, right) = panels(1, 2)
-    shown = left.imshow(frame, cmap="gray")
-    fig.colorbar(shown, ax=left, label="counts")
-    left.set(title=f"target frame at stage angle {angle:g}° (beam exit glow)", xlabel="col", ylabel="row")
-    right.imshow(backlit, cmap="gray")
-    right.set(title="backlit frame (silhouette)", xlabel="col")
+    fig, axes = panels(1, 2, size=CAPTURE_SIZE)
+    for ax, image, title in ((axes[0], frame, f"(a) target frame, stage angle φ = {angle:g}°"),
+                             (axes[1], backlit, f"(b) backlit frame (silhouette), φ = {angle:g}°")):
+        shown = ax.imshow(image, cmap="gray", vmin=0, vmax=max(float(np.nanmax(image)), 1e-12),
+                          interpolation="nearest")
+        image_colorbar(fig, ax, shown, "counts")
+        ax.set_title(title, fontsize=9)
+        pixel_axes(ax, ylabel="row [px]")
     return rgba(fig)
 
 
@@ -83,30 +139,106 @@ def capture_figure(capture: xr.Dataset, /, *, angle_index: Index = 0) -> xr.Data
 
     Parameters
     ----------
+    capture : xr.Dataset
+        A ``tomography_capture`` store (``acquire_tomography``): ``target`` and ``backlit`` frames over
+        (angle, row, col).
     angle_index : int
         Position along the capture's ``angle`` dim.
     """
     require_variables(capture, ("target", "backlit"), "capture_figure")
     one = capture.isel(angle=angle_index)
-    return as_figure(_draw_capture, one["target"].data, one["backlit"].data, float(one["angle"]))
+    angle = float(one["angle"])
+    light = capture.attrs.get("light_angle_deg")
+    light_text = f" with the light at θ_l = {light:g}°" if light is not None else ""
+    caption = f"""Raw frames of the tomography capture at stage angle φ = {angle:g}° (angle index {angle_index}),
+        in sensor counts: (a) the target frame{light_text}, the diffuse glow where the beam's rays leave the
+        object, from which the total absorption of Eq. 3 is taken against the reference frame; (b) the backlit
+        frame, whose dark silhouette bounds the object and feeds the visual hull. Axes are camera pixels.
+        The measurement of thesis Fig. 13 and 19; cf. the camera projections of Fig. 24."""
+    return as_figure(_draw_capture, one["target"].data, one["backlit"].data, angle, caption=caption,
+                     size=CAPTURE_SIZE)
+
+
+def object_window(support: np.ndarray, *, margin: float = 0.3, min_cells: int = 8) -> tuple[slice, slice]:
+    """A square window (rows, cols) around the True cells of ``support``, widened by ``margin`` of its side on
+    each side and at least ``min_cells`` wide; the whole grid when ``support`` is empty."""
+    ny, nx = support.shape
+    if not support.any():
+        return slice(0, ny), slice(0, nx)
+    rows, cols = np.flatnonzero(support.any(axis=1)), np.flatnonzero(support.any(axis=0))
+    span = max(rows[-1] - rows[0], cols[-1] - cols[0]) + 1
+    side = min(max(int(np.ceil(span * (1 + 2 * margin))), min_cells), ny, nx)
+
+    def window(low: int, high: int, size: int) -> slice:
+        start = int(round((low + high) / 2 - (side - 1) / 2))
+        start = min(max(start, 0), size - side)
+        return slice(start, start + side)
+
+    return window(rows[0], rows[-1], ny), window(cols[0], cols[-1], nx)
 
 
 def _draw_reconstructions(images: list[np.ndarray], titles: list[str], truth: np.ndarray | None,
-                          extent: tuple[float, float, float, float], unit: str) -> np.ndarray:
-    count = len(images) + (truth is not None)
-    fig, axes = panels(1, count)
-    top = max(float(np.nanmax(truth)) if truth is not None else 0.0, *(float(np.nanpercentile(i, 99.5))
-                                                                      for i in images))
-    for ax, image, title in zip(axes, ([truth] if truth is not None else []) + images,
-                                (["truth"] if truth is not None else []) + titles, strict=True):
-        shown = ax.imshow(image, origin="lower", extent=extent, cmap="magma", vmin=0, vmax=top)
-        if truth is not None and title != "truth":
-            rmse = float(np.sqrt(np.nanmean((image - truth) ** 2)))
-            title = f"{title}\nRMSE {rmse:.2e}, max |err| {float(np.nanmax(np.abs(image - truth))):.2e}"
-        ax.set_title(title, fontsize=8)
-        ax.set(xlabel=f"x [{unit}]")
-    axes[0].set(ylabel=f"y [{unit}]")
-    fig.colorbar(shown, ax=axes, label=f"σ [1/{unit}]", shrink=0.8)
+                          reliable: np.ndarray | None, x: np.ndarray, y: np.ndarray, unit: str, sigma_unit: str,
+                          title: str) -> np.ndarray:
+    images = [np.asarray(i, dtype=float) for i in images]
+    peak = float(np.nanmax(truth)) if truth is not None and np.nanmax(truth) > 0 else \
+        max(float(np.nanpercentile(i, 99.5)) for i in images)
+    peak = peak if peak > 0 else 1.0
+    # the object: where the truth is (≥ 10 % of its peak) or a reconstruction is strong (≥ half of it)
+    support = np.zeros(images[0].shape, bool) if truth is None else np.nan_to_num(truth) >= 0.1 * peak
+    for image in images:
+        support |= np.nan_to_num(image) >= 0.5 * peak
+    rows, cols = object_window(support)
+    hx, hy = (x[1] - x[0]) / 2 if x.size > 1 else 0.5, (y[1] - y[0]) / 2 if y.size > 1 else 0.5
+    extent = (x[0] - hx, x[-1] + hx, y[0] - hy, y[-1] + hy)
+    window = (x[cols.start] - hx, x[cols.stop - 1] + hx, y[rows.start] - hy, y[rows.stop - 1] + hy)
+
+    def draw(ax, image, cmap, vmin, vmax, label, crop=True):
+        shown = ax.imshow(image, origin="lower", extent=extent, cmap=cmap, vmin=vmin, vmax=vmax,
+                          interpolation="nearest")
+        if crop:
+            ax.set(xlim=window[:2], ylim=window[2:])
+        ax.set_title(label, fontsize=8)
+        ax.set_xlabel(f"x [{unit}]", fontsize=8)
+        ax.set_ylabel(f"y [{unit}]", fontsize=8)
+        ax.tick_params(labelsize=7)
+        return shown
+
+    def overview(ax):
+        draw(ax, images[0], "magma", 0, peak, f"whole slice, {titles[0].split(') ')[-1]}; box: window", crop=False)
+        ax.add_patch(Rectangle((window[0], window[2]), window[1] - window[0], window[3] - window[2], fill=False,
+                               edgecolor="tab:cyan", lw=1.2))
+        if reliable is not None and reliable.any() and not reliable.all():
+            ax.contour(x, y, reliable.astype(float), levels=[0.5], colors="tab:blue", linewidths=0.8)
+
+    if truth is None:
+        fig, axes = panels(1, 3, size=RECONSTRUCTION_SIZE_NO_TRUTH)
+        fig.suptitle(title, fontsize=10)
+        overview(axes[0])
+        for ax, image, label in zip(axes[1:], images, titles, strict=True):
+            shown = draw(ax, image, "magma", 0, peak, label)
+        shared_colorbar(fig, axes, shown, f"σ [{sigma_unit}]", shrink=0.9)
+        return rgba(fig)
+
+    fig, axes = panels(2, 3, size=RECONSTRUCTION_SIZE)
+    fig.suptitle(title, fontsize=10)
+    for ax, image, label in zip(axes[0], [truth, *images], ["(a) truth", *titles], strict=True):
+        shown = draw(ax, image, "magma", 0, peak, label)
+    shared_colorbar(fig, axes[0], shown, f"σ [{sigma_unit}]", shrink=0.9)
+    overview(axes[1, 0])
+    axes[1, 0].set_title(f"(d) {axes[1, 0].get_title()}", fontsize=8)
+    errors = [image - truth for image in images]
+    inside = [e[rows, cols] for e in errors]
+    limit = max(float(np.nanmax(np.abs(e))) if np.isfinite(e).any() else 0.0 for e in inside)
+    limit = limit if limit > 0 else 0.01 * peak  # exact reconstructions: a scale of 1 % of the peak
+    for ax, error, label, letter in zip(axes[1, 1:], errors, titles, "ef", strict=True):
+        rmse = float(np.sqrt(np.nanmean(error ** 2)))
+        worst = float(np.nanmax(np.abs(error)))
+        name = label.split(") ", 1)[-1].split(" (")[0]
+        text = (f"({letter}) {name} − truth: RMSE {rmse:.2e} {sigma_unit}\n"
+                f"max |error| {worst:.2e} {sigma_unit} (whole slice)")
+        shown = draw(ax, error, "RdBu_r", -limit, limit, text)
+    shared_colorbar(fig, axes[1], shown, f"error Δσ [{sigma_unit}]", shrink=0.9)
     return rgba(fig)
 
 
@@ -117,35 +249,110 @@ def reconstruction_figure(fbp: xr.Dataset, optimised: xr.Dataset, truth: xr.Data
 
     Parameters
     ----------
+    fbp : xr.Dataset
+        A ``reconstruction`` store made by ``fbp``: ``sigma`` (and ``reliable``) over (slice, y, x).
+    optimised : xr.Dataset
+        A ``reconstruction`` store made by ``reconstruct_tv`` on the same grid.
+    truth : xr.Dataset or None
+        A ``reconstruction`` store holding the true σ on the same grid (``phantom_truth``), of one slice or
+        of every reconstructed slice (matched by the ``slice`` coordinate); None: no truth, no error panels.
     slice_index : int
         Position along the reconstructions' ``slice`` dim.
     """
-    images = [r["sigma"].isel(slice=slice_index).data for r in (fbp, optimised)]
-    centres = fbp["x"].values
-    half = (centres[1] - centres[0]) / 2
-    extent = (centres[0] - half, centres[-1] + half, centres[0] - half, centres[-1] + half)
-    reference = truth["sigma"].isel(slice=0 if truth.sizes.get("slice", 1) == 1 else slice_index).data \
-        if truth is not None else None
-    return as_figure(_draw_reconstructions, images, ["FBP", "optimisation (box + TV, ADMM)"], reference, extent,
-                      fbp["x"].attrs.get("units", ""))
+    require_variables(fbp, ("sigma",), "reconstruction_figure")
+    require_variables(optimised, ("sigma",), "reconstruction_figure")
+    images = [r["sigma"].isel(slice=slice_index).data if "slice" in r["sigma"].dims else r["sigma"].data
+              for r in (fbp, optimised)]
+    x = fbp["x"].values
+    y = fbp["y"].values if "y" in fbp.coords else x
+    unit = fbp["x"].attrs.get("units", "")
+    sigma_unit = fbp["sigma"].attrs.get("units") or (f"1/{unit}" if unit else "1/length")
+    reference = None
+    if truth is not None:
+        require_variables(truth, ("sigma",), "reconstruction_figure")
+        sigma = truth["sigma"]
+        if "slice" in sigma.dims and sigma.sizes["slice"] == 1:
+            sigma = sigma.isel(slice=0)
+        elif "slice" in sigma.dims and "slice" in sigma.coords and "slice" in fbp.coords:
+            sigma = sigma.sel(slice=fbp["slice"].values[slice_index])
+        elif "slice" in sigma.dims:
+            sigma = sigma.isel(slice=slice_index)
+        reference = sigma.data
+    reliable = None
+    if "reliable" in fbp:
+        reliable = fbp["reliable"].isel(slice=slice_index).data if "slice" in fbp["reliable"].dims \
+            else fbp["reliable"].data
+    where = _slice_name(fbp, slice_index)
+    tv = optimised.attrs.get("tv_weight")
+    titles = ["(b) FBP", "(c) optimisation (box + TV" + (f", λ = {tv:g})" if tv is not None else ")")]
+    if truth is None:
+        titles = ["(b) FBP", titles[1]]
+    light = fbp.attrs.get("light_angle_deg")
+    title = f"absorption coefficient σ [{sigma_unit}], {where}" + (f", θ_l = {light:g}°" if light is not None else "")
+    window = ("a window around the object (where the truth is at least 10 % of its peak or a reconstruction at "
+              "least half of it, widened by 30 % on each side)")
+    if truth is not None:
+        shown = """(a) the true σ, (b) filtered back projection (FBP) and (c) the constrained optimisation of
+            Eq. 20 (box 0 ≤ σ ≤ σ_max, σ = 0 outside the hull, total variation, by ADMM), on one colour scale from
+            0 to the truth's peak; (d) the whole slice by FBP"""
+        errors = f"""(e, f) each reconstruction minus the truth, on one diverging colour scale symmetric about 0;
+            their titles give the RMSE and the largest absolute error over the whole slice (as the
+            reconstruction_error stage computes them), in {sigma_unit}."""
+    else:
+        shown = """(b) filtered back projection (FBP) and (c) the constrained optimisation of Eq. 20 (box 0 ≤ σ ≤
+            σ_max, σ = 0 outside the hull, total variation, by ADMM), on one colour scale from 0 to the
+            reconstructions' peak; (a) the whole slice by FBP"""
+        errors = "No truth was given, so no errors are shown."
+    caption = f"""Reconstructed absorption coefficient σ [{sigma_unit}] of {where}, axes in {unit}, in {window}:
+        {shown}, with that window boxed and, in blue, the boundary of the cells every ray of which was observed
+        (cf. the blue line of Fig. 21). {errors} Reproduces thesis Fig. 21 (expected distribution, FBP and
+        optimisation) and the error maps of Fig. 18 with Table 1."""
+    return as_figure(_draw_reconstructions, images, titles, reference, reliable, x, y, unit, sigma_unit, title,
+                     caption=caption, size=RECONSTRUCTION_SIZE if truth is not None else RECONSTRUCTION_SIZE_NO_TRUTH)
 
 
-def _draw_convergence(objective: np.ndarray, primal: np.ndarray, dual: np.ndarray) -> np.ndarray:
+def _draw_convergence(objective: np.ndarray, primal: np.ndarray, dual: np.ndarray, iterations: np.ndarray,
+                      converged: np.ndarray, names: list[str], tol: float | None, tv: float | None) -> np.ndarray:
     fig, (left, right) = panels(1, 2)
     for k in range(objective.shape[0]):
-        left.semilogy(objective[k], label=f"slice {k}")
-        right.semilogy(primal[k], "-", label=f"primal, slice {k}")
-        right.semilogy(dual[k], "--", label=f"dual, slice {k}")
-    left.set(xlabel="ADMM iteration", ylabel="objective ½‖M(Rσ−A)‖² + λ TV(σ)", title="objective")
-    right.set(xlabel="ADMM iteration", ylabel="relative residual", title="residuals (stop at tol)")
+        stop = f", {int(iterations[k])} iterations" if iterations is not None else ""
+        stop += ("" if converged[k] else ", not converged") if converged is not None else ""
+        left.semilogy(objective[k], color=f"C{k % 10}", label=f"{names[k]}{stop}")
+        right.semilogy(primal[k], "-", color=f"C{k % 10}", label=f"primal, {names[k]}")
+        right.semilogy(dual[k], "--", color=f"C{k % 10}", label=f"dual, {names[k]}")
+    if tol is not None:
+        right.axhline(tol, color="0.4", lw=0.8, ls=":", label=f"tol = {tol:g}")
+    weight = f", λ = {tv:g}" if tv is not None else ""
+    left.set(xlabel="ADMM iteration", ylabel="objective [1]")
+    left.set_title(f"(a) objective ½‖M(Rσ − A)‖² + λ·TV(σ){weight}", fontsize=9)
+    right.set(xlabel="ADMM iteration", ylabel="relative residual [1]")
+    right.set_title("(b) relative primal (—) and dual (--) residuals", fontsize=9)
     left.legend(fontsize=7)
-    right.legend(fontsize=7)
+    right.legend(fontsize=7, ncols=2 if objective.shape[0] > 2 else 1)
     return rgba(fig)
 
 
 @stage("convergence_figure")
 def convergence_figure(optimised: xr.Dataset, /) -> xr.Dataset:
-    """Objective and relative primal/dual residuals per ADMM iteration, every slice."""
+    """Objective and relative primal/dual residuals per ADMM iteration, every slice.
+
+    Parameters
+    ----------
+    optimised : xr.Dataset
+        A ``reconstruction`` store made by ``reconstruct_tv``: ``objective``, ``primal_residual`` and
+        ``dual_residual`` over (slice, iteration), and ``iterations`` and ``converged`` per slice where present.
+    """
     require_variables(optimised, ("objective", "primal_residual", "dual_residual"), "convergence_figure")
+    count = optimised["objective"].shape[0]
+    names = [f"row {v:g}" for v in optimised["slice"].values] if "slice" in optimised.coords \
+        else [f"slice {k}" for k in range(count)]
+    tol, tv = optimised.attrs.get("tol"), optimised.attrs.get("tv_weight")
+    caption = f"""Convergence of the constrained TV reconstruction (Eq. 20, by ADMM) for each of the {count}
+        reconstructed slice(s), named by camera row: (a) the objective ½‖M(Rσ − A)‖² + λ·TV(σ) (observed rays
+        only, λ = {tv if tv is not None else "?"}), dimensionless as the absorption A, (b) the relative primal
+        and dual residuals (dimensionless), which stop the iterations once both are below
+        tol = {tol if tol is not None else "?"} (dotted line); the legend gives each slice's iterations and
+        whether it converged. The thesis shows no such figure; it documents the optimisation behind Fig. 18 and 21."""
+    stats = [optimised[v].data if v in optimised else None for v in ("iterations", "converged")]
     return as_figure(_draw_convergence, optimised["objective"].data, optimised["primal_residual"].data,
-                      optimised["dual_residual"].data)
+                     optimised["dual_residual"].data, *stats, names, tol, tv, caption=caption)

@@ -55,12 +55,33 @@ def _fill_small_holes(mask: np.ndarray, max_size: int) -> np.ndarray:
     return filled & ~np.isin(labels, outside[outside > 0])
 
 
+#: default ``min_size`` of the silhouettes, shared by :func:`object_masks` (and so by the absorption stage's background)
+MIN_SIZE = 16
+
+
+def object_masks(backlit: xr.DataArray, dark: xr.DataArray | None = None, *, threshold: float | None = None,
+                 min_size: int = MIN_SIZE) -> xr.DataArray:
+    """True where the object hides the lit plane in ``backlit`` (dims ``angle, row, col``), ``dark`` (``row, col``;
+    None: 0) subtracted: the kernel of :func:`silhouettes`, lazy, one task per angle chunk."""
+    backlit = backlit.chunk({"row": -1, "col": -1})
+    dark = xr.zeros_like(backlit.isel(angle=0, drop=True)) if dark is None else dark
+    mask = xr.apply_ufunc(_silhouette_kernel, backlit, dark.chunk({"row": -1, "col": -1}),
+                          input_core_dims=[["row", "col"], ["row", "col"]], output_core_dims=[["row", "col"]],
+                          dask="parallelized", output_dtypes=[bool],
+                          kwargs={"threshold": threshold, "min_size": min_size})
+    return mask.transpose("angle", ..., "row", "col")
+
+
 @stage("silhouettes")
-def silhouettes(capture: xr.Dataset, /, *, threshold: Positive | None = None, min_size: Index = 16) -> xr.Dataset:
+def silhouettes(capture: xr.Dataset, /, *, threshold: Positive | None = None,
+                min_size: Index = MIN_SIZE) -> xr.Dataset:
     """Binary object masks from the backlit frames, per angle (lazy, one task per angle chunk).
 
     Parameters
     ----------
+    capture : xr.Dataset
+        A ``tomography_capture`` store (``acquire_tomography``): ``backlit`` [counts] over (angle, row, col), and
+        ``dark`` (row, col) where present, subtracted here: give raw frames, not ``subtract_dark``'s output.
     threshold : float or None
         Counts above dark below which a pixel is object; None: Otsu's threshold per frame [counts].
     min_size : int
@@ -68,13 +89,8 @@ def silhouettes(capture: xr.Dataset, /, *, threshold: Positive | None = None, mi
     """
     require_variables(capture, ("backlit",), "silhouettes")
     capture = sorted_sweep(capture, "angle", "silhouettes")
-    backlit = capture["backlit"].chunk({"row": -1, "col": -1})
-    dark = capture["dark"] if "dark" in capture else xr.zeros_like(backlit.isel(angle=0, drop=True))
-    mask = xr.apply_ufunc(_silhouette_kernel, backlit, dark.chunk({"row": -1, "col": -1}),
-                          input_core_dims=[["row", "col"], ["row", "col"]], output_core_dims=[["row", "col"]],
-                          dask="parallelized", output_dtypes=[bool],
-                          kwargs={"threshold": threshold, "min_size": min_size})
-    mask = mask.transpose("angle", "row", "col")
+    mask = object_masks(capture["backlit"], capture["dark"] if "dark" in capture else None, threshold=threshold,
+                        min_size=min_size)
     covered = mask.mean(("row", "col"))
     share = usable_share(((covered > 0) & (covered < 1)).mean(), floor=SILHOUETTE_FLOOR,
                          what="backlit frames with a silhouette (neither empty nor the whole frame)",
@@ -166,6 +182,12 @@ def visual_hull(silhouettes: xr.Dataset, /) -> xr.Dataset:
     nothing (no object in the row; the object touching the image border, per side) or were not one run
     of pixels (a non-convex object or noise: the hull then uses the outermost edges).
     The contour is exact to ``hull_resolution`` (half a pixel at the rotation axis) for convex objects.
+
+    Parameters
+    ----------
+    silhouettes : xr.Dataset
+        A ``silhouettes`` store (the ``silhouettes`` stage): ``silhouette`` over (angle, row, col), angle the stage
+        angle [degree]; attrs: the rig geometry (``camera_model`` and its camera's, ``light_angle_deg``).
     """
     require_variables(silhouettes, ("silhouette",), "visual_hull")
     mask = silhouettes["silhouette"]

@@ -118,6 +118,12 @@ def align_paths(absorption: xr.Dataset, hull: xr.Dataset, /, *, min_exit_cos: Fr
 
     Parameters
     ----------
+    absorption : xr.Dataset
+        An ``absorption`` store (the ``absorption`` stage): ``absorption`` over (angle, row, col), angle the stage angle
+        [degree]; ``flags`` where present (non-zero: the pixel is dropped). Its rows must be the hull's slices.
+    hull : xr.Dataset
+        A ``hull`` store (``visual_hull``) of the same capture: ``vertices``, ``n_vertices`` per slice; its attrs give
+        the rig geometry the rays are traced in (camera, ``light_angle_deg``, ``light_kind``, ``beam_height``).
     min_exit_cos : float
         Rays leaving the contour at a smaller |cos| to its normal graze it and are dropped, in [0, 1]; 0: none [1].
     """

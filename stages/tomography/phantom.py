@@ -181,6 +181,9 @@ def phantom_truth(sinogram: xr.Dataset, /, *, scene: StorePath, n_pixels: Count 
 
     Parameters
     ----------
+    sinogram : xr.Dataset
+        A ``sinogram`` store (``simulate_sinogram`` of the same scene); only its grid is read: the ``x`` coordinate
+        (whose units must be the scene's length unit), attr ``x_extent`` and the ``slice`` coordinate.
     scene : str
         Scene file.
     n_pixels : int or None

@@ -231,6 +231,12 @@ def fbp(sinogram: xr.Dataset, hull: xr.Dataset | None = None, /, *, n_pixels: Co
 
     Parameters
     ----------
+    sinogram : xr.Dataset
+        A ``sinogram`` store (``bin_sinogram`` or ``simulate_sinogram``): ``absorption``, ``observed`` over (slice,
+        theta, x), θ [degree], X [length unit]; attr ``x_extent`` (else the outermost X) spans the image.
+    hull : xr.Dataset or None
+        A ``hull`` store (``visual_hull``) holding the sinogram's slices, in X's length unit: σ = 0 outside it, and
+        bins whose ray misses it are known zeros; None: no support, every unobserved bin is missing.
     n_pixels : int or None
         Image size n (n × n over ±x_extent); None: the sinogram's number of X bins.
     filter : str
@@ -291,6 +297,12 @@ def reconstruct_tv(sinogram: xr.Dataset, hull: xr.Dataset | None = None, /, *,
 
     Parameters
     ----------
+    sinogram : xr.Dataset
+        A ``sinogram`` store (``bin_sinogram`` or ``simulate_sinogram``): ``absorption``, ``observed`` over (slice,
+        theta, x), θ [degree], X [length unit]; attr ``x_extent`` (else the outermost X) spans the image.
+    hull : xr.Dataset or None
+        A ``hull`` store (``visual_hull``) holding the sinogram's slices, in X's length unit: σ_max = 0 outside it,
+        and ``reliable`` counts bins whose ray misses it as known; None: no support.
     tv_weight : float
         λ of Eq. 20 [absorption² per (1/length)·cell].
     n_pixels : int or None

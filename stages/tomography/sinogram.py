@@ -79,6 +79,9 @@ def bin_sinogram(rays: xr.Dataset, /, *, n_theta: Bins = 180, n_x: Bins = 256, x
 
     Parameters
     ----------
+    rays : xr.Dataset
+        A ``rays`` store (``align_paths``): ``theta`` [degree, in [0, 180)], ``x`` and ``absorption`` (NaN: dropped)
+        over (angle, row, col); attrs ``x_extent`` (used when x_extent is None) and ``length_unit``.
     n_theta : int
         Bins over [0°, 180°), at least 2.
     n_x : int
@@ -186,6 +189,15 @@ def coverage(sinogram: xr.Dataset, hull: xr.Dataset, /) -> xr.Dataset:
     for a cylinder); the coverage is the share of (θ, X) bins inside the object that hold a ray. The
     closed form uses the cylinder of the contour's mean radius, and for a perspective camera the angle
     it subtends, 2·asin(R / D_c). A global reduction per slice (lazy, small).
+
+    Parameters
+    ----------
+    sinogram : xr.Dataset
+        A ``sinogram`` store (``bin_sinogram``): ``observed`` over (slice, theta, x), X in the hull's length unit;
+        its attrs ``light_angle_deg`` and ``length_unit`` are used where the hull lacks them.
+    hull : xr.Dataset
+        A ``hull`` store (``visual_hull``) holding every slice of the sinogram: ``vertices``, ``n_vertices``, and the
+        camera's geometry attrs.
     """
     require_variables(sinogram, ("observed",), "coverage")
     if "slice" not in sinogram.dims:

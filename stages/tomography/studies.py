@@ -14,6 +14,7 @@ import numpy as np
 import pydantic
 import xarray as xr
 
+from devices.sim.scene import scene_identity
 from pipeline.constraints import Count, NonNegative, Positive, memory_problems
 from pipeline.registry import stage
 from pipeline.spec import StorePath
@@ -91,4 +92,4 @@ def light_angle_study(*, scene: StorePath,
     return xr.Dataset(
         {"sigma": sigma, "rmse": np.sqrt((error**2).mean(("y", "x"))), "max_abs_error": abs(error).max(("y", "x")),
          "observed_fraction": ("light_angle", np.array(observed)), "truth": truth},
-        attrs={"selpath_kind": "light_angle_study", "scene": str(scene), "tv_weight": tv_weight})
+        attrs={"selpath_kind": "light_angle_study", **scene_identity(scene), "tv_weight": tv_weight})

@@ -82,7 +82,8 @@ def test_outputs_carry_provenance(small_workflow):
     assert provenance["workflow_text"] == small_workflow.read_text()
     assert provenance["steps"]["capture"]["settings"]["rods"] == [{"x": 6.0, "y": 3.0, "radius": 4.0, "sigma": 0.05}]
     assert provenance["steps"]["absorption"]["settings"] == {"saturation_level": None, "min_signal": 1.0,
-                                                             "min_signal_relative": 0.0}
+                                                             "min_signal_relative": 0.0, "flag_background": True,
+                                                             "silhouette_threshold": None}
     assert set(provenance["versions"]) >= {"selpath", "xarray", "dask", "zarr"}
 
 

@@ -9,7 +9,7 @@ import pytest
 import zarr
 
 from pipeline import StoreError, open_store, to_store
-from pipeline.schema import KINDS, metadata
+from pipeline.schema import FORMAT_VERSION, KINDS, metadata
 from pipeline.store import IncompleteStoreWarning
 from tests.pipeline.test_corruption import minimal
 
@@ -61,8 +61,21 @@ def test_a_format_3_store_with_a_coordinates_attrs_opens_with_the_right_ones(tmp
     assert back["absorption"].attrs["long_name"].startswith("total absorption")
 
 
+def test_a_format_4_transport_gets_its_solver_variables_metadata_on_open(tmp_path):
+    """Format 4 wrote a transport's iterations, converged, frames_used and objective bare; format 5 declares them."""
+    ds = minimal("plane_to_ray_transport").assign_attrs(selpath_format=4, selpath_kind="plane_to_ray_transport")
+    for name in ("iterations", "converged", "frames_used", "objective"):
+        ds[name].attrs.clear()
+    ds.to_zarr(tmp_path / "old.zarr", consolidated=False)
+    with pytest.warns(IncompleteStoreWarning):  # written by plain xarray: no completion record
+        back = open_store(tmp_path / "old.zarr")
+    assert back["iterations"].attrs == {"units": "1", "long_name": "ADMM iterations run for the pixel"}
+    assert back["converged"].attrs == {"long_name": "the pixel's solve met its tolerance"}  # a mask: no units
+    assert back["objective"].attrs["units"] == "1" and back["frames_used"].attrs["units"] == "1"
+
+
 def test_a_current_store_in_wrong_units_is_refused_naming_the_variable(tmp_path):
-    ds = minimal("reconstruction").assign_attrs(selpath_format=4, selpath_kind="reconstruction")
+    ds = minimal("reconstruction").assign_attrs(selpath_format=FORMAT_VERSION, selpath_kind="reconstruction")
     ds["sigma"].attrs["units"] = "1/cm"  # the grid is in mm
     ds.to_zarr(tmp_path / "r.zarr", consolidated=False)
     wrong = r"variable 'sigma' is in '1/cm'; a reconstruction holds it in '1/mm'"

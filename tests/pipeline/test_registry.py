@@ -75,3 +75,15 @@ def test_signatures_must_be_explicit_and_typed():
 
     with pytest.raises(SelpathError, match=r"must be lower_snake_case"):
         stage("Bad-Name")(lambda: None)
+
+
+def test_every_installed_stage_documents_every_input_and_setting():
+    """`selpath stages NAME` and the workflow schema show each parameter's description: none may be blank (a
+    grouped numpydoc entry, ``alpha, beta : float``, documents each name)."""
+    from pipeline.registry import _param_docs, default_registry
+
+    blank = [f"{s.name}.{n}" for s in default_registry() for n in (*s.inputs, *s.params.model_fields)
+             if not s.param_docs.get(n)]
+    assert blank == []
+    assert _param_docs("Parameters\n----------\nalpha, beta : float\n    Weights [1].\n") == {
+        "alpha": "Weights [1].", "beta": "Weights [1]."}

@@ -99,3 +99,36 @@ def test_a_default_report_name_never_leaves_the_outputs_folder(small_workflow):
     result = runner.invoke(app, ["run", str(small_workflow), "--no-progress", "--report"])
     assert result.exit_code == 0, result.output
     assert (small_workflow.parent / "out" / "up-there-report.html").is_file()
+
+
+def test_a_study_table_prints_every_small_variable_with_its_units():
+    """`tables:` shows a study's results as the thesis does (Table 1: a row per θ_l, a column per method and
+    error); every cell is checked against the store's own values, formatted to 4 significant digits."""
+    import xarray as xr
+
+    from pipeline.report import store_tables
+
+    rmse = np.array([[5.056e-3, 3.459e-3], [6.164e-4, 3.439e-4]])
+    study = xr.Dataset(
+        {"rmse": (("light_angle", "method"), rmse, {"units": "1/mm"}),
+         "observed_fraction": ("light_angle", [0.5469, 0.8906], {"units": "1"}),
+         "sigma": (("light_angle", "method", "y", "x"), np.zeros((2, 2, 100, 100)))},  # too large: not a column
+        coords={"light_angle": ("light_angle", [0.0, 60.0], {"units": "degree"}), "method": ["fbp", "optimisation"]})
+    (table,) = store_tables(study, "study")
+    assert table.columns == ["light_angle [degree]", "observed_fraction", "rmse fbp [1/mm]",
+                             "rmse optimisation [1/mm]"]
+    assert table.rows == [["0", "0.5469", "0.005056", "0.003459"], ["60", "0.8906", "0.0006164", "0.0003439"]]
+
+
+def test_the_page_explains_figures_settings_and_steps(small_workflow):
+    """A page a scientist can read: the settings each step ran with (those the file sets marked), and what the run
+    computed or reused with the time each step took."""
+    small_workflow.write_text(small_workflow.read_text() + REPORT)
+    first = runner.invoke(app, ["run", str(small_workflow), "--no-progress", "--report"], env={"COLUMNS": "300"})
+    assert first.exit_code == 0, first.output
+    page = (small_workflow.parent / "out" / "small-report.html").read_text()
+    assert "<b>min_signal = 1.0</b>" in page and "min_signal_relative = 0.0" in page  # set versus default
+    assert re.search(r"<td>absorption</td><td>absorption</td><td>computed</td><td>\d+\.\d s</td>", page)
+    second = runner.invoke(app, ["run", str(small_workflow), "--no-progress", "--report"], env={"COLUMNS": "300"})
+    page = (small_workflow.parent / "out" / "small-report.html").read_text()
+    assert second.exit_code == 0 and "2 step(s) computed" not in page and "0 step(s) computed and\n2 reused" in page

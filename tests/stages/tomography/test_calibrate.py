@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dask
 import dask.array as da
 import numpy as np
 import pytest
@@ -10,13 +11,24 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pipeline import StageError
-from stages.tomography.calibrate import NO_SIGNAL, NONFINITE, SATURATED, absorption, normalise_reference, subtract_dark
+from stages.tomography.calibrate import (
+    BACKGROUND,
+    FLAG_MASKS,
+    NO_SIGNAL,
+    NONFINITE,
+    SATURATED,
+    absorption,
+    normalise_reference,
+    subtract_dark,
+)
 
 DIMS = ("angle", "row", "col")
 
 
-def make_capture(target, reference, dark=None, saturation_level=4095.0, chunks=None) -> xr.Dataset:
+def make_capture(target, reference, dark=None, saturation_level=4095.0, chunks=None, backlit=None) -> xr.Dataset:
     data = {"target": (DIMS, target), "reference": (DIMS, reference)}
+    if backlit is not None:
+        data["backlit"] = (DIMS, backlit)
     if dark is not None:
         data["dark"] = (("row", "col"), dark)
     ds = xr.Dataset(data, coords={"angle": ("angle", np.arange(target.shape[0]) * 1.0, {"units": "degree"})},
@@ -127,3 +139,117 @@ def test_calibration_stages_stay_lazy(closed_form, no_compute):
     assert out["absorption"].chunks == lazy["target"].chunks
     assert isinstance(normalise_reference(lazy)["transmittance"].data, da.Array)
     assert no_compute.count == 0
+
+
+@pytest.fixture
+def disc_capture():
+    """An object disc (a different centre per angle) in front of a lit plane; off it, target and reference are the
+    dark level plus noise that often clears min_signal (the demo's 'max A = 2.29' of a background pixel)."""
+    rng = np.random.default_rng(7)
+    shape = (3, 20, 24)
+    rows, cols = np.mgrid[:shape[1], :shape[2]]
+    disc = np.stack([(rows - r) ** 2 + (cols - c) ** 2 <= 6.0**2 for r, c in ((9, 11), (10, 12.5), (8.5, 14))])
+    dark = rng.uniform(55, 65, shape[1:])
+    incident = rng.uniform(800, 3000, shape)
+    a_true = rng.uniform(0.1, 2.0, shape)
+    target = np.where(disc, dark + incident * np.exp(-a_true), dark + rng.uniform(-3, 6, shape))
+    reference = np.where(disc, dark + incident, dark + rng.uniform(-3, 6, shape))
+    backlit = np.where(disc, dark, dark + 2000.0) + rng.normal(0, 2.0, shape)
+    return make_capture(target, reference, dark, backlit=backlit), disc, a_true
+
+
+def test_background_pixels_are_flagged_and_object_pixels_keep_their_exact_absorption(disc_capture):
+    capture, disc, a_true = disc_capture
+    out = absorption(capture, min_signal=1.0)
+    flags, values = out["flags"].values, out["absorption"].values
+    np.testing.assert_array_equal((flags & BACKGROUND) > 0, ~disc)  # exactly the pixels off the disc
+    assert np.isnan(values[~disc]).all()
+    assert (flags[disc] == 0).all()
+    np.testing.assert_allclose(values[disc], a_true[disc], rtol=1e-12, atol=1e-12)
+    without = absorption(capture, min_signal=1.0, flag_background=False)
+    assert (without["flags"].values[~disc] == 0).any()  # the noise the bit removes: background pixels "valid"
+    np.testing.assert_array_equal(without["flags"].values, flags & (255 - BACKGROUND))  # the other bits are kept
+    transmittance = normalise_reference(capture, min_signal=1.0)
+    np.testing.assert_array_equal(transmittance["flags"].values, flags)
+    np.testing.assert_allclose(transmittance["transmittance"].values[disc], np.exp(-a_true[disc]), rtol=1e-12)
+
+
+def test_shares_count_the_objects_pixels_only(disc_capture):
+    capture, disc, _ = disc_capture
+    out = absorption(capture, min_signal=1.0)
+    shares = {v: float(out[v]) for v in ("signal_fraction", "usable_fraction", "object_valid_fraction",
+                                         "background_fraction")}
+    assert shares == {"signal_fraction": 1.0, "usable_fraction": 1.0, "object_valid_fraction": 1.0,
+                      "background_fraction": pytest.approx(float((~disc).mean()), abs=1e-15)}
+    assert out.attrs["background_flagged"] == 1
+    # informative, not usable shares: the quality check skips them (no floor)
+    assert "selpath_floor" not in out["object_valid_fraction"].attrs
+    assert "selpath_floor" in out["signal_fraction"].attrs
+
+
+def test_a_dark_subtracted_tiled_capture_flags_the_same_background_lazily(disc_capture, no_compute):
+    capture, _, _ = disc_capture
+    direct = absorption(capture, min_signal=1.0)
+    tiled = absorption(subtract_dark(capture.chunk({"angle": 2, "row": 8, "col": 8})), min_signal=1.0)
+    assert no_compute.count == 0 and tiled["flags"].chunks == ((2, 1), (8, 8, 4), (8, 8, 8))
+    with dask.config.set(scheduler="synchronous"):  # (computing now is the point)
+        xr.testing.assert_identical(direct["flags"], tiled["flags"].compute())
+
+
+def test_a_fixed_silhouette_threshold_and_a_mismatched_backlit(disc_capture):
+    capture, disc, _ = disc_capture
+    fixed = absorption(capture, min_signal=1.0, silhouette_threshold=1000.0)
+    np.testing.assert_array_equal((fixed["flags"].values & BACKGROUND) > 0, ~disc)
+    assert fixed.attrs["silhouette_threshold"] == 1000.0
+    one_frame = capture.assign(backlit=capture["backlit"].isel(angle=0, drop=True))
+    with pytest.raises(StageError, match=r"backlit has dims \('row', 'col'\), target \('angle', 'row', 'col'\); "
+                       "they must match to flag the background"):
+        absorption(one_frame)
+    assert absorption(one_frame, flag_background=False).attrs["background_flagged"] == 0
+
+
+def test_a_backlit_frame_never_filmed_flags_no_background(disc_capture):
+    """A missing backlit frame (NaN, as a store's unwritten frame reads back) says nothing about the object."""
+    capture, disc, _ = disc_capture
+    capture["backlit"][1] = np.nan
+    flags = absorption(capture, min_signal=1.0)["flags"].values
+    np.testing.assert_array_equal((flags & BACKGROUND) > 0, ~disc & (np.arange(3) != 1)[:, None, None])
+
+
+def test_without_backlit_frames_no_pixel_is_background(closed_form):
+    capture, _ = closed_form
+    out = absorption(capture)
+    assert not (out["flags"].values & BACKGROUND).any() and out.attrs["background_flagged"] == 0
+    assert float(out["background_fraction"]) == 0.0
+    assert float(out["object_valid_fraction"]) == float((out["flags"] == 0).mean()) == 1.0
+
+
+def test_flag_meanings_list_the_background_bit():
+    flags = absorption(make_capture(np.ones((1, 2, 2)), np.full((1, 2, 2), 2.0)))["flags"]
+    assert flags.attrs["flag_masks"] == FLAG_MASKS and BACKGROUND == 64
+    meanings = flags.attrs["flag_meanings"].split()
+    assert len(meanings) == len(FLAG_MASKS) and meanings[FLAG_MASKS.index(BACKGROUND)] == "background"
+
+
+def test_the_background_bit_drops_no_ray():
+    """Rays come from pixels whose camera ray meets the hull, which the silhouettes bound: the pixels the bit
+    flags (off the silhouette) already gave no ray (reason 1). Noisy background, perspective camera."""
+    from stages.tomography.hull import silhouettes, visual_hull
+    from stages.tomography.paths import align_paths
+    from tests.stages.tomography.test_tomography_processing import capture as simulated
+    from tests.stages.tomography.test_tomography_processing import make_scene
+
+    camera = {"model": "perspective", "rows": 2, "cols": 160, "distance": "60 mm", "fov": "24 deg"}
+    scene = make_scene({"kind": "ellipse", "semi_axes": ["10 mm", "7 mm"], "angle": "20 deg"}, camera, 45.0)
+    cap = simulated(scene, np.arange(0.0, 360.0, 20.0))
+    noise = np.random.default_rng(3).uniform(-2, 6, (2, *cap["target"].shape))
+    off = cap["backlit"] > 1000
+    cap = cap.assign(target=cap["target"].where(~off, 64.0 + noise[0]),
+                     reference=cap["reference"].where(~off, 64.0 + noise[1]))
+    hull = visual_hull(silhouettes(cap)).compute()
+    flagged, plain = absorption(cap, min_signal=1.0), absorption(cap, min_signal=1.0, flag_background=False)
+    assert ((plain["flags"] == 0) & off).any() and not ((flagged["flags"] == 0) & off).any()
+    rays, rays_plain = align_paths(flagged, hull).compute(), align_paths(plain, hull).compute()
+    assert (rays["reason"] == 0).sum() > 100
+    xr.testing.assert_identical(rays[["reason", "theta", "x", "absorption"]],
+                                rays_plain[["reason", "theta", "x", "absorption"]])

@@ -1,0 +1,187 @@
+"""Every figure stage says what it draws: a one-paragraph ``caption`` attr (known before anything is computed)
+and a description of each data input and setting; the reconstruction figure crops to the object and draws the
+reconstruction's error, so an exact and a wrong reconstruction look different."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import xarray as xr
+
+from pipeline.registry import default_registry
+from stages._figures import as_figure, panels, rgba
+from stages.tomography.figures import object_window, reconstruction_figure
+
+MM = {"units": "mm"}
+
+
+def _lazy(ds: xr.Dataset) -> xr.Dataset:
+    return ds.chunk()
+
+
+def tomography_capture() -> xr.Dataset:
+    rng = np.random.default_rng(0)
+    frames = rng.uniform(0, 100, (3, 6, 8))
+    dims = ("angle", "row", "col")
+    return _lazy(xr.Dataset({"target": (dims, frames, {"units": "counts"}),
+                             "backlit": (dims, frames[::-1], {"units": "counts"})},
+                            coords={"angle": ("angle", [0.0, 1.0, 2.0], {"units": "degree"})},
+                            attrs={"light_angle_deg": 45.0}))
+
+
+def sinogram() -> xr.Dataset:
+    dims = ("slice", "theta", "x")
+    values = np.random.default_rng(1).uniform(0, 1, (2, 6, 8))
+    return _lazy(xr.Dataset({"absorption": (dims, values, {"units": "1"}), "observed": (dims, values > 0.2)},
+                            coords={"slice": [59, 60], "theta": ("theta", np.arange(6) * 30.0, {"units": "degree"}),
+                                    "x": ("x", np.linspace(-7, 7, 8), MM)}, attrs={"light_angle_deg": 45.0}))
+
+
+def coverage() -> xr.Dataset:
+    return _lazy(xr.Dataset({"coverage": ("slice", [0.8, 0.82]), "analytic_coverage": ("slice", [0.85, 0.85])},
+                            coords={"slice": [59, 60]}, attrs={"light_angle_deg": 45.0}))
+
+
+def reconstruction(sigma: np.ndarray, **variables) -> xr.Dataset:
+    """A reconstruction store of one slice (camera row 59) on an n × n grid of 1 mm cells, σ in 1/mm."""
+    n = sigma.shape[-1]
+    grid = np.arange(n) - (n - 1) / 2
+    dims = ("slice", "y", "x")
+    data = {"sigma": (dims, sigma[None], {"units": "1/mm"}), "reliable": (dims, np.ones((1, n, n), bool)),
+            **variables}
+    return _lazy(xr.Dataset(data, coords={"slice": [59], "y": ("y", grid, MM), "x": ("x", grid, MM)},
+                            attrs={"light_angle_deg": 45.0, "tv_weight": 0.02, "tol": 1e-3}))
+
+
+def optimised(sigma: np.ndarray) -> xr.Dataset:
+    history = np.geomspace(1, 1e-4, 10)[None]
+    hist = ("slice", "iteration")
+    return reconstruction(sigma, objective=(hist, history), primal_residual=(hist, history),
+                          dual_residual=(hist, history), iterations=("slice", [10]), converged=("slice", [True]))
+
+
+def plane_capture() -> xr.Dataset:
+    dims = ("delay", "exposure", "row", "col")
+    return _lazy(xr.Dataset({"image": (dims, np.random.default_rng(2).uniform(0, 100, (5, 2, 6, 8)),
+                                       {"units": "counts"})},
+                            coords={"delay": ("delay", [-340.0, -170.0, 0.0, 170.0, 340.0], {"units": "us"}),
+                                    "exposure": ("exposure", [170.0, 510.0], {"units": "us"})},
+                            attrs={"scan_speed_px_per_us": 1 / 17}))
+
+
+def plane_transport() -> xr.Dataset:
+    return _lazy(xr.Dataset({"transport": (("offset", "row", "col"), np.random.default_rng(3).uniform(0, 1, (5, 6, 8)),
+                                           {"units": "counts"})},
+                            coords={"offset": ("offset", np.arange(-2, 3), {"units": "px"})}))
+
+
+def full_transport() -> xr.Dataset:
+    rng = np.random.default_rng(4)
+    cells = np.arange(0.0, 16.0, 2.0)
+    return _lazy(xr.Dataset({"transport": (("du", "dv", "row", "col"), rng.uniform(0, 1, (3, 3, 6, 8)),
+                                           {"units": "counts"}),
+                             "u_direct": (("row", "col"), np.tile(cells, (6, 1)), {"units": "px"})},
+                            coords={"du": ("du", [-2.0, 0.0, 2.0], {"units": "px"}),
+                                    "dv": ("dv", [-1, 0, 1], {"units": "px"})},
+                            attrs={"cell_width_px": 2.0, "cells_px": cells.tolist()}))
+
+
+#: each figure stage with inputs of the kinds it expects; a new figure stage needs an entry here
+SIGMA = np.zeros((16, 16))
+SIGMA[10:13, 3:6] = 0.2
+PIXELS = {"page": (0.3, 0.8), "candle": (0.2, 0.3)}
+CALLS = {
+    "capture_figure": lambda: ((tomography_capture(),), {"angle_index": 1}),
+    "sinogram_figure": lambda: ((sinogram(),), {"slice_index": 1}),
+    "coverage_figure": lambda: ((coverage(),), {}),
+    "reconstruction_figure": lambda: ((reconstruction(SIGMA), optimised(SIGMA), reconstruction(SIGMA)), {}),
+    "convergence_figure": lambda: ((optimised(SIGMA),), {}),
+    "delay_profile_figure": lambda: ((plane_capture(), plane_transport()), {"pixels": PIXELS}),
+    "relighting_figure": lambda: ((plane_transport(),), {"lines": (0.2, 0.6)}),
+    "epipolar_figure": lambda: ((plane_capture(), plane_transport()), {"half_width": 1}),
+    "profile_2d_figure": lambda: ((full_transport(),), {"pixels": PIXELS}),
+    "relighting_full_figure": lambda: ((full_transport(),), {"projector_cols": 16}),
+}
+
+
+def figure_stages():
+    return [s for s in default_registry() if s.func.__module__.endswith(".figures")]
+
+
+def test_every_figure_stage_is_covered_here():
+    assert {s.name for s in figure_stages()} == set(CALLS)
+
+
+@pytest.mark.parametrize("name", sorted(CALLS))
+def test_each_figure_stage_captions_its_figure_before_computing_it(name, no_compute):
+    stage = default_registry()[name]
+    args, settings = CALLS[name]()
+    figure = stage(*args, **settings)
+    assert no_compute.count == 0
+    caption = figure.attrs.get("caption")
+    assert isinstance(caption, str) and len(caption) > 200, caption
+    assert "\n" not in caption and "  " not in caption and "``" not in caption  # one paragraph, plain text
+    assert "Fig." in caption  # the thesis figure it reproduces (or that it has none)
+    assert figure.attrs["selpath_kind"] == "figure"
+
+
+@pytest.mark.parametrize("name", sorted(CALLS))
+def test_each_figure_stage_describes_every_input_and_setting(name):
+    stage = default_registry()[name]
+    described = {k for k, v in stage.param_docs.items() if v}
+    assert set(stage.inputs) | set(stage.params.model_fields) <= described, stage.param_docs
+
+
+@pytest.mark.parametrize("name", ["capture_figure", "relighting_figure", "relighting_full_figure",
+                                  "profile_2d_figure", "delay_profile_figure", "epipolar_figure"])
+def test_figures_of_other_sizes_draw_the_shape_they_declare(name):
+    args, settings = CALLS[name]()
+    figure = default_registry()[name](*args, **settings)
+    declared = figure["image"].shape
+    image = figure["image"].values
+    assert image.shape == declared and image.dtype == np.uint8 and image[..., :3].std() > 10
+
+
+def test_as_figure_refuses_no_caption_and_a_render_of_another_size():
+    def draw():
+        return rgba(panels(size=(3.0, 2.0))[0])
+
+    with pytest.raises(ValueError, match="caption"):
+        as_figure(draw, caption=" ")
+    with pytest.raises(ValueError, match="declares"):
+        as_figure(draw, caption="a figure").image.compute()
+    assert as_figure(draw, caption="a\n   figure", size=(3.0, 2.0)).attrs["caption"] == "a figure"
+
+
+def test_the_object_window_holds_the_object_with_a_margin():
+    support = np.zeros((64, 64), bool)
+    support[40:44, 10:14] = True
+    rows, cols = object_window(support)
+    assert rows.stop - rows.start == cols.stop - cols.start == 8  # 4 cells + 30 % each side, at least 8
+    assert rows.start < 40 and rows.stop > 44 and cols.start < 10 and cols.stop > 14
+    support[:] = False
+    support[0:3, 60:64] = True  # at a corner: the window stays on the grid
+    rows, cols = object_window(support)
+    assert rows.start == 0 and cols.stop == 64 and rows.stop - rows.start == 8
+    assert object_window(np.zeros((5, 7), bool)) == (slice(0, 5), slice(0, 7))
+
+
+def _panel_colours(image: np.ndarray, top: float, bottom: float, left: float, right: float) -> np.ndarray:
+    h, w = image.shape[:2]
+    return image[int(top * h):int(bottom * h), int(left * w):int(right * w), :3].reshape(-1, 3) / 255.0
+
+
+def test_the_reconstruction_figure_crops_to_the_object_and_shows_the_error():
+    """On a 64-cell grid a 4 × 4-cell object fills 0.4 % of the slice; cropped it fills a large part of the truth
+    panel (top left). An exact reconstruction leaves the error panel (bottom, right of centre) one neutral colour;
+    one at half the true σ turns the object blue there (negative error)."""
+    truth = np.zeros((64, 64))
+    truth[40:44, 10:14] = 0.15
+    exact = reconstruction_figure(reconstruction(truth), optimised(truth), reconstruction(truth))["image"].values
+    wrong = reconstruction_figure(reconstruction(truth), optimised(truth / 2), reconstruction(truth))["image"].values
+    panel = _panel_colours(exact, 0.1, 0.45, 0.03, 0.3)
+    bright = (panel[:, 0] > 0.9) & (panel[:, 1] > 0.75) & (panel[:, 2] < 0.85)  # magma's top (pale yellow)
+    assert bright.mean() > 0.1, bright.mean()
+    blue = [(p[:, 2] - p[:, 0] > 0.3).mean() for p in (_panel_colours(i, 0.6, 0.92, 0.62, 0.8) for i in
+                                                          (exact, wrong))]
+    assert blue[0] == 0 and blue[1] > 0.05, blue
