@@ -66,8 +66,8 @@ class SweepPlan:
             shape += f" × {self.lines} lines"
         ratio = self.pixel_to_pixel / max(self.captures, 1)
         verdict = (f"this sweep takes {ratio:.1f}× fewer captures" if ratio >= 1 else
-                   f"this sweep takes {1 / ratio:.1f}× as many captures here (it pays off on taller sensors and "
-                   "for the full transport)")
+                   f"this sweep takes {1 / ratio:.1f}× as many captures here (it pays off where the sensor has "
+                   "many more rows than the sweep has delays × exposures)")
         return (f"{self.captures} captures ({shape}); pixel-to-pixel scanning (§5.2.4: one block of projector rows "
                 f"lit per capture, as tall as the rows the scan crosses in one delay step) needs "
                 f"{self.pixel_to_pixel:,} for the same rows: {verdict}")

@@ -27,7 +27,7 @@ from pipeline.compute import enable_compile_cache
 from pipeline.constraints import describe
 from pipeline.engine import RunReport, run_workflow
 from pipeline.errors import SelpathError, StoreError
-from pipeline.integrity import verify_store
+from pipeline.integrity import open_group, verify_store
 from pipeline.locks import store_lock
 from pipeline.provenance import read_provenance
 from pipeline.registry import default_registry, plain_text
@@ -81,6 +81,10 @@ def _main(version: Annotated[bool, typer.Option("--version", help="print the ver
                                                 is_eager=True, metavar="")] = False) -> None:
     """selpath: selected light path measurement, from capture to science."""
 
+
+
+#: ``inspect`` computes valid shares by default for stores of at most this many values (reading more takes long)
+VALID_LIMIT = 2e8
 
 
 def _fail(exc: SelpathError) -> None:
@@ -297,7 +301,7 @@ def inspect(
         bad = verify_store(store) if verify else []
         provenance = read_provenance(store)
         complete = is_complete(store) or bool(missing)
-    with _guard():
+    with _guard(), np.errstate(all="ignore"):
         _describe_store(store, ds.drop_vars([v for v in ds.data_vars if str(v).startswith("written__")]), valid,
                         readable=not bad)
     incomplete = not complete
@@ -324,13 +328,10 @@ def inspect(
         for key, value in lines.items():
             console.print(f"  {key}: {escape(value)}", highlight=False, soft_wrap=True)
     else:
-        console.print("provenance: none (a store selpath did not write, or one still being written)")
+        console.print("provenance: none (written outside a workflow, e.g. by pipeline.to_store or another tool, or "
+                      "still being written)")
     if incomplete or bad:
         raise typer.Exit(1)
-
-
-#: ``inspect`` computes valid shares by default for stores of at most this many values (reading more takes long)
-VALID_LIMIT = 2e8
 
 
 def _describe_store(path: Path, ds, valid: bool | None, readable: bool) -> None:
@@ -340,7 +341,10 @@ def _describe_store(path: Path, ds, valid: bool | None, readable: bool) -> None:
 
     kind = ds.attrs.get("selpath_kind")
     about = KINDS[kind].description if kind in KINDS else "unknown kind"
-    console.print(f"[bold]{escape(str(path))}[/]: {escape(str(kind))} store, format {ds.attrs.get('selpath_format')}"
+    on_disk = open_group(path).attrs.get("selpath_format")
+    migrated = f", migrated to {ds.attrs.get('selpath_format')} on open" if on_disk != ds.attrs.get(
+        "selpath_format") else ""
+    console.print(f"[bold]{escape(str(path))}[/]: {escape(str(kind))} store, format {on_disk}{migrated}"
                   f" ({escape(about)})", highlight=False)
     console.print("dims: " + ", ".join(f"{d} {n:,}" for d, n in ds.sizes.items()), highlight=False)
     total = sum(int(v.size) for v in ds.data_vars.values())
@@ -361,7 +365,7 @@ def _describe_store(path: Path, ds, valid: bool | None, readable: bool) -> None:
             head = (f"  [bold cyan]{escape(str(name))}[/] ({escape(', '.join(map(str, array.dims)))}) {array.dtype}"
                     + (f" \\[{escape(str(units))}]" if units else ""))
             if name in scalar_values:
-                head += f" = {np.asarray(scalar_values[name]).item():.6g}"
+                head += f" = {_scalar_text(np.asarray(scalar_values[name]).item())}"
             elif title == "coordinates" and array.size and np.issubdtype(array.dtype, np.number):
                 head += f": {array.values.min():g} … {array.values.max():g}"
             elif title == "variables":
@@ -381,6 +385,12 @@ def _describe_store(path: Path, ds, valid: bool | None, readable: bool) -> None:
             text = json.dumps(value, default=str, ensure_ascii=False)
             console.print(f"  {escape(key)}: {escape(text if len(text) <= 200 else text[:197] + '…')}",
                           highlight=False, soft_wrap=True)
+
+
+def _scalar_text(value) -> str:
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    return f"{value:.6g}" if isinstance(value, int | float) else escape(str(value))
 
 
 def _print_bad(bad: list, recapture_store: Path | bool) -> None:

@@ -206,16 +206,20 @@ def _cell(value: Any) -> str:
 
 
 def store_tables(store: xr.Dataset, title: str) -> list[TableView]:
-    """The variables of ``store`` with one or two dims of at most :data:`TABLE_LIMIT` values, as tables: one per
-    first dim, a column per variable (and per value of its second dim) in name order, with units; computed in one
-    pass."""
-    chosen = sorted(str(v) for v in store.data_vars if 1 <= store[v].ndim <= 2
+    """The variables of ``store`` with at most two dims of at most :data:`TABLE_LIMIT` values, as tables: one per
+    first dim (and one row of the 0-d ones), a column per variable (and per value of its second dim) in name order,
+    with units; computed in one pass."""
+    chosen = sorted(str(v) for v in store.data_vars if store[v].ndim <= 2
                     and all(store.sizes[d] <= TABLE_LIMIT for d in store[v].dims))
     by_dim: dict[str, list[str]] = {}
     for name in chosen:
-        by_dim.setdefault(str(store[name].dims[0]), []).append(name)
+        by_dim.setdefault(str(store[name].dims[0]) if store[name].ndim else "", []).append(name)
     values = dict(zip(chosen, dask.compute(*(store[n].data for n in chosen)), strict=True))
     tables = []
+    scalars = by_dim.pop("", [])
+    if scalars:  # 0-d values (an error's RMSE, a usable share): one row
+        tables.append(TableView(title, [_label(store[n], n) for n in scalars],
+                                [[_cell(np.asarray(values[n]).item()) for n in scalars]]))
     for dim, names in by_dim.items():
         index = store[dim] if dim in store.coords else xr.DataArray(np.arange(store.sizes[dim]), dims=dim)
         columns, cells = [_label(index, dim)], [[_cell(v) for v in index.values.tolist()]]
@@ -227,11 +231,10 @@ def store_tables(store: xr.Dataset, title: str) -> list[TableView]:
                 continue
             other = array.dims[1]
             labels = store[other].values.tolist() if other in store.coords else range(store.sizes[other])
-            data = np.moveaxis(data, list(array.dims).index(dim), 0)
             for j, label in enumerate(labels):
                 columns.append(_label(array, name, label))
                 cells.append([_cell(v) for v in data[:, j]])
-        tables.append(TableView(f"{title} (by {dim})" if len(by_dim) > 1 else title, columns,
+        tables.append(TableView(f"{title} (by {dim})" if len(by_dim) + bool(scalars) > 1 else title, columns,
                                 [list(row) for row in zip(*cells, strict=True)]))
     return tables
 
@@ -289,11 +292,14 @@ def _table_html(table: TableView) -> str:
 
 def _settings_html(workflow: Workflow) -> str:
     """Every step's stage and settings: those the workflow file sets in bold, the stage's defaults plain."""
+    from pipeline.spec import is_path_setting
+
     rows = []
     for step_id, step in workflow.steps.items():
         given = step.settings.model_fields_set
-        cells = [f"<b>{html.escape(k)} = {html.escape(_setting_text(v))}</b>" if k in given else
-                 f"{html.escape(k)} = {html.escape(_setting_text(v))}"
+        paths = {k for k in type(step.settings).model_fields if is_path_setting(type(step.settings), k)}
+        cells = [f"<b>{html.escape(k)} = {html.escape(_setting_text(v, k in paths))}</b>" if k in given else
+                 f"{html.escape(k)} = {html.escape(_setting_text(v, k in paths))}"
                  for k, v in step.settings.model_dump(mode="json").items()]
         inputs = ", ".join(f"{k} = {r}" for k, r in step.inputs.items())
         rows.append(f"<tr><td>{html.escape(step_id)}</td><td>{html.escape(step.stage.name)}</td>"
@@ -303,10 +309,12 @@ def _settings_html(workflow: Workflow) -> str:
             f"<th>stage</th><th>inputs</th><th>settings</th></tr>{''.join(rows)}</table>")
 
 
-def _setting_text(value: Any) -> str:
+def _setting_text(value: Any, path: bool = False) -> str:
+    """A setting's value for the page: a path setting by its file name (the full path is in the store's
+    provenance, and where the folder was is nobody's business on a shared page), anything long cut at 80."""
+    if path and isinstance(value, str) and value:
+        value = re.split(r"[\\/]", value.rstrip("/\\"))[-1]
     text = repr(value) if isinstance(value, str) else str(value)
-    if isinstance(value, str) and ("/" in value or "\\" in value):
-        text = repr(Path(value).name)  # a path: its name (the full path is in the store's provenance)
     return text if len(text) <= 80 else text[:77] + "…"
 
 

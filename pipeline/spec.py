@@ -128,7 +128,7 @@ class Workflow:
         steps = {}
         for step_id, step in self.steps.items():
             update = {name: moved[value] for name in type(step.settings).model_fields
-                      if _is_path_setting(type(step.settings), name)
+                      if is_path_setting(type(step.settings), name)
                       and (value := getattr(step.settings, name)) in moved}
             steps[step_id] = dataclasses.replace(step, settings=step.settings.model_copy(update=update))
         outputs = {n: o.model_copy(update={"store": moved[o.store]}) for n, o in self.outputs.items()}
@@ -186,7 +186,7 @@ def output_path_problems(workflow: Workflow) -> list[tuple[tuple, str, str]]:
         own = step.stage.writes(step.settings) if step.stage.writes is not None else None
         for name in type(step.settings).model_fields:
             value = getattr(step.settings, name)
-            if _is_path_setting(type(step.settings), name) and isinstance(value, str) and value and value != own:
+            if is_path_setting(type(step.settings), name) and isinstance(value, str) and value and value != own:
                 protected[f"the input steps[{step.index}].with.{name}"] = value
     if not workflow.source.startswith("<"):
         protected["the workflow file"] = str(Path(workflow.source).resolve())
@@ -236,7 +236,7 @@ def _suggest(name: str, choices: list[str]) -> str:
     return f"did you mean {' or '.join(repr(c) for c in close)}?" if close else f"one of: {', '.join(choices)}"
 
 
-def _is_path_setting(model: type[pydantic.BaseModel], name: str) -> bool:
+def is_path_setting(model: type[pydantic.BaseModel], name: str) -> bool:
     return any(isinstance(m, _PathMarker) for m in model.model_fields[name].metadata)
 
 
@@ -290,7 +290,7 @@ def _check_steps(spec: WorkflowFile, raw: dict, registry: StageRegistry, located
             continue
         for name in stage.params.model_fields:
             value = getattr(model, name)
-            if _is_path_setting(stage.params, name) and isinstance(value, str) and value:
+            if is_path_setting(stage.params, name) and isinstance(value, str) and value:
                 model = model.model_copy(update={name: str((base_dir / value).resolve())})
         if stage.precheck is not None:
             for message in stage.precheck(model):

@@ -118,7 +118,8 @@ def _every_figure_loads(page):
         image = matplotlib.image.imread(io.BytesIO(base64.b64decode(data)), format="png")
         assert image.shape[0] >= 200 and image.shape[1] >= 400 and float(image[..., :3].std()) > 0.01, page
         shapes.append(f"{image.shape[1]}x{image.shape[0]}")
-    assert shapes and all("<figcaption><b>" in part for part in text.split("<figure>")[1:])  # each captioned
+    captions = re.findall(r"<figcaption><b>[^<]+</b> \([^)]+\)\. ([^<]*)</figcaption>", text)
+    assert shapes and len(captions) == len(shapes) and all(len(c) > 100 and "Fig." in c for c in captions), captions
     browser = next((shutil.which(b) for b in ("chromium", "chromium-browser", "google-chrome") if shutil.which(b)),
                    None)
     if browser is None:

@@ -24,7 +24,7 @@ from pipeline.errors import Problem, StageError
 from pipeline.quality import usable_share
 from pipeline.registry import stage
 from stages._common import require_variables, sorted_sweep
-from stages.tomography.hull import object_masks
+from stages.tomography.hull import SILHOUETTE_FLOOR, object_masks
 
 #: bits of ``flags``; target bits are shifted by 0, reference bits by 3; BACKGROUND: not on the object
 SATURATED, NO_SIGNAL, NONFINITE = 1, 2, 4
@@ -105,7 +105,8 @@ def _pair_kernel(target, reference, background, min_signal, on_object, *, subtra
     (or ratio) of the valid pixels.
 
     Fused by hand into a single NumPy function: the same arithmetic as ~15 separate lazy xarray
-    operations ran at 60 Mpx/s on 2 cores, this kernel at 80 Mpx/s (benchmarks/absorption_throughput.py).
+    operations ran at 60 Mpx/s on 2 cores, this kernel at 80 Mpx/s (benchmarks/absorption_throughput.py; the
+    kernel alone: the background flag's silhouettes bring the stage to about 20 Mpx/s).
     ``min_signal`` is a scalar or per-frame thresholds broadcast against the tile.
     """
     def split(frames):
@@ -155,6 +156,33 @@ def frame_peak(frames: xr.DataArray, background: xr.DataArray, *, subtracted: bo
 SIGNAL_FLOOR, USABLE_FLOOR, DARK_FLOOR = 0.001, 0.05, 0.05
 
 
+#: a backlit frame shows a silhouette when its lit pixels stand this many noise widths (the two classes' standard
+#: deviations added) above the object's: a failed backlight (noise only) splits at about 1.3, a real one at hundreds,
+#: a translucent object (a grape passing 30 % of the light) at about 3
+SILHOUETTE_CONTRAST = 2.0
+
+
+def _silhouette_share(lit: xr.DataArray, mask: xr.DataArray) -> xr.DataArray:
+    """The usable share of backlit frames whose silhouette stands out of the noise (lazy): its two classes are
+    both present and their means differ by :data:`SILHOUETTE_CONTRAST` times their spreads added."""
+    pixels = ("row", "col")
+    finite = np.isfinite(lit)
+    values = lit.where(finite, 0.0).astype(np.float64)
+
+    def moments(cls: xr.DataArray) -> tuple[xr.DataArray, xr.DataArray]:  # (mean, std); an empty class gives 0, 0
+        n = np.maximum((cls & finite).sum(pixels), 1)
+        mean = values.where(cls, 0.0).sum(pixels) / n
+        return mean, np.sqrt(np.maximum((values**2).where(cls, 0.0).sum(pixels) / n - mean**2, 0.0))
+
+    (inside, inside_std), (outside, outside_std) = moments(mask), moments(~mask)
+    contrast = (outside - inside) / (outside_std + inside_std + 1e-30)
+    share = ((contrast > SILHOUETTE_CONTRAST) & (mask.mean(pixels) > 0) & (mask.mean(pixels) < 1)).mean()
+    return usable_share(share, floor=SILHOUETTE_FLOOR, what="backlit frames whose silhouette stands out of the noise "
+                        f"(backlight more than {SILHOUETTE_CONTRAST:g} noise widths above the object)",
+                        fix="the backlit frames show no backlight (a failed or unplugged backlight, or frames of "
+                        "another camera): check them, or set flag_background: false to keep the background unflagged")
+
+
 def _checked_pair(capture: xr.Dataset, stage_name: str, saturation_level: float | None, min_signal: float,
                   min_signal_relative: float, *, absorption: bool, flag_background: bool = True,
                   silhouette_threshold: float | None = None) -> tuple[xr.DataArray, xr.DataArray, dict, dict]:
@@ -182,8 +210,10 @@ def _checked_pair(capture: xr.Dataset, stage_name: str, saturation_level: float 
                                      "flag_background: false"))
         # backlit frames were dark-subtracted with the others (subtract_background's default variables); a pixel
         # whose backlit value is missing (NaN, inf: e.g. a frame never filmed) is not known to be off the object
-        object_mask = object_masks(backlit, None if subtracted or not background_name else background,
-                                   threshold=silhouette_threshold) | ~np.isfinite(backlit)
+        dark = None if subtracted or not background_name else background
+        mask = object_masks(backlit, dark, threshold=silhouette_threshold, midpoint=True)
+        object_mask = mask | ~np.isfinite(backlit)
+        silhouette_share = _silhouette_share(backlit if dark is None else backlit - dark, mask)
     value, flags = xr.apply_ufunc(
         _pair_kernel, capture["target"], capture["reference"], background, threshold, object_mask,
         kwargs=dict(subtracted=subtracted, level=level, dtype=dtype, absorption=absorption),
@@ -219,6 +249,8 @@ def _checked_pair(capture: xr.Dataset, stage_name: str, saturation_level: float 
         "background_fraction": (~on_object).mean().astype(np.float64).assign_attrs(
             units="1", long_name="share of pixels flagged background (off the object in the backlit frames)"),
     }
+    if object_mask.ndim:
+        shares["silhouette_fraction"] = silhouette_share
     if background_name and not subtracted:
         shares["dark_fraction"] = usable_share(
             (capture[background_name] >= 0).mean(), floor=DARK_FLOOR,

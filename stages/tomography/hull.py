@@ -28,7 +28,8 @@ from pipeline.schema import with_metadata
 from stages._common import require_variables, sorted_sweep
 
 
-def _silhouette_kernel(backlit: np.ndarray, dark: np.ndarray, *, threshold: float | None, min_size: int) -> np.ndarray:
+def _silhouette_kernel(backlit: np.ndarray, dark: np.ndarray, *, threshold: float | None, min_size: int,
+                       midpoint: bool = False) -> np.ndarray:
     signal = backlit.astype(np.float64) - dark
     out = np.zeros(signal.shape, dtype=bool)
     for i, frame in enumerate(signal.reshape(-1, *signal.shape[-2:])):
@@ -37,6 +38,8 @@ def _silhouette_kernel(backlit: np.ndarray, dark: np.ndarray, *, threshold: floa
         if level is None:
             values = frame[finite]
             level = threshold_otsu(values) if values.size and np.ptp(values) > 0 else np.inf
+            if midpoint and np.isfinite(level):  # halfway between the two classes' means (one isodata step)
+                level = 0.5 * (values[values < level].mean() + values[values >= level].mean())
         mask = finite & (frame < level)  # the object blocks the lit plane
         if min_size > 0:
             mask = _fill_small_holes(remove_small_objects(mask, max_size=min_size), min_size)
@@ -60,15 +63,22 @@ MIN_SIZE = 16
 
 
 def object_masks(backlit: xr.DataArray, dark: xr.DataArray | None = None, *, threshold: float | None = None,
-                 min_size: int = MIN_SIZE) -> xr.DataArray:
+                 min_size: int = MIN_SIZE, midpoint: bool = False) -> xr.DataArray:
     """True where the object hides the lit plane in ``backlit`` (dims ``angle, row, col``), ``dark`` (``row, col``;
-    None: 0) subtracted: the kernel of :func:`silhouettes`, lazy, one task per angle chunk."""
+    None: 0) subtracted: the kernel of :func:`silhouettes`, lazy, one task per angle chunk.
+
+    ``midpoint``: without a ``threshold``, move Otsu's level halfway between the means of the two classes it
+    splits. skimage's Otsu returns the first histogram bin of a tie, which for a well separated backlight (no
+    pixel between the classes) lies at the top of the object's noise, e.g. 0.4 counts above dark where the lit
+    plane is at 2,000: it then splits the noise of small frames. The silhouettes stage keeps Otsu's level as it
+    was (its hulls, and the reconstructions checked against them, are unchanged); the background flag uses the
+    midpoint, which in that case lies above Otsu's level: a larger object, so the flag drops no ray."""
     backlit = backlit.chunk({"row": -1, "col": -1})
     dark = xr.zeros_like(backlit.isel(angle=0, drop=True)) if dark is None else dark
     mask = xr.apply_ufunc(_silhouette_kernel, backlit, dark.chunk({"row": -1, "col": -1}),
                           input_core_dims=[["row", "col"], ["row", "col"]], output_core_dims=[["row", "col"]],
                           dask="parallelized", output_dtypes=[bool],
-                          kwargs={"threshold": threshold, "min_size": min_size})
+                          kwargs={"threshold": threshold, "min_size": min_size, "midpoint": midpoint})
     return mask.transpose("angle", ..., "row", "col")
 
 

@@ -187,6 +187,23 @@ def test_shares_count_the_objects_pixels_only(disc_capture):
     assert "selpath_floor" in out["signal_fraction"].attrs
 
 
+def test_a_failed_backlight_stops_the_run_instead_of_flagging_noise(disc_capture):
+    """A backlight that never came on (backlit = dark + noise): Otsu still splits the noise, which would flag about
+    half of every frame background, the object included, while every other share reads 100 %. The silhouette share
+    (classes more than 2 noise widths apart) is 0 and the quality check refuses it, naming the fix."""
+    from pipeline.quality import enforce
+
+    capture, _, _ = disc_capture
+    assert float(absorption(capture, min_signal=1.0)["silhouette_fraction"]) == 1.0
+    noise = np.random.default_rng(3).normal(0.0, 2.0, capture["backlit"].shape)
+    failed = capture.assign(backlit=capture["backlit"].copy(data=capture["dark"].values + noise))
+    out = absorption(failed, min_signal=1.0)
+    assert float(out["silhouette_fraction"]) == 0.0
+    with pytest.raises(StageError, match="backlit frames whose silhouette stands out of the noise.*flag_background"):
+        enforce(out, "absorption")
+    assert float(absorption(failed, min_signal=1.0, flag_background=False)["signal_fraction"]) > 0.4
+
+
 def test_a_dark_subtracted_tiled_capture_flags_the_same_background_lazily(disc_capture, no_compute):
     capture, _, _ = disc_capture
     direct = absorption(capture, min_signal=1.0)
