@@ -14,6 +14,13 @@ commanded delay plus the rig's true sync offset); the light row v sends to row s
 intervals over t_p. The pattern's column profile weights du. Sensor noise (shot, read), quantisation and
 saturation apply only when named. Frames are rendered in row tiles, so memory stays bounded at any
 sensor size.
+
+**Patterns.** The signal is linear in the pattern, so a pattern is rendered as the sum of its rank-1 terms
+b_k(v)·a_k(u) (:func:`pattern_terms`: one term for white, lines, stripes and column Gray codes; two for a
+checkerboard, ½·1 + ½·s(v)s(u); the SVD for any other), each term by the separable time integration above, and
+noise, quantisation and saturation applied once to the sum. Low-rank patterns are rendered exactly; a pattern
+that needs more than ``max_terms`` terms is refused with its residual at that rank, or rendered to a stated
+tolerance (``pattern_rtol``).
 """
 
 from __future__ import annotations
@@ -29,6 +36,10 @@ from devices.sim.procam_scene import Effects, ProcamRig, ProcamScene
 
 #: rows rendered at a time (bounded memory at any sensor width)
 TILE_ROWS = 64
+#: a pattern's rank-1 terms are kept until the rest holds at most this share of its Frobenius norm
+PATTERN_RTOL = 1e-9
+#: the most rank-1 terms a pattern may take by default (each costs one separable render of the frame)
+MAX_PATTERN_TERMS = 32
 
 
 @dataclass(frozen=True)
@@ -269,8 +280,8 @@ def render_tile(scene: ProcamScene, tile: Tile, delay: float, exposure: float,
                 effects: dict[str, Callable] | None = None, shutter: str = "rolling") -> np.ndarray:
     """Signal [counts, before noise] of ``tile`` for one capture, by time integration.
 
-    ``profiles``: the pattern's (row profile on camera rows, column profile on projector columns), from
-    :func:`separable`.
+    ``profiles``: one rank-1 term of the pattern, (row profile on camera rows, column profile on projector
+    columns), from :func:`pattern_terms`; linear in each.
     """
     row_profile, column_profile = profiles
     rig = scene.rig
@@ -323,31 +334,43 @@ def tiles(scene: ProcamScene, tile_rows: int = TILE_ROWS) -> Iterator[Tile]:
 
 
 def render_frame(scene: ProcamScene, delay: float, exposure: float, pattern: np.ndarray | None = None, *,
-                 effects: dict[str, Callable] | None = None, shutter: str = "rolling") -> np.ndarray:
+                 effects: dict[str, Callable] | None = None, shutter: str = "rolling",
+                 pattern_rtol: float = PATTERN_RTOL, max_terms: int = MAX_PATTERN_TERMS) -> np.ndarray:
     """One raw frame (float32 counts, camera shape) for a capture at ``delay``, ``exposure`` [µs].
 
-    ``pattern``: (projector rows, cols) in [0, 1], separable (:func:`separable`); None: white.
+    ``pattern``: (projector rows, cols) in [0, 1], any (:func:`pattern_terms`: its rank-1 terms, each rendered
+    by time integration, summed before the sensor); None: white.
     """
     rig = scene.rig
-    profile = separable(rig, pattern)
+    terms = pattern_terms(rig, pattern, rtol=pattern_rtol, max_terms=max_terms)
     key = frame_key(delay, exposure, pattern) ^ (1 if shutter == "global" else 0)
     out = np.empty((rig.camera_rows, rig.camera_cols), dtype=np.float32)
     for tile in tiles(scene):
         r0 = int(tile.rows[0])
-        signal = render_tile(scene, tile, delay, exposure, profile, key, effects, shutter)
+        signal = sum(render_tile(scene, tile, delay, exposure, term, key, effects, shutter) for term in terms)
         out[r0:r0 + tile.shape[0]] = sensor(rig, signal, key, r0).reshape(tile.shape)
     return out
 
 
-def separable(rig: ProcamRig, pattern: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-    """A pattern as (row profile on camera rows, column profile on projector columns), P = b(v) · a(u).
+def _on_camera_rows(rig: ProcamRig, row_profile: np.ndarray) -> np.ndarray:
+    """A projector-row profile rectified onto camera rows (projector row ⌊s · P_rows / C_rows⌋ lights row s)."""
+    return row_profile[(np.arange(rig.camera_rows) * rig.projector_rows) // rig.camera_rows]
 
-    Rows are rectified onto camera rows (projector row ⌊s · P_rows / C_rows⌋ lights camera row s). White,
-    vertical and horizontal lines, vertical stripes and column Gray codes are separable; a pattern that is
-    not (a checkerboard) is refused, naming why.
+
+def pattern_terms(rig: ProcamRig, pattern: np.ndarray | None, *, rtol: float = PATTERN_RTOL,
+                  max_terms: int = MAX_PATTERN_TERMS) -> list[tuple[np.ndarray, np.ndarray]]:
+    """A pattern P as rank-1 terms [(row profile on camera rows, column profile on projector columns), …] with
+    P = Σ_k b_k(v) · a_k(u).
+
+    A separable pattern (white, lines, stripes, column Gray codes) is one term, found exactly without a
+    factorisation. Any other is its SVD truncated at the first rank whose residual ‖P − P_k‖_F is at most
+    ``rtol`` · ‖P‖_F: exact to rounding for low-rank patterns (a checkerboard, ½ + ½·s(v)·s(u), has rank 2). A
+    pattern that needs more than ``max_terms`` terms is refused, naming its residual at that rank (raise
+    ``rtol`` to render it approximately: rendering is linear, so the frame's error is then the render of the
+    dropped terms P − P_k, whose Frobenius norm is at most ``rtol`` · ‖P‖_F).
     """
     if pattern is None:
-        return np.ones(rig.camera_rows), np.ones(rig.projector_cols)
+        return [(np.ones(rig.camera_rows), np.ones(rig.projector_cols))]
     pattern = np.asarray(pattern, dtype=float)
     if pattern.shape != (rig.projector_rows, rig.projector_cols):
         raise ValueError(f"pattern is {pattern.shape}; the projector is {(rig.projector_rows, rig.projector_cols)}")
@@ -356,11 +379,17 @@ def separable(rig: ProcamRig, pattern: np.ndarray | None) -> tuple[np.ndarray, n
     r, c = np.unravel_index(np.argmax(pattern), pattern.shape)
     peak = pattern[r, c]
     rows, cols = (pattern[:, c] / peak, pattern[r, :]) if peak > 0 else (np.zeros(pattern.shape[0]), pattern[0])
-    if not np.allclose(np.outer(rows, cols), pattern, atol=1e-9):
-        raise ValueError("the simulated rolling-shutter rig renders separable patterns b(v)·a(u) (white, lines, "
-                         "stripes, column Gray codes); this one is not (a checkerboard?)")
-    camera_to_projector = (np.arange(rig.camera_rows) * rig.projector_rows) // rig.camera_rows
-    return rows[camera_to_projector], cols
+    if np.allclose(np.outer(rows, cols), pattern, rtol=0.0, atol=1e-12):
+        return [(_on_camera_rows(rig, rows), cols)]
+    u, s, vt = np.linalg.svd(pattern, full_matrices=False)
+    tail = np.sqrt(np.cumsum((s**2)[::-1])[::-1])  # tail[k]: ‖P − P_k‖_F, the residual after k terms
+    residual = np.append(tail[1:], 0.0) / tail[0]  # after 1, 2, … terms, as a share of ‖P‖_F
+    rank = int(np.argmax(residual <= rtol)) + 1
+    if rank > max_terms:
+        raise ValueError(f"the pattern needs {rank} rank-1 terms to render within {rtol:g} of its norm; at "
+                         f"{max_terms} terms its residual is {residual[max_terms - 1]:.2e} of it: pass a larger "
+                         "max_terms, or a pattern_rtol at least that large to render it approximately")
+    return [(_on_camera_rows(rig, u[:, k] * s[k]), vt[k]) for k in range(rank)]
 
 
 # -- ground truth on the offset grid --------------------------------------------------------------------
