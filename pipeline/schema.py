@@ -233,6 +233,14 @@ KINDS: dict[str, CubeKind] = {
             coord_units={},
         ),
         CubeKind(
+            name="direct_global",
+            description="direct and global light per pixel from shifted checkerboards (§5.4.6, Nayar et al.)",
+            variables={"direct": Variable(_FRAME, units="counts", long_name="direct light L_d"),
+                       "global": Variable(_FRAME, units="counts", long_name="global light L_g"),
+                       "flags": Variable(_FRAME, required=False, **_FLAGS)},
+            coord_units={},
+        ),
+        CubeKind(
             name="plane_to_ray_capture",
             description="image stacks over sync delay and exposure (§5.2.3)",
             variables={"image": Variable(("delay", "exposure", *_FRAME), **_COUNTS)},
