@@ -22,7 +22,7 @@ import numpy as np
 import xarray as xr
 from rich.progress import Progress, TextColumn, TimeElapsedColumn
 
-from devices.patterns import vertical_line, white
+from devices.patterns import checkerboard, vertical_line, white
 from devices.protocols import Camera, Projector, SyncController
 from pipeline.compute import BAR_COLUMNS, show_bars
 from pipeline.errors import DeviceError, Problem, SpecError
@@ -184,3 +184,58 @@ def acquire_full_transport(instruments: ProcamInstruments, store: str | os.PathL
     shape = instruments.projector.shape
     return sweep_frames(instruments, store, template, "full_transport_capture",
                         lambda position: vertical_line(shape, position, line_width), progress, log)
+
+
+def checkerboard_shifts(square: tuple[int, int], per_axis: int) -> np.ndarray:
+    """``per_axis``² shifts (rows, cols) [projector px] evenly over one period (two squares) in both axes: the
+    §5.4.6 stack (the thesis: 128 shifts of a 24-px board). Rounded to whole pixels; repeats removed."""
+    steps = [np.unique(np.round(np.arange(per_axis) * 2 * side / per_axis).astype(int)) for side in square]
+    return np.array([(r, c) for r in steps[0] for c in steps[1]], dtype=int)
+
+
+def acquire_checkerboards(instruments: ProcamInstruments, store: str | os.PathLike, square: tuple[int, int],
+                          shifts: np.ndarray, *, mode: str, delay: float, exposure: float, progress: bool = True,
+                          log: Callable[[str], None] = lambda _: None) -> xr.Dataset:
+    """One frame per shifted checkerboard (§5.4.6) into a ``checkerboard_capture`` store, resumable: ``mode``
+    ``floodlit`` (global shutter, the exposure spanning the whole scan: Nayar's frames) or ``epipolar`` (rolling
+    shutter at ``delay``/``exposure``, normally 0 and t_p: the epipolar frames)."""
+    shifts = np.asarray(shifts, dtype=int)
+    rows, cols = instruments.camera.shape
+    refuse_impossible(instruments, [delay], [exposure])
+    if mode == "floodlit":
+        if not hasattr(instruments.camera, "set_shutter"):
+            raise DeviceError("floodlit checkerboards need a camera with a global-shutter mode (set_shutter)",
+                              command="set_shutter", fix="use mode: epipolar, or a camera with a global shutter")
+        instruments.camera.set_shutter("global")
+    index = np.arange(len(shifts))
+    template = xr.Dataset(
+        {"image": (("shift", "row", "col"), da.zeros((len(shifts), rows, cols), dtype=np.float32,
+                                                    chunks=(1, min(rows, CAPTURE_BAND_ROWS), cols)),
+                   {"units": "counts"})},
+        coords={"shift": ("shift", index, {"units": "1", "long_name": "checkerboard shift number"}),
+                "shift_row": ("shift", shifts[:, 0], {"units": "px", "long_name": "board shift in projector rows"}),
+                "shift_col": ("shift", shifts[:, 1], {"units": "px", "long_name": "board shift in projector columns"})},
+        attrs={"selpath_kind": "checkerboard_capture", **instruments.attrs, "square_px": [int(v) for v in square],
+               "mode": mode, "shutter": "global" if mode == "floodlit" else "rolling", "delay_us": float(delay),
+               "exposure_us": float(exposure), "black_level": 0.0})
+    with store_lock(store, purpose="checkerboard_capture"):
+        create_capture(store, template, "checkerboard_capture")
+        todo = [int(f["shift"]) for f in missing_frames(store)["image"]]
+        if not todo:
+            log(f"   every frame is already captured in {store}")
+            return open_store(store)
+        log(f"   capturing {len(todo)} {mode} checkerboard frame(s) into {store}"
+            + (" (resuming: the others are already captured)" if len(todo) < len(shifts) else ""))
+        _verified(instruments.sync.set_exposure(exposure), exposure, "exposure", instruments)
+        _verified(instruments.sync.set_delay(delay), delay, "delay", instruments)
+        began = time.perf_counter()
+        with Progress(*BAR_COLUMNS, TextColumn("frames"), TimeElapsedColumn(), disable=not show_bars(progress),
+                      transient=True) as bar:
+            task = bar.add_task("capture", total=len(todo))
+            for i in todo:
+                instruments.projector.show(checkerboard(instruments.projector.shape, square, tuple(shifts[i])))
+                instruments.sync.arm()
+                write_frame(store, "image", {"shift": i}, instruments.camera.capture())
+                bar.update(task, advance=1, description=f"capture: {mode} board shifted by {tuple(shifts[i])} px")
+        log(f"   captured {len(todo)} frame(s) in {time.perf_counter() - began:.1f} s")
+    return open_store(store)

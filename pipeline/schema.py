@@ -233,6 +233,14 @@ KINDS: dict[str, CubeKind] = {
             coord_units={},
         ),
         CubeKind(
+            name="checkerboard_capture",
+            description="one frame per shifted checkerboard, floodlit or epipolar (§5.4.6)",
+            variables={"image": Variable(("shift", *_FRAME), **_COUNTS)},
+            coord_units={"shift": frozenset({"1"})},
+            attrs={"square_px": "checkerboard square [rows, cols], projector px",
+                   "mode": "'floodlit' (global shutter over the whole scan) or 'epipolar' (t_d = 0, t_e = t_p)"},
+        ),
+        CubeKind(
             name="direct_global",
             description="direct and global light per pixel from shifted checkerboards (§5.4.6, Nayar et al.)",
             variables={"direct": Variable(_FRAME, units="counts", long_name="direct light L_d"),

@@ -381,7 +381,14 @@ def pattern_terms(rig: ProcamRig, pattern: np.ndarray | None, *, rtol: float = P
     rows, cols = (pattern[:, c] / peak, pattern[r, :]) if peak > 0 else (np.zeros(pattern.shape[0]), pattern[0])
     if np.allclose(np.outer(rows, cols), pattern, rtol=0.0, atol=1e-12):
         return [(_on_camera_rows(rig, rows), cols)]
-    u, s, vt = np.linalg.svd(pattern, full_matrices=False)
+    # P = C·E with C its distinct columns (a checkerboard has 2) and E copying column j of C counts[j] times, so
+    # P·Pᵀ = (C·W)(C·W)ᵀ with W = diag(√counts): P's singular values and left vectors are those of C·W, its right
+    # vectors Vᵀ·W⁻¹ spread back over the copies. Rows × distinct² instead of rows × cols² (a 1200 × 1600 board:
+    # milliseconds instead of seconds per frame).
+    distinct, inverse = np.unique(pattern, axis=1, return_inverse=True)
+    weight = np.sqrt(np.bincount(inverse.ravel(), minlength=distinct.shape[1]))
+    u, s, vt = np.linalg.svd(distinct * weight, full_matrices=False)
+    vt = (vt / weight)[:, inverse.ravel()]
     tail = np.sqrt(np.cumsum((s**2)[::-1])[::-1])  # tail[k]: ‖P − P_k‖_F, the residual after k terms
     residual = np.append(tail[1:], 0.0) / tail[0]  # after 1, 2, … terms, as a share of ‖P‖_F
     rank = int(np.argmax(residual <= rtol)) + 1

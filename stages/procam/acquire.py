@@ -19,7 +19,8 @@ import pydantic
 import xarray as xr
 
 from devices.patterns import white
-from devices.procam_acquire import ProcamInstruments, capture_template, sweep_frames
+from devices.procam_acquire import ProcamInstruments, capture_template, checkerboard_shifts, sweep_frames
+from devices.procam_acquire import acquire_checkerboards as checkerboard_sweep
 from devices.procam_acquire import acquire_full_transport as full_sweep
 from devices.procam_acquire import acquire_plane_to_ray as plane_sweep
 from devices.sim.procam_rig import simulated_procam_rig
@@ -225,3 +226,70 @@ def acquire_scan_calibration(
         pattern = white(instruments.projector.shape)
         return sweep_frames(instruments, store, template, "plane_to_ray_capture", lambda _: pattern, progress,
                             sweep_log(progress))
+
+
+def _checkerboard_precheck(settings) -> list[str]:
+    try:
+        spec = _scene(settings.scene, settings.sensor)
+    except SelpathError as exc:
+        return [f"scene file: {p}" for p in getattr(exc, "problems", [exc])]
+    delay, exposure = _checkerboard_window(spec, settings.mode)
+    return DEFAULT_LIMITS.problems([delay], [exposure]) + frame_problems(spec)
+
+
+def _checkerboard_window(spec: ProcamScene, mode: str) -> tuple[float, float]:
+    """(t_d, t_e) [µs]: ``epipolar``: 0 and t_p (the synchronised epipolar frame); ``floodlit``: a global-shutter
+    exposure that opens a line time before the scan's first row and closes one after its last (every row lit for
+    its whole line time: the regular image)."""
+    rig = spec.rig
+    if mode == "epipolar":
+        return 0.0, float(rig.line_time)
+    return -2.0 * rig.line_time, float(rig.camera_rows * rig.row_period + 4 * rig.line_time)
+
+
+@stage("acquire_checkerboards", precheck=_checkerboard_precheck, identity=_identity,
+       writes=lambda settings: settings.store, variables=lambda settings: ["image"])
+def acquire_checkerboards(
+    *,
+    store: StorePath,
+    scene: StorePath,
+    mode: Literal["floodlit", "epipolar"],
+    square: Count = 24,
+    shifts_per_axis: Count = 4,
+    rig: Literal["sim"] = "sim",
+    sensor: SensorSize | None = None,
+    progress: bool = True,
+) -> xr.Dataset:
+    """Shifted high-frequency checkerboards for direct/global separation (§5.4.6): one frame per shift, frame by
+    frame and resumably, floodlit (global shutter: Nayar et al.'s frames) or epipolar (t_d = 0, t_e = t_p).
+
+    Parameters
+    ----------
+    store : str
+        Zarr store the frames land in (a ``checkerboard_capture``); an existing store of the same boards resumes.
+    scene : str
+        Projector–camera scene file (``workflows/scenes/*.yaml``).
+    mode : str
+        ``floodlit``: the camera's global shutter open over the whole scan (the regular image under the board);
+        ``epipolar``: the synchronised rolling shutter at t_d = 0, t_e = t_p (only the pixel's own epipolar plane).
+    square : int
+        Side of a checkerboard square [projector px] (the thesis: 24); small against the scene's global light.
+    shifts_per_axis : int
+        Shifts per axis, evenly over one period (two squares) [1]: shifts_per_axis² frames (at least 2 per axis,
+        so that every pixel is seen lit and dark; the thesis used 128 shifts).
+    rig : str
+        ``sim``: the transport simulator.
+    sensor : [rows, cols] or None
+        Render at this sensor size instead of the scene rig's; a frame that would not fit in memory is refused.
+    progress : bool
+        Show a progress bar.
+    """
+    spec = _scene(scene, sensor)
+    delay, exposure = _checkerboard_window(spec, mode)
+    if shifts_per_axis < 2:
+        raise SelpathError(f"shifts_per_axis is {shifts_per_axis}: at least 2 are needed, so that every pixel of "
+                           "the board is seen lit and dark")
+    shifts = checkerboard_shifts((square, square), shifts_per_axis)
+    with _simulated_rig(scene, sensor) as instruments:
+        return checkerboard_sweep(instruments, store, (square, square), shifts, mode=mode, delay=delay,
+                                  exposure=exposure, progress=progress, log=sweep_log(progress))

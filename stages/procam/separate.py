@@ -24,7 +24,7 @@ from __future__ import annotations
 import numpy as np
 import xarray as xr
 
-from pipeline.constraints import Fraction, Positive
+from pipeline.constraints import Fraction, NonNegative, Positive
 from pipeline.errors import Problem, StageError
 from pipeline.quality import usable_share
 from pipeline.registry import stage
@@ -100,7 +100,8 @@ def separate(frames: xr.DataArray, *, black_level: float = 0.0, saturation_level
 
 @stage("separate_direct_global")
 def separate_direct_global(capture: xr.Dataset, /, *, black_level: Fraction | None = None,
-                           saturation_level: Positive | None = None) -> xr.Dataset:
+                           saturation_level: Positive | None = None,
+                           dark_level: NonNegative | None = None) -> xr.Dataset:
     """Direct and global light per pixel from shifted checkerboards (Nayar et al.; thesis §5.4.6, Fig. 48).
 
     On a floodlit (global-shutter) stack it gives Nayar's direct and global images; on a stack captured in epipolar
@@ -121,6 +122,9 @@ def separate_direct_global(capture: xr.Dataset, /, *, black_level: Fraction | No
     saturation_level : float or None
         Raw count at or above which a frame is saturated [counts]; None: the capture's ``saturation_counts`` attr,
         else none.
+    dark_level : float or None
+        The sensor's offset, subtracted from every frame before separating [counts]; None: the capture's
+        ``dark_level_counts`` attr, else 0.
     """
     require_variables(capture, ("image",), "separate_direct_global")
     image = capture["image"]
@@ -146,8 +150,10 @@ def separate_direct_global(capture: xr.Dataset, /, *, black_level: Fraction | No
     b = black_level if black_level is not None else float(capture.attrs.get("black_level", 0.0))
     level = saturation_level if saturation_level is not None else float(
         capture.attrs.get("saturation_counts", np.inf))
-    result = separate(image.astype(np.result_type(image.dtype, np.float32)), black_level=b,
-                      saturation_level=level)
+    dark = dark_level if dark_level is not None else float(capture.attrs.get("dark_level_counts", 0.0))
+    result = separate(image.astype(np.result_type(image.dtype, np.float32)) - dark, black_level=b,
+                      saturation_level=level - dark)
     keep = {k: v for k, v in capture.attrs.items() if k not in ("selpath_kind", "saturation_counts")}
-    return result.assign_attrs(keep | {"selpath_kind": "direct_global", "black_level": b, "shifts": len(shifts)}
+    return result.assign_attrs(keep | {"selpath_kind": "direct_global", "black_level": b, "shifts": len(shifts),
+                                       "dark_level_counts": dark}
                                | ({"saturation_counts": level} if np.isfinite(level) else {}))

@@ -86,6 +86,12 @@ def full_transport() -> xr.Dataset:
                             attrs={"cell_width_px": 2.0, "cells_px": cells.tolist()}))
 
 
+def direct_global(seed: int) -> xr.Dataset:
+    rng = np.random.default_rng(seed)
+    return _lazy(xr.Dataset({name: (("row", "col"), rng.uniform(0, 100, (6, 8)), {"units": "counts"})
+                             for name in ("direct", "global")}, attrs={"square_px": [4, 4], "shifts": 16}))
+
+
 #: each figure stage with inputs of the kinds it expects; a new figure stage needs an entry here
 SIGMA = np.zeros((16, 16))
 SIGMA[10:13, 3:6] = 0.2
@@ -101,6 +107,7 @@ CALLS = {
     "epipolar_figure": lambda: ((plane_capture(), plane_transport()), {"half_width": 1}),
     "profile_2d_figure": lambda: ((full_transport(),), {"pixels": PIXELS}),
     "relighting_full_figure": lambda: ((full_transport(),), {"projector_cols": 16}),
+    "separation_figure": lambda: ((direct_global(5), direct_global(6)), {}),
 }
 
 
