@@ -241,6 +241,15 @@ KINDS: dict[str, CubeKind] = {
                    "mode": "'floodlit' (global shutter over the whole scan) or 'epipolar' (t_d = 0, t_e = t_p)"},
         ),
         CubeKind(
+            name="short_range",
+            description="floodlit images of delay-limited sweeps |t_d| ≤ T_dmax, their energy and captures (§5.4.4)",
+            variables={"image": Variable(("max_delay", *_FRAME), units="counts",
+                                         long_name="floodlit image of the short-range sweep"),
+                       "energy_fraction": Variable(("max_delay",), units="1",
+                                                   long_name="share of the transport's energy within the range")},
+            coord_units={"max_delay": TIME_UNITS},
+        ),
+        CubeKind(
             name="direct_global",
             description="direct and global light per pixel from shifted checkerboards (§5.4.6, Nayar et al.)",
             variables={"direct": Variable(_FRAME, units="counts", long_name="direct light L_d"),

@@ -445,3 +445,52 @@ def separation_figure(floodlit: xr.Dataset, epipolar: xr.Dataset, /) -> xr.Datas
 
     return as_figure(render, floodlit["direct"].data, epipolar["direct"].data, epipolar["global"].data,
                      caption=caption, size=SEPARATION_SIZE)
+
+
+#: the short-range figure's size [in]
+SHORT_RANGE_SIZE = (9.0, 2.8)
+
+
+def _draw_short_range(images: np.ndarray, titles: list[str]) -> np.ndarray:
+    fig, axes = panels(1, len(images), size=SHORT_RANGE_SIZE, squeeze=False)
+    top = _top(images[-1])
+    for ax, image, title in zip(axes[0], images, titles, strict=True):
+        shown = ax.imshow(image, cmap="gray", vmin=0, vmax=top, interpolation="nearest")
+        ax.set_title(title, fontsize=7)
+        pixel_axes(ax, ylabel="row [px]" if ax is axes[0][0] else None, fontsize=7)
+    image_colorbar(fig, axes[0][-1], shown, "counts")
+    return rgba(fig)
+
+
+@stage("short_range_figure")
+def short_range_figure(short_range: xr.Dataset, /) -> xr.Dataset:
+    """Fig. 45: floodlit renders of short-range sweeps |t_d| ≤ T_dmax, with their energy and capture counts.
+
+    Parameters
+    ----------
+    short_range : xr.Dataset
+        A ``short_range`` store (``short_range_images``).
+    """
+    if "image" not in short_range or "max_delay" not in short_range.dims:
+        raise StageError(Problem("not a short_range store", where="short_range",
+                                 fix="wire in the output of short_range_images"))
+    delays = short_range["max_delay"].values
+    energy = short_range["energy_fraction"].data
+    caption = f"""Short-range acquisition (thesis Fig. 45): the scene floodlit as sweeps limited to |t_d| ≤ T_dmax
+        would record it, for T_dmax = {', '.join(f'{d:g}' for d in delays)} µs (each keeps the transport within
+        v_p·(T_dmax + t_e/2) camera rows of the pixel's epipolar plane, t_e = {short_range.attrs.get('exposure_us',
+        170):g} µs: 0 is the single epipolar frame), on one colour scale in counts, axes in camera pixels.
+        Titles give the share of the transport's energy each keeps and the captures
+        its sweep takes at a {short_range.attrs.get('delay_step_us', 170):g} µs delay step (the store's
+        pixel_to_pixel_captures gives pixel-to-pixel scanning's count for comparison).
+        Light displaced far between planes (the disco ball's
+        spots, the glass ball's refraction) appears only as the range grows."""
+
+    def render(images, energy, captures):
+        images, energy = np.asarray(images), np.asarray(energy)
+        titles = [f"T_dmax = {d:g} µs\n{e:.1%} of the energy, {int(c)} captures"
+                  for d, e, c in zip(delays, energy, np.asarray(captures), strict=True)]
+        return _draw_short_range(images, titles)
+
+    return as_figure(render, short_range["image"].data, energy, short_range["captures"].data, caption=caption,
+                     size=SHORT_RANGE_SIZE)

@@ -92,6 +92,16 @@ def direct_global(seed: int) -> xr.Dataset:
                              for name in ("direct", "global")}, attrs={"square_px": [4, 4], "shifts": 16}))
 
 
+def short_range() -> xr.Dataset:
+    rng = np.random.default_rng(7)
+    return _lazy(xr.Dataset({"image": (("max_delay", "row", "col"), rng.uniform(0, 100, (3, 6, 8))),
+                             "energy_fraction": ("max_delay", [0.9, 0.97, 1.0]),
+                             "captures": ("max_delay", [1, 11, 21]),
+                             "pixel_to_pixel_captures": ("max_delay", [30, 30, 30])},
+                            coords={"max_delay": ("max_delay", [0.0, 850.0, 1700.0], {"units": "us"})},
+                            attrs={"delay_step_us": 170.0, "exposure_us": 170.0}))
+
+
 #: each figure stage with inputs of the kinds it expects; a new figure stage needs an entry here
 SIGMA = np.zeros((16, 16))
 SIGMA[10:13, 3:6] = 0.2
@@ -108,6 +118,7 @@ CALLS = {
     "profile_2d_figure": lambda: ((full_transport(),), {"pixels": PIXELS}),
     "relighting_full_figure": lambda: ((full_transport(),), {"projector_cols": 16}),
     "separation_figure": lambda: ((direct_global(5), direct_global(6)), {}),
+    "short_range_figure": lambda: ((short_range(),), {}),
 }
 
 
