@@ -10,8 +10,10 @@ in its own process so peak RSS is its own.
 
     python benchmarks/absorption_throughput.py [--angles 360] [--rows 1200] [--cols 1600]
 
-Last lines: ``absorption: px_per_s=<a> numpy_px_per_s=<b> ratio=<a/b> peak_rss_gb=<c> numpy_peak_rss_gb=<d>``
-and ``read: px_per_s=<r> mb_per_s=<m>`` (MB of decoded absorption + flags per second).
+Last lines: ``absorption: px_per_s=<a> numpy_px_per_s=<b> ratio=<a/b> peak_rss_gb=<c> numpy_peak_rss_gb=<d>``,
+the same without the background flag (``flag_background: false``: no silhouettes of the backlit frames; the peer
+flags no background either), and ``read: px_per_s=<r> mb_per_s=<m>`` (MB of decoded absorption + flags per
+second).
 """
 
 from __future__ import annotations
@@ -62,12 +64,13 @@ def measure(mode: str, args) -> dict:
         start = time.perf_counter()
         dask.compute(capture["target"].sum(), capture["reference"].sum(), scheduler="threads")
         return {"seconds": time.perf_counter() - start, "peak_rss_gb": _peak_rss_gb(), "pixels": pixels}
-    if mode == "selpath":
+    if mode in ("selpath", "selpath_no_background"):
         capture = _capture(args)
         with tempfile.TemporaryDirectory() as folder:
             start = time.perf_counter()
             with dask.config.set(scheduler="threads"):
-                to_store(absorption(capture), f"{folder}/absorption.zarr", "absorption")
+                to_store(absorption(capture, flag_background=mode == "selpath"), f"{folder}/absorption.zarr",
+                         "absorption")
             seconds = time.perf_counter() - start
             read = _read(f"{folder}/absorption.zarr")
         return {"seconds": seconds, "peak_rss_gb": _peak_rss_gb(), "pixels": pixels, "read_seconds": read}
@@ -91,13 +94,14 @@ def main() -> None:
     parser.add_argument("--angles", type=int, default=360)
     parser.add_argument("--rows", type=int, default=1200)
     parser.add_argument("--cols", type=int, default=1600)
-    parser.add_argument("--measure", choices=["simulate", "selpath", "numpy"], help=argparse.SUPPRESS)
+    parser.add_argument("--measure", choices=["simulate", "selpath", "selpath_no_background", "numpy"],
+                        help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.measure:
         print(json.dumps(measure(args.measure, args)))
         return
     results = {}
-    for mode in ("simulate", "selpath", "numpy"):
+    for mode in ("simulate", "selpath", "selpath_no_background", "numpy"):
         cmd = [sys.executable, __file__, "--measure", mode, "--angles", str(args.angles),
                "--rows", str(args.rows), "--cols", str(args.cols)]
         results[mode] = json.loads(subprocess.run(cmd, check=True, capture_output=True, text=True).stdout)
@@ -111,10 +115,16 @@ def main() -> None:
           f"{results['simulate']['peak_rss_gb']:>14.2f}")
     print(f"{'selpath absorption -> zarr':<28}{results['selpath']['seconds']:>10.2f}"
           f"{results['selpath']['peak_rss_gb']:>14.2f}")
+    print(f"{'  flag_background: false':<28}{results['selpath_no_background']['seconds']:>10.2f}"
+          f"{results['selpath_no_background']['peak_rss_gb']:>14.2f}")
     print(f"{'numpy eager (8 angles)':<28}{results['numpy']['seconds']:>10.2f}{results['numpy']['peak_rss_gb']:>14.2f}")
     print(f"absorption: px_per_s={ours:.3g} numpy_px_per_s={peer:.3g} ratio={ours / peer:.2f} "
           f"peak_rss_gb={results['selpath']['peak_rss_gb']:.2f} "
           f"numpy_peak_rss_gb={results['numpy']['peak_rss_gb']:.2f}")
+    plain = results["selpath_no_background"]["pixels"] / max(
+        results["selpath_no_background"]["seconds"] - results["simulate"]["seconds"], 1e-9)
+    print(f"absorption without the background flag: px_per_s={plain:.3g} ratio={plain / peer:.2f} (the flag's "
+          f"silhouettes cost {plain / ours:.1f}x)")
     read = results["selpath"]["read_seconds"]
     print(f"read: px_per_s={results['selpath']['pixels'] / read:.3g} "
           f"mb_per_s={results['selpath']['pixels'] * 5 / 1e6 / read:.0f} seconds={read:.2f}")
