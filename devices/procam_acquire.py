@@ -188,7 +188,7 @@ def acquire_full_transport(instruments: ProcamInstruments, store: str | os.PathL
 
 def checkerboard_shifts(square: tuple[int, int], per_axis: int) -> np.ndarray:
     """``per_axis``² shifts (rows, cols) [projector px] evenly over one period (two squares) in both axes: the
-    §5.4.6 stack (the thesis: 128 shifts of a 24-px board). Rounded to whole pixels; repeats removed."""
+    §5.4.6 stack (the thesis shifted a 24-px board 128 times). Rounded to whole pixels; repeats removed."""
     steps = [np.unique(np.round(np.arange(per_axis) * 2 * side / per_axis).astype(int)) for side in square]
     return np.array([(r, c) for r in steps[0] for c in steps[1]], dtype=int)
 
@@ -207,6 +207,8 @@ def acquire_checkerboards(instruments: ProcamInstruments, store: str | os.PathLi
             raise DeviceError("floodlit checkerboards need a camera with a global-shutter mode (set_shutter)",
                               command="set_shutter", fix="use mode: epipolar, or a camera with a global shutter")
         instruments.camera.set_shutter("global")
+    elif hasattr(instruments.camera, "set_shutter"):
+        instruments.camera.set_shutter("rolling")  # a camera left in global mode by a floodlit stack
     index = np.arange(len(shifts))
     template = xr.Dataset(
         {"image": (("shift", "row", "col"), da.zeros((len(shifts), rows, cols), dtype=np.float32,
@@ -217,7 +219,7 @@ def acquire_checkerboards(instruments: ProcamInstruments, store: str | os.PathLi
                 "shift_col": ("shift", shifts[:, 1], {"units": "px", "long_name": "board shift in projector columns"})},
         attrs={"selpath_kind": "checkerboard_capture", **instruments.attrs, "square_px": [int(v) for v in square],
                "mode": mode, "shutter": "global" if mode == "floodlit" else "rolling", "delay_us": float(delay),
-               "exposure_us": float(exposure), "black_level": 0.0})
+               "exposure_us": float(exposure)})
     with store_lock(store, purpose="checkerboard_capture"):
         create_capture(store, template, "checkerboard_capture")
         todo = [int(f["shift"]) for f in missing_frames(store)["image"]]

@@ -353,7 +353,8 @@ def render_frame(scene: ProcamScene, delay: float, exposure: float, pattern: np.
 
 
 def _on_camera_rows(rig: ProcamRig, row_profile: np.ndarray) -> np.ndarray:
-    """A projector-row profile rectified onto camera rows (projector row ⌊s · P_rows / C_rows⌋ lights row s)."""
+    """A projector-row profile (or pattern, rows first) rectified onto camera rows (projector row
+    ⌊s · P_rows / C_rows⌋ lights row s)."""
     return row_profile[(np.arange(rig.camera_rows) * rig.projector_rows) // rig.camera_rows]
 
 
@@ -362,7 +363,8 @@ def pattern_terms(rig: ProcamRig, pattern: np.ndarray | None, *, rtol: float = P
     """A pattern P as rank-1 terms [(row profile on camera rows, column profile on projector columns), …] with
     P = Σ_k b_k(v) · a_k(u).
 
-    A separable pattern (white, lines, stripes, column Gray codes) is one term, found exactly without a
+    The pattern's rows are first rectified onto the camera's (the rows no camera row sees are never rendered). A
+    separable pattern (white, lines, stripes, column Gray codes) is then one term, found exactly without a
     factorisation. Any other is its SVD truncated at the first rank whose residual ‖P − P_k‖_F is at most
     ``rtol`` · ‖P‖_F: exact to rounding for low-rank patterns (a checkerboard, ½ + ½·s(v)·s(u), has rank 2). A
     pattern that needs more than ``max_terms`` terms is refused, naming its residual at that rank (raise
@@ -376,16 +378,22 @@ def pattern_terms(rig: ProcamRig, pattern: np.ndarray | None, *, rtol: float = P
         raise ValueError(f"pattern is {pattern.shape}; the projector is {(rig.projector_rows, rig.projector_cols)}")
     if not np.all(np.isfinite(pattern)) or pattern.min() < 0 or pattern.max() > 1:
         raise ValueError("pattern values must be finite and in [0, 1]")
+    # only the projector rows the camera's rows are rectified onto are ever rendered: factorise what is seen
+    pattern = _on_camera_rows(rig, pattern)
     r, c = np.unravel_index(np.argmax(pattern), pattern.shape)
     peak = pattern[r, c]
     rows, cols = (pattern[:, c] / peak, pattern[r, :]) if peak > 0 else (np.zeros(pattern.shape[0]), pattern[0])
     if np.allclose(np.outer(rows, cols), pattern, rtol=0.0, atol=1e-12):
-        return [(_on_camera_rows(rig, rows), cols)]
+        return [(rows, cols)]
     # P = C·E with C its distinct columns (a checkerboard has 2) and E copying column j of C counts[j] times, so
     # P·Pᵀ = (C·W)(C·W)ᵀ with W = diag(√counts): P's singular values and left vectors are those of C·W, its right
-    # vectors Vᵀ·W⁻¹ spread back over the copies. Rows × distinct² instead of rows × cols² (a 1200 × 1600 board:
-    # milliseconds instead of seconds per frame).
-    distinct, inverse = np.unique(pattern, axis=1, return_inverse=True)
+    # vectors Vᵀ·W⁻¹ spread back over the copies: rows × distinct² instead of rows × cols². Distinct columns are
+    # found on a byte view of each column (np.unique(axis=1) sorts lexicographically and takes as long as the
+    # full SVD). Measured: a 1200 × 1600 checkerboard's terms in about 0.1 s, all checks included.
+    columns = np.ascontiguousarray(pattern.T)
+    _, first, inverse = np.unique(columns.view((np.void, columns.shape[1] * columns.itemsize)).ravel(),
+                                  return_index=True, return_inverse=True)
+    distinct = pattern[:, first]
     weight = np.sqrt(np.bincount(inverse.ravel(), minlength=distinct.shape[1]))
     u, s, vt = np.linalg.svd(distinct * weight, full_matrices=False)
     vt = (vt / weight)[:, inverse.ravel()]
@@ -396,7 +404,7 @@ def pattern_terms(rig: ProcamRig, pattern: np.ndarray | None, *, rtol: float = P
         raise ValueError(f"the pattern needs {rank} rank-1 terms to render within {rtol:g} of its norm; at "
                          f"{max_terms} terms its residual is {residual[max_terms - 1]:.2e} of it: pass a larger "
                          "max_terms, or a pattern_rtol at least that large to render it approximately")
-    return [(_on_camera_rows(rig, u[:, k] * s[k]), vt[k]) for k in range(rank)]
+    return [(u[:, k] * s[k], vt[k]) for k in range(rank)]
 
 
 # -- ground truth on the offset grid --------------------------------------------------------------------

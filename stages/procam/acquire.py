@@ -239,12 +239,15 @@ def _checkerboard_precheck(settings) -> list[str]:
 
 def _checkerboard_window(spec: ProcamScene, mode: str) -> tuple[float, float]:
     """(t_d, t_e) [µs]: ``epipolar``: 0 and t_p (the synchronised epipolar frame); ``floodlit``: a global-shutter
-    exposure that opens a line time before the scan's first row and closes one after its last (every row lit for
-    its whole line time: the regular image)."""
+    exposure that opens before the scan's first row and closes after its last, with two line times, the sync
+    offset and six jitter deviations to spare on each side (every row lit for its whole line time: the regular
+    image). Its exposure, rows · τ plus the margins, must fit the controller: 20 ms, about 1,170 rows at
+    τ = 17 µs (the shipped workflow renders 300)."""
     rig = spec.rig
     if mode == "epipolar":
         return 0.0, float(rig.line_time)
-    return -2.0 * rig.line_time, float(rig.camera_rows * rig.row_period + 4 * rig.line_time)
+    margin = 2 * rig.line_time + abs(rig.sync_offset) + (6 * rig.jitter.std if rig.jitter is not None else 0.0)
+    return -margin, float(rig.camera_rows * rig.row_period + rig.line_time + 2 * margin)
 
 
 @stage("acquire_checkerboards", precheck=_checkerboard_precheck, identity=_identity,
@@ -276,7 +279,7 @@ def acquire_checkerboards(
         Side of a checkerboard square [projector px] (the thesis: 24); small against the scene's global light.
     shifts_per_axis : int
         Shifts per axis, evenly over one period (two squares) [1]: shifts_per_axis² frames (at least 2 per axis,
-        so that every pixel is seen lit and dark; the thesis used 128 shifts).
+        so that every pixel is seen lit and dark; the thesis shifted its board 128 times).
     rig : str
         ``sim``: the transport simulator.
     sensor : [rows, cols] or None

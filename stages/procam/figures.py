@@ -434,9 +434,8 @@ def separation_figure(floodlit: xr.Dataset, epipolar: xr.Dataset, /) -> xr.Datas
         b = {floodlit.attrs.get('black_level', 0):g}); (b) the epipolar image (t_d = 0, t_e = t_p: light from the
         pixel's own epipolar plane only), the sum of (c) and (d); (c) the epipolar-direct and (d) the
         epipolar-global image, the same separation applied to {epipolar.attrs.get('shifts', '?')} epipolar
-        frames (d on its own scale). Specular inter-reflections from other epipolar planes (the mirror ball's)
-        count as direct light in (a), but are absent from (b)–(d); subsurface scattering within the plane (the
-        candle) stays in (d)."""
+        frames (d on its own scale). Specular inter-reflections from other epipolar planes count as direct light
+        in (a), but are absent from (b)–(d); subsurface scattering within the plane stays in (d)."""
     titles = ["(a) Nayar direct (floodlit)", "(b) epipolar image", "(c) epipolar-direct", "(d) epipolar-global"]
 
     def render(nayar, direct, global_):
@@ -478,13 +477,14 @@ def short_range_figure(short_range: xr.Dataset, /) -> xr.Dataset:
     energy = short_range["energy_fraction"].data
     caption = f"""Short-range acquisition (thesis Fig. 45): the scene floodlit as sweeps limited to |t_d| ≤ T_dmax
         would record it, for T_dmax = {', '.join(f'{d:g}' for d in delays)} µs (each keeps the transport within
-        v_p·(T_dmax + t_e/2) camera rows of the pixel's epipolar plane, t_e = {short_range.attrs.get('exposure_us',
-        170):g} µs: 0 is the single epipolar frame), on one colour scale in counts, axes in camera pixels.
+        v_p·(T_dmax + (t_e + t_p)/2) camera rows of the pixel's epipolar plane, t_e = {short_range.attrs.get(
+        'exposure_us', 170):g} µs: 0 is the single frame at t_d = 0), on one colour scale in counts, axes in camera
+        pixels.
         Titles give the share of the transport's energy each keeps and the captures
         its sweep takes at a {short_range.attrs.get('delay_step_us', 170):g} µs delay step (the store's
         pixel_to_pixel_captures gives pixel-to-pixel scanning's count for comparison).
-        Light displaced far between planes (the disco ball's
-        spots, the glass ball's refraction) appears only as the range grows."""
+        Light displaced far between planes (specular
+        inter-reflection, refraction) appears only as the range grows."""
 
     def render(images, energy, captures):
         images, energy = np.asarray(images), np.asarray(energy)

@@ -1,9 +1,9 @@
 """Short-range acquisition (thesis §5.4.4, Fig. 45): what a sweep limited to |t_d| ≤ T_dmax sees.
 
-A delay t_d with exposure t_e selects light that left projector rows within v_p·(t_d ± t_e/2) rows of the camera
-row (the offset); a sweep limited to |t_d| ≤ T_dmax therefore records the transport within
-|offset| ≤ v_p·(T_dmax + t_e/2), and a floodlit render from it holds only the light that travelled that far
-between epipolar planes. Shorter ranges
+A delay t_d with exposure t_e admits light from projector rows lit (for a line time t_p) while the camera row
+exposes: offsets o with |o·τ − t_d| < (t_e + t_p)/2 (τ = 1/v_p); a sweep limited to |t_d| ≤ T_dmax therefore records
+the transport within |o| < v_p·(T_dmax + (t_e + t_p)/2), and a floodlit render from it holds only the light that
+travelled that far between epipolar planes. Shorter ranges
 need fewer captures: 2·⌊T_dmax / step⌋ + 1 delays per line, against pixel-to-pixel scanning's one capture per
 block of rows the scan crosses in one step (:func:`devices.procam_acquire.plan_sweep`).
 
@@ -23,7 +23,7 @@ import pydantic
 import xarray as xr
 
 from devices.procam_acquire import plan_sweep
-from pipeline.constraints import NonNegative, Positive
+from pipeline.constraints import Count, NonNegative, Positive
 from pipeline.errors import Problem, StageError
 from pipeline.registry import stage
 from stages._common import require_variables
@@ -33,7 +33,8 @@ from stages._common import require_variables
 def short_range_images(transport: xr.Dataset, /, *,
                        max_delays: Annotated[tuple[NonNegative, ...], pydantic.Field(min_length=1)] = (
                            0.0, 850.0, 1700.0, 2550.0),
-                       delay_step: Positive = 170.0, exposure: Positive = 170.0) -> xr.Dataset:
+                       delay_step: Positive = 170.0, exposure: Positive = 170.0,
+                       lines: Count | None = None) -> xr.Dataset:
     """Floodlit images of short-range sweeps |t_d| ≤ T_dmax, their energy and capture counts (§5.4.4, Fig. 45).
 
     Parameters
@@ -46,8 +47,11 @@ def short_range_images(transport: xr.Dataset, /, *,
     delay_step : float
         The sweep's delay step [µs], for the capture counts (the thesis: t_e = 170 µs).
     exposure : float
-        The sweep's exposure t_e [µs]: a frame at t_d sees offsets within v_p·(t_d ± t_e/2), so T_dmax = 0 (one
-        frame at t_d = 0) keeps |offset| ≤ v_p·t_e/2.
+        The sweep's exposure t_e [µs]: a frame at t_d sees offsets o with |o/v_p − t_d| < (t_e + t_p)/2 (t_p the
+        transport's ``line_time_us``), so T_dmax = 0 (one frame at t_d = 0) keeps |o| < v_p·(t_e + t_p)/2.
+    lines : int or None
+        Line positions of the sweep, for the capture counts [1]; None: 1 for a plane-to-ray transport, the
+        transport's ``lines`` attr for a full one (else give it).
     """
     require_variables(transport, ("transport",), "short_range_images")
     t = transport["transport"]
@@ -58,12 +62,17 @@ def short_range_images(transport: xr.Dataset, /, *,
                                  f"needed; this one has dims {t.dims} and v_p {speed!r}",
                                  fix="wire in the output of demux_plane_to_ray or demux_full"))
     summed = [d for d in t.dims if d in ("offset", "du", "dv")]
-    reach = xr.DataArray([float(speed) * (d + exposure / 2) for d in max_delays], dims="max_delay")
+    line_time = float(transport.attrs.get("line_time_us", 0.0))
+    reach = xr.DataArray([float(speed) * (d + (exposure + line_time) / 2) for d in max_delays], dims="max_delay")
     rows_from_plane = abs(t[offset])
-    images = xr.concat([t.where(rows_from_plane <= r, 0.0).sum(summed) for r in reach.values], dim="max_delay")
+    images = xr.concat([t.where(rows_from_plane < r, 0.0).sum(summed) for r in reach.values], dim="max_delay")
     total = t.sum()
     energy = images.sum(("row", "col")) / total
-    lines = len(transport.attrs.get("cells_px", [])) or 1
+    if lines is None:
+        lines = 1 if offset == "offset" else transport.attrs.get("lines")
+    if lines is None:
+        raise StageError(Problem("a full transport does not record how many line positions its sweep had",
+                                 fix="give lines: the sweep's line count (its `line` dim's size)"))
     plan = [plan_sweep(np.arange(-math.floor(d / delay_step), math.floor(d / delay_step) + 1) * delay_step,
                        [delay_step], None if lines == 1 else np.arange(lines),
                        row_block=max(float(speed) * delay_step, 1.0), row_span=t.sizes["row"]) for d in max_delays]
@@ -74,7 +83,7 @@ def short_range_images(transport: xr.Dataset, /, *,
                                                              long_name="floodlit image of the short-range sweep"),
          "energy_fraction": energy.drop_attrs(deep=False).assign_attrs(
              units="1", long_name="share of the transport's energy within the range"),
-         "reach_rows": reach.assign_attrs(units="px", long_name="farthest offset kept, v_p·(T_dmax + t_e/2)"),
+         "reach_rows": reach.assign_attrs(units="px", long_name="offsets kept: |o| < v_p·(T_dmax + (t_e + t_p)/2)"),
          "captures": ("max_delay", [p.captures for p in plan],
                       {"units": "1", "long_name": "captures of the short-range sweep"}),
          "pixel_to_pixel_captures": ("max_delay", [p.pixel_to_pixel for p in plan],

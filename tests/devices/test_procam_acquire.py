@@ -157,30 +157,34 @@ def test_calibration_without_a_visible_band_names_the_frames_and_the_fix():
         calibrate_scan_speed(dark)
 
 
-def test_checkerboard_frames_are_the_simulators_and_a_lost_frame_is_captured_again(tmp_path):
-    """§5.4.6 stacks: each frame is the simulator's render of its shifted board at the mode's window (floodlit:
-    global shutter over the whole scan; epipolar: rolling shutter at t_d = 0, t_e = t_p); the shifts cover one
-    period; a frame marked lost is captured again, alone, and comes back identical."""
+@pytest.mark.parametrize("mode", ["floodlit", "epipolar"])
+def test_checkerboard_frames_are_the_simulators_and_a_lost_frame_is_captured_again(tmp_path, mode):
+    """§5.4.6 stacks: each frame is the simulator's render of its shifted board (rectangular squares, so a swapped
+    row/column shift shows) at the mode's window (floodlit: global shutter over the whole scan; epipolar: rolling
+    shutter at t_d = 0, t_e = t_p); a frame marked lost is captured again, alone, and comes back identical."""
     from devices import patterns
     from devices.procam_acquire import acquire_checkerboards, checkerboard_shifts
     from pipeline.integrity import BadChunk
     from pipeline.store import forget_frames
+    from stages.procam.acquire import _checkerboard_window
 
     scene = small_scene()
-    shifts = checkerboard_shifts((8, 8), 2)
-    np.testing.assert_array_equal(shifts, [(0, 0), (0, 8), (8, 0), (8, 8)])
+    square = (6, 10)
+    shifts = checkerboard_shifts(square, 2)
+    np.testing.assert_array_equal(shifts, [(0, 0), (0, 10), (6, 0), (6, 10)])
     store = tmp_path / "boards.zarr"
-    window = (-34.0, scene.rig.camera_rows * scene.rig.row_period + 68.0)
-    ds = acquire_checkerboards(simulated_procam_rig(scene), store, (8, 8), shifts, mode="floodlit",
-                               delay=window[0], exposure=window[1], progress=False).load()
-    assert ds.image.dims == ("shift", "row", "col") and ds.attrs["square_px"] == [8, 8]
+    delay, exposure = _checkerboard_window(scene, mode)
+    shutter = "global" if mode == "floodlit" else "rolling"
+    ds = acquire_checkerboards(simulated_procam_rig(scene), store, square, shifts, mode=mode, delay=delay,
+                               exposure=exposure, progress=False).load()
+    assert ds.image.dims == ("shift", "row", "col") and ds.attrs["square_px"] == [6, 10]
     for i, shift in enumerate(shifts):
-        board = patterns.checkerboard((scene.rig.projector_rows, scene.rig.projector_cols), 8, tuple(shift))
+        board = patterns.checkerboard((scene.rig.projector_rows, scene.rig.projector_cols), square, tuple(shift))
         np.testing.assert_array_equal(ds.image.isel(shift=i).values,
-                                      render_frame(scene, *window, board, shutter="global"))
+                                      render_frame(scene, delay, exposure, board, shutter=shutter))
     assert forget_frames(store, [BadChunk("image", (2, 0, 0), "corrupt")]) == 1
     messages: list[str] = []
-    again = acquire_checkerboards(simulated_procam_rig(scene), store, (8, 8), shifts, mode="floodlit",
-                                  delay=window[0], exposure=window[1], progress=False, log=messages.append).load()
-    assert any("capturing 1 floodlit checkerboard frame(s)" in m for m in messages), messages
+    again = acquire_checkerboards(simulated_procam_rig(scene), store, square, shifts, mode=mode, delay=delay,
+                                  exposure=exposure, progress=False, log=messages.append).load()
+    assert any(f"capturing 1 {mode} checkerboard frame(s)" in m for m in messages), messages
     xr.testing.assert_identical(again.image, ds.image)

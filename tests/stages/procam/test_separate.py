@@ -129,3 +129,19 @@ def test_nayar_keeps_a_specular_interreflection_that_the_epipolar_separation_rem
     kept_by_epipolar = (epipolar - epipolar_direct)[region].sum() / specular[region].sum()
     assert kept_by_nayar > 0.4, kept_by_nayar
     assert abs(kept_by_epipolar) < 0.1, kept_by_epipolar
+
+
+def test_the_dark_level_is_subtracted_and_a_missing_frame_is_flagged():
+    """Frames on a 64-count sensor offset: L_g = 2·(min − dark), not 2·min; saturation is judged on raw counts; a
+    NaN frame flags its pixel nonfinite."""
+    from stages.procam.separate import NONFINITE
+
+    frames = np.full((2, 2, 3), 100.0)
+    frames[0] += 30.0
+    frames[1, 0, 0] = np.nan
+    out = separate_direct_global(stack(frames, [(0, 0), (0, 4)], dark_level_counts=64.0, saturation_counts=130.0))
+    assert out["flags"].values[0, 0] & NONFINITE and np.isnan(out["global"].values[0, 0])
+    assert (out["flags"].values.ravel()[1:] == SATURATED).all()  # 130 raw counts: at the saturation level
+    below = separate_direct_global(stack(frames, [(0, 0), (0, 4)], dark_level_counts=64.0, saturation_counts=4095.0))
+    np.testing.assert_array_equal(below["global"].values.ravel()[1:], 2 * (100.0 - 64.0))
+    np.testing.assert_array_equal(below["direct"].values.ravel()[1:], 30.0)

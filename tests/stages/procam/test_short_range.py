@@ -26,17 +26,17 @@ def truth_transport(s) -> xr.Dataset:
 
 def test_energy_within_each_range_is_the_truths():
     """On the simulator's own transport the kept energy is, for each T_dmax, the truth's energy within
-    |offset| ≤ v_p·(T_dmax + t_e/2), summed independently here, and so is the floodlit image; the capture
-    counts are 2·⌊T/step⌋ + 1."""
+    |offset| < v_p·(T_dmax + (t_e + t_p)/2), summed independently here, and so is the floodlit image; the
+    capture counts are 2·⌊T/step⌋ + 1."""
     s = scene()
     truth = truth_transport(s)
     out = short_range_images(truth, max_delays=RANGES, delay_step=34.0, exposure=34.0).compute()
     t = truth["transport"].values
     for k, delay in enumerate(RANGES):
-        reach = (delay + 17.0) / 17.0
-        kept = t[np.abs(OFFSETS) <= reach].sum() / t.sum()
+        reach = (delay + (34.0 + 17.0) / 2) / 17.0
+        kept = t[np.abs(OFFSETS) < reach].sum() / t.sum()
         assert float(out["energy_fraction"][k]) == pytest.approx(kept, rel=1e-12)
-    widest = np.abs(OFFSETS) <= (RANGES[-1] + 17.0) / 17.0
+    widest = np.abs(OFFSETS) < (RANGES[-1] + 25.5) / 17.0
     np.testing.assert_allclose(out["image"].isel(max_delay=-1).values, t[widest].sum(0), rtol=1e-12)
     assert out["captures"].values.tolist() == [1, 5, 9, 17]
     assert np.all(np.diff(out["energy_fraction"].values) >= 0)
