@@ -32,8 +32,12 @@ class Rod:
 
 
 def chord(x_lab: np.ndarray, centre_x: np.ndarray, radius: float) -> np.ndarray:
-    """Length of the line x = x_lab (parallel to y) inside a disk of ``radius`` centred at x = centre_x."""
-    return 2.0 * np.sqrt(np.clip(radius**2 - (x_lab - centre_x) ** 2, 0.0, None))
+    """Length of the line x = x_lab (parallel to y) inside a disk of ``radius`` centred at x = centre_x.
+
+    As 2·√(r − d)·√(r + d) with the distance d clipped at r: never squares or multiplies huge lengths (a rod at
+    x = 1e300, or of radius 1e300, overflowed r² − d²)."""
+    d = np.minimum(np.abs(x_lab - centre_x), radius)
+    return 2.0 * np.sqrt(radius - d) * np.sqrt(radius + d)
 
 
 def column_x(n_cols: int, pixel_size: float) -> np.ndarray:
