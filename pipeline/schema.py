@@ -250,6 +250,15 @@ KINDS: dict[str, CubeKind] = {
             coord_units={"max_delay": TIME_UNITS},
         ),
         CubeKind(
+            name="multiplexing_study",
+            description="SNR gain of multiplexed line codes over simplex: noise model and simulation (§5.4.3)",
+            variables={"predicted_gain_db": Variable(("signal", "code"), units="dB",
+                                                     long_name="SNR gain over simplex, noise model"),
+                       "measured_gain_db": Variable(("signal", "code"), units="dB",
+                                                    long_name="SNR gain over simplex, simulated")},
+            coord_units={"signal": frozenset({"counts"})},
+        ),
+        CubeKind(
             name="direct_global",
             description="direct and global light per pixel from shifted checkerboards (§5.4.6, Nayar et al.)",
             variables={"direct": Variable(_FRAME, units="counts", long_name="direct light L_d"),
