@@ -79,14 +79,19 @@ def frame_problems(spec: ProcamScene) -> list[str]:
                               fix="fewer projector_rows or projector_cols in the scene's rig"))
 
 
-def _precheck(settings) -> list[str]:
-    """Read the scene, check the sweep against the controller's limits and a frame against this machine's
-    memory at validation time."""
+def _checked_scene(settings, sweep) -> list[str]:
+    """Read the scene, check ``sweep(scene) = (delays, exposures)`` against the controller's limits and a frame
+    against this machine's memory at validation time."""
     try:
         spec = _scene(settings.scene, settings.sensor)
     except SelpathError as exc:
         return [f"scene file: {p}" for p in getattr(exc, "problems", [exc])]
-    return DEFAULT_LIMITS.problems(settings.delays.values(), settings.exposures) + frame_problems(spec)
+    delays, exposures = sweep(spec)
+    return DEFAULT_LIMITS.problems(delays, exposures) + frame_problems(spec)
+
+
+def _precheck(settings) -> list[str]:
+    return _checked_scene(settings, lambda _: (settings.delays.values(), settings.exposures))
 
 
 def _identity(settings) -> dict:
@@ -229,12 +234,7 @@ def acquire_scan_calibration(
 
 
 def _checkerboard_precheck(settings) -> list[str]:
-    try:
-        spec = _scene(settings.scene, settings.sensor)
-    except SelpathError as exc:
-        return [f"scene file: {p}" for p in getattr(exc, "problems", [exc])]
-    delay, exposure = _checkerboard_window(spec, settings.mode)
-    return DEFAULT_LIMITS.problems([delay], [exposure]) + frame_problems(spec)
+    return _checked_scene(settings, lambda spec: tuple([v] for v in _checkerboard_window(spec, settings.mode)))
 
 
 def _checkerboard_window(spec: ProcamScene, mode: str) -> tuple[float, float]:
