@@ -82,5 +82,8 @@ def simulated_procam_rig(scene: ProcamScene, limits: SyncLimits = DEFAULT_LIMITS
     sync = SimSyncController(limits)
     projector = SimProjector((rig.projector_rows, rig.projector_cols))
     camera = SimRollingShutterCamera(scene, sync, projector)
-    attrs = rig.attrs() | {"rig": "simulated", "scene": scene.scene, "effects": list(scene.effect_names())}
+    # the whole scene as simulated (after any sensor or rig changes), what a study needs for the simulator's truth;
+    # without the frame pacing, which changes no frame (a sweep resumed at another pace is the same sweep)
+    attrs = rig.attrs() | {"rig": "simulated", "scene": scene.scene, "effects": list(scene.effect_names()),
+                           "simulated_scene": scene.model_dump(mode="json", exclude={"rig": {"frame_interval"}})}
     return ProcamInstruments(sync, projector, camera, attrs)

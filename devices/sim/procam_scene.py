@@ -30,10 +30,10 @@ from typing import Annotated, Literal
 import numpy as np
 import pydantic
 
-from devices.sim.scene import Pixels, saturation_above_dark, unit_parser
+from devices.sim.scene import Pixels, quantity, saturation_above_dark
 from pipeline.yaml_source import load_yaml_model
 
-Micros = Annotated[float, unit_parser({"us": 1.0, "ms": 1e3, "s": 1e6}, "170 us", "a duration")]
+Micros = quantity({"us": 1.0, "ms": 1e3, "s": 1e6}, "170 us", "a duration")
 Fraction = Annotated[float, pydantic.Field(ge=0.0, le=1.0)]
 
 

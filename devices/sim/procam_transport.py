@@ -335,24 +335,29 @@ def tiles(scene: ProcamScene, tile_rows: int = TILE_ROWS) -> Iterator[Tile]:
 
 def render_frame(scene: ProcamScene, delay: float, exposure: float, pattern: np.ndarray | None = None, *,
                  effects: dict[str, Callable] | None = None, shutter: str = "rolling",
-                 pattern_rtol: float = PATTERN_RTOL, max_terms: int = MAX_PATTERN_TERMS) -> np.ndarray:
+                 pattern_rtol: float = PATTERN_RTOL, max_terms: int = MAX_PATTERN_TERMS, scans: int = 1
+                 ) -> np.ndarray:
     """One raw frame (float32 counts, camera shape) for a capture at ``delay``, ``exposure`` [µs].
 
     ``pattern``: (projector rows, cols) in [0, 1], any (:func:`pattern_terms`: its rank-1 terms, each rendered
-    by time integration, summed before the sensor); None: white.
+    by time integration, summed before the sensor); None: white. ``scans``: the exposure repeats over this many
+    identical projector scans of a static pattern (a long exposure: the signal × scans, read out once; with the
+    global shutter, a window of one scan per frame period).
     """
+    if scans < 1:
+        raise ValueError(f"scans is {scans}; a frame integrates at least one scan")
     rig = scene.rig
     terms = pattern_terms(rig, pattern, rtol=pattern_rtol, max_terms=max_terms)
-    key = frame_key(delay, exposure, pattern) ^ (1 if shutter == "global" else 0)
+    key = frame_key(delay, exposure, pattern) ^ (1 if shutter == "global" else 0) ^ (scans - 1) << 1
     out = np.empty((rig.camera_rows, rig.camera_cols), dtype=np.float32)
     for tile in tiles(scene):
         r0 = int(tile.rows[0])
-        signal = sum(render_tile(scene, tile, delay, exposure, term, key, effects, shutter) for term in terms)
+        signal = scans * sum(render_tile(scene, tile, delay, exposure, term, key, effects, shutter) for term in terms)
         out[r0:r0 + tile.shape[0]] = sensor(rig, signal, key, r0).reshape(tile.shape)
     return out
 
 
-def _on_camera_rows(rig: ProcamRig, row_profile: np.ndarray) -> np.ndarray:
+def on_camera_rows(rig: ProcamRig, row_profile: np.ndarray) -> np.ndarray:
     """A projector-row profile (or pattern, rows first) rectified onto camera rows (projector row
     ⌊s · P_rows / C_rows⌋ lights row s)."""
     return row_profile[(np.arange(rig.camera_rows) * rig.projector_rows) // rig.camera_rows]
@@ -379,7 +384,7 @@ def pattern_terms(rig: ProcamRig, pattern: np.ndarray | None, *, rtol: float = P
     if not np.all(np.isfinite(pattern)) or pattern.min() < 0 or pattern.max() > 1:
         raise ValueError("pattern values must be finite and in [0, 1]")
     # only the projector rows the camera's rows are rectified onto are ever rendered: factorise what is seen
-    pattern = _on_camera_rows(rig, pattern)
+    pattern = on_camera_rows(rig, pattern)
     r, c = np.unravel_index(np.argmax(pattern), pattern.shape)
     peak = pattern[r, c]
     rows, cols = (pattern[:, c] / peak, pattern[r, :]) if peak > 0 else (np.zeros(pattern.shape[0]), pattern[0])

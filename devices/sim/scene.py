@@ -36,6 +36,8 @@ _QUANTITY = re.compile(r"^\s*(?P<value>[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?)\s*
 
 
 def unit_parser(units: dict[str, float], example: str, what: str):
+    """A validator reading ``<number> <unit>`` (one of ``units``, each its factor to the canonical unit)."""
+
     def parse(value: Any) -> float:
         if isinstance(value, bool) or not isinstance(value, str | int | float):
             raise ValueError(f"expected {what} such as {example!r}")
@@ -52,14 +54,21 @@ def unit_parser(units: dict[str, float], example: str, what: str):
     return pydantic.BeforeValidator(parse)
 
 
-Length = Annotated[float, unit_parser(_TO_MM, "20 mm", "a length")]
+def quantity(units: dict[str, float], example: str, what: str):
+    """A float read as ``<number> <unit>`` (:func:`unit_parser`) and dumped to JSON in the canonical unit (the one
+    of factor 1), so that a model dumped with ``model_dump(mode="json")`` validates again."""
+    canonical = next(unit for unit, factor in units.items() if factor == 1.0)
+    serializer = pydantic.PlainSerializer(lambda value: f"{value!r} {canonical}", when_used="json")
+    return Annotated[float, unit_parser(units, example, what), serializer]
+
+
+Length = quantity(_TO_MM, "20 mm", "a length")
 #: absorption or scattering coefficient, per mm
-InvLength = Annotated[float, unit_parser({f"/{u}": 1.0 / f for u, f in _TO_MM.items()}
-                                     | {f"1/{u}": 1.0 / f for u, f in _TO_MM.items()}, "0.1 /mm",
-                                     "a coefficient per length")]
-Angle = Annotated[float, unit_parser(_TO_DEG, "45 deg", "an angle")]
-Pixels = Annotated[float, unit_parser({"px": 1.0}, "800 px", "a pixel quantity")]
-Duration = Annotated[float, unit_parser(_TO_S, "50 ms", "a duration")]
+InvLength = quantity({f"/{u}": 1.0 / f for u, f in _TO_MM.items()} | {f"1/{u}": 1.0 / f for u, f in _TO_MM.items()},
+                     "0.1 /mm", "a coefficient per length")
+Angle = quantity(_TO_DEG, "45 deg", "an angle")
+Pixels = quantity({"px": 1.0}, "800 px", "a pixel quantity")
+Duration = quantity(_TO_S, "50 ms", "a duration")
 
 
 def saturation_above_dark(sensor):

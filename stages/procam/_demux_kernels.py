@@ -111,6 +111,10 @@ def start(ops, data, weight, *, masked: bool, chunk: int):
         exact, damped = (jnp.maximum(least_squares - b_pixel * apply(ones), 0.0) for apply in (ops.inverse, ops.update))
         objective = partial(_objective, ops, rows)
         z0 = jnp.where((objective(exact) <= 2.0 * objective(damped))[:, None], exact, damped)
+        # never start worse than T = 0: in float32, (2G)⁺ along weak directions can be large enough (1.6e10 on
+        # a sweep of wide lines with fewer lines than u-cells) that both starts are rounding noise of size 1e5,
+        # from which ADMM settled at T = 0, flagged converged
+        z0 = jnp.where((objective(z0) <= objective(jnp.zeros_like(z0)))[:, None], z0, 0.0)
         return rows, scale, z0
 
     return _in_chunks(rows_of, chunk, data, weight)

@@ -12,7 +12,7 @@ import hashlib
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Annotated, ClassVar, Literal
+from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
 import pydantic
@@ -24,7 +24,7 @@ from devices.procam_acquire import acquire_checkerboards as checkerboard_sweep
 from devices.procam_acquire import acquire_full_transport as full_sweep
 from devices.procam_acquire import acquire_plane_to_ray as plane_sweep
 from devices.sim.procam_rig import simulated_procam_rig
-from devices.sim.procam_scene import ProcamScene, load_procam_scene
+from devices.sim.procam_scene import ProcamRig, ProcamScene, load_procam_scene
 from devices.sim.sync_firmware import DEFAULT_LIMITS
 from pipeline.constraints import Count, Positive, memory_problems
 from pipeline.errors import SelpathError
@@ -64,9 +64,24 @@ Exposures = Annotated[tuple[Positive, ...], pydantic.Field(min_length=1)]
 SensorSize = tuple[Count, Count]
 
 
-def _scene(scene: StorePath, sensor: SensorSize | None) -> ProcamScene:
+#: changes to a scene's rig: ``devices.sim.procam_scene.ProcamRig`` fields and their values
+RigChanges = dict[str, Any]
+
+
+def _scene(scene: StorePath, sensor: SensorSize | None, rig_changes: RigChanges | None = None) -> ProcamScene:
+    """The scene file's scene, its rig changed by ``rig_changes`` and ``sensor`` (checked as the file is)."""
     spec = load_procam_scene(scene)
-    return spec if sensor is None else spec.with_rig(camera_rows=sensor[0], camera_cols=sensor[1])
+    changes = dict(rig_changes or {})
+    if sensor is not None:
+        changes |= {"camera_rows": sensor[0], "camera_cols": sensor[1]}
+    if not changes:
+        return spec
+    try:
+        rig = ProcamRig.model_validate(spec.rig.model_dump(mode="json") | changes)
+    except pydantic.ValidationError as exc:
+        raise SelpathError("rig_changes: " + "; ".join(
+            f"{'.'.join(str(p) for p in error['loc']) or 'rig'}: {error['msg']}" for error in exc.errors())) from None
+    return spec.model_copy(update={"rig": rig})
 
 
 def frame_problems(spec: ProcamScene) -> list[str]:
@@ -83,7 +98,7 @@ def _checked_scene(settings, sweep) -> list[str]:
     """Read the scene, check ``sweep(scene) = (delays, exposures)`` against the controller's limits and a frame
     against this machine's memory at validation time."""
     try:
-        spec = _scene(settings.scene, settings.sensor)
+        spec = _scene(settings.scene, settings.sensor, settings.rig_changes)
     except SelpathError as exc:
         return [f"scene file: {p}" for p in getattr(exc, "problems", [exc])]
     delays, exposures = sweep(spec)
@@ -97,13 +112,16 @@ def _precheck(settings) -> list[str]:
 def _identity(settings) -> dict:
     source = Path(settings.scene)
     digest = hashlib.sha256(source.read_bytes()).hexdigest() if source.is_file() else None
-    return {"rig": settings.rig, "file": str(source), "sha256": digest, "sensor": settings.sensor}
+    return {"rig": settings.rig, "file": str(source), "sha256": digest, "sensor": settings.sensor,
+            "rig_changes": settings.rig_changes}
 
 
 @contextmanager
-def _simulated_rig(scene: StorePath, sensor: SensorSize | None) -> Iterator[ProcamInstruments]:
-    """The simulated rig showing ``scene`` (at ``sensor`` size when given), closed when the sweep ends."""
-    instruments = simulated_procam_rig(_scene(scene, sensor))
+def _simulated_rig(scene: StorePath, sensor: SensorSize | None, rig_changes: RigChanges | None
+                   ) -> Iterator[ProcamInstruments]:
+    """The simulated rig showing ``scene`` (at ``sensor`` size and with ``rig_changes`` when given), closed when
+    the sweep ends."""
+    instruments = simulated_procam_rig(_scene(scene, sensor, rig_changes))
     try:
         yield instruments
     finally:
@@ -113,7 +131,7 @@ def _simulated_rig(scene: StorePath, sensor: SensorSize | None) -> Iterator[Proc
 def _acquisition(name: str):
     """``@stage(name)`` for a projector–camera acquisition: validated against the scene and the controller's
     limits, identified by the scene file, filling its own store; the settings every acquisition shares (rig,
-    sensor, progress) are documented once, here."""
+    sensor, rig changes, progress) are documented once, here."""
 
     def register(func):
         func.__doc__ = func.__doc__.rstrip() + "\n" + _SHARED_DOCS
@@ -128,6 +146,10 @@ _SHARED_DOCS = """    rig : str
     sensor : [rows, cols] or None
         Render at this sensor size instead of the scene rig's (scenes are drawn in fractions of the image); a
         frame that would not fit in memory is refused.
+    rig_changes : dict or None
+        Changes to the scene's rig, checked as the scene file is: ``intensity`` (counts of a white pixel lit for
+        a whole line time: a dimmer projector), ``dark_level`` and ``saturation_level`` [counts], ``noise``
+        {gain, read_std, seed}, ``jitter``, … (``devices.sim.procam_scene.ProcamRig``; docs/devices.md).
     progress : bool
         Show a progress bar.
     """
@@ -142,6 +164,7 @@ def acquire_plane_to_ray(
     exposures: Exposures,
     rig: Literal["sim"] = "sim",
     sensor: SensorSize | None = None,
+    rig_changes: RigChanges | None = None,
     progress: bool = True,
 ) -> xr.Dataset:
     """White pattern, every (delay, exposure) → a ``(delay, exposure, row, col)`` store, frame by frame, resumable.
@@ -157,7 +180,7 @@ def acquire_plane_to_ray(
     exposures : list of float
         Exposures t_e [µs].
     """
-    with _simulated_rig(scene, sensor) as instruments:
+    with _simulated_rig(scene, sensor, rig_changes) as instruments:
         return plane_sweep(instruments, store, delays.values(), exposures, progress=progress, log=sweep_log(progress))
 
 
@@ -172,6 +195,7 @@ def acquire_full_transport(
     line_width: Positive,
     rig: Literal["sim"] = "sim",
     sensor: SensorSize | None = None,
+    rig_changes: RigChanges | None = None,
     progress: bool = True,
 ) -> xr.Dataset:
     """A vertical line at each l_p × every (delay, exposure) → ``(delay, exposure, line, row, col)``, resumable.
@@ -191,7 +215,7 @@ def acquire_full_transport(
     line_width : float
         Line width l_w [px].
     """
-    with _simulated_rig(scene, sensor) as instruments:
+    with _simulated_rig(scene, sensor, rig_changes) as instruments:
         return full_sweep(instruments, store, delays.values(), exposures, lines.values(), line_width,
                           progress=progress, log=sweep_log(progress))
 
@@ -205,6 +229,7 @@ def acquire_scan_calibration(
     exposures: Exposures,
     rig: Literal["sim"] = "sim",
     sensor: SensorSize | None = None,
+    rig_changes: RigChanges | None = None,
     progress: bool = True,
 ) -> xr.Dataset:
     """White pattern with the camera in global-shutter mode at every (delay, exposure), for
@@ -222,7 +247,7 @@ def acquire_scan_calibration(
     exposures : list of float
         Exposures [µs]; each must exceed t_p plus one row period for a fully lit row.
     """
-    with _simulated_rig(scene, sensor) as instruments:
+    with _simulated_rig(scene, sensor, rig_changes) as instruments:
         if not hasattr(instruments.camera, "set_shutter"):
             raise SelpathError("the scan calibration needs a camera with a global-shutter mode (set_shutter)")
         instruments.camera.set_shutter("global")
@@ -234,10 +259,10 @@ def acquire_scan_calibration(
 
 
 def _checkerboard_precheck(settings) -> list[str]:
-    return _checked_scene(settings, lambda spec: tuple([v] for v in _checkerboard_window(spec, settings.mode)))
+    return _checked_scene(settings, lambda spec: tuple([v] for v in exposure_window(spec, settings.mode)))
 
 
-def _checkerboard_window(spec: ProcamScene, mode: str) -> tuple[float, float]:
+def exposure_window(spec: ProcamScene, mode: str) -> tuple[float, float]:
     """(t_d, t_e) [µs]: ``epipolar``: 0 and t_p (the synchronised epipolar frame); ``floodlit``: a global-shutter
     exposure that opens before the scan's first row and closes after its last, with two line times, the sync
     offset and six jitter deviations to spare on each side (every row lit for its whole line time: the regular
@@ -261,6 +286,7 @@ def acquire_checkerboards(
     shifts_per_axis: Count = 4,
     rig: Literal["sim"] = "sim",
     sensor: SensorSize | None = None,
+    rig_changes: RigChanges | None = None,
     progress: bool = True,
 ) -> xr.Dataset:
     """Shifted high-frequency checkerboards for direct/global separation (§5.4.6): one frame per shift, frame by
@@ -284,15 +310,17 @@ def acquire_checkerboards(
         ``sim``: the transport simulator.
     sensor : [rows, cols] or None
         Render at this sensor size instead of the scene rig's; a frame that would not fit in memory is refused.
+    rig_changes : dict or None
+        Changes to the scene's rig (as for ``acquire_plane_to_ray``).
     progress : bool
         Show a progress bar.
     """
-    spec = _scene(scene, sensor)
-    delay, exposure = _checkerboard_window(spec, mode)
+    spec = _scene(scene, sensor, rig_changes)
+    delay, exposure = exposure_window(spec, mode)
     if shifts_per_axis < 2:
         raise SelpathError(f"shifts_per_axis is {shifts_per_axis}: at least 2 are needed, so that every pixel of "
                            "the board is seen lit and dark")
     shifts = checkerboard_shifts((square, square), shifts_per_axis)
-    with _simulated_rig(scene, sensor) as instruments:
+    with _simulated_rig(scene, sensor, rig_changes) as instruments:
         return checkerboard_sweep(instruments, store, (square, square), shifts, mode=mode, delay=delay,
                                   exposure=exposure, progress=progress, log=sweep_log(progress))

@@ -1,5 +1,6 @@
 """Projector–camera figures as stages (§5.4): Fig. 38 delay profiles, Fig. 40 relighting, Fig. 47 regular and
-sharpened epipolar images, Fig. 39 2-D profiles and Fig. 41 relighting from full transport.
+sharpened epipolar images, Fig. 39 2-D profiles and Fig. 41 relighting from full transport (the applications'
+figures are in :mod:`stages.procam.application_figures`).
 
 Each renders lazily into a ``figure`` cube (RGBA), saved by the engine as ``<store>.png``, with a one-paragraph
 ``caption`` attr; how is :mod:`stages._figures`.
@@ -39,7 +40,7 @@ def _named_pixels(at: dict[str, tuple[int, int]]) -> str:
     return "; ".join(f"{name} at row {r}, col {c}" for name, (r, c) in at.items())
 
 
-def _top(image: np.ndarray) -> float:
+def display_top(image: np.ndarray) -> float:
     """The display maximum of an image: its 99.5th percentile, at least a tiny positive number."""
     finite = np.asarray(image, dtype=float)[np.isfinite(image)]
     return max(float(np.percentile(finite, 99.5)) if finite.size else 0.0, 1e-12)
@@ -55,7 +56,7 @@ def _mark_pixels(ax, at: dict[str, tuple[int, int]], *, legend: bool = False) ->
 def _draw_profiles(frame, delays, measured: dict, offsets, recovered: dict, at: dict, exposure: float,
                    frame_delay: float) -> np.ndarray:
     fig, axes = panels(1, 3, size=PROFILES_SIZE, width_ratios=[1.3, 1, 1])
-    shown = axes[0].imshow(frame, cmap="gray", vmin=0, vmax=_top(frame), interpolation="nearest")
+    shown = axes[0].imshow(frame, cmap="gray", vmin=0, vmax=display_top(frame), interpolation="nearest")
     image_colorbar(fig, axes[0], shown, "counts")
     _mark_pixels(axes[0], at)
     axes[0].set_title(f"(a) frame at t_d = {frame_delay:g} µs, t_e = {exposure:g} µs", fontsize=9)
@@ -131,7 +132,7 @@ def _draw_relit(images: list[np.ndarray], titles: list[str], size: tuple[float, 
     rows, cols = _grid(count)
     fig, axes = panels(rows, cols, size=size, squeeze=False)
     axes = axes.ravel()
-    top = _top(images[-1])
+    top = display_top(images[-1])
     norm = Normalize(0, top) if gamma == 1 else PowerNorm(gamma, vmin=0, vmax=top)
     for ax, image, title in zip(axes, images, titles, strict=False):
         shown = ax.imshow(image, cmap="gray", norm=norm,
@@ -212,7 +213,7 @@ def relighting_figure(transport: xr.Dataset, /, *, lines: tuple[Fraction, ...] =
 
 def _draw_epipolar(regular, sharpened, row: int, exposure: float, half_width: int, delay: float) -> np.ndarray:
     fig, axes = panels(1, 3, size=EPIPOLAR_SIZE)
-    top = _top(regular)
+    top = display_top(regular)
     for ax, image, title in ((axes[0], regular, f"(a) epipolar frame, t_d = {delay:g} µs, t_e = {exposure:g} µs"),
                              (axes[1], sharpened, f"(b) sharpened from T: |v − s| ≤ {half_width} rows")):
         shown = ax.imshow(image, cmap="gray", vmin=0, vmax=top, interpolation="nearest")
@@ -282,7 +283,7 @@ def _full(transport: xr.Dataset) -> xr.Dataset:
 def _draw_profiles_2d(du, dv, step: float, overview, profiles: dict, at: dict) -> np.ndarray:
     count = len(profiles)
     fig, axes = panels(1, count + 1, size=PROFILES_SIZE, width_ratios=[2.2] + [1] * count)
-    shown = axes[0].imshow(overview, cmap="gray", vmin=0, vmax=_top(overview), interpolation="nearest")
+    shown = axes[0].imshow(overview, cmap="gray", vmin=0, vmax=display_top(overview), interpolation="nearest")
     image_colorbar(fig, axes[0], shown, "counts")
     _mark_pixels(axes[0], at)
     axes[0].set_title("(a) white image Σ T, pixels marked", fontsize=8)
@@ -392,105 +393,3 @@ def relighting_full_figure(transport: xr.Dataset, /, *, square_px: Count | None 
 
     return as_figure(render, *(relit[name].data for name in ("checkerboard", "complement", "white")),
                      caption=caption, size=CHECKERBOARD_SIZE)
-
-
-#: the separation figure's size [in]: four images in a row
-SEPARATION_SIZE = (9.0, 2.6)
-
-
-def _draw_separation(images: list[np.ndarray], titles: list[str]) -> np.ndarray:
-    fig, axes = panels(1, 4, size=SEPARATION_SIZE)
-    top = max(_top(image) for image in images[:3])
-    for ax, image, title in zip(axes, images, titles, strict=True):
-        shown = ax.imshow(image, cmap="gray", vmin=0, vmax=top if ax is not axes[3] else _top(images[3]),
-                          interpolation="nearest")
-        ax.set_title(title, fontsize=8)
-        pixel_axes(ax, ylabel="row [px]" if ax is axes[0] else None, fontsize=7)
-        if ax is axes[2]:
-            image_colorbar(fig, ax, shown, "counts, (a)–(c)")
-    image_colorbar(fig, axes[3], shown, "counts, (d)")
-    return rgba(fig)
-
-
-@stage("separation_figure")
-def separation_figure(floodlit: xr.Dataset, epipolar: xr.Dataset, /) -> xr.Dataset:
-    """Fig. 48: Nayar et al.'s direct image beside the epipolar image and its direct and global parts.
-
-    Parameters
-    ----------
-    floodlit : xr.Dataset
-        A ``direct_global`` store (``separate_direct_global``) of floodlit (global-shutter) checkerboards.
-    epipolar : xr.Dataset
-        A ``direct_global`` store of epipolar checkerboards (t_d = 0, t_e = t_p).
-    """
-    for name, ds in (("floodlit", floodlit), ("epipolar", epipolar)):
-        if not {"direct", "global"} <= set(ds.data_vars):
-            raise StageError(Problem(f"{name} has no direct and global images", where=name,
-                                     fix="wire in the output of separate_direct_global"))
-    square = floodlit.attrs.get("square_px", "?")
-    caption = f"""Direct/global separation from shifted checkerboards (thesis Fig. 48), in counts, axes in camera
-        pixels: (a) Nayar et al.'s direct image from {floodlit.attrs.get('shifts', '?')} floodlit frames of a
-        checkerboard of {square} projector-px squares (max − min over the shifts, with the projector's black level
-        b = {floodlit.attrs.get('black_level', 0):g}); (b) the epipolar image (t_d = 0, t_e = t_p: light from the
-        pixel's own epipolar plane only), the sum of (c) and (d); (c) the epipolar-direct and (d) the
-        epipolar-global image, the same separation applied to {epipolar.attrs.get('shifts', '?')} epipolar
-        frames (d on its own scale). Specular inter-reflections from other epipolar planes count as direct light
-        in (a), but are absent from (b)–(d); subsurface scattering within the plane stays in (d)."""
-    titles = ["(a) Nayar direct (floodlit)", "(b) epipolar image", "(c) epipolar-direct", "(d) epipolar-global"]
-
-    def render(nayar, direct, global_):
-        direct, global_ = np.asarray(direct), np.asarray(global_)
-        return _draw_separation([np.asarray(nayar), direct + global_, direct, global_], titles)
-
-    return as_figure(render, floodlit["direct"].data, epipolar["direct"].data, epipolar["global"].data,
-                     caption=caption, size=SEPARATION_SIZE)
-
-
-#: the short-range figure's size [in]
-SHORT_RANGE_SIZE = (9.0, 2.8)
-
-
-def _draw_short_range(images: np.ndarray, titles: list[str]) -> np.ndarray:
-    fig, axes = panels(1, len(images), size=SHORT_RANGE_SIZE, squeeze=False)
-    top = _top(images[-1])
-    for ax, image, title in zip(axes[0], images, titles, strict=True):
-        shown = ax.imshow(image, cmap="gray", vmin=0, vmax=top, interpolation="nearest")
-        ax.set_title(title, fontsize=7)
-        pixel_axes(ax, ylabel="row [px]" if ax is axes[0][0] else None, fontsize=7)
-    image_colorbar(fig, axes[0][-1], shown, "counts")
-    return rgba(fig)
-
-
-@stage("short_range_figure")
-def short_range_figure(short_range: xr.Dataset, /) -> xr.Dataset:
-    """Fig. 45: floodlit renders of short-range sweeps |t_d| ≤ T_dmax, with their energy and capture counts.
-
-    Parameters
-    ----------
-    short_range : xr.Dataset
-        A ``short_range`` store (``short_range_images``).
-    """
-    if "image" not in short_range or "max_delay" not in short_range.dims:
-        raise StageError(Problem("not a short_range store", where="short_range",
-                                 fix="wire in the output of short_range_images"))
-    delays = short_range["max_delay"].values
-    energy = short_range["energy_fraction"].data
-    caption = f"""Short-range acquisition (thesis Fig. 45): the scene floodlit as sweeps limited to |t_d| ≤ T_dmax
-        would record it, for T_dmax = {', '.join(f'{d:g}' for d in delays)} µs (each keeps the transport within
-        v_p·(T_dmax + (t_e + t_p)/2) camera rows of the pixel's epipolar plane, t_e = {short_range.attrs.get(
-        'exposure_us', 170):g} µs: 0 is the single frame at t_d = 0), on one colour scale in counts, axes in camera
-        pixels.
-        Titles give the share of the transport's energy each keeps and the captures
-        its sweep takes at a {short_range.attrs.get('delay_step_us', 170):g} µs delay step (the store's
-        pixel_to_pixel_captures gives pixel-to-pixel scanning's count for comparison).
-        Light displaced far between planes (specular
-        inter-reflection, refraction) appears only as the range grows."""
-
-    def render(images, energy, captures):
-        images, energy = np.asarray(images), np.asarray(energy)
-        titles = [f"T_dmax = {d:g} µs\n{e:.1%} of the energy, {int(c)} captures"
-                  for d, e, c in zip(delays, energy, np.asarray(captures), strict=True)]
-        return _draw_short_range(images, titles)
-
-    return as_figure(render, short_range["image"].data, energy, short_range["captures"].data, caption=caption,
-                     size=SHORT_RANGE_SIZE)

@@ -205,3 +205,27 @@ def test_noise_and_jitter_are_deterministic_per_capture_and_only_when_named():
 def test_saturation_clips_at_the_sensor_full_well():
     s = scene(intensity=1e6, saturation_level=4095.0)
     assert tr.render_frame(s, 0.0, 170.0).max() == 4095.0
+
+
+def test_a_long_exposure_integrates_its_scans_and_is_read_out_once():
+    """``scans = k``: k times one scan's signal, before the sensor (noise-free: exactly k×); with noise, the
+    variance of the per-scan estimate (frame/k) is (g·k·x + r²)/k², pooled over the frame within 10 %."""
+    window = (-34.0, 80 * 17.0 + 68.0)
+    unclipped = scene(MIXED, saturation_level=1e9)
+    one = tr.render_frame(unclipped, *window, shutter="global")
+    np.testing.assert_allclose(tr.render_frame(unclipped, *window, shutter="global", scans=7), 7 * one, rtol=1e-6)
+    noisy = scene(MIXED, noise={"gain": 1.0, "read_std": 5.0}, bits=None, intensity=20.0)
+    clean = tr.render_frame(scene(MIXED, intensity=20.0), *window, shutter="global")
+    k = 10
+    estimate = tr.render_frame(noisy, *window, shutter="global", scans=k) / k
+    expected = np.sqrt(np.mean((k * clean + 25.0) / k**2))
+    assert abs(np.std(estimate - clean) - expected) < 0.1 * expected
+    with pytest.raises(ValueError, match="at least one scan"):
+        tr.render_frame(noisy, *window, scans=0)
+
+
+def test_a_scene_dumped_to_json_validates_to_itself():
+    """What a capture records (``simulated_scene``) rebuilds the scene exactly: quantities dump with units."""
+    s = scene(MIXED, noise={"gain": 1.0, "read_std": 2.0}, jitter={"std": "3 us"})
+    assert ProcamScene.model_validate(s.model_dump(mode="json")) == s
+    assert s.model_dump(mode="json")["rig"]["row_period"] == "17.0 us"

@@ -102,6 +102,24 @@ def short_range() -> xr.Dataset:
                             attrs={"delay_step_us": 170.0, "exposure_us": 170.0}))
 
 
+def line_study() -> xr.Dataset:
+    methods = ["multiplexed (demultiplexed)", "single line, 1 scan", "single line, 50 scans"]
+    return xr.Dataset({"image": (("method", "row", "col"), np.random.default_rng(0).random((3, 12, 16))),
+                       "truth": (("row", "col"), np.ones((12, 16))),
+                       "snr_db": ("method", [5.7, -1.2, 20.7]), "predicted_snr_db": ("method", [np.nan, -1.2, 20.6]),
+                       "captures": ("method", [63, 1, 1])}, coords={"method": methods},
+                      attrs={"selpath_kind": "line_relighting_snr", "line_rows": [5, 8], "lit_fraction": 0.05,
+                             "lit_pixels": 48, "read_std_counts": 2.0, "gain_counts_per_electron": 1.0})
+
+
+def relighting_snr(snr: float) -> xr.Dataset:
+    return xr.Dataset({"image": (("pattern", "row", "col"), np.random.default_rng(1).random((2, 12, 16))),
+                       "truth": (("pattern", "row", "col"), np.ones((2, 12, 16))),
+                       "snr_db": ("pattern", [snr, snr + 5])}, coords={"pattern": ["checkerboard", "floodlit"]},
+                      attrs={"selpath_kind": "relighting_snr", "square_px": 40, "line_width_px": 10.0,
+                             "exposures_us": [170.0], "captures": 352, "lit_fraction": 0.05})
+
+
 #: each figure stage with inputs of the kinds it expects; a new figure stage needs an entry here
 SIGMA = np.zeros((16, 16))
 SIGMA[10:13, 3:6] = 0.2
@@ -119,11 +137,14 @@ CALLS = {
     "relighting_full_figure": lambda: ((full_transport(),), {"projector_cols": 16}),
     "separation_figure": lambda: ((direct_global(5), direct_global(6)), {}),
     "short_range_figure": lambda: ((short_range(),), {}),
+    "line_relighting_figure": lambda: ((line_study(),), {}),
+    "transport_matrix_figure": lambda: ((plane_transport(),), {"columns": {"wall": 0.2, "ball": 0.7}}),
+    "multiplexed_relighting_figure": lambda: ((relighting_snr(3.0), relighting_snr(12.0)), {}),
 }
 
 
 def figure_stages():
-    return [s for s in default_registry() if s.func.__module__.endswith(".figures")]
+    return [s for s in default_registry() if s.func.__module__.endswith("figures")]
 
 
 def test_every_figure_stage_is_covered_here():

@@ -178,45 +178,45 @@ SHIPPED = [  # (workflow, old, new, message)
      "wf.yaml:13: steps[0].with.light_angles: setting of stage 'light_angle_study' Tuple should have at least 1 item "
      "after validation, not 0 (fix: expected tuple)"),
     ("procam-sim.yaml", "exposures: [170, 340, 680, 1020]", "exposures: [0, 340, 680, 1020]",
-     "wf.yaml:19: steps[0].with.exposures[0]: setting of stage 'acquire_scan_calibration' Input should be greater "
+     "wf.yaml:20: steps[0].with.exposures[0]: setting of stage 'acquire_scan_calibration' Input should be greater "
      "than 0 (got 0) (fix: expected tuple)"),
     ("procam-sim.yaml", "exposures: [170, 340, 680, 1020]", "exposures: []",
-     "wf.yaml:19: steps[0].with.exposures: setting of stage 'acquire_scan_calibration' Tuple should have at least 1 "
+     "wf.yaml:20: steps[0].with.exposures: setting of stage 'acquire_scan_calibration' Tuple should have at least 1 "
      "item after validation, not 0 (fix: expected tuple)"),
     ("procam-sim.yaml", "delays: {start: 500, stop: 2000, step: 500}", "delays: {start: 2000, stop: 500, step: 500}",
-     "wf.yaml:18: steps[0].with.delays: setting of stage 'acquire_scan_calibration' delays sweep: the sweep is "
+     "wf.yaml:19: steps[0].with.delays: setting of stage 'acquire_scan_calibration' delays sweep: the sweep is "
      "empty: stop must be at least start (start 2000, stop 500, step 500) (fix: expected TimeSweep)"),
     ("procam-sim.yaml", "delays: {start: 500, stop: 2000, step: 500}", "delays: {start: 0, stop: 1e9, step: 1}",
-     "wf.yaml:18: steps[0].with.delays: setting of stage 'acquire_scan_calibration' delays sweep: the sweep would "
+     "wf.yaml:19: steps[0].with.delays: setting of stage 'acquire_scan_calibration' delays sweep: the sweep would "
      "have 1,000,000,000 delays (start 0, stop 1e+09, step 1); at most 100,000 are allowed: take a larger step or "
      "a narrower range (fix: expected TimeSweep)"),
     ("procam-sim.yaml", "sensor: [300, 400]\n  - id: scan_speed", "sensor: [0, 400]\n  - id: scan_speed",
-     "wf.yaml:20: steps[0].with.sensor[0]: setting of stage 'acquire_scan_calibration' Input should be greater than "
+     "wf.yaml:21: steps[0].with.sensor[0]: setting of stage 'acquire_scan_calibration' Input should be greater than "
      "or equal to 1 (got 0) (fix: expected tuple | None)"),
     ("procam-sim.yaml", "sensor: [300, 400]\n  - id: scan_speed", "sensor: [100000, 100000]\n  - id: scan_speed",
-     "wf.yaml:15: steps[0].with: one camera frame (100,000 × 100,000 px float32) would take 37.3 GiB, more than 50% "
+     "wf.yaml:16: steps[0].with: one camera frame (100,000 × 100,000 px float32) would take 37.3 GiB, more than 50% "
      "of this machine's memory (16.0 GiB) (fix: a smaller sensor [rows, cols])"),
     ("procam-sim.yaml", "page: [0.3, 0.8]", "page: [1.3, 0.8]",
-     "wf.yaml:41: steps[4].with.pixels.page[0]: setting of stage 'delay_profile_figure' Input should be less than or "
+     "wf.yaml:42: steps[4].with.pixels.page[0]: setting of stage 'delay_profile_figure' Input should be less than or "
      "equal to 1 (got 1.3) (fix: expected dict)"),
     ("procam-sim.yaml", "lines: [0.2, 0.4, 0.6, 0.8]", "lines: [0.2, -0.4]",
-     "wf.yaml:47: steps[5].with.lines[1]: setting of stage 'relighting_figure' Input should be greater than or equal "
+     "wf.yaml:48: steps[5].with.lines[1]: setting of stage 'relighting_figure' Input should be greater than or equal "
      "to 0 (got -0.4) (fix: expected tuple)"),
     ("procam-sim.yaml", "{capture: $stack, transport: $transport, half_width: 5}",
      "{capture: $stack, transport: $transport, half_width: -5}",
-     "wf.yaml:50: steps[6].with.half_width: setting of stage 'epipolar_figure' Input should be greater than or equal "
+     "wf.yaml:51: steps[6].with.half_width: setting of stage 'epipolar_figure' Input should be greater than or equal "
      "to 0 (got -5) (fix: expected int ≥ 0)"),
     ("procam-sim.yaml", "{capture: $stack, scan_calibration: $scan_speed}",
      "{capture: $stack, scan_calibration: $scan_speed, max_iter: 0}",
-     "wf.yaml:34: steps[3].with.max_iter: setting of stage 'demux_plane_to_ray' Input should be greater than or "
+     "wf.yaml:35: steps[3].with.max_iter: setting of stage 'demux_plane_to_ray' Input should be greater than or "
      "equal to 1 (got 0) (fix: expected int ≥ 1, ≤ 1e+06)"),
     ("procam-sim.yaml", "{capture: $stack, scan_calibration: $scan_speed}",
      "{capture: $stack, scan_calibration: $scan_speed, tol: 0}",
-     "wf.yaml:34: steps[3].with.tol: setting of stage 'demux_plane_to_ray' Input should be greater than 0 (got 0) "
+     "wf.yaml:35: steps[3].with.tol: setting of stage 'demux_plane_to_ray' Input should be greater than 0 (got 0) "
      "(fix: expected float > 0)"),
     ("procam-sim.yaml", "{capture: $stack, scan_calibration: $scan_speed}",
      "{capture: $stack, scan_calibration: $scan_speed, offsets: {start: -100000, stop: 100000}}",
-     "wf.yaml:34: steps[3].with.offsets: setting of stage 'demux_plane_to_ray' offset grid: the sweep would have "
+     "wf.yaml:35: steps[3].with.offsets: setting of stage 'demux_plane_to_ray' offset grid: the sweep would have "
      "200,001 offsets (start -100000, stop 100000, step 1); at most 10,000 are allowed: take a larger step or a "
      "narrower range (fix: expected OffsetGrid | None)"),
     ("procam-full-sim.yaml", "lines: {start: 20, stop: 1260, step: 40}", "lines: {start: 20, stop: 1260, step: 0}",

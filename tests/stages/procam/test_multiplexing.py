@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import xarray as xr
 
 from pipeline import StageError
 from stages.procam.multiplexing import (
@@ -60,3 +61,67 @@ def test_codes_that_cannot_be_decoded_are_refused():
         multiplexing_gain_study(lines=15, box_width=5)
     rng = np.random.default_rng(0)
     assert measured_variance(np.eye(3), np.ones(3), gain=0.0, read_std=1.0, trials=10, rng=rng).shape == (3,)
+
+
+# -- on the simulated rig (Fig. 42, Fig. 43) ---------------------------------------------------------------
+
+def _recorded(s, capture: xr.Dataset) -> xr.Dataset:
+    """The capture as the simulated rig writes it: with the scene it was rendered from."""
+    return capture.assign_attrs(simulated_scene=s.model_dump(mode="json"))
+
+
+def test_a_line_relit_from_the_true_transport_is_the_truth_and_single_captures_meet_the_noise_model():
+    """With the simulator's own transport (every offset), the relit line is its noiseless render to float
+    rounding (SNR above 60 dB: the relighting and the render agree on which camera rows a projector row
+    lights); the single-line captures' measured SNR is within 1 dB of the noise model's (Var = (g·k·x + r²)/k²,
+    no clipping: the dark level keeps noise above 0); 50 scans gain between 10·log10(50) = 17 dB (shot-limited)
+    and 20·log10(50) = 34 dB (read-limited: one readout for 50 scans' light)."""
+    from devices.sim import procam_transport as tr
+    from stages.procam.multiplexing import line_relighting_snr
+    from tests.stages.procam.test_demux import scene
+
+    s = scene(intensity=5.0, dark_level=20.0, noise={"gain": 1.0, "read_std": 3.0})
+    rows = s.rig.camera_rows
+    offsets = np.arange(-(rows - 1), rows)
+    truth = s.rig.intensity * np.concatenate([tr.truth_tile(s, t, offsets) for t in tr.tiles(s)], axis=-1)
+    transport = xr.Dataset({"transport": (("offset", "row", "col"), truth.reshape(len(offsets), rows, -1))},
+                           coords={"offset": offsets})
+    capture = _recorded(s, xr.Dataset({"image": (("delay", "exposure", "row", "col"),
+                                                 np.zeros((3, 2, rows, s.rig.camera_cols)))}))
+    out = line_relighting_snr(capture, transport, line=0.5, line_rows=6, scans=(1, 50))
+    snr, predicted = out["snr_db"].values, out["predicted_snr_db"].values
+    assert snr[0] > 60.0
+    np.testing.assert_allclose(out["image"].values[0], out["truth"].values, atol=1e-6 * float(out["truth"].max()))
+    assert np.all(np.abs(snr[1:] - predicted[1:]) < 1.0), (snr, predicted)
+    assert 17.0 < snr[2] - snr[1] < 34.0
+    assert int(out["captures"].values[0]) == 6 and out.attrs["line_rows"] == [17, 23]
+    lit_rows = np.flatnonzero(out["truth"].values.max(axis=1) > 0.5 * float(out["truth"].max()))
+    assert lit_rows.min() >= 17 and lit_rows.max() <= 22  # the direct light: the line's own rows
+
+
+def test_only_a_capture_of_the_simulated_rig_has_a_truth():
+    from stages.procam.multiplexing import line_relighting_snr
+
+    bare = xr.Dataset({"image": (("delay", "exposure", "row", "col"), np.zeros((1, 1, 4, 4)))})
+    with pytest.raises(StageError, match="records no simulated scene"):
+        line_relighting_snr(bare, xr.Dataset({"transport": (("offset", "row", "col"), np.zeros((1, 4, 4)))}))
+
+
+def test_projector_patterns_rectify_onto_the_camera_rows_asked_for():
+    """A camera-row pattern becomes a projector pattern whose rectification is that pattern, for projectors
+    taller and shorter than the sensor; a pattern that splits camera rows sharing a projector row is refused."""
+    from devices.sim.procam_transport import on_camera_rows
+    from stages.procam.multiplexing import line_pattern, projector_pattern
+    from tests.stages.procam.test_demux import scene
+
+    for projector_rows in (97, 40, 13):
+        s = scene(projector_rows=projector_rows)
+        board = (np.arange(40)[:, None] // 8 + np.arange(48)[None, :] // 8) % 2
+        if projector_rows >= 40:
+            np.testing.assert_array_equal(on_camera_rows(s.rig, projector_pattern(s, board.astype(float))), board)
+            pattern, rows = line_pattern(s, 10, 16)
+            np.testing.assert_array_equal(np.flatnonzero(rows), np.arange(10, 16))
+            np.testing.assert_array_equal(on_camera_rows(s.rig, pattern)[:, 0], rows)
+        else:
+            with pytest.raises(StageError, match="same projector row"):
+                projector_pattern(s, board.astype(float))

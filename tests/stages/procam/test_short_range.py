@@ -58,3 +58,27 @@ def test_a_demultiplexed_transport_keeps_what_the_truth_keeps():
 def test_a_transport_without_offsets_or_scan_speed_is_refused():
     with pytest.raises(StageError, match="demux_plane_to_ray or demux_full"):
         short_range_images(xr.Dataset({"transport": (("row", "col"), np.zeros((2, 2)))}))
+
+
+def test_transport_matrix_slices_place_each_offset_at_its_projector_row():
+    """Fig. 46's matrix M[s, v] = T(v − s, s, col) for plane-to-ray transport (and T(du = 0, ·) for full): on the
+    simulator's truth the direct light sits on the diagonal and every other entry is the truth's own offset cell;
+    offsets that would leave the projector are 0, and the matrix holds the column's whole transport."""
+    from stages.procam.application_figures import column_slice, transport_matrix
+
+    s = scene()
+    truth = truth_transport(s)
+    col = 10
+    matrix = transport_matrix(column_slice(truth, col).values, truth["offset"].values)
+    t = truth["transport"].isel(col=col).values  # (offset, row)
+    rows = s.rig.camera_rows
+    for k, o in enumerate(truth["offset"].values):
+        for r in range(rows):
+            if 0 <= r + o < rows:
+                assert matrix[r, r + o] == t[k, r]
+    assert matrix.sum() == pytest.approx(t.sum(), rel=1e-12)  # truth carries nothing off the projector
+    assert np.all(np.argmax(matrix, axis=1)[matrix.max(axis=1) > 0] == np.flatnonzero(matrix.max(axis=1) > 0))
+    full = xr.Dataset({"transport": (("du", "dv", "row", "col"), np.stack([0 * truth["transport"].values,
+                                                                            truth["transport"].values]))},
+                      coords={"du": [-10.0, 0.0], "dv": truth["offset"].values})
+    np.testing.assert_array_equal(transport_matrix(column_slice(full, col).values, full["dv"].values), matrix)
