@@ -29,7 +29,7 @@ from pipeline.engine import RunReport, run_workflow
 from pipeline.errors import SelpathError, StoreError
 from pipeline.integrity import open_group, verify_store
 from pipeline.locks import store_lock
-from pipeline.provenance import read_provenance
+from pipeline.provenance import archive_stores, read_provenance
 from pipeline.registry import default_registry, plain_text
 from pipeline.report import report_tables, summary_lines, write_html
 from pipeline.spec import load_workflow
@@ -271,9 +271,28 @@ def _print_stage(s) -> None:
     console.print()
 
 
+def _print_archive(folder: Path) -> None:
+    """One table of the stores under ``folder`` and where each came from (``selpath inspect FOLDER``)."""
+    stores = archive_stores(folder)
+    if not stores:
+        _fail(SelpathError(f"{folder} holds no selpath store (a folder whose zarr.json carries selpath_format)"))
+    table = Table(title=f"{escape(str(folder))}: {len(stores)} store(s)")
+    for column in ("store", "kind", "workflow", "output", "created (UTC)"):
+        table.add_column(column, overflow="fold")
+    for row in stores:
+        made = row["workflow"] is not None
+        created = str(row["created"] or "")[:16].replace("T", " ")
+        table.add_row(*(escape(str(row[k])) for k in ("store", "kind")),
+                      *((escape(str(row["workflow"])), escape(str(row["output"])), created) if made else
+                        ("[dim]outside a workflow[/]", "", "")))
+    console.print(table)
+    console.print("selpath inspect STORE shows one store in full, with its provenance.")
+
+
 @command()
 def inspect(
-    store: Annotated[Path, typer.Argument(help="a selpath zarr store", metavar="STORE", show_default=False)],
+    store: Annotated[Path, typer.Argument(help="a selpath zarr store, or a folder of stores (an archive)",
+                                          metavar="STORE", show_default=False)],
     verify: Annotated[bool, _flag("verify", "read every chunk and list the missing and corrupt ones")] = False,
     recapture: Annotated[bool, _flag("recapture", "with --verify: mark capture frames with bad chunks as not "
                                      "captured, so the next run of the acquisition captures them again")] = False,
@@ -281,11 +300,15 @@ def inspect(
                                                help="compute each variable's valid share (reads every value; "
                                                f"default: for stores of at most {VALID_LIMIT:.0e} values)")] = None,
 ) -> None:
-    """Check a store and show its kind, dims, coords with units, variables, missing frames and provenance.
+    """Check a store and show its kind, dims, coords with units, variables, missing frames and provenance; or,
+    given a folder that is not a store (an archive), list every store under it with its provenance in one table.
 
     Exit status 0: complete and (with --verify) every chunk readable; 1: incomplete (frames missing, or no
     record that writing finished) or bad chunks; 2: it cannot be opened or breaks its kind's schema.
     """
+    if store.is_dir() and not (store / "zarr.json").exists():
+        _print_archive(store)
+        return
     with _guard(), warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:

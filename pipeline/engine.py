@@ -23,6 +23,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from importlib.metadata import PackageNotFoundError, version
+from pathlib import Path
 from typing import Any
 
 import xarray as xr
@@ -56,19 +57,48 @@ def _digest(payload: Any) -> str:
     return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:32]
 
 
+#: what a step record holds in place of the path of the store an acquisition fills (the output's location is not
+#: part of what the step computes: the demo's folder, rerooted anywhere, keeps its captures)
+OWN_STORE = "<its own output store>"
+
+
+def portable(value: Any, folder: Path) -> Any:
+    """``value`` with every absolute path inside ``folder`` written relative to it (POSIX, ``.`` for the folder
+    itself), recursively through dicts and lists: what a step's identity holds, so that a workflow folder moved,
+    copied or unpacked elsewhere has the same identities. Paths outside the folder stay absolute (the stages that
+    read such files identify them by content as well)."""
+    if isinstance(value, dict):
+        return {k: portable(v, folder) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [portable(v, folder) for v in value]
+    if isinstance(value, str) and os.path.isabs(value) and "://" not in value:
+        path = Path(value)
+        if path == folder or folder in path.parents:
+            return path.relative_to(folder).as_posix()
+    return value
+
+
 def step_records(workflow: Workflow) -> dict[str, dict[str, Any]]:
-    """For each step, what determines its result (stage, settings, inputs, external data) and its hash."""
+    """For each step, what determines its result (stage, settings, inputs, external data) and its hash. Paths
+    inside the workflow's folder are recorded relative to it (:func:`portable`): the identity of a step does not
+    depend on where the folder lies."""
     records: dict[str, dict[str, Any]] = {}
     selpath_version = package_versions()["selpath"]
+    folder = Path(workflow.base_dir).resolve()
     for step_id, step in workflow.steps.items():  # dependency order: inputs are already recorded
         settings = step.settings.model_dump(mode="json")
+        if step.stage.writes is not None:  # where an acquisition writes is not what it captures
+            own = step.stage.writes(step.settings)
+            settings = {k: OWN_STORE if v == own else v for k, v in settings.items()}
+        settings = portable(settings, folder)
+        external = step.stage.identity(step.settings) if step.stage.identity else None
         record = {
             "stage": step.stage.name,
             "stage_source": step.stage.source,
             "selpath": selpath_version,
             "settings": settings,
             "inputs": {k: {"ref": str(r), "step_hash": records[r.step]["step_hash"]} for k, r in step.inputs.items()},
-            "external": step.stage.identity(step.settings) if step.stage.identity else None,
+            "external": portable(external, folder),
         }
         record["step_hash"] = _digest(record)
         records[step_id] = record
@@ -365,6 +395,8 @@ def _record(workflow: Workflow, records: dict[str, dict[str, Any]], name: str, o
         "output": name,
         "workflow": workflow.name,
         "workflow_source": workflow.source,
+        # where it ran, for people: the step records' relative paths are relative to this folder
+        "workflow_folder": str(workflow.base_dir),
         "workflow_text": workflow.text,
         "steps": {i: {"stage": records[i]["stage"], "settings": records[i]["settings"],
                       "external": records[i]["external"]} for i in chain},

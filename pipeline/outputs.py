@@ -14,8 +14,9 @@ half-written store under the final name: either the old store or the new one is 
 storage (``scheme://…``) cannot be renamed; they are written in place and their manifest, written last,
 marks them complete (see :mod:`pipeline.integrity`). A ``figure`` output also writes ``<stem>.png``;
 a PNG there that selpath did not write (no ``selpath_store`` text chunk) is never replaced. An existing
-selpath store is replaced only for the workflow output that wrote it (its provenance names both); an
-acquisition resumes an unfinished capture in place.
+selpath store is replaced only for the workflow output that wrote it (its provenance names both), or where
+the output says ``replace: true`` (then atomically, as above); a store with no provenance (``to_store``, or
+made by hand) is kept likewise; an acquisition resumes an unfinished capture in place.
 """
 
 from __future__ import annotations
@@ -83,6 +84,8 @@ class OutputPath:
     workflow: str = ""
     #: the output fills its store frame by frame (an acquisition), resuming what is there
     self_written: bool = False
+    #: the workflow file says ``replace: true``: a finished store of another owner may be replaced
+    replace: bool = False
 
 
 def output_problems(outputs: list[OutputPath], protected: Mapping[str, str | os.PathLike]) -> list[tuple[tuple,
@@ -134,21 +137,30 @@ def _ownership(out: OutputPath, path: Path) -> list[tuple[str, str]]:
     capture = any(p.name.startswith("written__") for p in path.iterdir())
     if provenance is not None:
         owner = (provenance.get("workflow"), provenance.get("output"))
-        if owner != (out.workflow, out.name):
-            return [(f"output {out.name!r}: {path} holds output {owner[1]!r} of workflow {owner[0]!r}; selpath "
-                     "replaces a store only for the output that wrote it",
-                     "choose another path, or delete that store yourself if it is no longer needed")]
+        if owner != (out.workflow, out.name) and not (out.replace and not out.self_written):
+            return [(f"output {out.name!r} of workflow {out.workflow!r}: {path} holds output {owner[1]!r} of "
+                     f"workflow {owner[0]!r}; selpath replaces a store only for the output that wrote it",
+                     "choose another path, set `replace: true` on this output to replace that store, or delete it "
+                     "yourself if it is no longer needed" if not out.self_written else
+                     "choose another path for the capture, or delete that store yourself")]
         return []
+    if out.replace and not out.self_written and not capture:
+        return []  # a store written outside a workflow, replaced because the workflow file says so
     if out.self_written:
         return [] if capture else [(f"output {out.name!r}: {path} is a selpath store but not a capture to resume",
                                     "choose another path")]
     from pipeline.integrity import read_manifest
 
-    if not capture and not (read_manifest(path) or {}).get("complete"):
-        return []  # a store whose writing never finished (a run killed under an older selpath): nothing to keep
-    what = "an unfinished capture" if capture else "a complete store written outside a workflow (to_store)"
-    return [(f"output {out.name!r}: {path} holds {what}; selpath does not replace it",
-             "choose another path, or delete that store yourself if it is no longer needed")]
+    # Outputs land through a staging sibling, so a store at the final path without a manifest was not left half
+    # written by a run: it was made by hand (xarray's to_zarr with selpath's attrs) or by an old selpath. Either
+    # way it may be someone's only copy, so it is kept like the others.
+    what = ("an unfinished capture" if capture else
+            "a complete store written outside a workflow (to_store)" if (read_manifest(path) or {}).get("complete")
+            else "a selpath store with no record of who wrote it (no provenance, no manifest: written by hand or by "
+            "an older selpath)")
+    return [(f"output {out.name!r} of workflow {out.workflow!r}: {path} holds {what}; selpath does not replace it",
+             "choose another path, set `replace: true` on this output to replace it, or delete that store yourself"
+             if not capture else "choose another path, or delete that store yourself if it is no longer needed")]
 
 
 def check_png(store: str | os.PathLike) -> None:

@@ -51,20 +51,60 @@ def read_provenance(path: str | os.PathLike) -> dict[str, Any] | None:
         return None
 
 
+#: bytes read at a time when a store is identified by its content
+_BLOCK = 1 << 20
+
+
+def content_digest(path: str | os.PathLike) -> str:
+    """SHA-256 of a local store's content: every file's path relative to the store, size and bytes, in sorted
+    order. Modification times, inodes and the store's own location play no part, so a copy (``cp``, ``rsync``,
+    an unpacked tarball) has the digest of its original, and any changed byte changes it. Reads the whole store
+    (hashlib's SHA-256 runs at about 1–2 GB/s on one core: seconds for a large capture)."""
+    digest = hashlib.sha256()
+    root = Path(path)
+    for file in sorted(p for p in root.rglob("*") if p.is_file()):
+        digest.update(f"{file.relative_to(root).as_posix()}:{file.stat().st_size}\n".encode())
+        with file.open("rb") as handle:
+            while block := handle.read(_BLOCK):
+                digest.update(block)
+    return digest.hexdigest()
+
+
 def store_identity(path: str | os.PathLike) -> dict[str, Any]:
-    """What identifies a store's content for provenance: its own provenance hash if selpath made it,
-    else a fingerprint of its metadata and (for local stores) file sizes and modification times."""
+    """What identifies a store's content for a step that reads it, wherever the store lies: the provenance hash
+    of a store a workflow wrote (the same computation gives the same data; its chunks carry checksums, so a
+    changed byte is found when read), else (:func:`pipeline.store.to_store` or other writers) the SHA-256 of
+    its content (:func:`content_digest`). Never its path or modification times: a moved or copied archive keeps
+    its identity. A remote store (``scheme://…``) is identified by its URL for now."""
     where = os.fspath(path)
     prov = read_provenance(where)
     if prov and "step_hash" in prov:
-        return {"store": where, "step_hash": prov["step_hash"]}
-    digest = hashlib.sha256()
-    root = Path(where)
-    if root.is_dir():
-        for file in sorted(root.rglob("*")):
-            if file.is_file():
-                stat = file.stat()
-                digest.update(f"{file.relative_to(root)}:{stat.st_size}:{stat.st_mtime_ns}\n".encode())
-                if file.name == "zarr.json":
-                    digest.update(file.read_bytes())
-    return {"store": where, "fingerprint": digest.hexdigest()}
+        return {"step_hash": prov["step_hash"]}
+    if "://" in where:
+        return {"store": where}
+    return {"content_sha256": content_digest(where)}
+
+
+def archive_stores(folder: str | os.PathLike) -> list[dict[str, Any]]:
+    """Every selpath store under ``folder`` (not descending into stores, skipping staging leftovers), with what
+    its provenance says: path relative to the folder, kind, workflow, output, stage, creation time and whether a
+    workflow or another writer made it. Reads metadata only."""
+    from pipeline.outputs import is_selpath_store
+
+    root = Path(folder)
+    found: list[dict[str, Any]] = []
+
+    def visit(path: Path) -> None:
+        if is_selpath_store(path):
+            attrs = json.loads((path / "zarr.json").read_text()).get("attributes") or {}
+            prov = read_provenance(path) or {}
+            found.append({"store": path.relative_to(root).as_posix() or ".", "kind": attrs.get("selpath_kind"),
+                          "workflow": prov.get("workflow"), "output": prov.get("output"),
+                          "stage": (prov.get("step_record") or {}).get("stage"), "created": prov.get("created")})
+            return
+        for child in sorted(path.iterdir()):
+            if child.is_dir() and not child.is_symlink() and not child.name.startswith("."):
+                visit(child)
+
+    visit(root)
+    return found

@@ -78,6 +78,9 @@ class OutputSpec(_Strict):
     store: str = pydantic.Field(description="zarr store path, relative to the workflow file's folder")
     kind: str | None = pydantic.Field(None, description="cube kind to check before writing (default: the "
                                       "result's selpath_kind attr)")
+    replace: bool = pydantic.Field(False, description="replace a finished store that another workflow or output "
+                                   "wrote at this path (atomically: the old one stays until the new one is "
+                                   "complete); without it such a store is refused")
 
 
 class WorkflowFile(_Strict):
@@ -180,7 +183,8 @@ def output_path_problems(workflow: Workflow) -> list[tuple[tuple, str, str]]:
     for name, out in workflow.outputs.items():
         step = writers.get(out.store)
         field = ("steps", step.index, "with", "store") if step is not None else ("outputs", name, "store")
-        outputs.append(OutputPath(name, out.store, field, workflow.name, out.store in workflow.self_written))
+        outputs.append(OutputPath(name, out.store, field, workflow.name, out.store in workflow.self_written,
+                                  out.replace))
     protected: dict[str, str] = {}
     for step in workflow.steps.values():
         own = step.stage.writes(step.settings) if step.stage.writes is not None else None

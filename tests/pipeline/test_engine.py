@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import collections
 import functools
+import os
 import shutil
 
 import numpy as np
@@ -11,6 +12,7 @@ import pytest
 import xarray as xr
 
 from pipeline import StageError, StageRegistry, build, load_workflow, open_store, read_provenance, run_workflow
+from pipeline.errors import SpecError
 from pipeline.registry import default_registry, stage
 
 CALLS: collections.Counter = collections.Counter()
@@ -68,11 +70,30 @@ def test_rerun_recomputes_nothing_and_a_changed_setting_only_what_follows(small_
 
 
 def test_an_interrupted_output_is_redone(small_workflow, counted):
+    """A run killed while writing leaves only its staging sibling (the final path keeps the old store, or
+    nothing): the next run tidies it away and writes the output."""
     report = run_workflow(load_workflow(small_workflow, counted), progress=False)
-    shutil.rmtree(report.written[1] + "/_selpath")  # as if killed before provenance was written
+    final = report.written[1]
+    os.rename(final, final.replace("absorption.zarr", ".absorption.zarr.partial-0123456789ab"))
     redo = run_workflow(load_workflow(small_workflow, counted), progress=False)
     assert redo.computed() == ["absorption"]
     assert redo.steps["absorption"].reason.startswith("no finished output at")
+    assert sorted(p.name for p in (small_workflow.parent / "out").iterdir()) == ["absorption.zarr", "capture.zarr"]
+
+
+def test_a_store_without_provenance_at_an_output_path_is_kept_unless_the_output_says_replace(small_workflow):
+    """A store at an output path with no provenance and no manifest is not a run's leftover (outputs land
+    through staging): it was made by hand or by an older selpath, so it is refused like another owner's
+    store; ``replace: true`` on the output replaces it."""
+    report = run_workflow(load_workflow(small_workflow), progress=False)
+    shutil.rmtree(report.written[1] + "/_selpath")  # as a hand-made store: selpath's attrs, no record
+    with pytest.raises(SpecError, match="no record of who wrote it"):
+        load_workflow(small_workflow)
+    small_workflow.write_text(small_workflow.read_text().replace(
+        "absorption: {from: absorption, store: out/absorption.zarr}",
+        "absorption: {from: absorption, store: out/absorption.zarr, replace: true}"))
+    again = run_workflow(load_workflow(small_workflow), progress=False)
+    assert again.computed() == ["absorption"] and read_provenance(report.written[1])["output"] == "absorption"
 
 
 def test_outputs_carry_provenance(small_workflow):

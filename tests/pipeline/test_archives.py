@@ -1,0 +1,177 @@
+"""Reprocessing archives: a workflow folder moved, copied or unpacked reuses every finished step; a store read
+by a step is identified by its content, never its path or file times; inputs are never written."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+import stat
+import tarfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline import StoreError, load_workflow, open_store, run_workflow, to_store
+from pipeline.provenance import content_digest, read_provenance, store_identity
+
+REPROCESS = """\
+workflow: reprocess
+scheduler: synchronous
+steps:
+  - id: cap
+    stage: load_store
+    with: {store: out/capture.zarr}
+  - id: foreign
+    stage: load_store
+    with: {store: archive/foreign.zarr}
+  - id: absorption
+    stage: absorption
+    with: {capture: $cap, min_signal: 1.0}
+  - id: foreign_absorption
+    stage: absorption
+    with: {capture: $foreign, min_signal: 1.0}
+outputs:
+  again: {from: absorption, store: results/again.zarr}
+  foreign: {from: foreign_absorption, store: results/foreign.zarr}
+"""
+
+
+def _files(folder: Path) -> dict[str, tuple[int, int, str]]:
+    """Every file under ``folder``: (size, modification time, SHA-256), by relative path."""
+    return {p.relative_to(folder).as_posix(): (p.stat().st_size, p.stat().st_mtime_ns,
+                                               hashlib.sha256(p.read_bytes()).hexdigest())
+            for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def _run(folder: Path) -> dict[str, dict[str, str]]:
+    """Run both workflows of an archive folder; each step's status."""
+    return {name: {i: s.status for i, s in run_workflow(load_workflow(folder / name), progress=False).steps.items()}
+            for name in ("small.yaml", "reprocess.yaml")}
+
+
+@pytest.fixture
+def archive(tmp_path, small_workflow) -> Path:
+    """A folder holding two workflows and their stores: a simulated capture and its absorption, a store written
+    outside any workflow (``to_store``: no provenance), and a reprocessing of both (``load_store`` chains)."""
+    folder = tmp_path / "archive-a"
+    folder.mkdir()
+    shutil.move(small_workflow, folder / "small.yaml")
+    run_workflow(load_workflow(folder / "small.yaml"), progress=False)
+    capture = open_store(folder / "out" / "capture.zarr").load()
+    to_store(capture, folder / "archive" / "foreign.zarr", capture.attrs["selpath_kind"])
+    (folder / "reprocess.yaml").write_text(REPROCESS)
+    run_workflow(load_workflow(folder / "reprocess.yaml"), progress=False)
+    return folder
+
+
+def test_a_copied_moved_or_unpacked_folder_reuses_every_step_and_rewrites_nothing(archive, tmp_path):
+    """``cp`` with fresh file times, a move, and a tar round trip: every step of both workflows is reused (the
+    identities hold no absolute path and no modification time) and no file of the folder changes."""
+    everything_reused = {"small.yaml": {"capture": "reused", "absorption": "reused"},
+                         "reprocess.yaml": {"cap": "not needed", "foreign": "not needed", "absorption": "reused",
+                                            "foreign_absorption": "reused"}}
+    copied = tmp_path / "copied"
+    shutil.copytree(archive, copied, copy_function=shutil.copyfile)  # new modification times everywhere
+    assert _files(copied)["archive/foreign.zarr/zarr.json"][1] != _files(archive)["archive/foreign.zarr/zarr.json"][1]
+    before = _files(copied)
+    assert _run(copied) == everything_reused
+    assert _files(copied) == before
+
+    moved = tmp_path / "elsewhere" / "moved"
+    moved.parent.mkdir()
+    shutil.move(copied, moved)
+    assert _run(moved) == everything_reused
+
+    with tarfile.open(tmp_path / "archive.tar.gz", "w:gz") as tar:
+        tar.add(archive, arcname="archive-a")
+    unpacked = tmp_path / "unpacked"
+    with tarfile.open(tmp_path / "archive.tar.gz") as tar:
+        tar.extractall(unpacked, filter="data")
+    before = _files(unpacked / "archive-a")
+    assert _run(unpacked / "archive-a") == everything_reused
+    assert _files(unpacked / "archive-a") == before
+    # provenance still says where a store was made, for people
+    assert read_provenance(archive / "results" / "again.zarr")["workflow_folder"] == str(archive)
+
+
+def test_a_changed_foreign_store_is_recomputed_and_a_damaged_one_is_named(archive):
+    """A store with no provenance is identified by its bytes: new content (same path, same size) reruns the
+    steps that read it and only those; one damaged byte of a chunk changes its identity too, and the rerun that
+    follows fails on the chunk's checksum, naming it, instead of reusing old results."""
+    foreign = archive / "archive" / "foreign.zarr"
+    identity = store_identity(foreign)
+    assert set(identity) == {"content_sha256"} and identity == store_identity(foreign)
+    capture = open_store(foreign).load()
+    shutil.rmtree(foreign)
+    to_store(capture.assign(target=capture["target"] * 0.5), foreign, capture.attrs["selpath_kind"])
+    assert store_identity(foreign) != identity
+    statuses = _run(archive)["reprocess.yaml"]
+    assert statuses["foreign_absorption"] == "computed" and statuses["absorption"] == "reused"
+    recomputed = open_store(archive / "results" / "foreign.zarr")["absorption"].values
+    assert np.nanmax(np.abs(recomputed - open_store(archive / "results" / "again.zarr")["absorption"].values)) > 0.5
+
+    chunk = sorted(p for p in (foreign / "target").rglob("*") if p.is_file() and p.name != "zarr.json")[0]
+    data = bytearray(chunk.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    chunk.write_bytes(bytes(data))
+    with pytest.raises(StoreError, match="foreign.zarr"):
+        _run(archive)
+
+
+def test_the_content_digest_ignores_where_a_store_is_and_when_its_files_were_written(archive, tmp_path):
+    foreign = archive / "archive" / "foreign.zarr"
+    copy = tmp_path / "somewhere" / "else.zarr"
+    shutil.copytree(foreign, copy, copy_function=shutil.copyfile)
+    os.utime(next(p for p in copy.rglob("*") if p.is_file()), (1, 1))
+    assert content_digest(copy) == content_digest(foreign)
+    (copy / "zarr.json").write_text((copy / "zarr.json").read_text() + " ")  # one byte more
+    assert content_digest(copy) != content_digest(foreign)
+
+
+def test_read_only_inputs_are_read_and_never_written(archive):
+    """Reprocessing reads archives on read-only media: with every input store's files and folders made
+    read-only, a run that recomputes from them completes, and not one file, time or folder entry of the inputs
+    (or beside them: no lock files) changes."""
+    shutil.rmtree(archive / "results")
+    inputs = [archive / "out" / "capture.zarr", archive / "archive" / "foreign.zarr"]
+    before = {p: _files(p) for p in inputs}
+    beside = {p.parent: sorted(os.listdir(p.parent)) for p in inputs}
+    modes = {}
+    try:
+        for store in inputs:
+            for path in [store, *store.rglob("*")]:
+                modes[path] = path.stat().st_mode
+            for path in sorted([store, *store.rglob("*")], key=lambda p: len(p.parts), reverse=True):
+                path.chmod(path.stat().st_mode & ~(stat.S_IWUSR | stat.S_IWGRP | stat.S_IWOTH))
+        report = run_workflow(load_workflow(archive / "reprocess.yaml"), progress=False)
+    finally:
+        for path, mode in sorted(modes.items(), key=lambda item: len(item[0].parts)):
+            path.chmod(mode)
+    assert set(report.computed()) == {"cap", "foreign", "absorption", "foreign_absorption"}
+    assert {p: _files(p) for p in inputs} == before
+    assert {p.parent: sorted(os.listdir(p.parent)) for p in inputs} == beside
+
+
+def test_inspect_lists_an_archives_stores_with_their_provenance(archive, monkeypatch):
+    """``selpath inspect FOLDER`` (a folder that is not a store): one row per store under it, with its kind and
+    the workflow and output that wrote it, and stores written outside a workflow said to be so."""
+    from typer.testing import CliRunner
+
+    from pipeline.cli import app
+    from pipeline.provenance import archive_stores
+
+    rows = {r["store"]: r for r in archive_stores(archive)}
+    assert set(rows) == {"archive/foreign.zarr", "out/absorption.zarr", "out/capture.zarr", "results/again.zarr",
+                         "results/foreign.zarr"}
+    assert (rows["results/again.zarr"]["workflow"], rows["results/again.zarr"]["output"]) == ("reprocess", "again")
+    assert rows["archive/foreign.zarr"]["workflow"] is None
+    from rich.console import Console
+
+    monkeypatch.setattr("pipeline.cli.console", Console(width=250))  # one line per store
+    result = CliRunner().invoke(app, ["inspect", str(archive)])
+    assert result.exit_code == 0, result.output
+    assert "5 store(s)" in result.output and "outside a workflow" in result.output
+    assert all(store in result.output for store in rows)
+    assert "small-absorption" in result.output and "reprocess" in result.output
