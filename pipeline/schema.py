@@ -105,6 +105,8 @@ _FRAME = ("row", "col")
 _DEMUX_EXTRAS = {
     "iterations": Variable(_FRAME, required=False, units="1", long_name="ADMM iterations run for the pixel"),
     "converged": Variable(_FRAME, required=False, units=None, long_name="the pixel's solve met its tolerance"),
+    "gap_bound": Variable(_FRAME, required=False, units="1",
+                          long_name="certified bound on the relative objective gap (f(T) − f*)/f(T)"),
     "frames_used": Variable(_FRAME, required=False, units="1",
                             long_name="frames used for the pixel (neither saturated nor missing)"),
     "objective": Variable(_FRAME, required=False, units="1",

@@ -121,7 +121,8 @@ def solve_pixels(solver: DemuxADMM, problem: DemuxProblem | SeparableDemuxProble
     p, per_call = data.shape[0], pixels_per_call(data.shape[0], problem.offsets)
     if p == 0:  # no pixels (an empty band): nothing to solve, the solver's batches need at least one row
         return Solution(np.zeros((0, problem.offsets), solver.dtype), np.zeros(0, np.int8),
-                        {"iterations": np.zeros(0, np.int32), "objective": np.zeros(0, solver.dtype)})
+                        {"iterations": np.zeros(0, np.int32), "objective": np.zeros(0, solver.dtype),
+                         "gap_bound": np.zeros(0)})
     order = np.argsort(~observed(data, weight).all(axis=1), kind="stable")
     data, weight = data[order], weight[order]
     size = min(per_call, p)  # one call of exactly p pixels, or equal calls with the last one padded
@@ -153,13 +154,15 @@ def _solve_band(solver: DemuxADMM, problem: DemuxProblem | SeparableDemuxProblem
     return solution.value * full_scale, {
         "iterations": (("row", "col"), solution.stats["iterations"].reshape(shape).astype(np.int32)),
         "converged": (("row", "col"), solution.converged.reshape(shape)),
+        "gap_bound": (("row", "col"), solution.stats["gap_bound"].reshape(shape).astype(np.float32)),
         "objective": (("row", "col"), solution.stats["objective"].reshape(shape).astype(np.float32)),
         "frames_used": (("row", "col"), weight.sum(-1).reshape(shape).astype(np.int32)),
     }
 
 
 #: per-pixel variables every transport store holds beside T (see _solve_band), with their dtypes
-_PER_PIXEL = {"iterations": np.int32, "converged": bool, "objective": np.float32, "frames_used": np.int32}
+_PER_PIXEL = {"iterations": np.int32, "converged": bool, "objective": np.float32, "frames_used": np.int32,
+              "gap_bound": np.float32}
 
 
 def _template(capture: xr.Dataset, transport_dims: tuple[str, ...], transport_sizes: tuple[int, ...],
@@ -207,8 +210,10 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
     """Plane-to-ray transport T(offset, row, col) from a ``(delay, exposure, row, col)`` capture (§5.2.2).
 
     Per pixel: min Σ_i ‖I_i − L_i ∗ T‖² + α‖∂T/∂v‖² + β‖T‖₁, T ≥ 0, on images scaled to [0, 1] by
-    ``full_scale``; T is returned in counts. Besides T: per-pixel iterations, convergence flag, objective
-    and the number of frames used (saturated or non-finite observations are masked).
+    ``full_scale``; T is returned in counts. Besides T: per-pixel iterations, convergence flag, objective,
+    ``gap_bound`` (a certified upper bound on the relative objective gap (f(T) − f*)/f(T), from weak duality:
+    conservative, as tight as T's KKT conditions) and the number of frames used (saturated or non-finite
+    observations are masked).
 
     Parameters
     ----------
