@@ -113,6 +113,11 @@ _DEMUX_EXTRAS = {
                           long_name="objective at T (images scaled to [0, 1])"),
 }
 _COUNTS = {"units": "counts", "long_name": "sensor counts"}
+#: what a projector–camera capture must say about its sensor: without them clipped frames pass as data
+_CAMERA_LEVELS = {
+    "saturation_counts": "raw counts at and above which a pixel is clipped (those observations are masked)",
+    "dark_level_counts": "raw counts of an unlit pixel (black level), subtracted before demultiplexing",
+}
 _FLAGS = {"units": None, "long_name": "why a pixel is invalid (CF flags; 0: valid)"}
 _ABSORPTION = "total absorption A = log I_reference − log I_target"
 _SIGMA, _SIGMA_NAME = "1/{length}", "absorption coefficient σ"
@@ -297,6 +302,7 @@ KINDS: dict[str, CubeKind] = {
             attrs={
                 "scan_speed_px_per_us": "projector scan speed v_p, projector rows per µs",
                 "line_time_us": "projector line time t_p, µs",
+                **_CAMERA_LEVELS,
             },
         ),
         CubeKind(
@@ -308,6 +314,7 @@ KINDS: dict[str, CubeKind] = {
                 "scan_speed_px_per_us": "projector scan speed v_p, projector rows per µs",
                 "line_time_us": "projector line time t_p, µs",
                 "line_width_px": "width l_w of the projected vertical line, projector columns",
+                **_CAMERA_LEVELS,
             },
         ),
         CubeKind(

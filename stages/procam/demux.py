@@ -219,7 +219,8 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
     ----------
     capture : xr.Dataset
         A ``plane_to_ray_capture`` store (``acquire_plane_to_ray``): ``image`` [counts] over (delay, exposure, row,
-        col), delay and exposure [µs]; attrs ``scan_speed_px_per_us``, ``line_time_us``, ``saturation_counts``.
+        col), delay and exposure [µs]; attrs ``scan_speed_px_per_us``, ``line_time_us``, ``saturation_counts`` and
+        ``dark_level_counts`` (raw counts: clipped at and above the first, unlit at the second).
     scan_calibration : xr.Dataset or None
         A ``scan_calibration`` store (``calibrate_scan_speed``): its attrs ``scan_speed_px_per_us`` and
         ``sync_offset_us`` replace the capture's v_p and t_o = 0 (sync_offset_us wins); None: the nominal values.
@@ -341,7 +342,8 @@ def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, 
     ----------
     capture : xr.Dataset
         A ``full_transport_capture`` store (``acquire_full_transport``): ``image`` over (delay, exposure, line [px],
-        row, col) [counts]; attrs ``scan_speed_px_per_us``, ``line_time_us``, ``line_width_px``, ``saturation_counts``.
+        row, col) [counts]; attrs ``scan_speed_px_per_us``, ``line_time_us``, ``line_width_px``,
+        ``saturation_counts``, ``dark_level_counts``.
     scan_calibration : xr.Dataset or None
         A ``scan_calibration`` store (``calibrate_scan_speed``): its attrs ``scan_speed_px_per_us`` and
         ``sync_offset_us`` replace the capture's v_p and t_o = 0 (sync_offset_us wins); None: the nominal values.

@@ -210,3 +210,23 @@ def test_format_doc_lists_every_kind_as_the_code_does():
 
     doc = (Path(__file__).resolve().parents[2] / "docs" / "format.md").read_text()
     assert describe_kinds() in doc, "docs/format.md is out of date: paste pipeline.schema.describe_kinds()"
+
+
+def test_a_projector_camera_capture_must_say_where_its_sensor_clips(tmp_path):
+    """A delay–exposure stack made by another tool without ``saturation_counts`` and ``dark_level_counts`` used
+    to open, pass ``selpath validate``, and either fail at run time or (given ``full_scale``) be demultiplexed with
+    clipped frames taken as data. It is refused on opening, naming both attrs."""
+    image = np.zeros((2, 1, 3, 4), np.float32)
+    ds = xr.Dataset({"image": (("delay", "exposure", "row", "col"), image, {"units": "counts"})},
+                    coords={"delay": ("delay", [0.0, 17.0], {"units": "us"}),
+                            "exposure": ("exposure", [170.0], {"units": "us"})},
+                    attrs={"selpath_format": FORMAT_VERSION, "selpath_kind": "plane_to_ray_capture",
+                           "scan_speed_px_per_us": 1 / 17, "line_time_us": 17.0})
+    ds.to_zarr(tmp_path / "stack.zarr", consolidated=False)
+    with pytest.raises(StoreError) as info:
+        open_store(tmp_path / "stack.zarr")
+    assert "attr 'saturation_counts' is missing" in str(info.value)
+    assert "attr 'dark_level_counts' is missing" in str(info.value)
+    ds.assign_attrs(saturation_counts=4095.0, dark_level_counts=64.0).to_zarr(tmp_path / "ok.zarr", consolidated=False)
+    with pytest.warns(IncompleteStoreWarning):  # written by hand: no manifest says it finished
+        assert open_store(tmp_path / "ok.zarr").attrs["dark_level_counts"] == 64.0
