@@ -256,14 +256,35 @@ def write_store(ds: xr.Dataset, path: str | os.PathLike, kind: str, *, compute: 
                                              compute=compute, write_empty_chunks=True)
 
 
-def to_store(ds: xr.Dataset, path: str | os.PathLike, kind: str, *, compute: bool = True):
-    """Write a whole cube (checked and stamped) as a complete store at ``path``, replacing an older selpath
-    store there (anything else at ``path`` is refused, never deleted).
+def _replace_problem(path: str | os.PathLike) -> Problem | None:
+    """Why ``to_store`` must not replace what is at ``path`` without ``replace=True``: a workflow's output (its
+    provenance names it) or a capture still being filled (frame flags); None for a store ``to_store`` wrote."""
+    where = os.fspath(path)
+    if "://" in where or not Path(where).is_dir():
+        return None
+    provenance = read_provenance(where)
+    if provenance is not None:
+        return Problem(f"holds output {provenance.get('output')!r} of workflow {provenance.get('workflow')!r}; "
+                       "to_store does not replace a workflow's output", where=where,
+                       fix="write to another path, or pass replace=True to replace it")
+    if any(p.name.startswith(WRITTEN_PREFIX) for p in Path(where).iterdir()):
+        return Problem("holds a capture (frame by frame, with frame flags); to_store does not replace it",
+                       where=where, fix="write to another path, or pass replace=True to replace it")
+    return None
+
+
+def to_store(ds: xr.Dataset, path: str | os.PathLike, kind: str, *, compute: bool = True, replace: bool = False):
+    """Write a whole cube (checked and stamped) as a complete store at ``path``, replacing an older store that
+    ``to_store`` wrote there; a workflow's output or a capture there is replaced only with ``replace=True``, and
+    anything that is not a selpath store is refused, never deleted.
 
     The cube is written into a temporary sibling, its manifest added, and then moved into place, so a
     crash never leaves a half-written store under ``path``. With ``compute=False`` returns a dask delayed
     that writes and moves it when computed.
     """
+    problem = None if replace else _replace_problem(path)
+    if problem is not None:
+        raise StoreError(problem)
     staging = Staging(path)
     in_place = staging.path == staging.final
     if compute:

@@ -218,3 +218,21 @@ def test_remote_outputs_are_rewritten_in_place(tmp_path):
     to_store(ds, url, "reconstruction")
     to_store(ds * 2, url, "reconstruction")
     assert float(open_store(url)["sigma"].sum()) == 8.0
+
+
+def test_to_store_does_not_replace_a_workflows_output_unless_told(tmp_path):
+    """The Python API's to_store replaced any selpath store at its path, a workflow's finished output included.
+    Now it refuses one, naming the output and workflow; ``replace=True`` replaces it (atomically), and a store
+    to_store wrote itself is still rewritten in place of the old one."""
+    from pipeline import StoreError
+
+    path = _wf(tmp_path / "a", "  capture: {from: capture, store: out/capture.zarr}")
+    run_workflow(load_workflow(path), progress=False)
+    store = tmp_path / "a" / "out" / "capture.zarr"
+    data = open_store(store).load()
+    with pytest.raises(StoreError, match="holds output 'capture' of workflow 't'; to_store does not replace"):
+        to_store(data, store, data.attrs["selpath_kind"])
+    assert read_provenance(store)["workflow"] == "t"
+    to_store(data, store, data.attrs["selpath_kind"], replace=True)
+    assert read_provenance(store) is None
+    to_store(data, store, data.attrs["selpath_kind"])  # its own store now: rewritten as before
