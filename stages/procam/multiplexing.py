@@ -167,11 +167,9 @@ def snr_db(estimate: np.ndarray, truth: np.ndarray) -> float:
 def line_pattern(scene: ProcamScene, first: int, stop: int) -> tuple[np.ndarray, np.ndarray]:
     """The projector pattern lighting camera rows [first, stop) (rows rectified as the simulator does) and the
     camera-row profile it gives (the virtual pattern to relight with)."""
-    rig = scene.rig
-    pattern = np.zeros((rig.projector_rows, rig.projector_cols))
-    top, bottom = (first * rig.projector_rows) // rig.camera_rows, ((stop - 1) * rig.projector_rows) // rig.camera_rows
-    pattern[top:bottom + 1] = 1
-    return pattern, on_camera_rows(rig, pattern[:, 0])
+    band = np.zeros(scene.rig.camera_rows)
+    band[first:stop] = 1.0
+    return projector_pattern(scene, np.repeat(band[:, None], scene.rig.projector_cols, axis=1)), band
 
 
 @stage("line_relighting_snr")
@@ -316,8 +314,8 @@ def full_relighting_snr(capture: xr.Dataset, transport: xr.Dataset, /, *, square
         images[name] = relight_full(transport, on_camera).values.astype(float)
         pattern = None if name == "floodlit" else projector_pattern(scene, on_camera)
         truths[name] = render_frame(clean, delay, exposure, pattern, shutter="global").astype(float)
-    measured = [snr_db(images[n][truths[n] >= lit_fraction * truths[n].max()],
-                       truths[n][truths[n] >= lit_fraction * truths[n].max()]) for n in images]
+    lit = {n: truths[n] >= lit_fraction * truths[n].max() for n in truths}
+    measured = [snr_db(images[n][lit[n]], truths[n][lit[n]]) for n in images]
     frame = ("row", "col")
     exposures = [float(e) for e in np.atleast_1d(capture["exposure"].values)]
     return xr.Dataset(
