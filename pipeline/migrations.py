@@ -39,7 +39,28 @@ def _from_format_4(ds: xr.Dataset) -> xr.Dataset:
     return _from_format_3(ds)
 
 
+#: what a format-5 transport's note says: its pixels may be confident black holes where light clipped
+CLIPPED_MASKED_NOTE = ("written before selpath kept clipped frames (format ≤ 5): frames at or above saturation_counts "
+                       "were masked, so a pixel whose brightest light was seen only clipped may hold T ≈ 0 there and "
+                       "still be flagged converged; demultiplex the capture again to bound and flag that light")
+
+
+def _from_format_5(ds: xr.Dataset) -> xr.Dataset:
+    """Format 5 → 6: a transport's ``converged`` and ``frames_used`` get the meaning they had (clipped frames were
+    masked; nothing was censored), and the store a ``selpath_note`` saying what that hides."""
+    if ds.attrs.get("selpath_kind") not in ("plane_to_ray_transport", "full_transport"):
+        return ds
+    out = ds.assign_attrs(selpath_note=CLIPPED_MASKED_NOTE)
+    meanings = {"converged": "the pixel's solve met its tolerance (clipped frames masked: not censoring-aware)",
+                "frames_used": "frames used for the pixel (neither saturated nor missing)"}
+    for name, long_name in meanings.items():
+        if name in out.data_vars:
+            out[name] = out[name].copy(deep=False).assign_attrs(long_name=long_name)
+    return out
+
+
 #: Migrations from older formats: ``{old_version: function(Dataset) -> Dataset of old_version + 1}``.
 #: Archives are migrated step by step on open, never guessed.
 MIGRATIONS: dict[int, Callable[[xr.Dataset], xr.Dataset]] = {1: _from_format_1, 2: _from_format_2,
-                                                                3: _from_format_3, 4: _from_format_4}
+                                                                3: _from_format_3, 4: _from_format_4,
+                                                                5: _from_format_5}

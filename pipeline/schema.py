@@ -25,7 +25,10 @@ from pipeline.errors import Problem
 #: (:class:`Variable`), written by :func:`with_metadata` and checked on open.
 #: Format 5 (2026-12): the solvers' and calibrations' extra variables (iterations, convergence, objective,
 #: residuals, masks) are declared too, optional, with their units and long names; format 4 left them bare.
-FORMAT_VERSION = 5
+#: Format 6 (2026-11): transports keep clipped frames as lower bounds and flag pixels whose light was seen only
+#: clipped (``censored``, ``censored_offsets``, ``frames_clipped``, ``clip_ratio``); formats ≤ 5 masked clipped
+#: frames, so their ``converged`` says nothing of clipped light (a note says so on open).
+FORMAT_VERSION = 6
 
 
 PIXEL_DIMS = ("row", "col")
@@ -104,18 +107,27 @@ _FRAME = ("row", "col")
 #: the per-pixel solver's results beside a transport (:mod:`stages.procam.demux`)
 _DEMUX_EXTRAS = {
     "iterations": Variable(_FRAME, required=False, units="1", long_name="ADMM iterations run for the pixel"),
-    "converged": Variable(_FRAME, required=False, units=None, long_name="the pixel's solve met its tolerance"),
+    "converged": Variable(_FRAME, required=False, units=None,
+                          long_name="the pixel's solve met its tolerance and no offset's light is censored"),
+    "censored": Variable(_FRAME, required=False, units=None,
+                         long_name="some offset's light was seen only in clipped frames: T is a lower bound there"),
+    "censored_offsets": Variable(_FRAME, required=False, units="1",
+                                 long_name="offsets whose light was seen only in clipped frames"),
     "gap_bound": Variable(_FRAME, required=False, units="1",
                           long_name="certified bound on the relative objective gap (f(T) − f*)/f(T)"),
     "frames_used": Variable(_FRAME, required=False, units="1",
-                            long_name="frames used for the pixel (neither saturated nor missing)"),
+                            long_name="frames observed for the pixel, neither clipped nor missing"),
+    "frames_clipped": Variable(_FRAME, required=False, units="1",
+                               long_name="frames at or above saturation_counts, kept as lower bounds"),
+    "clip_ratio": Variable(_FRAME, required=False, units="1",
+                           long_name="brightest frame T predicts over the clip level (counts above dark)"),
     "objective": Variable(_FRAME, required=False, units="1",
                           long_name="objective at T (images scaled to [0, 1])"),
 }
 _COUNTS = {"units": "counts", "long_name": "sensor counts"}
 #: what a projector–camera capture must say about its sensor: without them clipped frames pass as data
 _CAMERA_LEVELS = {
-    "saturation_counts": "raw counts at and above which a pixel is clipped (those observations are masked)",
+    "saturation_counts": "raw counts at and above which a pixel is clipped (kept as lower bounds on the light)",
     "dark_level_counts": "raw counts of an unlit pixel (black level), subtracted before demultiplexing",
 }
 _FLAGS = {"units": None, "long_name": "why a pixel is invalid (CF flags; 0: valid)"}

@@ -24,6 +24,7 @@ class Result(enum.IntEnum):
     converged = 0  # the stopping test (residuals within tol) was met
     max_steps = 1  # stopped at the iteration cap before meeting tol
     nonfinite = 2  # the value is not finite (NaN or ±inf): the solve broke down
+    censored = 3  # the stopping test was met, but part of the value is a lower bound (clipped observations)
 
     @property
     def message(self) -> str:
@@ -34,6 +35,8 @@ _MESSAGES = {
     Result.converged: "converged: the residuals met the tolerance",
     Result.max_steps: "stopped at the iteration cap (max_iter) before meeting the tolerance",
     Result.nonfinite: "the value is not finite (NaN or inf)",
+    Result.censored: "met the tolerance, but part of the value is only a lower bound: it was seen only in clipped "
+                     "(saturated) observations",
 }
 
 
@@ -74,7 +77,7 @@ class SolverError(SelpathError):
 
 
 def raise_if_failed(solution: Solution, solver: str, *, items: str = "items", fix: str = "") -> None:
-    """Raise :class:`SolverError` if any item of ``solution`` did not converge (host side, after the solve)."""
+    """Raise :class:`SolverError` if any item of ``solution`` did not end converged (host side, after the solve)."""
     codes = np.atleast_1d(np.asarray(solution.result))
     counts = {code: int(np.sum(codes == code)) for code in Result if code != Result.converged}
     counts = {code: n for code, n in counts.items() if n}
@@ -82,7 +85,7 @@ def raise_if_failed(solution: Solution, solver: str, *, items: str = "items", fi
         return
     failed = sum(counts.values())
     detail = "; ".join(f"{n} {code.name} ({code.message})" for code, n in counts.items())
-    raise SolverError(Problem(f"{solver}: {failed} of {codes.size} {items} did not converge: {detail}",
+    raise SolverError(Problem(f"{solver}: {failed} of {codes.size} {items} did not end converged: {detail}",
                               fix=fix or "raise max_iter or loosen tol; or build the solver with throw=False "
                                          "to keep the unconverged items as data (their result codes say which)"),
                       counts, codes.size)

@@ -24,10 +24,12 @@ class Limits(NamedTuple):
 
 
 class Rows(NamedTuple):
-    """Per pixel, on the scaled data: observations y, 0/1 weights, 2Aᵀwy and β/scale (P, 1)."""
+    """Per pixel, on the scaled data: observations y, 0/1 weights, 0/1 clipped (y is then the clip level: the
+    frame's light is at least y), 2Aᵀwy and β/scale (P, 1)."""
 
     y: jnp.ndarray
     weight: jnp.ndarray
+    clipped: jnp.ndarray
     two_aty: jnp.ndarray
     beta: jnp.ndarray
 
@@ -64,16 +66,31 @@ def _scaled(data, weight, beta):
     return data / scale, beta / scale, scale
 
 
+def _target(rows: Rows, prediction):
+    """What each frame's prediction is pulled to: y; on a clipped frame max(y, prediction), so only a prediction
+    below the clip level costs (the one-sided penalty max(0, y − AT)²)."""
+    return jnp.where(rows.clipped > 0, jnp.maximum(rows.y, prediction), rows.y)
+
+
+def _residual(ops, rows: Rows, t):
+    """w(AT − ỹ(T)) per frame: the data term's residual (on a clipped frame min(0, AT − y))."""
+    prediction = ops.forward(t)
+    return (prediction - _target(rows, prediction)) * rows.weight
+
+
 def _objective(ops, rows: Rows, t):
     """Each pixel's objective on the scaled data (float32 arithmetic)."""
-    return _sq((ops.forward(t) - rows.y) * rows.weight) + ops.alpha * ops.smoothness(t) + rows.beta[:, 0] * jnp.sum(
-        t, axis=-1)
+    return _sq(_residual(ops, rows, t)) + ops.alpha * ops.smoothness(t) + rows.beta[:, 0] * jnp.sum(t, axis=-1)
 
 
 def _rhs(ops, rows: Rows, z, masked: bool):
-    """2Aᵀỹ; with masked frames by majorisation: masked frames observe the current prediction."""
+    """2Aᵀỹ; by majorisation where any frame is masked or clipped (``masked``): a masked frame observes the current
+    prediction AZ, a clipped one max(y, AZ). Both quadratics touch their term at Z and lie above it (a masked
+    frame's term is 0; a clipped one's is the convex, C¹ max(0, y − AT)²), so the fixed points are exactly the
+    optima of the problem with masked frames left out and clipped ones as one-sided penalties."""
     if masked:
-        return 2.0 * ops.adjoint(rows.weight * rows.y + (1 - rows.weight) * ops.forward(z))
+        prediction = ops.forward(z)
+        return 2.0 * ops.adjoint(rows.weight * _target(rows, prediction) + (1 - rows.weight) * prediction)
     return rows.two_aty
 
 
@@ -94,17 +111,17 @@ def _in_chunks(fn, rows: int, *arrays):
 
 
 @partial(jax.jit, static_argnames=("masked", "chunk"))
-def start(ops, data, weight, *, masked: bool, chunk: int):
+def start(ops, data, weight, clipped, *, masked: bool, chunk: int):
     """(the pool's :class:`Rows`, scale, the warm start). The warm start is the unconstrained minimiser
     (2G)⁺(2Aᵀỹ − β), clipped (worth ~5× fewer iterations on Fig. 38-like pixels), or, where its objective is
     over twice as high, the same with β through the ρ-damped (2G + ρI)⁻¹. Along G's weak directions (those
     only α holds, e.g. a u-cell no line separates from its neighbour in the full transport) (2G)⁺β is huge
     (1e5 on the Fig. 39 sweep) while Aᵀy has no component there: that start left every pixel unconverged."""
 
-    def rows_of(data, weight):
+    def rows_of(data, weight, clipped):
         y, b_pixel, scale = _scaled(data, weight, ops.beta)
         two_aty = 2.0 * ops.adjoint(weight * y)
-        rows = Rows(y, weight, two_aty, b_pixel)
+        rows = Rows(y, weight, clipped, two_aty, b_pixel)
         least_squares = ops.inverse(_rhs(ops, rows, jnp.zeros_like(two_aty), masked))
         # β is the same on every offset: M(β 1) = β (M 1), one row for all pixels instead of two products
         ones = jnp.ones((1, two_aty.shape[1]), two_aty.dtype)
@@ -117,7 +134,7 @@ def start(ops, data, weight, *, masked: bool, chunk: int):
         z0 = jnp.where((objective(z0) <= objective(jnp.zeros_like(z0)))[:, None], z0, 0.0)
         return rows, scale, z0
 
-    return _in_chunks(rows_of, chunk, data, weight)
+    return _in_chunks(rows_of, chunk, data, weight, clipped)
 
 
 def _admm_block(ops, limits: Limits, *, check_every: int, masked: bool):
@@ -253,8 +270,8 @@ def finish(ops, pool: Rows, scale, z, *, polish_iter: int, polish_rounds: int, m
     the first round, offsets held at 0 whose gradient is negative are freed too), then T, its objective in the
     data's units and the certified gap bound."""
 
-    def rows_of(y, weight, two_aty, b_pixel, scale, z):
-        return _finish_rows(ops, Rows(y, weight, two_aty, b_pixel), scale, z, polish_iter=polish_iter,
+    def rows_of(y, weight, clipped, two_aty, b_pixel, scale, z):
+        return _finish_rows(ops, Rows(y, weight, clipped, two_aty, b_pixel), scale, z, polish_iter=polish_iter,
                             polish_rounds=polish_rounds, masked=masked)
 
     return _in_chunks(rows_of, chunk, *pool, scale, z)
@@ -265,10 +282,12 @@ def certified_gap(ops, rows: Rows, t):
     in the solver's dtype: a few products per pixel, so it costs about one iteration. In float32 it is a bound up
     to rounding (within 15 % or 1e-4 of the float64 reference on the solver's tests, where the bound lies at
     1e-5 to 3e-3: the most negative gradient entry decides it and carries float32 rounding)."""
-    residual = (ops.forward(t) - rows.y) * rows.weight
+    prediction = ops.forward(t)
+    target = _target(rows, prediction)
+    residual = (prediction - target) * rows.weight
     u = 2.0 * residual
     z = ops.adjoint(u) + 2.0 * ops.alpha * ops.smooth_gradient(t)
-    a = jnp.sum(u * rows.y, axis=-1)
+    a = jnp.sum(u * target, axis=-1)
     b = _sq(residual) + ops.alpha * ops.smoothness(t)
     beta = rows.beta[:, 0]
     worst = jnp.maximum(-jnp.min(z, axis=-1), 0.0)
@@ -281,9 +300,8 @@ def certified_gap(ops, rows: Rows, t):
 
 
 def _gradient(ops, rows: Rows, t):
-    """∇f(T) per pixel on the scaled data: 2Aᵀ(w(AT − y)) + 2αDᵀDT + β."""
-    return (ops.adjoint(2.0 * (ops.forward(t) - rows.y) * rows.weight) + 2.0 * ops.alpha * ops.smooth_gradient(t)
-            + rows.beta)
+    """∇f(T) per pixel on the scaled data: 2Aᵀ(w(AT − ỹ(T))) + 2αDᵀDT + β."""
+    return ops.adjoint(2.0 * _residual(ops, rows, t)) + 2.0 * ops.alpha * ops.smooth_gradient(t) + rows.beta
 
 
 def _polish(ops, rows: Rows, z, free, *, polish_iter: int, masked: bool):

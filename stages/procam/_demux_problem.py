@@ -87,14 +87,15 @@ class DemuxProblem:
         """(P, K) transport → (P, N) predicted observations, in float64."""
         return np.asarray(transport, np.float64) @ self.illumination.T
 
-    def objective(self, transport: np.ndarray, data: np.ndarray, weight: np.ndarray | None = None) -> np.ndarray:
-        """The thesis's objective per pixel, in float64 (reference for tests and benchmarks)."""
-        transport, data = np.asarray(transport, np.float64), np.asarray(data, np.float64)
-        residual = transport @ self.illumination.T - np.nan_to_num(data)
-        if weight is not None:
-            residual = residual * weight
-        smooth = np.diff(transport, axis=-1)
-        return (residual**2).sum(-1) + self.alpha * (smooth**2).sum(-1) + self.beta * transport.sum(-1)
+    def lit_by(self, frames: np.ndarray) -> np.ndarray:
+        """(P, N) 0/1 frames → (P, K): how many of them light each offset (A_ik > 0)."""
+        return np.asarray(frames, np.float32) @ (self.illumination > 0).astype(np.float32)
+
+    def objective(self, transport: np.ndarray, data: np.ndarray, weight: np.ndarray | None = None,
+                  clipped: np.ndarray | None = None) -> np.ndarray:
+        """The thesis's objective per pixel, in float64 (reference for tests and benchmarks); ``clipped`` frames
+        (``data`` their clip level) enter as the one-sided max(0, y − AT)²."""
+        return _objective(self, transport, data, weight, clipped)
 
 
 @dataclass(frozen=True)
@@ -157,17 +158,43 @@ class SeparableDemuxProblem:
     def forward(self, transport: np.ndarray) -> np.ndarray:
         """(P, K_u·K_v) transport → (P, N_u·N_v) predicted observations, in float64."""
         t = np.asarray(transport, np.float64).reshape(-1, *self.cells)
-        out = np.einsum("ju,puv,nv->pjn", self.line_matrix, t, self.frame_matrix)
+        out = np.einsum("ju,puv,nv->pjn", self.line_matrix, t, self.frame_matrix, optimize=True)
         return out.reshape(t.shape[0], -1)
 
-    def objective(self, transport: np.ndarray, data: np.ndarray, weight: np.ndarray | None = None) -> np.ndarray:
-        """The thesis's objective per pixel (smoothness along dv), in float64."""
-        transport = np.asarray(transport, np.float64)
-        residual = self.forward(transport) - np.nan_to_num(np.asarray(data, np.float64))
-        if weight is not None:
-            residual = residual * weight
-        smooth = np.diff(transport.reshape(-1, *self.cells), axis=-1)
-        return (residual**2).sum(-1) + self.alpha * (smooth**2).sum((-2, -1)) + self.beta * transport.sum(-1)
+    def lit_by(self, frames: np.ndarray) -> np.ndarray:
+        """(P, N_u·N_v) 0/1 frames (line-major) → (P, K_u·K_v): how many of them light each cell."""
+        frames = np.asarray(frames, np.float32).reshape(-1, self.line_matrix.shape[0], self.frame_matrix.shape[0])
+        lines, rows = (self.line_matrix > 0).astype(np.float32), (self.frame_matrix > 0).astype(np.float32)
+        return np.einsum("ju,pjn,nv->puv", lines, frames, rows, optimize=True).reshape(frames.shape[0], -1)
+
+    def objective(self, transport: np.ndarray, data: np.ndarray, weight: np.ndarray | None = None,
+                  clipped: np.ndarray | None = None) -> np.ndarray:
+        """The thesis's objective per pixel (smoothness along dv), in float64; ``clipped`` as for
+        :meth:`DemuxProblem.objective`."""
+        return _objective(self, transport, data, weight, clipped)
+
+
+def _residual(problem: DemuxProblem | SeparableDemuxProblem, transport: np.ndarray, data: np.ndarray,
+              weight: np.ndarray | None, clipped: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(w(AT − ỹ), ỹ) in float64: ỹ = y, and max(y, AT) on clipped frames (the one-sided penalty)."""
+    y = np.nan_to_num(np.asarray(data, np.float64))
+    prediction = problem.forward(transport)
+    target = y if clipped is None else np.where(clipped, np.maximum(y, prediction), y)
+    w = np.ones_like(y) if weight is None else np.asarray(weight, np.float64)
+    return (prediction - target) * w, target
+
+
+def _smoothness(problem: DemuxProblem | SeparableDemuxProblem, transport: np.ndarray) -> np.ndarray:
+    """‖D T‖² per pixel (along dv for the full transport)."""
+    if isinstance(problem, SeparableDemuxProblem):
+        return (np.diff(transport.reshape(-1, *problem.cells), axis=-1) ** 2).sum((-2, -1))
+    return (np.diff(transport, axis=-1) ** 2).sum(-1)
+
+
+def _objective(problem, transport, data, weight, clipped) -> np.ndarray:
+    transport = np.asarray(transport, np.float64)
+    residual, _ = _residual(problem, transport, data, weight, clipped)
+    return (residual**2).sum(-1) + problem.alpha * _smoothness(problem, transport) + problem.beta * transport.sum(-1)
 
 
 def _dtd_np(t: np.ndarray) -> np.ndarray:
@@ -177,7 +204,7 @@ def _dtd_np(t: np.ndarray) -> np.ndarray:
 
 
 def certified_gap(problem: DemuxProblem | SeparableDemuxProblem, transport: np.ndarray, data: np.ndarray,
-                  weight: np.ndarray | None = None) -> np.ndarray:
+                  weight: np.ndarray | None = None, clipped: np.ndarray | None = None) -> np.ndarray:
     """A certified bound on each pixel's relative objective gap (f(T) − f*)/f(T), from weak duality, in float64.
 
     f(T) = g(AT) + h(DT) + β1ᵀT with T ≥ 0, g(r) = Σ w(r − y)², h(s) = α‖s‖². Its Fenchel dual is
@@ -189,24 +216,26 @@ def certified_gap(problem: DemuxProblem | SeparableDemuxProblem, transport: np.n
     0 where f(T) = 0 (an all-zero pixel at T = 0 is certified at once); 1 where no dual point helps (β = 0 with a
     negative gradient component). Its tightness is T's own KKT accuracy: where an offset held at 0 has a negative
     gradient δ, the bound is about δ·ΣT / f(T).
+
+    A clipped frame's term max(0, y − r)² has the conjugate u y + u²/4 for u ≤ 0 (+∞ above): the same with the
+    constraint u ≤ 0, which its gradient u = 2 min(0, AT − y) and every θ ≥ 0 keep.
     """
     t = np.asarray(transport, np.float64)
-    y = np.nan_to_num(np.asarray(data, np.float64))
-    w = np.ones_like(y) if weight is None else np.asarray(weight, np.float64)
-    residual = (problem.forward(t) - y) * w
+    residual, target = _residual(problem, t, data, weight, clipped)
+    w = np.ones_like(target) if weight is None else np.asarray(weight, np.float64)
     u = 2.0 * residual
     if isinstance(problem, SeparableDemuxProblem):
         cells = t.reshape(-1, *problem.cells)
         n_u = problem.line_matrix.shape[0]
         adjoint = np.einsum("ju,pjn,nv->puv", problem.line_matrix, u.reshape(u.shape[0], n_u, -1),
-                            problem.frame_matrix).reshape(t.shape)
-        smooth, smooth_gradient = (np.diff(cells, axis=-1) ** 2).sum((-2, -1)), _dtd_np(cells).reshape(t.shape)
+                            problem.frame_matrix, optimize=True).reshape(t.shape)
+        smooth_gradient = _dtd_np(cells).reshape(t.shape)
     else:
         adjoint = u @ problem.illumination
-        smooth, smooth_gradient = (np.diff(t, axis=-1) ** 2).sum(-1), _dtd_np(t)
+        smooth_gradient = _dtd_np(t)
     z = adjoint + 2.0 * problem.alpha * smooth_gradient
-    a = (u * y * w).sum(-1)
-    b = (residual**2).sum(-1) + problem.alpha * smooth
+    a = (u * target * w).sum(-1)
+    b = (residual**2).sum(-1) + problem.alpha * _smoothness(problem, t)
     worst = np.maximum(-z.min(axis=-1), 0.0)
     with np.errstate(divide="ignore", invalid="ignore"):
         theta_max = np.where(worst > 0, problem.beta / worst, np.inf)

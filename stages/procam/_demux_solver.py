@@ -4,10 +4,13 @@ Every pixel p solves the thesis's problem
 
     min_T  Σ_i w_pi (A T − y_p)_i² + α ‖D T‖² + β 1ᵀT   subject to  T ≥ 0,
 
-with A (N frames × K offsets) the same for all pixels and w_pi ∈ {0, 1} masking saturated or non-finite
-frames. No library solves millions of small QPs that share a Hessian as one matrix–matrix product per
-iteration (CVXPY/Clarabel factorise each problem; optimistix has no bound constraints and the softplus
-detour was slow, DESIGN §6), so this is a batched ADMM in plain JAX (kernels in
+with A (N frames × K offsets) the same for all pixels and w_pi ∈ {0, 1} masking non-finite frames; a clipped
+frame (its observation the clip level y) enters as the one-sided max(0, y − A_i T)² instead: its light is at least
+y, so the problem stays a convex QP and T is never pulled below what the clipped frames prove.
+
+No library solves millions of small QPs that share a Hessian as one matrix–matrix product per iteration
+(CVXPY/Clarabel factorise each problem; optimistix has no bound constraints and the softplus detour was slow,
+DESIGN §6), so this is a batched ADMM in plain JAX (kernels in
 :mod:`stages.procam._demux_kernels`):
 
 * splitting T = Z with Z ≥ 0 carrying the L1 term: the T-update is (2G + ρI)⁻¹(2Aᵀỹ + ρ(Z − U)) with
@@ -17,9 +20,10 @@ detour was slow, DESIGN §6), so this is a batched ADMM in plain JAX (kernels in
   (Nesterov momentum per pixel while the combined residual falls): measured against plain and
   over-relaxed ADMM, 4–10× fewer iterations to a 1e-4 objective gap; ρ = ``rho_factor`` · λ_max(2G), a
   setting of the problem, whose factorisation depends on it (:data:`stages.procam._demux_problem.DEFAULT_RHO_FACTOR`);
-* masked frames by majorisation: a masked observation is replaced by the current prediction (ỹ = w y +
-  (1 − w) A Z), whose fixed points are exactly the masked problem's optima, so unmasked tiles keep the
-  cheapest path and masked ones pay two more products per iteration;
+* masked and clipped frames by majorisation: a masked observation is replaced by the current prediction (ỹ = w y +
+  (1 − w) A Z), a clipped one by max(y, A Z), whose fixed points are exactly the optima of the problem with masked
+  frames left out and clipped ones as one-sided penalties, so tiles with neither keep the cheapest path and the
+  others pay two more products per iteration;
 * each pixel is scaled by its largest observation (β with it), so data from 1e-8 to 1e8 run in float32;
 * a final polish: conjugate gradients on the KKT system of the support ADMM found (the free offsets), kept
   per pixel only where it lowers the objective (OSQP's "solution polishing", batched); with ``polish_rounds``
@@ -36,11 +40,12 @@ The full transport (§5.3.1) uses the same iteration with the Kronecker-factored
 :class:`~stages.procam._demux_problem.SeparableDemuxProblem` (A = L_u ⊗ L, never formed): the kernels apply
 whatever operators the problem hands them (:meth:`~stages.procam._demux_problem.DemuxProblem.operators`).
 
-:class:`DemuxADMM` is the solver: immutable settings, ``solve(problem, data, weight)`` returning a
+:class:`DemuxADMM` is the solver: immutable settings, ``solve(problem, data, weight, clipped)`` returning a
 :class:`stages._solution.Solution` with, per pixel, the transport, a result code (converged when its primal
-and dual residuals met ``tol`` relative, checked every ``check_every`` iterations; else ``max_steps``, or
-``nonfinite``) and ``stats`` (``iterations`` to convergence, ``max_iter`` if never; ``objective``; ``gap_bound``,
-the certified bound). A call's
+and dual residuals met ``tol`` relative, checked every ``check_every`` iterations; ``censored`` when they did
+but some offset's light was seen only clipped (:func:`censored_offsets`); else ``max_steps``, or ``nonfinite``)
+and ``stats`` (``iterations`` to convergence, ``max_iter`` if never; ``objective``; ``gap_bound``, the certified
+bound; ``censored_offsets``). A call's
 pixels stream through one batch whose rows are written out and refilled as their pixels converge or reach
 ``max_iter`` (:func:`~stages.procam._demux_kernels.stream`), and the batch's tail is compacted into smaller
 batches (:meth:`DemuxADMM._iterate_tail`), so a call costs about its pixels' mean iterations, not its slowest
@@ -57,12 +62,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from stages._solution import Solution, outcome, raise_if_failed
+from stages._solution import Result, Solution, outcome, raise_if_failed
 from stages.procam import _demux_kernels as kernels
 from stages.procam._demux_kernels import MIN_BATCH, Batch, Limits, Rows, State, alive, compact_at
 from stages.procam._demux_problem import DemuxProblem, SeparableDemuxProblem
 
-__all__ = ["MIN_BATCH", "DemuxADMM", "batch_slots", "observed"]
+__all__ = ["CENSORED_SHARE", "MIN_BATCH", "DemuxADMM", "batch_slots", "censored_offsets", "observed"]
 
 #: elements (pixels × offsets) of the batch the pixels stream through: its (P × K) iterates stay in cache
 BATCH_ELEMENTS = 1024 * 128
@@ -79,6 +84,26 @@ def _batch_size(active: int) -> int:
     while size < active:
         size *= kernels.COMPACTION
     return size
+
+
+#: an offset counts as censored only where its light is at least this share of the clip level: offsets that only
+#: clipped frames see but that hold (next to) no light are unknown the same way any unlit offset is
+CENSORED_SHARE = 0.01
+
+
+def censored_offsets(problem: DemuxProblem | SeparableDemuxProblem, transport: np.ndarray, data: np.ndarray,
+                     weight: np.ndarray, clipped: np.ndarray) -> np.ndarray:
+    """Per pixel, the number of offsets whose light is known only as a lower bound: lit (A_ik > 0) by some
+    clipped frame, by no usable unclipped one, and holding at least :data:`CENSORED_SHARE` of the pixel's
+    lowest clip level. There T is what the clipped frames prove (the one-sided penalty holds AT up to the clip
+    level, β pulls no higher), not an estimate. (P,) int32; host-side, two (P × N)·(N × K) products."""
+    usable = np.asarray(weight, bool)
+    clipped = np.asarray(clipped, bool) & usable
+    seen_clipped = problem.lit_by(clipped) > 0
+    seen_unclipped = problem.lit_by(usable & ~clipped) > 0
+    level = np.min(np.where(clipped, data, np.inf), axis=-1, keepdims=True)
+    bright = np.asarray(transport) >= CENSORED_SHARE * level
+    return np.sum(seen_clipped & ~seen_unclipped & bright, axis=-1).astype(np.int32)
 
 
 def observed(data: np.ndarray, weight: np.ndarray | None = None) -> np.ndarray:
@@ -123,38 +148,53 @@ class DemuxADMM:
                              f"polish_rounds ≥ 1, slots ≥ 1 and dtype float32 or float64 (got {self})")
 
     def solve(self, problem: DemuxProblem | SeparableDemuxProblem, data: np.ndarray,
-              weight: np.ndarray | None = None) -> Solution:
-        """Solve every pixel's problem: ``data`` (P, N) observations, ``weight`` (P, N) 0/1 (None: all 1).
+              weight: np.ndarray | None = None, clipped: np.ndarray | None = None) -> Solution:
+        """Solve every pixel's problem: ``data`` (P, N) observations, ``weight`` (P, N) 0/1 (None: all 1),
+        ``clipped`` (P, N) bool (None: none): frames whose sensor clipped, where ``data`` holds the clip level.
 
-        Non-finite observations are masked whatever ``weight`` says. Returns the (P, K) transport in the data's
-        units, a result code per pixel and ``stats`` {``iterations`` (P,) int32, ``objective`` (P,),
-        ``gap_bound`` (P,): the certified bound on the relative objective gap}.
+        Non-finite observations are masked whatever ``weight`` says. A clipped frame is a one-sided penalty
+        max(0, y − AT)²: its light is at least the clip level. Returns the (P, K) transport in the data's units,
+        a result code per pixel (``censored`` where the solve met ``tol`` but some offset's light was seen only
+        in clipped frames: see :func:`censored_offsets`) and ``stats`` {``iterations`` (P,) int32, ``objective``
+        (P,), ``gap_bound`` (P,): the certified bound on the relative objective gap, ``censored_offsets`` (P,)
+        int32}.
         """
         data = np.asarray(data)
         if data.ndim != 2 or data.shape[1] != problem.frames:
             raise ValueError(f"data is {data.shape}; expected (pixels, {problem.frames} frames)")
         weight = observed(data, weight)
+        clipped = np.zeros(data.shape, bool) if clipped is None else np.asarray(clipped, bool) & weight
+        if clipped.shape != data.shape:
+            raise ValueError(f"clipped is {clipped.shape}; expected {data.shape} like the data")
+        any_clipped = bool(clipped.any())
         dtype = jnp.dtype(self.dtype)
         if dtype == jnp.float64 and not jax.config.jax_enable_x64:
             raise ValueError("float64 demultiplexing needs x64: call inside `with jax.enable_x64(True):`")
         ops = problem.operators(dtype)
+        # without clipped frames one column stands for all (broadcast): the pool and batch carry no (P, N) zeros
+        flags = clipped if any_clipped else np.zeros((data.shape[0], 1), bool)
         transport, iterations, done, objective, gap = self._run(
-            ops, jnp.asarray(np.where(weight, data, 0.0), dtype), jnp.asarray(weight, dtype),
-            masked=not bool(weight.all()), slots=int(self.slots or batch_slots(problem.offsets)))
+            ops, jnp.asarray(np.where(weight, data, 0.0), dtype), jnp.asarray(weight, dtype), jnp.asarray(flags, dtype),
+            masked=not bool(weight.all()) or any_clipped, slots=int(self.slots or batch_slots(problem.offsets)))
         transport, objective, gap = np.asarray(transport), np.asarray(objective), np.asarray(gap)
         finite = np.isfinite(transport).all(axis=-1) & np.isfinite(objective)
-        solution = Solution(transport, outcome(np.asarray(done), finite),
-                            {"iterations": np.asarray(iterations), "objective": objective, "gap_bound": gap})
+        censored = (censored_offsets(problem, transport, np.where(weight, data, 0.0), weight, clipped)
+                    if any_clipped else np.zeros(data.shape[0], np.int32))
+        result = outcome(np.asarray(done), finite)
+        result = np.where((result == int(Result.converged)) & (censored > 0), np.int8(Result.censored), result)
+        solution = Solution(transport, result.astype(np.int8),
+                            {"iterations": np.asarray(iterations), "objective": objective, "gap_bound": gap,
+                             "censored_offsets": censored})
         if self.throw:
             raise_if_failed(solution, "DemuxADMM", items="pixels")
         return solution
 
-    def _run(self, ops, data, weight, *, masked: bool, slots: int):
+    def _run(self, ops, data, weight, clipped, *, masked: bool, slots: int):
         """Start, stream the pixels through a batch of ``slots`` (:func:`~stages.procam._demux_kernels.stream`),
         compact its tail (:meth:`_iterate_tail`), finish: (transport, iterations, converged, objective)."""
         p = data.shape[0]
         slots = min(slots, p)
-        pool, scale, z0 = kernels.start(ops, data, weight, masked=masked, chunk=slots)
+        pool, scale, z0 = kernels.start(ops, data, weight, clipped, masked=masked, chunk=slots)
         limits = Limits(jnp.asarray(self.tol, data.dtype), jnp.asarray(self.max_iter, jnp.int32))
         pixel, rows, batch, _, out = kernels.stream(ops, limits, pool, z0, check_every=self.check_every,
                                                     masked=masked, slots=slots)

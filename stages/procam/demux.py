@@ -3,9 +3,11 @@
 Lazy over bands of camera rows (dask, one task per band), JAX inside each band (``stages.procam._demux_solver``). The
 illumination matrix (``stages.procam._illumination``) is built once from the sweep, v_p, t_p and the sync offset —
 from a ``scan_calibration`` store when one is wired in — and shared by every pixel. Frames at the epipolar
-boundary are dropped by the rule of :func:`stages.procam._illumination.epipolar_boundary`; saturated and non-finite
-observations are masked per pixel. T is in the capture's counts: the image of a row lit for its whole line
-time t_p, so Σ_o T(o) w(o; t_d, t_e) reproduces a frame.
+boundary are dropped by the rule of :func:`stages.procam._illumination.epipolar_boundary`; non-finite observations
+are masked per pixel, and clipped ones (at or above ``saturation_counts``) kept as lower bounds on the light: where
+an offset's light was seen only clipped, the pixel is ``censored`` and T there is a lower bound (the solver's
+one-sided penalty, :mod:`stages.procam._demux_solver`). T is in the capture's counts: the image of a row lit for
+its whole line time t_p, so Σ_o T(o) w(o; t_d, t_e) reproduces a frame.
 """
 
 from __future__ import annotations
@@ -110,32 +112,35 @@ def _frames(capture: xr.Dataset, timing: dict, boundary_margin_us: float | None,
 
 
 def solve_pixels(solver: DemuxADMM, problem: DemuxProblem | SeparableDemuxProblem, data: np.ndarray,
-                 weight: np.ndarray) -> Solution:
+                 weight: np.ndarray, clipped: np.ndarray | None = None) -> Solution:
     """``solver.solve`` over (P, N) pixels in calls of :func:`pixels_per_call` (the last one padded with all-zero
     pixels), as one :class:`Solution` over the P pixels (``solver.throw`` judged on all of them at the end).
 
-    A call with any masked observation takes the solver's masked path (about twice the products per
-    iteration), so the pixels with masked observations (weight 0 or non-finite) are solved last, together:
-    only the calls that hold them pay.
+    A call with any masked or clipped observation takes the solver's majorised path (about twice the products
+    per iteration), so the pixels with such observations (weight 0, non-finite or clipped) are solved last,
+    together: only the calls that hold them pay.
     """
     p, per_call = data.shape[0], pixels_per_call(data.shape[0], problem.offsets)
+    clipped = np.zeros(data.shape, bool) if clipped is None else np.asarray(clipped, bool)
     if p == 0:  # no pixels (an empty band): nothing to solve, the solver's batches need at least one row
         return Solution(np.zeros((0, problem.offsets), solver.dtype), np.zeros(0, np.int8),
                         {"iterations": np.zeros(0, np.int32), "objective": np.zeros(0, solver.dtype),
-                         "gap_bound": np.zeros(0)})
-    order = np.argsort(~observed(data, weight).all(axis=1), kind="stable")
-    data, weight = data[order], weight[order]
+                         "gap_bound": np.zeros(0), "censored_offsets": np.zeros(0, np.int32)})
+    plain = observed(data, weight).all(axis=1) & ~clipped.any(axis=1)
+    order = np.argsort(~plain, kind="stable")
+    data, weight, clipped = data[order], weight[order], clipped[order]
     size = min(per_call, p)  # one call of exactly p pixels, or equal calls with the last one padded
     parts, each = [], replace(solver, throw=False)
     for c in range(max(1, -(-p // per_call))):
-        chunk_data = data[c * size:(c + 1) * size]
-        chunk_weight = weight[c * size:(c + 1) * size]
+        chunk = slice(c * size, (c + 1) * size)
+        chunk_data, chunk_weight, chunk_clipped = data[chunk], weight[chunk], clipped[chunk]
         pad = size - chunk_data.shape[0]
         if pad:  # zero observations, unmasked: a weight of 0 would send the whole call down the masked path
             chunk_data = np.pad(chunk_data, ((0, pad), (0, 0)))
             chunk_weight = np.pad(chunk_weight, ((0, pad), (0, 0)), constant_values=1)
+            chunk_clipped = np.pad(chunk_clipped, ((0, pad), (0, 0)))
         with jax.enable_x64(bool(np.dtype(solver.dtype) == np.float64)):
-            solution = each.solve(problem, chunk_data, chunk_weight)
+            solution = each.solve(problem, chunk_data, chunk_weight, chunk_clipped)
         parts.append(jax.tree.map(lambda a, keep=size - pad: a[:keep], solution))
     inverse = np.argsort(order)
     solution = jax.tree.map(lambda *column: np.concatenate(column)[inverse], *parts)
@@ -147,22 +152,38 @@ def solve_pixels(solver: DemuxADMM, problem: DemuxProblem | SeparableDemuxProble
 def _solve_band(solver: DemuxADMM, problem: DemuxProblem | SeparableDemuxProblem, frames: np.ndarray,
                 shape: tuple[int, int], *, dark: float, full_scale: float, saturation: float
                 ) -> tuple[np.ndarray, dict]:
-    """Solve a band's (P, N) raw frames: (T (P, K) in counts, the per-pixel variables beside it)."""
-    weight = np.isfinite(frames) & (frames < saturation)
-    data = np.where(weight, (frames - dark) / full_scale, 0.0)
-    solution = solve_pixels(solver, problem, data, weight)
-    return solution.value * full_scale, {
+    """Solve a band's (P, N) raw frames: (T (P, K) in counts, the per-pixel variables beside it).
+
+    A frame at or above ``saturation`` is kept as a clipped observation (its light is at least the clip level,
+    a one-sided penalty); a non-finite one is masked."""
+    finite = np.isfinite(frames)
+    clipped = finite & (frames >= saturation)
+    data = np.where(finite, (np.where(clipped, saturation, frames) - dark) / full_scale, 0.0)
+    solution = solve_pixels(solver, problem, data, finite, clipped)
+    transport = solution.value * full_scale
+    censored = solution.stats["censored_offsets"]
+    # the brightest frame T predicts against the clip level: above 1 the light must drop by that much (projector
+    # power, a filter) for the sweep to stay unclipped; a lower bound where censored (T is one there)
+    clip_level = saturation - dark
+    brightest = problem.forward(solution.value).max(axis=-1) * full_scale if problem.frames else np.zeros(len(data))
+    ratio = brightest / clip_level if np.isfinite(clip_level) and clip_level > 0 else np.full(len(data), np.nan)
+    return transport, {
         "iterations": (("row", "col"), solution.stats["iterations"].reshape(shape).astype(np.int32)),
         "converged": (("row", "col"), solution.converged.reshape(shape)),
+        "censored": (("row", "col"), (censored > 0).reshape(shape)),
+        "censored_offsets": (("row", "col"), censored.reshape(shape).astype(np.int32)),
         "gap_bound": (("row", "col"), solution.stats["gap_bound"].reshape(shape).astype(np.float32)),
         "objective": (("row", "col"), solution.stats["objective"].reshape(shape).astype(np.float32)),
-        "frames_used": (("row", "col"), weight.sum(-1).reshape(shape).astype(np.int32)),
+        "frames_used": (("row", "col"), (finite & ~clipped).sum(-1).reshape(shape).astype(np.int32)),
+        "frames_clipped": (("row", "col"), clipped.sum(-1).reshape(shape).astype(np.int32)),
+        "clip_ratio": (("row", "col"), ratio.reshape(shape).astype(np.float32)),
     }
 
 
 #: per-pixel variables every transport store holds beside T (see _solve_band), with their dtypes
-_PER_PIXEL = {"iterations": np.int32, "converged": bool, "objective": np.float32, "frames_used": np.int32,
-              "gap_bound": np.float32}
+_PER_PIXEL = {"iterations": np.int32, "converged": bool, "censored": bool, "censored_offsets": np.int32,
+              "objective": np.float32, "frames_used": np.int32, "frames_clipped": np.int32, "gap_bound": np.float32,
+              "clip_ratio": np.float32}
 
 
 def _template(capture: xr.Dataset, transport_dims: tuple[str, ...], transport_sizes: tuple[int, ...],
@@ -210,10 +231,13 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
     """Plane-to-ray transport T(offset, row, col) from a ``(delay, exposure, row, col)`` capture (§5.2.2).
 
     Per pixel: min Σ_i ‖I_i − L_i ∗ T‖² + α‖∂T/∂v‖² + β‖T‖₁, T ≥ 0, on images scaled to [0, 1] by
-    ``full_scale``; T is returned in counts. Besides T: per-pixel iterations, convergence flag, objective,
-    ``gap_bound`` (a certified upper bound on the relative objective gap (f(T) − f*)/f(T), from weak duality:
-    conservative, as tight as T's KKT conditions) and the number of frames used (saturated or non-finite
-    observations are masked).
+    ``full_scale``; T is returned in counts. A frame at or above ``saturation_counts`` is kept as a lower bound
+    (the one-sided penalty max(0, s − A_i T)²); a non-finite one is masked. Besides T, per pixel: iterations,
+    ``converged``, objective, ``gap_bound`` (a certified upper bound on the relative objective gap
+    (f(T) − f*)/f(T), from weak duality: conservative, as tight as T's KKT conditions), ``frames_used`` and
+    ``frames_clipped``, ``censored`` and ``censored_offsets`` (offsets whose light was seen only clipped: T there
+    is a lower bound, and the pixel is not ``converged``) and ``clip_ratio`` (how much dimmer the light must be for
+    nothing to clip). ``uncensored_fraction`` (0-d) is the share of pixels not censored (docs/format.md).
 
     Parameters
     ----------
@@ -272,8 +296,7 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
         "solver": solver, "problem": problem, "keep": keep, "levels": levels}, template=template)
     out = out.assign_coords(offset=("offset", grid, {"units": "px", "long_name": "projector row − camera row"}))
     out["transport"].attrs = {"units": "counts", "long_name": "plane-to-ray transport T(v, s, t)"}
-    out["objective"].attrs = {"long_name": "objective at T (images scaled to [0, 1])"}
-    out["usable_fraction"] = _usable(out["frames_used"], int(keep.sum()))
+    out = _describe(out, int(keep.sum()))
     return out.assign_attrs(_transport_attrs(
         "plane_to_ray_transport", timing=timing, delays=delays, exposures=exposures, keep=keep, margin=margin,
         full_scale=scale, alpha=alpha, beta=beta, tol=tol, max_iter=max_iter, polish_iter=polish_iter, dtype=dtype))
@@ -281,6 +304,29 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
 
 #: floor of ``usable_fraction``: below it most observations are saturated or missing, and T is a guess
 USABLE_FLOOR = 0.05
+
+#: what the per-pixel variables of a transport store need said beyond their schema's units and long_name
+PER_PIXEL_DESCRIPTIONS = {
+    "censored_offsets": "lit by a clipped frame, by no unclipped one, and holding at least 1 % of the clip level: "
+                        "T there is what the clipped frames prove (the least light consistent with them), not an "
+                        "estimate",
+    "clip_ratio": "above 1 the pixel clipped: the light (projector power, a neutral-density filter) must drop by this "
+                  "factor for no frame of the sweep to clip; a lower bound where censored",
+}
+
+
+def _describe(out: xr.Dataset, frames: int) -> xr.Dataset:
+    """Attrs of the per-pixel variables and the result's shares: usable observations (floor 5 %) and pixels not
+    censored (no floor: a report, logged by the engine with the advice)."""
+    for name, description in PER_PIXEL_DESCRIPTIONS.items():
+        out[name].attrs = {"description": description}
+    out["usable_fraction"] = _usable(out["frames_used"], frames)
+    out["uncensored_fraction"] = usable_share(
+        1.0 - out["censored"].mean(), floor=0.0,
+        what="pixels whose every bright offset was seen unclipped (the others are `censored`: T is a lower bound)",
+        fix="where pixels are censored, lower the projector's power or add a neutral-density filter by their "
+            "clip_ratio (or sweep shorter exposures where the clipped light sums over many rows)")
+    return out
 
 
 def _usable(frames_used: xr.DataArray, frames: int) -> xr.DataArray:
@@ -398,8 +444,7 @@ def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, 
     out["transport"].attrs = {"units": "counts", "long_name": "full transport T(u, v, s, t)",
                               "description": f"light from a {step:g}-column u-cell; NaN where no line reached"}
     out["u_direct"].attrs = {"units": "px", "long_name": "direct correspondence u₀ (centre of the brightest cell)"}
-    out["objective"].attrs = {"long_name": "objective at T (images scaled to [0, 1])"}
-    out["usable_fraction"] = _usable(out["frames_used"], int(keep.sum()) * capture.sizes["line"])
+    out = _describe(out, int(keep.sum()) * capture.sizes["line"])
     return out.assign_attrs(_transport_attrs(
         "full_transport", timing=timing, delays=delays, exposures=exposures, keep=keep, margin=margin,
         full_scale=scale, alpha=alpha, beta=beta, tol=tol, max_iter=max_iter, polish_iter=polish_iter, dtype=dtype,

@@ -118,6 +118,33 @@ def delay_profile_figure(capture: xr.Dataset, transport: xr.Dataset, /, *,
                      caption=caption, size=PROFILES_SIZE)
 
 
+#: the colour censored pixels are drawn in (RGBA): their light was seen only clipped, so their values are lower bounds
+CENSORED_COLOUR = (1.0, 0.0, 1.0, 0.85)
+
+
+def censored_of(transport: xr.Dataset):
+    """The transport's per-pixel ``censored`` map (lazy), or None for a store written before #30 had one."""
+    return transport["censored"].data if "censored" in transport.data_vars else None
+
+
+def censored_note(transport: xr.Dataset) -> str:
+    """The caption's sentence on censored pixels (empty for a store without the map)."""
+    if "censored" not in transport.data_vars:
+        return ""
+    return (" Pixels whose light was seen only in clipped (saturated) frames are drawn magenta, their count in the"
+            " titles: there T is a lower bound, so their relit values are too, never black holes.")
+
+
+def mark_censored(ax, censored: np.ndarray | None) -> int:
+    """Paint the censored pixels of an image panel magenta; returns how many there are."""
+    if censored is None or not np.any(censored):
+        return 0
+    overlay = np.zeros((*censored.shape, 4))
+    overlay[np.asarray(censored, bool)] = CENSORED_COLOUR
+    ax.imshow(overlay, interpolation="nearest")
+    return int(np.sum(censored))
+
+
 def _grid(count: int) -> tuple[int, int]:
     """Rows and columns of a grid of ``count`` 4:3 panels on a wide figure."""
     cols = count if count <= 3 else int(np.ceil(count / 2)) if count <= 8 else int(np.ceil(np.sqrt(2 * count)))
@@ -125,9 +152,10 @@ def _grid(count: int) -> tuple[int, int]:
 
 
 def _draw_relit(images: list[np.ndarray], titles: list[str], size: tuple[float, float], extra=None,
-                gamma: float = 1.0) -> np.ndarray:
+                gamma: float = 1.0, censored: np.ndarray | None = None) -> np.ndarray:
     """Images on one colour scale (0 to the last image's, white's, 99.5th percentile; a power law ``gamma``)
-    with one colour bar; ``extra(ax, images)`` draws into one more panel after them."""
+    with one colour bar; ``extra(ax, images)`` draws into one more panel after them; ``censored`` pixels
+    (:func:`mark_censored`) painted on every image."""
     count = len(images) + (extra is not None)
     rows, cols = _grid(count)
     fig, axes = panels(rows, cols, size=size, squeeze=False)
@@ -137,7 +165,8 @@ def _draw_relit(images: list[np.ndarray], titles: list[str], size: tuple[float, 
     for ax, image, title in zip(axes, images, titles, strict=False):
         shown = ax.imshow(image, cmap="gray", norm=norm,
                           interpolation="nearest")
-        ax.set_title(title, fontsize=8)
+        marked = mark_censored(ax, censored)
+        ax.set_title(title + (f"\n{marked} px censored (magenta)" if marked else ""), fontsize=8)
         pixel_axes(ax, fontsize=7)
     label = "counts" if gamma == 1 else f"counts (colour ∝ counts^{gamma:g})"
     ticks = None
@@ -202,23 +231,29 @@ def relighting_figure(transport: xr.Dataset, /, *, lines: tuple[Fraction, ...] =
         light shows), axes in camera pixels; the last panel
         gives each image's mean over camera columns per camera row on a log scale, with the lit rows shaded,
         so light that lands away from the line (inter-reflection, scattering) shows as counts outside the
-        shading. Reproduces thesis Fig. 40."""
+        shading. Reproduces thesis Fig. 40.{censored_note(transport)}"""
     size = (9.0, 2.6 * _grid(len(images) + 1)[0])
+    censored = censored_of(transport)
 
     def render(*arrays):
-        return _draw_relit([np.asarray(a, dtype=float) for a in arrays], titles, size, profiles, gamma=0.5)
+        mask = np.asarray(arrays[-1]) if censored is not None else None
+        images = arrays[:-1] if censored is not None else arrays
+        return _draw_relit([np.asarray(a, dtype=float) for a in images], titles, size, profiles, gamma=0.5,
+                           censored=mask)
 
-    return as_figure(render, *images, caption=caption, size=size)
+    return as_figure(render, *images, *([censored] if censored is not None else []), caption=caption, size=size)
 
 
-def _draw_epipolar(regular, sharpened, row: int, exposure: float, half_width: int, delay: float) -> np.ndarray:
+def _draw_epipolar(regular, sharpened, row: int, exposure: float, half_width: int, delay: float,
+                   censored: np.ndarray | None = None) -> np.ndarray:
     fig, axes = panels(1, 3, size=EPIPOLAR_SIZE)
     top = display_top(regular)
     for ax, image, title in ((axes[0], regular, f"(a) epipolar frame, t_d = {delay:g} µs, t_e = {exposure:g} µs"),
                              (axes[1], sharpened, f"(b) sharpened from T: |v − s| ≤ {half_width} rows")):
         shown = ax.imshow(image, cmap="gray", vmin=0, vmax=top, interpolation="nearest")
+        marked = mark_censored(ax, censored) if image is sharpened else 0
         ax.axhline(row, color="tab:red", lw=0.8)
-        ax.set_title(title, fontsize=8)
+        ax.set_title(title + (f"\n{marked} px censored (magenta)" if marked else ""), fontsize=8)
         pixel_axes(ax, fontsize=7)
     shared_colorbar(fig, axes[:2], shown, "counts", shrink=0.8)
     axes[2].plot(regular[row], lw=0.8, label="(a) epipolar frame")
@@ -265,12 +300,15 @@ def epipolar_figure(capture: xr.Dataset, transport: xr.Dataset, /, *, exposure: 
         the epipolar image synthesised from the demultiplexed transport T, keeping only offsets |v − s| ≤
         {half_width} projector rows; both on one colour scale in counts, axes in camera pixels; (c) both along
         camera row {at} ({row:.0%} of the height, red line). Light that the long exposure lets in from farther
-        rows (the candle's scattering) is removed in (b)."""
+        rows (the candle's scattering) is removed in (b).{censored_note(transport)}"""
+    censored = censored_of(transport)
 
-    def render(regular, sharpened):
-        return _draw_epipolar(np.asarray(regular), np.asarray(sharpened), at, exposure, half_width, 0.0)
+    def render(regular, sharpened, *mask):
+        return _draw_epipolar(np.asarray(regular), np.asarray(sharpened), at, exposure, half_width, 0.0,
+                              np.asarray(mask[0]) if mask else None)
 
-    return as_figure(render, regular, sharpened, caption=caption, size=EPIPOLAR_SIZE)
+    return as_figure(render, regular, sharpened, *([censored] if censored is not None else []), caption=caption,
+                     size=EPIPOLAR_SIZE)
 
 
 def _full(transport: xr.Dataset) -> xr.Dataset:
@@ -386,10 +424,12 @@ def relighting_full_figure(transport: xr.Dataset, /, *, square_px: Count | None 
         complement and (c) white, every projector pixel lit; all on one colour scale in counts, axes in camera
         pixels. (a) + (b) = (c); light in the dark squares is light that left a lit square and reached the
         pixel indirectly (inter-reflection, scattering). T resolves a pattern only to its u-cells of {step:g}
-        projector columns."""
+        projector columns.{censored_note(transport)}"""
+    censored = censored_of(transport)
 
-    def render(*arrays):
-        return _draw_relit([np.asarray(a) for a in arrays], titles, CHECKERBOARD_SIZE)
+    def render(checkerboard, complement, white, *mask):
+        return _draw_relit([np.asarray(a) for a in (checkerboard, complement, white)], titles, CHECKERBOARD_SIZE,
+                           censored=np.asarray(mask[0]) if mask else None)
 
     return as_figure(render, *(relit[name].data for name in ("checkerboard", "complement", "white")),
-                     caption=caption, size=CHECKERBOARD_SIZE)
+                     *([censored] if censored is not None else []), caption=caption, size=CHECKERBOARD_SIZE)

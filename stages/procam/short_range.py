@@ -78,6 +78,9 @@ def short_range_images(transport: xr.Dataset, /, *,
                        row_block=max(float(speed) * delay_step, 1.0), row_span=t.sizes["row"]) for d in max_delays]
     coords = {"max_delay": ("max_delay", np.asarray(max_delays, float),
                             {"units": "us", "long_name": "delay range T_dmax of the sweep"})}
+    censored = ({"censored": transport["censored"].drop_attrs(deep=False).assign_attrs(
+        long_name="light seen only clipped: the images are lower bounds there")}
+        if "censored" in transport.data_vars else {})
     return xr.Dataset(
         {"image": images.drop_attrs(deep=False).assign_attrs(units=t.attrs.get("units", "counts"),
                                                              long_name="floodlit image of the short-range sweep"),
@@ -87,7 +90,8 @@ def short_range_images(transport: xr.Dataset, /, *,
          "captures": ("max_delay", [p.captures for p in plan],
                       {"units": "1", "long_name": "captures of the short-range sweep"}),
          "pixel_to_pixel_captures": ("max_delay", [p.pixel_to_pixel for p in plan],
-                                     {"units": "1", "long_name": "captures of pixel-to-pixel scanning"})},
+                                     {"units": "1", "long_name": "captures of pixel-to-pixel scanning"}),
+         **censored},
         coords=coords,
         attrs={k: v for k, v in transport.attrs.items() if k != "selpath_kind"}
         | {"selpath_kind": "short_range", "delay_step_us": float(delay_step), "exposure_us": float(exposure),

@@ -70,8 +70,18 @@ def test_a_format_4_transport_gets_its_solver_variables_metadata_on_open(tmp_pat
     with pytest.warns(IncompleteStoreWarning):  # written by plain xarray: no completion record
         back = open_store(tmp_path / "old.zarr")
     assert back["iterations"].attrs == {"units": "1", "long_name": "ADMM iterations run for the pixel"}
-    assert back["converged"].attrs == {"long_name": "the pixel's solve met its tolerance"}  # a mask: no units
+    # a mask: no units; its meaning then (clipped frames masked), and a note on what that hides
+    assert back["converged"].attrs == {
+        "long_name": "the pixel's solve met its tolerance (clipped frames masked: not censoring-aware)"}
     assert back["objective"].attrs["units"] == "1" and back["frames_used"].attrs["units"] == "1"
+    assert "may hold T ≈ 0" in back.attrs["selpath_note"]
+
+
+def test_a_format_6_transport_has_no_note_and_the_censoring_aware_meaning(tmp_path):
+    to_store(minimal("plane_to_ray_transport"), tmp_path / "new.zarr", kind="plane_to_ray_transport")
+    back = open_store(tmp_path / "new.zarr")
+    assert "selpath_note" not in back.attrs
+    assert "no offset's light is censored" in back["converged"].attrs["long_name"]
 
 
 def test_a_current_store_in_wrong_units_is_refused_naming_the_variable(tmp_path):

@@ -152,8 +152,8 @@ def test_capped_pixels_are_data_unless_throw():
     solution = DemuxADMM(tol=1e-9, max_iter=5).solve(problem, data)
     assert solution.result.tolist() == [Result.max_steps] * 8
     assert not solution.converged.any() and (solution.stats["iterations"] == 5).all()
-    with pytest.raises(SolverError, match=r"DemuxADMM: 8 of 8 pixels did not converge: 8 max_steps \(stopped at the "
-                                          r"iteration cap"):
+    with pytest.raises(SolverError, match=r"DemuxADMM: 8 of 8 pixels did not end converged: 8 max_steps "
+                                          r"\(stopped at the iteration cap"):
         DemuxADMM(tol=1e-9, max_iter=5, throw=True).solve(problem, data)
 
 

@@ -104,6 +104,6 @@ def test_capped_solve_is_data_unless_throw():
     solution = TVADMM(geometry, max_iter=5).solve_slices(*args)
     assert solution.result.tolist() == [Result.max_steps, Result.max_steps]
     assert not solution.converged.any() and solution.stats["iterations"].tolist() == [5, 5]
-    with pytest.raises(SolverError, match=r"TVADMM: 2 of 2 slices did not converge: 2 max_steps \(stopped at the "
+    with pytest.raises(SolverError, match=r"TVADMM: 2 of 2 slices did not end converged: 2 max_steps \(stopped at the "
                                           r"iteration cap"):
         TVADMM(geometry, max_iter=5, throw=True).solve_slices(*args)
