@@ -263,6 +263,8 @@ class RigGeometry:
         """
         problems = [f"attr {a!r} is missing; the rig geometry needs it ({what})" for a, what in RIG_ATTRS.items()
                     if a not in attrs] + camera_attr_problems(attrs, sensor_defaults=True)
+        if attrs.get("light_kind", "beam") not in ("beam", "sheet"):  # anything else was taken for a beam
+            problems.append(f"attr light_kind is {attrs['light_kind']!r}; expected 'beam' or 'sheet'")
         if problems:
             fix = "compute it from a capture whose attrs carry the rig geometry (docs/format.md)"
             raise StageError([Problem(p, where=where, fix=fix) for p in problems])
@@ -295,6 +297,18 @@ GEOMETRY_ATTRS = tuple(dict.fromkeys(
      *(f.name for f in fields(RigGeometry) if f.name != "camera")]))
 
 
+def saturation_counts(attrs) -> float | None:
+    """The raw count at and above which the sensor clips, from a store's attrs: ``saturation_counts`` (both
+    instruments), or ``saturation_level``, its name in tomography stores of format ≤ 5; None if neither."""
+    for name in ("saturation_counts", "saturation_level"):
+        if name in attrs:
+            return float(attrs[name])
+    return None
+
+
 def geometry_attrs(attrs) -> dict:
-    """The rig-geometry attrs of a cube (carried from the capture through every tomography stage)."""
-    return {k: v for k, v in attrs.items() if k in GEOMETRY_ATTRS or k == "saturation_level"}
+    """The rig-geometry attrs of a cube (carried from the capture through every tomography stage), and the
+    sensor's clip level as ``saturation_counts``."""
+    out = {k: v for k, v in attrs.items() if k in GEOMETRY_ATTRS}
+    level = saturation_counts(attrs)
+    return out | ({"saturation_counts": level} if level is not None else {})

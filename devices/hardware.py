@@ -104,6 +104,6 @@ def hardware_rig(config: HardwareRigConfig) -> TomographyRig:
         raise
     rows, cols = camera.shape
     geometry = RigGeometry.from_attrs(config.geometry.model_dump(exclude_none=True), rows, cols, where="rig geometry")
-    attrs = geometry.attrs() | {"saturation_level": config.saturation_level, "rig": "hardware"}
+    attrs = geometry.attrs() | {"saturation_counts": config.saturation_level, "rig": "hardware"}
     return TomographyRig(stage, camera, ManualLight("beam"), ManualLight("backlight"), ManualSampleChanger(),
                          attrs, tolerance_deg=config.stage.tolerance_deg)

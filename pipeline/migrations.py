@@ -46,8 +46,13 @@ CLIPPED_MASKED_NOTE = ("written before selpath kept clipped frames (format ≤ 5
 
 
 def _from_format_5(ds: xr.Dataset) -> xr.Dataset:
-    """Format 5 → 6: a transport's ``converged`` and ``frames_used`` get the meaning they had (clipped frames were
-    masked; nothing was censored), and the store a ``selpath_note`` saying what that hides."""
+    """Format 5 → 6: the tomography stores' ``saturation_level`` attr is named ``saturation_counts``, as the
+    projector–camera stores name it; a transport's ``converged`` and ``frames_used`` get the meaning they had
+    (clipped frames were masked; nothing was censored), and the store a ``selpath_note`` saying what that hides."""
+    if "saturation_level" in ds.attrs:
+        attrs = dict(ds.attrs)
+        level = attrs.pop("saturation_level")
+        ds = ds.assign_attrs({}).drop_attrs(deep=False).assign_attrs(attrs | {"saturation_counts": level})
     if ds.attrs.get("selpath_kind") not in ("plane_to_ray_transport", "full_transport"):
         return ds
     out = ds.assign_attrs(selpath_note=CLIPPED_MASKED_NOTE)

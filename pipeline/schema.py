@@ -130,6 +130,12 @@ _CAMERA_LEVELS = {
     "saturation_counts": "raw counts at and above which a pixel is clipped (kept as lower bounds on the light)",
     "dark_level_counts": "raw counts of an unlit pixel (black level), subtracted before demultiplexing",
 }
+#: what a transport carries from its sweep, read by the stages after it (short_range_images, the relighting figures)
+_TRANSPORT_ATTRS = {
+    "scan_speed_px_per_us": "v_p used, camera rows per µs (offset o ↔ delay o / v_p)",
+    "line_time_us": "t_p, µs",
+    "full_scale_counts": "counts that scaled the images to [0, 1] (the objective's scale)",
+}
 _FLAGS = {"units": None, "long_name": "why a pixel is invalid (CF flags; 0: valid)"}
 _ABSORPTION = "total absorption A = log I_reference − log I_target"
 _SIGMA, _SIGMA_NAME = "1/{length}", "absorption coefficient σ"
@@ -189,7 +195,7 @@ KINDS: dict[str, CubeKind] = {
             variables={"silhouette": Variable(("angle", *_FRAME), description="True where the object is", units=None,
                                                long_name="object mask")},
             coord_units={"angle": ANGLE_UNITS},
-            attrs={"camera_model": RIG_ATTRS["camera_model"], "length_unit": RIG_ATTRS["length_unit"]},
+            attrs=RIG_ATTRS,  # visual_hull builds the rig's geometry from them
             attr_checks=(camera_attr_problems,),
         ),
         CubeKind(
@@ -202,7 +208,7 @@ KINDS: dict[str, CubeKind] = {
                                        long_name="vertices of the contour"),
             },
             coord_units={},
-            attrs={"camera_model": RIG_ATTRS["camera_model"], "length_unit": RIG_ATTRS["length_unit"],
+            attrs={**RIG_ATTRS,  # align_paths and coverage build the rig's geometry from them
                    "hull_resolution": "largest gap between the silhouette edge and the contour, length unit"},
             attr_checks=(camera_attr_problems,),
         ),
@@ -257,7 +263,8 @@ KINDS: dict[str, CubeKind] = {
             variables={"image": Variable(("shift", *_FRAME), **_COUNTS)},
             coord_units={"shift": frozenset({"1"})},
             attrs={"square_px": "checkerboard square [rows, cols], projector px",
-                   "mode": "'floodlit' (global shutter over the whole scan) or 'epipolar' (t_d = 0, t_e = t_p)"},
+                   "mode": "'floodlit' (global shutter over the whole scan) or 'epipolar' (t_d = 0, t_e = t_p)",
+                   **_CAMERA_LEVELS},
         ),
         CubeKind(
             name="short_range",
@@ -335,6 +342,7 @@ KINDS: dict[str, CubeKind] = {
             variables={"transport": Variable(("offset", *_FRAME), units="counts",
                                                  long_name="plane-to-ray transport T(v, s, t)"), **_DEMUX_EXTRAS},
             coord_units={"offset": PX_UNITS},
+            attrs=_TRANSPORT_ATTRS,
         ),
         CubeKind(
             name="full_transport",
@@ -342,6 +350,10 @@ KINDS: dict[str, CubeKind] = {
             variables={"transport": Variable(("du", "dv", *_FRAME), units="counts",
                                                  long_name="full transport T(u, v, s, t)"), **_DEMUX_EXTRAS},
             coord_units={"du": PX_UNITS, "dv": PX_UNITS},
+            attrs={**_TRANSPORT_ATTRS,
+                   "line_width_px": "width l_w of the projected vertical line, projector columns",
+                   "cell_width_px": "width of a u-cell, projector columns (du steps by it)",
+                   "cells_px": "centres of the u-cells solved for, projector columns (u₀ is one of them)"},
         ),
         CubeKind(
             name="sinogram",

@@ -250,3 +250,30 @@ def test_version_short_stage_list_and_plural(small_workflow):
         .replace("  absorption: {from: absorption, store: out/absorption.zarr}\n", ""))
     one = runner.invoke(app, ["validate", str(small_workflow)])
     assert one.exit_code == 0 and "1 step, outputs" in one.output, one.output
+
+
+@pytest.mark.parametrize("kind", ["plane_to_ray_capture", "checkerboard_capture"])
+def test_validate_refuses_a_capture_that_does_not_say_where_its_sensor_clips(tmp_path, kind):
+    """#30: a capture without saturation_counts and dark_level_counts passed `selpath validate`, then failed at
+    run time (or, for checkerboards, took clipped frames as data). Validation now names both attrs."""
+    import xarray as xr
+
+    if kind == "plane_to_ray_capture":
+        ds = xr.Dataset({"image": (("delay", "exposure", "row", "col"), np.zeros((2, 1, 3, 4), np.float32),
+                                   {"units": "counts"})},
+                        coords={"delay": ("delay", [0.0, 17.0], {"units": "us"}),
+                                "exposure": ("exposure", [170.0], {"units": "us"})},
+                        attrs={"scan_speed_px_per_us": 1 / 17, "line_time_us": 17.0})
+        step = "{id: t, stage: demux_plane_to_ray, with: {capture: $c}}"
+    else:
+        ds = xr.Dataset({"image": (("shift", "row", "col"), np.zeros((2, 3, 4), np.float32), {"units": "counts"})},
+                        coords={"shift": ("shift", [0, 1], {"units": "1"})},
+                        attrs={"square_px": [8, 8], "mode": "floodlit", "shifts_rows": [0, 4], "shifts_cols": [0, 4]})
+        step = "{id: t, stage: separate_direct_global, with: {capture: $c}}"
+    ds.assign_attrs(selpath_format=FORMAT_VERSION, selpath_kind=kind).to_zarr(tmp_path / "c.zarr", consolidated=False)
+    (tmp_path / "wf.yaml").write_text("workflow: clip\nsteps:\n  - {id: c, stage: load_store, with: {store: c.zarr}}"
+                                      f"\n  - {step}\n")
+    result = runner.invoke(app, ["validate", str(tmp_path / "wf.yaml")], env={"COLUMNS": "300"})
+    assert result.exit_code != 0, result.output
+    output = result.output.replace("\n", "")
+    assert "attr 'saturation_counts' is missing" in output and "attr 'dark_level_counts' is missing" in output

@@ -108,7 +108,7 @@ def simulated_rig(scene: Scene) -> TomographyRig:
     beam, backlight, samples = SimLight("beam"), SimLight("backlight"), SimSampleChanger()
     camera = SimCamera(scene, stage, beam, backlight, samples)
     attrs = scene.geometry().attrs() | {
-        "saturation_level": scene.sensor.saturation_level,
+        "saturation_counts": scene.sensor.saturation_level,
         "rig": "simulated",
         "scene": scene.scene,
         "effects": list(scene.effects.names()),

@@ -448,5 +448,5 @@ def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, 
     return out.assign_attrs(_transport_attrs(
         "full_transport", timing=timing, delays=delays, exposures=exposures, keep=keep, margin=margin,
         full_scale=scale, alpha=alpha, beta=beta, tol=tol, max_iter=max_iter, polish_iter=polish_iter, dtype=dtype,
-        line_width_px=width, cell_width_px=step, cells_px=cells.tolist(),
+        line_width_px=width, cell_width_px=step, cells_px=cells.tolist(), lines=int(lines.size),
         **{name: capture.attrs[name] for name in ("projector_shape",) if name in capture.attrs}))

@@ -19,6 +19,7 @@ from __future__ import annotations
 import numpy as np
 import xarray as xr
 
+from devices.geometry import saturation_counts
 from pipeline.constraints import Fraction, NonNegative, Positive
 from pipeline.errors import Problem, StageError
 from pipeline.quality import usable_share
@@ -81,13 +82,14 @@ def subtract_dark(capture: xr.Dataset, /) -> xr.Dataset:
 def _saturation_level(capture: xr.Dataset, saturation_level: float | None) -> float:
     if saturation_level is not None:
         return float(saturation_level)
-    if "saturation_level" in capture.attrs:
-        return float(capture.attrs["saturation_level"])
+    recorded = saturation_counts(capture.attrs)
+    if recorded is not None:
+        return recorded
     dtype = capture["target"].dtype
     if np.issubdtype(dtype, np.integer):
         return float(np.iinfo(dtype).max)
     raise StageError(Problem("cannot tell saturated pixels of float frames",
-                             fix="set the capture's attr saturation_level or the stage's saturation_level"))
+                             fix="set the capture's attr saturation_counts or the stage's saturation_level"))
 
 
 def frame_flags(raw: np.ndarray, corrected: np.ndarray, *, saturation_level: float,
@@ -224,7 +226,8 @@ def _checked_pair(capture: xr.Dataset, stage_name: str, saturation_level: float 
     flags.attrs.update(flag_masks=FLAG_MASKS, flag_meanings=FLAG_MEANINGS,
                        long_name="why a pixel is invalid (CF flags; 0: valid)")
     attrs = {k: v for k, v in capture.attrs.items() if k != "selpath_kind"}
-    attrs.update(saturation_level=level, min_signal=min_signal, min_signal_relative=min_signal_relative,
+    attrs.pop("saturation_level", None)  # the old name of saturation_counts
+    attrs.update(saturation_counts=level, min_signal=min_signal, min_signal_relative=min_signal_relative,
                  background_flagged=int(object_mask.ndim > 0))  # 1: pixels off the object carry BACKGROUND
     if object_mask.ndim and silhouette_threshold is not None:
         attrs["silhouette_threshold"] = float(silhouette_threshold)
@@ -234,16 +237,17 @@ def _checked_pair(capture: xr.Dataset, stage_name: str, saturation_level: float 
     shares = {
         "signal_fraction": usable_share(
             lit.sum() / objects, floor=SIGNAL_FLOOR, what="reference pixels with usable signal (finite, below "
-            "saturation_level, above min_signal) among the object's pixels (not flagged background)",
+            "the clip level saturation_counts, above min_signal) among the object's pixels (not flagged background)",
             fix="check the frames' scale: min_signal is in counts above dark (for data on another scale set "
             "min_signal_relative, e.g. 0.01 of each frame's brightest reference pixel); check the dark frame, "
-            "saturation_level and NaN frames; if the backlit frames show no object, set flag_background: false"),
+            "the clip level (attr saturation_counts, or the stage's saturation_level) and NaN frames; if the "
+            "backlit frames show no object, set flag_background: false"),
         "usable_fraction": usable_share(
             (flags == 0).sum() / np.maximum(lit.sum(), 1), floor=USABLE_FLOOR,
-            what="lit reference pixels on the object whose target is usable too (finite, below saturation_level, "
+            what="lit reference pixels on the object whose target is usable too (finite, below saturation_counts, "
             "above min_signal)",
-            fix="most target frames are saturated, NaN or dark where the reference is lit: check them and "
-            "saturation_level"),
+            fix="most target frames are saturated, NaN or dark where the reference is lit: check them and the clip "
+            "level (attr saturation_counts, or the stage's saturation_level)"),
         "object_valid_fraction": ((flags == 0).sum() / objects).astype(np.float64).assign_attrs(
             units="1", long_name="share of the object's pixels (not flagged background) that are valid"),
         "background_fraction": (~on_object).mean().astype(np.float64).assign_attrs(
@@ -267,7 +271,7 @@ _PAIR_DOCS = """Parameters
         (angle, row, col) [counts]; ``backlit`` optional, for the background flag), raw or dark-subtracted.
     saturation_level : float or None
         Raw count at or above which a pixel is saturated [counts]; default: the capture's
-        ``saturation_level`` attr, else the integer dtype's maximum.
+        ``saturation_counts`` attr (``saturation_level`` in stores of format ≤ 5), else the integer dtype's maximum.
     min_signal : float
         Dark-subtracted count at or below which a pixel has no usable signal [counts].
     min_signal_relative : float

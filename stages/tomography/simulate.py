@@ -143,7 +143,7 @@ def simulate_parallel_capture(
             **OrthographicCamera(rows=n_rows, cols=n_cols, pixel_size=pixel_size).attrs(),
             "light_angle_deg": 0.0,
             "length_unit": "mm",
-            "saturation_level": saturation_level,
+            "saturation_counts": saturation_level,
             "simulator": "devices.sim.parallel_light",
         },
     )

@@ -131,3 +131,14 @@ def test_the_perspective_camera_subtends_the_closed_form_angle():
     camera = PerspectiveCamera(focal_length_px=100.0, camera_distance=20.0)  # optics only: no sensor needed
     assert camera.subtended_angle_deg(10.0) == pytest.approx(60.0)
     assert camera.axis_pixel_size == 0.2
+
+
+def test_an_unknown_light_kind_is_refused_not_taken_for_a_beam():
+    import pytest
+
+    from devices.geometry import OrthographicCamera, RigGeometry
+    from pipeline.errors import StageError
+
+    attrs = RigGeometry(OrthographicCamera(rows=4, cols=4, pixel_size=0.1), 30.0).attrs() | {"light_kind": "Sheet"}
+    with pytest.raises(StageError, match="light_kind is 'Sheet'; expected 'beam' or 'sheet'"):
+        RigGeometry.from_attrs(attrs, 4, 4)

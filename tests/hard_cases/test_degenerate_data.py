@@ -72,7 +72,7 @@ def test_a_degenerate_capture_stops_the_run_and_writes_nothing(tmp_path, clean, 
 def test_another_intensity_scale_needs_the_relative_threshold(clean):
     """Radiance-scale data (here counts / 1e4) with the shipped `min_signal: 1.0` flagged every pixel and gave
     σ ≡ 0. Now it stops, and `min_signal_relative` gives the counts-scale result (A is scale-free)."""
-    scaled = (clean / 1e4).assign_attrs(clean.attrs | {"saturation_level": 4095 / 1e4})
+    scaled = (clean / 1e4).assign_attrs(clean.attrs | {"saturation_counts": 4095 / 1e4})
     with pytest.raises(StageError, match=r"only 0.00% of reference pixels.*set min_signal_relative"):
         enforce(absorption(scaled, min_signal=1.0))
     relative = absorption(scaled, min_signal=0.0, min_signal_relative=0.01)

@@ -9,7 +9,7 @@ import pytest
 import zarr
 
 from pipeline import StoreError, open_store, to_store
-from pipeline.schema import FORMAT_VERSION, KINDS, metadata
+from pipeline.schema import FORMAT_VERSION, KINDS, metadata, with_metadata
 from pipeline.store import IncompleteStoreWarning
 from tests.pipeline.test_corruption import minimal
 
@@ -105,3 +105,14 @@ def test_stage_outputs_carry_the_metadata_before_they_are_stored():
         ds = cover if name in cover else sino
         assert ds[name].attrs.get("units") != "degree", name
     assert np.isfinite(float(sino["observed_fraction"].compute()))
+
+
+def test_a_format_5_tomography_capture_names_its_clip_level_as_projector_camera_captures_do(tmp_path):
+    """One name for the sensor's clip level across both instruments: format ≤ 5 tomography stores wrote
+    ``saturation_level``; on open it is ``saturation_counts``, and the stages still read the old name."""
+    ds = with_metadata(minimal("tomography_capture"), "tomography_capture").assign_attrs(
+        selpath_format=5, selpath_kind="tomography_capture", saturation_level=1000.0)
+    ds.to_zarr(tmp_path / "old.zarr", consolidated=False)
+    with pytest.warns(IncompleteStoreWarning):
+        back = open_store(tmp_path / "old.zarr")
+    assert back.attrs["saturation_counts"] == 1000.0 and "saturation_level" not in back.attrs
