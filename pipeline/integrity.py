@@ -28,6 +28,7 @@ import xarray as xr
 import zarr
 from zarr.codecs import Crc32cCodec, ZstdCodec
 
+from pipeline import remote
 from pipeline.errors import Problem, StoreError
 
 PROVENANCE_GROUP = "_selpath"
@@ -114,21 +115,23 @@ def _arrays(group: zarr.Group) -> Iterable[tuple[str, zarr.Array]]:
 
 
 def present_chunks(path: str | os.PathLike, name: str, array: zarr.Array) -> np.ndarray | None:
-    """Boolean array over ``array``'s chunk grid: True where the chunk's file exists (None for remote stores).
+    """Boolean array over ``array``'s chunk grid: True where the chunk's file (or object) exists.
 
-    One listing of the array's folder, each file name decoded to its chunk index by the array's own chunk
-    key encoding (a store of 1 425 frame bands is one directory walk, not 1 425 stats)."""
+    One listing of the array's folder (or prefix, on object storage), each file name decoded to its chunk index
+    by the array's own chunk key encoding (a store of 1 425 frame bands is one directory walk, not 1 425 stats)."""
     where = os.fspath(path)
-    if "://" in where:
-        return None
-    folder = Path(where) / name
     present = np.zeros(array.cdata_shape, dtype=bool)
     index = {array.metadata.encode_chunk_key(c): c for c in itertools.product(*(range(n) for n in present.shape))}
-    for parent, _, files in os.walk(folder):
-        for file in files:
-            coords = index.get(Path(parent, file).relative_to(folder).as_posix())
-            if coords is not None:
-                present[coords] = True
+    if remote.is_url(where):  # one listing of the array's prefix
+        keys = (key[len(name) + 1:] for key in remote.list_objects(where, name))
+    else:
+        folder = Path(remote.local_path(where)) / name
+        keys = (Path(parent, file).relative_to(folder).as_posix()
+                for parent, _, files in os.walk(folder) for file in files)
+    for key in keys:
+        coords = index.get(key)
+        if coords is not None:
+            present[coords] = True
     return present
 
 

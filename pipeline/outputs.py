@@ -30,7 +30,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
+from pipeline import remote
 from pipeline.errors import Problem, StoreError
+from pipeline.remote import is_url
 
 STORE_SUFFIX = ".zarr"
 _PARTIAL = ".partial-"
@@ -40,13 +42,17 @@ PNG_MARKER = "selpath_store"
 
 
 def is_remote(path: str | os.PathLike) -> bool:
-    return "://" in os.fspath(path)
+    """On object storage (an fsspec URL other than ``file://``): :func:`pipeline.remote.is_url`."""
+    return is_url(path)
 
 
 def is_selpath_store(path: str | os.PathLike) -> bool:
-    """True if ``path`` is a folder whose root ``zarr.json`` is a group carrying ``selpath_format``."""
+    """True if ``path`` is a folder (or object-storage prefix) whose root ``zarr.json`` is a group carrying
+    ``selpath_format``."""
     try:
-        doc = json.loads((Path(path) / "zarr.json").read_text())
+        where = os.fspath(path)
+        text = remote.read_text(where, "zarr.json") if is_url(where) else (Path(where) / "zarr.json").read_text()
+        doc = json.loads(text) if text is not None else None
     except (OSError, ValueError):
         return False
     return isinstance(doc, dict) and "selpath_format" in (doc.get("attributes") or {})
@@ -104,6 +110,7 @@ def output_problems(outputs: list[OutputPath], protected: Mapping[str, str | os.
                              f"'{STORE_SUFFIX}'", f"name the store like out/{out.name}.zarr"))
             continue
         if is_remote(text):
+            problems.extend((out.field, message, fix) for message, fix in _remote_problems(out, text))
             continue
         path = Path(text)
         if path.is_symlink() or (path.exists() and not path.is_dir()):
@@ -128,13 +135,27 @@ def output_problems(outputs: list[OutputPath], protected: Mapping[str, str | os.
     return problems
 
 
-def _ownership(out: OutputPath, path: Path) -> list[tuple[str, str]]:
+def _remote_problems(out: OutputPath, url: str) -> list[tuple[str, str]]:
+    """The local rules on object storage: objects under the output's prefix that are no selpath store are never
+    replaced, and a selpath store there is replaced only as :func:`_ownership` allows."""
+    names = remote.members(url)
+    if not names:
+        return []
+    if not is_selpath_store(url):
+        return [(f"output {out.name!r}: {url} holds objects that are not a selpath store (no selpath_format "
+                 "marker); selpath never replaces them", "choose another prefix, or move those objects away")]
+    return _ownership(out, url, names)
+
+
+def _ownership(out: OutputPath, path: Path | str, names: list[str] | None = None) -> list[tuple[str, str]]:
     """An existing selpath store is replaced only by the workflow output that wrote it; an acquisition resumes
-    only a capture (its own sweep is checked when it starts)."""
+    only a capture (its own sweep is checked when it starts). ``names``: the store's top-level entries (None:
+    listed here, for a local folder)."""
     from pipeline.provenance import read_provenance  # here: provenance reads stores, which write via outputs
 
     provenance = read_provenance(path)
-    capture = any(p.name.startswith("written__") for p in path.iterdir())
+    names = [p.name for p in Path(path).iterdir()] if names is None else names
+    capture = any(name.startswith("written__") for name in names)
     if provenance is not None:
         owner = (provenance.get("workflow"), provenance.get("output"))
         if owner != (out.workflow, out.name) and not (out.replace and not out.self_written):

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 import zarr
 
+from pipeline import remote
 from pipeline.integrity import PROVENANCE_GROUP, consolidate, open_group
 
 
@@ -75,13 +76,14 @@ def store_identity(path: str | os.PathLike) -> dict[str, Any]:
     of a store a workflow wrote (the same computation gives the same data; its chunks carry checksums, so a
     changed byte is found when read), else (:func:`pipeline.store.to_store` or other writers) the SHA-256 of
     its content (:func:`content_digest`). Never its path or modification times: a moved or copied archive keeps
-    its identity. A remote store (``scheme://…``) is identified by its URL for now."""
+    its identity. A remote store (``scheme://…``) that no workflow wrote is identified by its objects' keys, sizes
+    and ETags (:func:`pipeline.remote.object_identity`: one listing, no bytes read)."""
     where = os.fspath(path)
     prov = read_provenance(where)
     if prov and "step_hash" in prov:
         return {"step_hash": prov["step_hash"]}
-    if "://" in where:
-        return {"store": where}
+    if remote.is_url(where):
+        return {"objects_sha256": remote.object_identity(where)}
     return {"content_sha256": content_digest(where)}
 
 

@@ -24,6 +24,7 @@ from pipeline.constraints import describe
 from pipeline.errors import Problem, SpecError
 from pipeline.outputs import OutputPath, output_problems
 from pipeline.registry import Stage, StageRegistry, default_registry
+from pipeline.remote import is_url, local_path, url_problems
 from pipeline.report import ReportSpec, report_problems
 from pipeline.schema import KINDS
 from pipeline.yaml_source import Located, format_path, parse_yaml, pydantic_message, read_source
@@ -292,11 +293,17 @@ def _check_steps(spec: WorkflowFile, raw: dict, registry: StageRegistry, located
                 located.add((*where, "with", *err["loc"]), f"setting of stage {stage.name!r} "
                             f"{pydantic_message(err)}", fix)
             continue
+        refused = False
         for name in stage.params.model_fields:
             value = getattr(model, name)
             if is_path_setting(stage.params, name) and isinstance(value, str) and value:
-                model = model.model_copy(update={name: str((base_dir / value).resolve())})
-        if stage.precheck is not None:
+                if is_url(value):  # object storage: kept as written, credentials never in the file
+                    for message in url_problems(value):
+                        located.add((*where, "with", name), message)
+                        refused = True
+                    continue
+                model = model.model_copy(update={name: str((base_dir / local_path(value)).resolve())})
+        if stage.precheck is not None and not refused:  # a refused URL is never opened
             for message in stage.precheck(model):
                 located.add((*where, "with"), message)
         steps[step.id] = Step(step.id, stage, inputs, model, i)
@@ -337,7 +344,9 @@ def _check_outputs(spec: WorkflowFile, steps: dict[str, Step], located: Located,
                         _suggest(out.from_, ids))
         if out.kind is not None and out.kind not in KINDS:
             located.add((*path, "kind"), f"unknown cube kind {out.kind!r}", _suggest(out.kind, sorted(KINDS)))
-        store = out.store if "://" in out.store else str((base_dir / out.store).resolve())
+        store = out.store if is_url(out.store) else str((base_dir / local_path(out.store)).resolve())
+        for message in url_problems(out.store) if is_url(out.store) else []:
+            located.add((*path, "store"), message)
         if not out.store.strip():
             store = ""  # never resolved to the workflow's folder: refused by the path rules below
         if store in stores:

@@ -33,6 +33,7 @@ import numpy as np
 import xarray as xr
 from dask.base import tokenize
 
+from pipeline import remote
 from pipeline.errors import Problem, StoreError
 from pipeline.integrity import (
     CHECKSUMMED_FORMAT,
@@ -90,9 +91,11 @@ def _open_raw(path: str | os.PathLike) -> xr.Dataset:
     """The store's cube, each data variable a dask array read through :class:`~pipeline.integrity.CheckedArray`
     in processing chunks (whole on-disk chunks), so a corrupt chunk raises a StoreError naming it."""
     where = os.fspath(path)
-    if not Path(where).exists() and "://" not in where:
-        raise StoreError(Problem("no store at this path", where=where,
-                                 fix="check the path, or run the step that writes it"))
+    if not (remote.exists(where) if remote.is_url(where) else Path(where).exists()):
+        raise StoreError(Problem("no store at this path" if not remote.is_url(where) else
+                                 "no store at this URL (no zarr.json under it)", where=where,
+                                 fix="check the path, or run the step that writes it; for object storage, the "
+                                 "credentials and endpoint in the environment (AWS_PROFILE, AWS_ENDPOINT_URL …)"))
     try:
         ds = xr.open_dataset(where, engine="zarr", consolidated=False, decode_timedelta=False, chunks=None,
                              cache=False)
@@ -118,6 +121,8 @@ def _open_raw(path: str | os.PathLike) -> xr.Dataset:
 
 def _store_stamp(where: str) -> str:
     """Changes whenever the store is rewritten (its root metadata file is replaced): part of dask key names."""
+    if remote.is_url(where):
+        return remote.stamp(where)
     try:
         meta = Path(where) / "zarr.json"
         return f"{meta.stat().st_mtime_ns}:{meta.stat().st_ino}"
