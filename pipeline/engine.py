@@ -18,6 +18,7 @@ import datetime as _dt
 import hashlib
 import inspect
 import json
+import math
 import os
 import time
 from collections.abc import Callable
@@ -36,7 +37,7 @@ from pipeline.integrity import write_manifest
 from pipeline.locks import store_locks
 from pipeline.outputs import PNG_MARKER, Staging, check_png, png_path, tidy_staging
 from pipeline.provenance import read_provenance, write_provenance
-from pipeline.quality import WHAT, below_floor, shares
+from pipeline.quality import ADVISE, FIX, LABEL, WHAT, below_floor, shares
 from pipeline.spec import OutputSpec, Ref, Step, Workflow, check_output_paths
 from pipeline.store import missing_frames, open_store, write_store
 
@@ -365,7 +366,11 @@ def _usable(staging: str, step_id: str, data: xr.Dataset, carried: dict[str, tup
     problems = [p for step, values in found.items() for p in below_floor(step, values, attrs[step])]
     for step, values in found.items():
         for var, value in values.items():
-            graph.log(f"   usable ({escape(step)}): {value:.1%} of {escape(attrs[step][var][WHAT])}")
+            meta = attrs[step][var]
+            label = escape(str(meta.get(LABEL, "usable")))
+            graph.log(f"   {label} ({escape(step)}): {value:.1%} of {escape(meta[WHAT])}")
+            if value < meta.get(ADVISE, -math.inf):
+                graph.log(f"   advice ({escape(step)}): {escape(meta[FIX])}")
     if problems and explain:
         upstream = [(step, var, share) for step in explain for var, share in shares(graph.results[step]).items()]
         scheduler, client = compute_on

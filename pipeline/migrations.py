@@ -49,10 +49,10 @@ def _from_format_5(ds: xr.Dataset) -> xr.Dataset:
     """Format 5 → 6: the tomography stores' ``saturation_level`` attr is named ``saturation_counts``, as the
     projector–camera stores name it; a transport's ``converged`` and ``frames_used`` get the meaning they had
     (clipped frames were masked; nothing was censored), and the store a ``selpath_note`` saying what that hides."""
-    if "saturation_level" in ds.attrs:
+    if "saturation_level" in ds.attrs:  # where both are there, saturation_counts wins (as the stages read them)
         attrs = dict(ds.attrs)
         level = attrs.pop("saturation_level")
-        ds = ds.assign_attrs({}).drop_attrs(deep=False).assign_attrs(attrs | {"saturation_counts": level})
+        ds = ds.drop_attrs(deep=False).assign_attrs({"saturation_counts": level} | attrs)
     if ds.attrs.get("selpath_kind") not in ("plane_to_ray_transport", "full_transport"):
         return ds
     out = ds.assign_attrs(selpath_note=CLIPPED_MASKED_NOTE)

@@ -25,15 +25,21 @@ from pipeline.errors import Problem, StageError
 FLOOR = "selpath_floor"
 WHAT = "selpath_usable"
 FIX = "selpath_fix"
+LABEL = "selpath_label"
+ADVISE = "selpath_advise_below"
 
 
-def usable_share(share: xr.DataArray | float, *, floor: float, what: str, fix: str) -> xr.DataArray:
+def usable_share(share: xr.DataArray | float, *, floor: float, what: str, fix: str, label: str = "usable",
+                 advise_below: float | None = None) -> xr.DataArray:
     """A 0-d variable holding the usable share of a stage's input (lazy if ``share`` is), checked against
     ``floor``: ``what`` names the input in words ("lit reference pixels whose target is usable"), ``fix``
-    the setting to change or the data to look at."""
+    the setting to change or the data to look at. ``label`` heads the engine's log line; with ``advise_below``
+    the engine logs ``fix`` as advice whenever the share is below it (a report above its floor, e.g. the share of
+    pixels not censored, whose floor is 0)."""
     share = share if isinstance(share, xr.DataArray) else xr.DataArray(float(share))
+    extra = {LABEL: label} | ({ADVISE: float(advise_below)} if advise_below is not None else {})
     return share.astype(np.float64).drop_attrs(deep=False).assign_attrs({
-        "long_name": f"share of {what}", "units": "1", FLOOR: float(floor), WHAT: what, FIX: fix})
+        "long_name": f"share of {what}", "units": "1", FLOOR: float(floor), WHAT: what, FIX: fix} | extra)
 
 
 def shares(result: xr.Dataset | xr.DataArray) -> dict[str, xr.DataArray]:

@@ -85,6 +85,9 @@ def raise_if_failed(solution: Solution, solver: str, *, items: str = "items", fi
         return
     failed = sum(counts.values())
     detail = "; ".join(f"{n} {code.name} ({code.message})" for code, n in counts.items())
+    if not fix and set(counts) == {Result.censored}:
+        fix = ("censored items are solved; their clipped part is a lower bound: lower the light (projector power, a "
+               "filter) or the exposure and measure again, or build the solver with throw=False to keep them")
     raise SolverError(Problem(f"{solver}: {failed} of {codes.size} {items} did not end converged: {detail}",
                               fix=fix or "raise max_iter or loosen tol; or build the solver with throw=False "
                                          "to keep the unconverged items as data (their result codes say which)"),

@@ -163,9 +163,9 @@ class DemuxADMM:
         if data.ndim != 2 or data.shape[1] != problem.frames:
             raise ValueError(f"data is {data.shape}; expected (pixels, {problem.frames} frames)")
         weight = observed(data, weight)
+        if clipped is not None and np.shape(clipped) != data.shape:  # before any broadcasting could hide it
+            raise ValueError(f"clipped is {np.shape(clipped)}; expected {data.shape} like the data")
         clipped = np.zeros(data.shape, bool) if clipped is None else np.asarray(clipped, bool) & weight
-        if clipped.shape != data.shape:
-            raise ValueError(f"clipped is {clipped.shape}; expected {data.shape} like the data")
         any_clipped = bool(clipped.any())
         dtype = jnp.dtype(self.dtype)
         if dtype == jnp.float64 and not jax.config.jax_enable_x64:

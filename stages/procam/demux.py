@@ -25,6 +25,7 @@ from pipeline.constraints import Count, Index, NonNegative, Positive
 from pipeline.errors import Problem, StageError
 from pipeline.quality import usable_share
 from pipeline.registry import stage
+from pipeline.schema import with_metadata
 from stages._common import Dtype, MaxIter
 from stages._solution import Solution, raise_if_failed
 from stages._sweeps import Sweep
@@ -296,7 +297,7 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
         "solver": solver, "problem": problem, "keep": keep, "levels": levels}, template=template)
     out = out.assign_coords(offset=("offset", grid, {"units": "px", "long_name": "projector row − camera row"}))
     out["transport"].attrs = {"units": "counts", "long_name": "plane-to-ray transport T(v, s, t)"}
-    out = _describe(out, int(keep.sum()))
+    out = _describe(out, int(keep.sum()), "plane_to_ray_transport")
     return out.assign_attrs(_transport_attrs(
         "plane_to_ray_transport", timing=timing, delays=delays, exposures=exposures, keep=keep, margin=margin,
         full_scale=scale, alpha=alpha, beta=beta, tol=tol, max_iter=max_iter, polish_iter=polish_iter, dtype=dtype))
@@ -315,17 +316,20 @@ PER_PIXEL_DESCRIPTIONS = {
 }
 
 
-def _describe(out: xr.Dataset, frames: int) -> xr.Dataset:
-    """Attrs of the per-pixel variables and the result's shares: usable observations (floor 5 %) and pixels not
-    censored (no floor: a report, logged by the engine with the advice)."""
+def _describe(out: xr.Dataset, frames: int, kind: str) -> xr.Dataset:
+    """Attrs of the per-pixel variables (the schema's units and long names, as a store written from it will
+    carry them) and the result's shares: usable observations (floor 5 %) and pixels not censored (no floor: a
+    report, which the engine logs with its advice when below 1)."""
     for name, description in PER_PIXEL_DESCRIPTIONS.items():
         out[name].attrs = {"description": description}
+    out = with_metadata(out, kind)
     out["usable_fraction"] = _usable(out["frames_used"], frames)
     out["uncensored_fraction"] = usable_share(
-        1.0 - out["censored"].mean(), floor=0.0,
+        1.0 - out["censored"].mean(), floor=0.0, label="uncensored",
         what="pixels whose every bright offset was seen unclipped (the others are `censored`: T is a lower bound)",
         fix="where pixels are censored, lower the projector's power or add a neutral-density filter by their "
-            "clip_ratio (or sweep shorter exposures where the clipped light sums over many rows)")
+            "clip_ratio (or sweep shorter exposures where the clipped light sums over many rows)",
+        advise_below=1.0)
     return out
 
 
@@ -444,7 +448,7 @@ def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, 
     out["transport"].attrs = {"units": "counts", "long_name": "full transport T(u, v, s, t)",
                               "description": f"light from a {step:g}-column u-cell; NaN where no line reached"}
     out["u_direct"].attrs = {"units": "px", "long_name": "direct correspondence u₀ (centre of the brightest cell)"}
-    out = _describe(out, int(keep.sum()) * capture.sizes["line"])
+    out = _describe(out, int(keep.sum()) * capture.sizes["line"], "full_transport")
     return out.assign_attrs(_transport_attrs(
         "full_transport", timing=timing, delays=delays, exposures=exposures, keep=keep, margin=margin,
         full_scale=scale, alpha=alpha, beta=beta, tol=tol, max_iter=max_iter, polish_iter=polish_iter, dtype=dtype,

@@ -115,16 +115,17 @@ def separate_direct_global(capture: xr.Dataset, /, *, black_level: Fraction | No
     capture : xr.Dataset
         ``image`` [counts] over (shift, row, col), with coordinates ``shift_row`` and ``shift_col`` along ``shift``
         (the board's shift [projector px], as ``devices.patterns.checkerboard`` takes it), attr ``square_px``
-        ([rows, cols] of a square, projector px) and, where known, ``black_level`` and ``saturation_counts``.
+        ([rows, cols] of a square, projector px), ``saturation_counts`` and ``dark_level_counts`` (required of a
+        checkerboard_capture store) and, where known, ``black_level``.
     black_level : float or None
         The projector's black level b: a dark pixel's light as a share of a lit one's [1], in [0, 1); None: the
         capture's ``black_level`` attr, else 0.
     saturation_level : float or None
-        Raw count at or above which a frame is saturated [counts]; None: the capture's ``saturation_counts`` attr,
-        else none.
+        Raw count at or above which a frame is saturated [counts]; None: the capture's ``saturation_counts`` attr
+        (an in-memory capture without it: nothing counts as saturated).
     dark_level : float or None
         The sensor's offset, subtracted from every frame before separating [counts]; None: the capture's
-        ``dark_level_counts`` attr, else 0.
+        ``dark_level_counts`` attr (an in-memory capture without it: 0).
     """
     require_variables(capture, ("image",), "separate_direct_global")
     image = capture["image"]
