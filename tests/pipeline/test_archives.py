@@ -175,3 +175,60 @@ def test_inspect_lists_an_archives_stores_with_their_provenance(archive, monkeyp
     assert "5 store(s)" in result.output and "outside a workflow" in result.output
     assert all(store in result.output for store in rows)
     assert "small-absorption" in result.output and "reprocess" in result.output
+
+
+def _unprivileged() -> list[str] | None:
+    """The command prefix that runs a process as ``nobody`` without capabilities (setpriv), if this runs as root,
+    setpriv exists and this Python and selpath are readable to that user; else None."""
+    import subprocess
+    import sys
+
+    setpriv = shutil.which("setpriv")
+    if os.geteuid() != 0 or setpriv is None:
+        return None
+    prefix = [setpriv, "--reuid=65534", "--regid=65534", "--clear-groups"]
+    probe = subprocess.run([*prefix, sys.executable, "-c", "import pipeline.cli, stages"], capture_output=True,
+                           cwd="/", env={"HOME": "/tmp", "PATH": os.environ.get("PATH", "")})
+    return prefix if probe.returncode == 0 else None
+
+
+def test_a_user_without_write_permission_reprocesses_a_read_only_archive(archive, tmp_path_factory):
+    """The read-only test above runs as root, whom chmod does not stop. Here the archive is read-only and owned by
+    root, and the run is an unprivileged user's (uid 65534, no capabilities): any write into an input (a lock, a
+    provenance rewrite, consolidated metadata) would fail with EACCES. The run completes and the archive is
+    byte-for-byte and time-for-time unchanged."""
+    import subprocess
+    import sys
+    import tempfile
+
+    prefix = _unprivileged()
+    if prefix is None:
+        pytest.skip("needs root, setpriv, and a Python that uid 65534 may run (.ci/run makes its venv so)")
+    base = Path(tempfile.mkdtemp(dir="/tmp", prefix="selpath-ro-"))
+    try:
+        base.chmod(0o755)
+        shutil.copytree(archive / "out", base / "archive" / "out")
+        shutil.copytree(archive / "archive", base / "archive" / "archive")
+        store = base / "archive"
+        for path in sorted([store, *store.rglob("*")], key=lambda p: len(p.parts), reverse=True):
+            path.chmod(0o555 if path.is_dir() else 0o444)
+        before = _files(store)
+        work = base / "work"
+        work.mkdir()
+        (work / "reprocess.yaml").write_text(REPROCESS.replace("out/capture.zarr", "../archive/out/capture.zarr")
+                                             .replace("archive/foreign.zarr", "../archive/archive/foreign.zarr"))
+        os.chown(work, 65534, 65534)
+        selpath = str(Path(sys.executable).with_name("selpath"))
+        result = subprocess.run([*prefix, selpath, "run", "reprocess.yaml", "--no-progress"], cwd=work,
+                                capture_output=True, text=True, timeout=240,
+                                env={"HOME": str(work), "PATH": os.environ.get("PATH", ""),
+                                     "SELPATH_COMPILE_CACHE": "off", "COLUMNS": "200"})
+        assert result.returncode == 0, result.stdout + result.stderr
+        assert (work / "results" / "again.zarr").is_dir() and (work / "results" / "foreign.zarr").is_dir()
+        assert (work / "results" / "again.zarr").stat().st_uid == 65534
+        assert _files(store) == before
+    finally:
+        for path in [base, *base.rglob("*")]:
+            if path.is_dir():
+                path.chmod(0o755)
+        shutil.rmtree(base, ignore_errors=True)
