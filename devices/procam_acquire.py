@@ -166,13 +166,99 @@ def _verified(actual: float, wanted: float, name: str, instruments: ProcamInstru
                           command=f"set_{name}({wanted})", fix="check the controller, then run the sweep again")
 
 
+@dataclass(frozen=True)
+class HdrPlan:
+    """What the HDR planner tried and chose: the preview exposures at t_d = 0 with their clipped pixel counts, the
+    exposure it added (None: none helps or none is needed) and what that costs in captures."""
+
+    tried: tuple[tuple[float, int], ...]
+    added: float | None
+    delays: int
+
+    @property
+    def previews(self) -> int:
+        return len(self.tried)
+
+    @property
+    def captures(self) -> int:
+        """Captures the plan adds to the sweep (its previews are captures too)."""
+        return self.previews + (self.delays if self.added is not None else 0)
+
+    def attrs(self) -> dict[str, Any]:
+        return {"hdr_tried_exposures_us": [e for e, _ in self.tried],
+                "hdr_tried_clipped_pixels": [n for _, n in self.tried],
+                "hdr_added_exposure_us": self.added if self.added is not None else "none",
+                "hdr_captures": self.captures}
+
+    def describe(self) -> str:
+        seen = ", ".join(f"{n} px clip at t_e = {e:g} µs" for e, n in self.tried)
+        if not self.tried or self.tried[0][1] == 0:
+            return f"hdr: nothing clips at the shortest exposure ({seen}); no exposure added ({self.captures} preview)"
+        if self.added is None:
+            return (f"hdr: {seen}: a shorter exposure does not unclip them (their light clips within one line time, "
+                    f"so only attenuation helps: lower the projector's power); nothing added, {self.captures} "
+                    "preview captures spent")
+        left = dict(self.tried)[self.added]
+        return (f"hdr: {seen}; added t_e = {self.added:g} µs for every delay: +{self.delays} captures "
+                f"(+{self.previews} previews){'' if not left else f'; {left} px still clip there (attenuate)'}")
+
+
+def plan_hdr(instruments: ProcamInstruments, delays: Sequence[float], exposures: Sequence[float]) -> HdrPlan:
+    """Preview frames at t_d = 0 (the epipolar frame, where the direct light is) from the shortest requested
+    exposure down, halving (on the controller's step) while pixels clip, to the shortest exposure whose frames the
+    demultiplexing keeps (2 t_p: its edges clear the epipolar row's line time). Adds the exposure tried that clips
+    fewest pixels (the longest among equals) if it clips fewer than the shortest requested one. Each preview is
+    one capture (shown, never stored); at most log2(t_e / 2 t_p) + 1 of them."""
+    level = float(instruments.attrs["saturation_counts"])
+    limits = instruments.sync.limits
+    floor = max(limits.exposure_min, 2.0 * float(instruments.attrs.get("line_time_us", 0.0)))
+    exposure, tried = float(min(exposures)), []
+    while True:
+        _verified(instruments.sync.set_exposure(exposure), exposure, "exposure", instruments)
+        _verified(instruments.sync.set_delay(0.0), 0.0, "delay", instruments)
+        instruments.sync.arm()
+        clipped = int(np.sum(instruments.camera.capture() >= level))
+        tried.append((exposure, clipped))
+        shorter = max(floor, round(exposure / 2 / limits.step) * limits.step)
+        if clipped == 0 or shorter >= exposure:  # a frame cannot say how far above the level it is: try to the floor
+            break
+        exposure = shorter
+    best = min(tried[1:], key=lambda t: (t[1], -t[0]), default=None)
+    added = best[0] if best is not None and best[1] < tried[0][1] else None
+    return HdrPlan(tuple(tried), added, len(delays))
+
+
 def acquire_plane_to_ray(instruments: ProcamInstruments, store: str | os.PathLike, delays: Sequence[float],
-                         exposures: Sequence[float], *, progress: bool = True,
+                         exposures: Sequence[float], *, hdr: bool = False, progress: bool = True,
                          log: Callable[[str], None] = lambda _: None) -> xr.Dataset:
-    """White pattern, every (delay, exposure): a ``plane_to_ray_capture`` store, resumable."""
-    template = capture_template(instruments, "plane_to_ray_capture", delays, exposures)
+    """White pattern, every (delay, exposure): a ``plane_to_ray_capture`` store, resumable. With ``hdr``, the
+    planner (:func:`plan_hdr`) may add one shorter exposure first; a resumed store keeps the one it added."""
+    extra = {}
+    if hdr:
+        instruments.projector.show(white(instruments.projector.shape))
+        existing = _existing_hdr(store)
+        if existing is None:
+            plan = plan_hdr(instruments, delays, exposures)
+            log("   " + plan.describe())
+            extra = plan.attrs()
+        else:
+            extra = existing
+        if extra["hdr_added_exposure_us"] != "none":
+            exposures = sorted({*map(float, exposures), float(extra["hdr_added_exposure_us"])})
+    template = capture_template(instruments, "plane_to_ray_capture", delays, exposures, extra_attrs=extra)
     pattern = white(instruments.projector.shape)
     return sweep_frames(instruments, store, template, "plane_to_ray_capture", lambda _: pattern, progress, log)
+
+
+def _existing_hdr(store: str | os.PathLike) -> dict[str, Any] | None:
+    """The HDR plan an existing capture at ``store`` recorded (its sweep is resumed as planned), else None."""
+    from pipeline.outputs import is_selpath_store
+
+    if not is_selpath_store(store):
+        return None
+    attrs = open_store(store, keep_flags=True).attrs
+    keys = ("hdr_tried_exposures_us", "hdr_tried_clipped_pixels", "hdr_added_exposure_us", "hdr_captures")
+    return {k: attrs[k] for k in keys} if all(k in attrs for k in keys) else None
 
 
 def acquire_full_transport(instruments: ProcamInstruments, store: str | os.PathLike, delays: Sequence[float],

@@ -162,6 +162,7 @@ def acquire_plane_to_ray(
     scene: StorePath,
     delays: TimeSweep,
     exposures: Exposures,
+    hdr: Literal["off", "auto"] = "off",
     rig: Literal["sim"] = "sim",
     sensor: SensorSize | None = None,
     rig_changes: RigChanges | None = None,
@@ -179,9 +180,17 @@ def acquire_plane_to_ray(
         Sync delays t_d {start, stop, step} [µs], stop included (stop ≥ start), at most 100 000 delays.
     exposures : list of float
         Exposures t_e [µs].
+    hdr : str
+        ``auto``: before the sweep, preview the epipolar frame (t_d = 0) at the shortest exposure and, halving it
+        while pixels clip (down to 2 t_p), add the exposure that clips fewest to the sweep: one
+        more exposure for every delay, so demultiplexing sees the light the longer ones clip (HDR from the
+        sweep). The log and the store's ``hdr_*`` attrs state what was tried and what it cost in captures; a
+        highlight that clips within one line time gets nothing added (only attenuation helps). ``off``: the
+        exposures as given.
     """
     with _simulated_rig(scene, sensor, rig_changes) as instruments:
-        return plane_sweep(instruments, store, delays.values(), exposures, progress=progress, log=sweep_log(progress))
+        return plane_sweep(instruments, store, delays.values(), exposures, hdr=hdr == "auto", progress=progress,
+                           log=sweep_log(progress))
 
 
 @_acquisition("acquire_full_transport")
