@@ -154,6 +154,8 @@ def run(
     scheduler: Annotated[str | None, typer.Option(help="override the workflow's scheduler: synchronous, threads, "
                                                   "processes or tcp://host:port", metavar="NAME")] = None,
     force: Annotated[bool, _flag("force", "recompute every output even if up to date")] = False,
+    verify: Annotated[bool, _flag("verify", "read every chunk of the up-to-date outputs first: damaged ones are "
+                                  "computed again, damaged capture frames captured again")] = False,
     progress: Annotated[bool, typer.Option(help="show progress bars", metavar="")] = True,
     report: Annotated[bool, _flag("report", "also write the workflow's HTML report (its `report:` section's "
                                   "file, else beside the first output)")] = False,
@@ -170,7 +172,8 @@ def run(
                            "or run the demo (`selpath demo`)"))
     with _guard():
         workflow = load_workflow(file)
-        result = run_workflow(workflow, scheduler=scheduler, progress=progress, reuse=not force, log=console.print)
+        result = run_workflow(workflow, scheduler=scheduler, progress=progress, reuse=not force,
+                              verify=verify, log=console.print)
     _print_report(result)
     with _guard():
         summary, tables = _print_results(workflow)

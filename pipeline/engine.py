@@ -33,13 +33,13 @@ from rich.markup import escape
 
 from pipeline.compute import compute, scheduler_session
 from pipeline.errors import Problem, SelpathError, StageError
-from pipeline.integrity import write_manifest
+from pipeline.integrity import BadChunk, verify_store, write_manifest
 from pipeline.locks import store_locks
 from pipeline.outputs import PNG_MARKER, Staging, check_png, png_path, tidy_staging
 from pipeline.provenance import read_provenance, write_provenance
 from pipeline.quality import ADVISE, FIX, LABEL, WHAT, below_floor, shares
 from pipeline.spec import OutputSpec, Ref, Step, Workflow, check_output_paths
-from pipeline.store import missing_frames, open_store, write_store
+from pipeline.store import forget_frames, missing_frames, open_store, write_store
 
 _PACKAGES = ("selpath", "xarray", "dask", "zarr", "numpy", "jax")
 
@@ -177,7 +177,7 @@ def _call(step: Step, inputs: dict[str, Any]) -> xr.Dataset | xr.DataArray:
 class _Graph:
     """The lazy results of a workflow's steps, built on demand, reusing stored outputs of the same provenance."""
 
-    def __init__(self, workflow: Workflow, *, reuse: bool, log: Callable[[str], None]):
+    def __init__(self, workflow: Workflow, *, reuse: bool, log: Callable[[str], None], verify: bool = False):
         self.workflow, self.reuse, self.log = workflow, reuse, log
         self.records = step_records(workflow)
         self.report = RunReport(workflow.name)
@@ -186,13 +186,36 @@ class _Graph:
         self._stored: dict[str, dict | None] = {}
         #: steps whose usable shares were checked when an output was written
         self.checked: set[str] = set()
+        #: up-to-date outputs in which ``verify`` found bad chunks: recomputed (frames: captured again)
+        self.damaged: dict[str, list[BadChunk]] = {}
         for out in workflow.outputs.values():
             self._outputs_of.setdefault(out.from_, []).append(out)
             self._stored[out.store] = read_provenance(out.store)  # once per output
             if reuse and (self._stored[out.store] or {}).get("step_hash") == self.records[out.from_]["step_hash"]:
+                if verify and self._damaged(out):
+                    continue
                 if out.store in workflow.self_written and _has_missing_frames(out.store):
                     continue  # a frame's chunk was lost (or marked for recapture): the acquisition resumes
                 self.report.fresh.add(out.store)
+
+    def _damaged(self, out: OutputSpec) -> bool:
+        """Read every chunk of an up-to-date output (``--verify``). A damaged capture has the frames under its bad
+        chunks marked not captured, so its acquisition captures just those again; any other damaged output is
+        recomputed whole (the outputs after it were made from its intact data and stay; after a capture, whose
+        frames captured again differ by their noise, they are recomputed)."""
+        bad = verify_store(out.store)
+        if not bad:
+            return False
+        self.damaged[out.store] = bad
+        listed = "; ".join(str(b) for b in bad[:3]) + (" …" if len(bad) > 3 else "")
+        if out.store in self.workflow.self_written:
+            frames = forget_frames(out.store, bad)
+            self.log(f"[yellow]verify[/]: {escape(out.store)}: {len(bad)} bad chunk(s) ({escape(listed)}); "
+                     f"{frames} frame(s) will be captured again")
+            return frames > 0 or _has_missing_frames(out.store)
+        self.log(f"[yellow]verify[/]: {escape(out.store)}: {len(bad)} bad chunk(s) ({escape(listed)}); "
+                 "it will be computed again")
+        return True
 
     def resolve(self, step_id: str) -> Any:
         """The step's lazy result: read back from a fresh output, or its stage called on its inputs."""
@@ -208,7 +231,9 @@ class _Graph:
                 self.log(f"[dim]── {escape(step_id)} ({escape(step.stage.name)}): reused, {escape(out.store)} is up "
                          "to date[/]")
                 return self.results[step_id]
-            reasons.append(_why_changed(self._stored[out.store], record, out.store) if self.reuse else
+            reasons.append(f"{out.store} has {len(self.damaged[out.store])} bad chunk(s) (--verify)"
+                           if out.store in self.damaged else
+                           _why_changed(self._stored[out.store], record, out.store) if self.reuse else
                            "forced (--force)")
         inputs = {name: _select(self.resolve(ref.step), ref, step) for name, ref in step.inputs.items()}
         own = [o.store for o in self._outputs_of.get(step_id, []) if o.store in self.workflow.self_written]
@@ -263,7 +288,7 @@ def _as_dataset(result: xr.Dataset | xr.DataArray, name: str) -> xr.Dataset:
 
 
 def run_workflow(workflow: Workflow, *, scheduler: str | None = None, progress: bool = True, reuse: bool = True,
-                 log: Callable[[str], None] = lambda _: None) -> RunReport:
+                 verify: bool = False, log: Callable[[str], None] = lambda _: None) -> RunReport:
     """Run ``workflow``: write every stale output, upstream first, and record its provenance.
 
     Outputs are written one at a time in dependency order, and a written output is read back from its
@@ -271,6 +296,11 @@ def run_workflow(workflow: Workflow, *, scheduler: str | None = None, progress: 
     ``dask.compute`` does not share their common upstream: dask 2026.8 gives each ``to_zarr(compute=False)``
     a private, optimised copy of its graph, ``ProhibitReuse``, so every output recomputed it.) An output's
     provenance is written as soon as its data is complete, so a killed run keeps every finished output.
+
+    ``verify`` reads every chunk of the outputs that would be reused (their checksums) before trusting them: a
+    damaged one is computed again, a damaged capture captures again only the frames under its bad chunks (and
+    the outputs after it are recomputed). Without it a damaged chunk is found when it is read (a StoreError naming
+    it), which for a reused output may be never.
     """
     start = time.perf_counter()
     scheduler = scheduler or workflow.scheduler
@@ -280,7 +310,7 @@ def run_workflow(workflow: Workflow, *, scheduler: str | None = None, progress: 
         for store in stores:
             for done in tidy_staging(store):
                 log(f"[dim]tidy[/] {escape(done)}")
-        graph = _Graph(workflow, reuse=reuse, log=log)
+        graph = _Graph(workflow, reuse=reuse, log=log, verify=verify)
         order = list(workflow.steps)  # dependency order
         outputs = sorted(workflow.outputs.items(), key=lambda item: order.index(item[1].from_))
         with scheduler_session(scheduler) as client:

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from pipeline import StoreError, load_workflow, open_store, run_workflow, to_store
+from pipeline.integrity import verify_store
 from pipeline.provenance import content_digest, read_provenance, store_identity
 
 REPROCESS = """\
@@ -118,6 +119,41 @@ def test_a_changed_foreign_store_is_recomputed_and_a_damaged_one_is_named(archiv
     chunk.write_bytes(bytes(data))
     with pytest.raises(StoreError, match="foreign.zarr"):
         _run(archive)
+
+
+def _damage(store: Path, variable: str) -> None:
+    """Flip one byte in the middle of the first chunk of ``variable``."""
+    chunk = sorted(p for p in (store / variable).rglob("*") if p.is_file() and p.name != "zarr.json")[0]
+    data = bytearray(chunk.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    chunk.write_bytes(bytes(data))
+
+
+def test_one_damaged_byte_after_a_move_is_found_by_verify_and_recomputed(archive, tmp_path):
+    """A workflow's own output damaged by one byte after the folder moved: a plain run trusts its provenance
+    (reused: reading every byte of a large archive on every run is what ``--verify`` is for); ``verify=True``
+    finds the bad chunk, recomputes that output alone and writes the same values as before the damage (a damaged
+    acquisition: tests/pipeline/test_corruption.py)."""
+    moved = tmp_path / "moved"
+    shutil.move(archive, moved)
+    result = moved / "out" / "absorption.zarr"
+    before = open_store(result)["absorption"].values
+    _damage(result, "absorption")
+    workflow = load_workflow(moved / "small.yaml")
+    assert {i: s.status for i, s in run_workflow(workflow, progress=False).steps.items()} == \
+        {"capture": "reused", "absorption": "reused"}
+    with pytest.raises(StoreError, match="absorption"):
+        open_store(result)["absorption"].values  # noqa: B018 - the damage is still there, and named when read
+    lines: list[str] = []
+    report = run_workflow(workflow, progress=False, verify=True, log=lines.append)
+    assert {i: s.status for i, s in report.steps.items()} == {"capture": "reused", "absorption": "computed"}
+    assert "bad chunk" in report.steps["absorption"].reason
+    assert any("absorption.zarr" in line and "computed again" in line for line in lines)
+    np.testing.assert_array_equal(open_store(result)["absorption"].values, before)
+    assert not verify_store(result)
+
+    assert {i: s.status for i, s in run_workflow(workflow, progress=False, verify=True).steps.items()} == \
+        {"capture": "reused", "absorption": "reused"}
 
 
 def test_the_content_digest_ignores_where_a_store_is_and_when_its_files_were_written(archive, tmp_path):

@@ -108,6 +108,25 @@ def test_a_corrupt_capture_frame_is_captured_again_on_resume(tmp_path):
     xr.testing.assert_identical(open_store(store).load(), clean)  # the simulator is deterministic
 
 
+def test_run_with_verify_captures_again_only_the_frames_under_bad_chunks(tmp_path):
+    """``selpath run --verify`` does inspect's repair itself: a finished acquisition with one garbage chunk is not
+    trusted, the frame under it (only) is captured again, and the same values come back."""
+    path = make_workflow(tmp_path)
+    run_workflow(load_workflow(path), progress=False)
+    store = tmp_path / "capture.zarr"
+    clean = open_store(store).load()
+    _damage(store / "target" / "c" / "5" / "0" / "0", "garbage")
+    assert run_workflow(load_workflow(path), progress=False).computed() == []  # trusted without --verify
+    lines: list[str] = []
+    report = run_workflow(load_workflow(path), progress=False, verify=True, log=lines.append)
+    assert report.computed() == ["capture"], lines
+    assert any("1 frame(s) will be captured again" in line for line in lines), lines
+    assert verify_store(store) == []
+    xr.testing.assert_identical(open_store(store).load(), clean)
+    shown = runner.invoke(app, ["run", str(path), "--verify", "--no-progress"], env={"COLUMNS": "200"})
+    assert shown.exit_code == 0 and "reused" in shown.output, shown.output
+
+
 def test_a_store_without_a_completion_record_is_reported_incomplete(tmp_path):
     """Partial outputs of a killed run (older selpath wrote in place) passed inspect and open_store silently."""
     store = tmp_path / "sinogram.zarr"
