@@ -219,7 +219,7 @@ def compact_at(size: int) -> int:
 
 
 @partial(jax.jit, static_argnames=("check_every", "masked", "slots"))
-def stream(ops, limits: Limits, pool: Rows, z0, *, check_every: int, masked: bool, slots: int):
+def stream(ops, limits: Limits, pool: Rows, z0, live, *, check_every: int, masked: bool, slots: int):
     """Every pixel of the pool through one batch of ``slots`` rows, refilled as its pixels finish.
 
     A batch iterated to the end runs as long as its slowest pixel while most converge in a fraction of that
@@ -228,6 +228,8 @@ def stream(ops, limits: Limits, pool: Rows, z0, *, check_every: int, masked: boo
     pixel costs about its own iterations and the products stay full-sized. Returns once the pool is
     exhausted and at most 1/COMPACTION of the batch is alive: (pixel index per row, P for an empty row; the
     rows; the :class:`Batch`; the queue position; the transport, iterations and flags written out so far).
+    Only the pool's first ``live`` pixels (a traced int: no recompile) are iterated; the rest were certified
+    optimal at their warm start (:func:`gaps`) and are left to the caller.
     """
     block = _admm_block(ops, limits, check_every=check_every, masked=masked)
     p, max_iter = z0.shape[0], limits.max_iter
@@ -239,7 +241,7 @@ def stream(ops, limits: Limits, pool: Rows, z0, *, check_every: int, masked: boo
         out = tuple(o.at[target].set(v, mode="drop")
                     for o, v in zip(out, (batch.state.z, batch.iters, batch.done), strict=True))
         new = queue + jnp.cumsum(free) - 1
-        take = free & (new < p)
+        take = free & (new < live)
         pixel = jnp.where(take, new, jnp.where(free, p, pixel))
         new_rows, new_state = _fresh(pool, z0, jnp.minimum(new, p - 1))
         rows, state = (jax.tree.map(lambda a, b: jnp.where(take[:, None], b, a), old, fresh)
@@ -250,17 +252,17 @@ def stream(ops, limits: Limits, pool: Rows, z0, *, check_every: int, masked: boo
     def body(carry):
         pixel, rows, batch, queue, out = carry
         batch = block(rows, batch)
-        return jax.lax.cond(queue < p, refill, lambda c: c, (pixel, rows, batch, queue, out))
+        return jax.lax.cond(queue < live, refill, lambda c: c, (pixel, rows, batch, queue, out))
 
     def keep_going(carry):
         pixel, _, batch, queue, _ = carry
-        return (queue < p) | (jnp.sum(alive(batch.done, batch.age, max_iter) & (pixel < p)) > compact_at(slots))
+        return (queue < live) | (jnp.sum(alive(batch.done, batch.age, max_iter) & (pixel < p)) > compact_at(slots))
 
-    pixel = jnp.arange(slots)
-    rows, state = _fresh(pool, z0, pixel)
+    first = jnp.arange(slots)
+    rows, state = _fresh(pool, z0, first)
+    pixel = jnp.where(first < live, first, p)  # rows past the live pixels start empty, counted as done
     out = (jnp.zeros_like(z0), jnp.full((p,), max_iter, jnp.int32), jnp.zeros((p,), bool))
-    batch = Batch(state, jnp.full((slots,), max_iter, jnp.int32), jnp.zeros((slots,), bool),
-                  jnp.zeros((slots,), jnp.int32))
+    batch = Batch(state, jnp.full((slots,), max_iter, jnp.int32), first >= live, jnp.zeros((slots,), jnp.int32))
     return jax.lax.while_loop(keep_going, body, (pixel, rows, batch, jnp.asarray(slots, pixel.dtype), out))
 
 
@@ -275,6 +277,14 @@ def finish(ops, pool: Rows, scale, z, *, polish_iter: int, polish_rounds: int, m
                             polish_rounds=polish_rounds, masked=masked)
 
     return _in_chunks(rows_of, chunk, *pool, scale, z)
+
+
+@partial(jax.jit, static_argnames=("chunk",))
+def gaps(ops, pool: Rows, z, *, chunk: int):
+    """:func:`certified_gap` of every pixel of the pool at ``z`` (the warm start: a pixel certified there, such as
+    T = 0 under a β that outweighs its light, or an unconstrained minimiser that is already non-negative, needs
+    no iteration)."""
+    return _in_chunks(lambda *a: certified_gap(ops, Rows(*a[:-1]), a[-1]), chunk, *pool, z)
 
 
 def certified_gap(ops, rows: Rows, t):

@@ -42,7 +42,9 @@ whatever operators the problem hands them (:meth:`~stages.procam._demux_problem.
 
 :class:`DemuxADMM` is the solver: immutable settings, ``solve(problem, data, weight, clipped)`` returning a
 :class:`stages._solution.Solution` with, per pixel, the transport, a result code (converged when its primal
-and dual residuals met ``tol`` relative, checked every ``check_every`` iterations; ``censored`` when they did
+and dual residuals met ``tol`` relative, checked every ``check_every`` iterations, or when its certified gap bound
+is at most ``gap_tol``, checked at the warm start, where a pixel so certified is not iterated at all, and after
+the polish; ``censored`` when it did
 but some offset's light was seen only clipped (:func:`censored_offsets`); else ``max_steps``, or ``nonfinite``)
 and ``stats`` (``iterations`` to convergence, ``max_iter`` if never; ``objective``; ``gap_bound``, the certified
 bound; ``censored_offsets``). A call's
@@ -119,7 +121,9 @@ class DemuxADMM:
     ``tol``: relative primal and dual residual at which a pixel converges; ``max_iter``: iteration cap;
     ``check_every``: iterations between convergence checks; ``polish_iter``: conjugate-gradient steps of the
     final support polish (0: none); ``polish_rounds``: polish rounds, each after the first with an active-set
-    step; ``slots``: rows of the streaming batch (None: :func:`batch_slots`);
+    step; ``gap_tol``: a pixel whose certified relative objective gap is at most this is converged whatever
+    its residuals say (checked at the warm start, where such a pixel is not iterated at all, and at the end);
+    ``slots``: rows of the streaming batch (None: :func:`batch_slots`);
     ``dtype``: ``float32`` or ``float64`` arithmetic (float64 needs ``jax.enable_x64``); ``throw``: raise
     :class:`stages._solution.SolverError` when a pixel did not converge (default: keep going, the result
     codes say which).
@@ -130,22 +134,24 @@ class DemuxADMM:
     DEFAULT_CHECK_EVERY: ClassVar[int] = 5
     DEFAULT_POLISH_ITER: ClassVar[int] = 5
     DEFAULT_POLISH_ROUNDS: ClassVar[int] = 1
+    DEFAULT_GAP_TOL: ClassVar[float] = 1e-4
 
     tol: float = DEFAULT_TOL
     max_iter: int = DEFAULT_MAX_ITER
     check_every: int = DEFAULT_CHECK_EVERY
     polish_iter: int = DEFAULT_POLISH_ITER
     polish_rounds: int = DEFAULT_POLISH_ROUNDS
+    gap_tol: float = DEFAULT_GAP_TOL
     slots: int | None = None
     dtype: str = "float32"
     throw: bool = False
 
     def __post_init__(self):
-        if not (self.tol > 0 and self.max_iter >= 1 and self.check_every >= 1
+        if not (self.tol > 0 and self.gap_tol >= 0 and self.max_iter >= 1 and self.check_every >= 1
                 and self.polish_iter >= 0 and self.polish_rounds >= 1 and (self.slots is None or self.slots >= 1)
                 and np.dtype(self.dtype) in (np.float32, np.float64)):
             raise ValueError(f"DemuxADMM needs tol > 0, max_iter ≥ 1, check_every ≥ 1, polish_iter ≥ 0, "
-                             f"polish_rounds ≥ 1, slots ≥ 1 and dtype float32 or float64 (got {self})")
+                             f"polish_rounds ≥ 1, gap_tol ≥ 0, slots ≥ 1 and dtype float32 or float64 (got {self})")
 
     def solve(self, problem: DemuxProblem | SeparableDemuxProblem, data: np.ndarray,
               weight: np.ndarray | None = None, clipped: np.ndarray | None = None) -> Solution:
@@ -190,22 +196,35 @@ class DemuxADMM:
         return solution
 
     def _run(self, ops, data, weight, clipped, *, masked: bool, slots: int):
-        """Start, stream the pixels through a batch of ``slots`` (:func:`~stages.procam._demux_kernels.stream`),
-        compact its tail (:meth:`_iterate_tail`), finish: (transport, iterations, converged, objective)."""
+        """Start, set aside the pixels certified at their warm start (gap bound ≤ ``gap_tol``: no iteration), stream
+        the others through a batch of ``slots`` (:func:`~stages.procam._demux_kernels.stream`), compact its tail
+        (:meth:`_iterate_tail`), finish: (transport, iterations, converged, objective, gap bound). A pixel is
+        converged where its residuals met ``tol`` or where its final certified bound is at most ``gap_tol``."""
         p = data.shape[0]
         slots = min(slots, p)
         pool, scale, z0 = kernels.start(ops, data, weight, clipped, masked=masked, chunk=slots)
+        certified = np.asarray(kernels.gaps(ops, pool, z0, chunk=slots)) <= self.gap_tol
+        order = np.argsort(certified, kind="stable")  # the live pixels first, in their order
+        live = int(p - certified.sum())
+        if live < p:
+            pool, z0 = Rows(*(a[order] for a in pool)), z0[order]
         limits = Limits(jnp.asarray(self.tol, data.dtype), jnp.asarray(self.max_iter, jnp.int32))
-        pixel, rows, batch, _, out = kernels.stream(ops, limits, pool, z0, check_every=self.check_every,
-                                                    masked=masked, slots=slots)
+        pixel, rows, batch, _, out = kernels.stream(ops, limits, pool, z0, jnp.asarray(live, jnp.int32),
+                                                    check_every=self.check_every, masked=masked, slots=slots)
         pixel, z, iters, done = self._iterate_tail(ops, limits, np.array(pixel), rows, batch, pool_size=p,
                                                    masked=masked)
         held = pixel < p
         z_out, iters_out, done_out = (np.array(a) for a in out)
         z_out[pixel[held]], iters_out[pixel[held]], done_out[pixel[held]] = z[held], iters[held], done[held]
+        z_out[live:], iters_out[live:], done_out[live:] = np.asarray(z0[live:]), 0, False  # judged by their gap
+        if live < p:
+            inverse = np.argsort(order)
+            pool = Rows(*(a[inverse] for a in pool))
+            z_out, iters_out, done_out = z_out[inverse], iters_out[inverse], done_out[inverse]
         transport, objective, gap = kernels.finish(ops, pool, scale, jnp.asarray(z_out),
                                                    polish_iter=self.polish_iter, polish_rounds=self.polish_rounds,
                                                    masked=masked, chunk=slots)
+        done_out = done_out | (np.asarray(gap) <= self.gap_tol)
         return transport, iters_out, done_out, objective, gap
 
     def _iterate_tail(self, ops, limits: Limits, pixel: np.ndarray, rows: Rows, batch: Batch, *, pool_size: int,
