@@ -20,6 +20,9 @@ Dtype = Literal["float32", "float64"]
 #: an iteration cap: at least 1, at most a million (solvers keep per-iteration histories and int32 counters)
 MaxIter = Annotated[int, pydantic.Field(ge=1, le=1_000_000)]
 
+#: a tolerance on a certified relative objective gap: a share of the objective, in [0, 1)
+GapTol = Annotated[float, pydantic.Field(ge=0, lt=1)]
+
 
 def sweep_log(progress: bool):
     """Where an acquisition's messages (its plan, resuming, frames captured) go: the terminal, under the step's

@@ -26,7 +26,7 @@ from pipeline.errors import Problem, StageError
 from pipeline.quality import usable_share
 from pipeline.registry import stage
 from pipeline.schema import with_metadata
-from stages._common import Dtype, MaxIter
+from stages._common import Dtype, GapTol, MaxIter
 from stages._solution import Solution, raise_if_failed
 from stages._sweeps import Sweep
 from stages.procam._demux_problem import DEFAULT_ALPHA, DEFAULT_BETA, DemuxProblem, SeparableDemuxProblem
@@ -224,6 +224,7 @@ def _band(block: xr.Dataset, *, solver: DemuxADMM, problem: DemuxProblem, keep: 
 def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, /, *,
                        offsets: OffsetGrid | None = None, alpha: NonNegative = DEFAULT_ALPHA,
                        beta: NonNegative = DEFAULT_BETA, tol: Positive = DemuxADMM.DEFAULT_TOL,
+                       gap_tol: GapTol = DemuxADMM.DEFAULT_GAP_TOL,
                        max_iter: MaxIter = DemuxADMM.DEFAULT_MAX_ITER,
                        polish_iter: Index = DemuxADMM.DEFAULT_POLISH_ITER,
                        boundary_margin_us: NonNegative | None = None, sync_offset_us: float | None = None,
@@ -264,6 +265,12 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
         2.7e-4, p90 6.2e-4 [38]; 3e-3 → 1.2e-4 [55]; 2e-3 → 6.1e-5, p90 2.3e-4 [72]; 1e-3 → 1.5e-5 [114,
         4.5 % at the cap]. The default meets the issue's 1e-4 median on the benchmark's stack at K = 128; many
         offsets per pixel (Fig. 38) need 2e-3 for it, at about twice the time.
+    gap_tol : float
+        A pixel whose certified bound on the relative objective gap (``gap_bound``) is at most this, in [0, 1),
+        is converged whatever its residuals say: checked at the warm start (such a pixel, e.g. one whose light β
+        outweighs so that T = 0 is exactly optimal, takes no iteration) and after the polish. 0: only exactly
+        optimal pixels. Dimensionless (a share of the pixel's own objective), so meaningful on any intensity
+        scale.
     max_iter : int
         Iteration cap, in [1, 1 000 000]; a pixel that reaches it is flagged unconverged. A solver call streams its
         pixels through a batch refilled as they converge, so the cap bounds only the slow ones.
@@ -292,7 +299,7 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
     stack = capture[["image"]].chunk({"delay": -1, "exposure": -1, "row": rows_per_tile, "col": -1})
     template = _template(capture, ("offset",), (grid.size,), stack.chunksizes["row"], dtype)
     levels = {"dark": dark, "full_scale": scale, "saturation": saturation}
-    solver = DemuxADMM(tol=tol, max_iter=max_iter, polish_iter=polish_iter, dtype=dtype)
+    solver = DemuxADMM(tol=tol, gap_tol=gap_tol, max_iter=max_iter, polish_iter=polish_iter, dtype=dtype)
     out = xr.map_blocks(_band, stack.assign_attrs({}), kwargs={
         "solver": solver, "problem": problem, "keep": keep, "levels": levels}, template=template)
     out = out.assign_coords(offset=("offset", grid, {"units": "px", "long_name": "projector row − camera row"}))
@@ -300,7 +307,8 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
     out = _describe(out, int(keep.sum()), "plane_to_ray_transport")
     return out.assign_attrs(_transport_attrs(
         "plane_to_ray_transport", timing=timing, delays=delays, exposures=exposures, keep=keep, margin=margin,
-        full_scale=scale, alpha=alpha, beta=beta, tol=tol, max_iter=max_iter, polish_iter=polish_iter, dtype=dtype))
+        full_scale=scale, alpha=alpha, beta=beta, tol=tol, gap_tol=gap_tol, max_iter=max_iter,
+        polish_iter=polish_iter, dtype=dtype))
 
 
 #: floor of ``usable_fraction``: below it most observations are saturated or missing, and T is a guess
@@ -375,7 +383,8 @@ def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, 
                offsets: OffsetGrid | None = None, cell_width_px: Positive | None = None,
                du_reach_px: NonNegative | None = None, alpha: NonNegative = DEFAULT_ALPHA,
                beta: NonNegative = DEFAULT_BETA, tol: Positive = DemuxADMM.DEFAULT_TOL,
-               max_iter: MaxIter = DemuxADMM.DEFAULT_MAX_ITER, polish_iter: Index = DemuxADMM.DEFAULT_POLISH_ITER,
+               gap_tol: GapTol = DemuxADMM.DEFAULT_GAP_TOL, max_iter: MaxIter = DemuxADMM.DEFAULT_MAX_ITER,
+               polish_iter: Index = DemuxADMM.DEFAULT_POLISH_ITER,
                boundary_margin_us: NonNegative | None = None, sync_offset_us: float | None = None,
                full_scale: Positive | None = None, rows_per_tile: Count | None = None,
                dtype: Dtype = "float32") -> xr.Dataset:
@@ -405,7 +414,7 @@ def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, 
         Keep |du| up to this [px]; None: every offset the sweep can express (2 K_u − 1 cells).
     alpha, beta : float
         Smoothness along dv and sparsity weights (thesis: 0.01), on images scaled to [0, 1].
-    tol, max_iter, polish_iter, boundary_margin_us, sync_offset_us, full_scale, dtype
+    tol, gap_tol, max_iter, polish_iter, boundary_margin_us, sync_offset_us, full_scale, dtype
         As for ``demux_plane_to_ray``.
     rows_per_tile : int or None
         Camera rows per dask task; None: as many as keep a task's transport within 64 MiB.
@@ -439,7 +448,8 @@ def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, 
     template = _template(capture, ("du", "dv"), (2 * reach + 1, grid.size), stack.chunksizes["row"], dtype,
                          u_direct=np.float32)
     out = xr.map_blocks(_band_full, stack.assign_attrs({}), kwargs={
-        "solver": DemuxADMM(tol=tol, max_iter=max_iter, polish_iter=polish_iter, dtype=dtype), "problem": problem,
+        "solver": DemuxADMM(tol=tol, gap_tol=gap_tol, max_iter=max_iter, polish_iter=polish_iter, dtype=dtype),
+        "problem": problem,
         "keep": keep, "levels": {"dark": dark, "full_scale": scale, "saturation": saturation}, "reach": reach,
         "centre_v": int(np.argmin(np.abs(grid))), "cells": cells}, template=template)
     out = out.assign_coords(
@@ -451,6 +461,7 @@ def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, 
     out = _describe(out, int(keep.sum()) * capture.sizes["line"], "full_transport")
     return out.assign_attrs(_transport_attrs(
         "full_transport", timing=timing, delays=delays, exposures=exposures, keep=keep, margin=margin,
-        full_scale=scale, alpha=alpha, beta=beta, tol=tol, max_iter=max_iter, polish_iter=polish_iter, dtype=dtype,
+        full_scale=scale, alpha=alpha, beta=beta, tol=tol, gap_tol=gap_tol, max_iter=max_iter,
+        polish_iter=polish_iter, dtype=dtype,
         line_width_px=width, cell_width_px=step, cells_px=cells.tolist(), lines=int(lines.size),
         **{name: capture.attrs[name] for name in ("projector_shape",) if name in capture.attrs}))

@@ -72,6 +72,19 @@ def test_round_trip_reproduces_the_images(noise_free):
     assert transport["converged"].mean() >= 0.99
 
 
+def test_gap_tol_is_a_stage_setting_and_a_certified_pixel_is_converged():
+    """``gap_tol`` reaches the solver and the store's attrs: with a loose residual test off (tol 1e-12, a few
+    iterations) every pixel whose certified bound is at most gap_tol is converged, and none other; at gap_tol 0 a
+    pixel is converged only where its bound is exactly 0 or its residuals met tol."""
+    capture = capture_of(scene())
+    for gap_tol in (0.0, 5e-2):
+        out = demux_plane_to_ray(capture, tol=1e-12, gap_tol=gap_tol, max_iter=10).compute()
+        assert out.attrs["gap_tol"] == gap_tol
+        bound, converged = out["gap_bound"].values, out["converged"].values
+        np.testing.assert_array_equal(converged, bound <= gap_tol)
+    assert 0 < converged.mean() < 1  # the loose gap_tol certifies some pixels within 10 iterations, not all
+
+
 def test_transport_matches_the_simulator_truth(noise_free):
     """T against the simulator's ground truth on the same offset grid, in counts: 15 % of its norm (2-row
     delay steps and N = 34 < K = 47 frames leave the smoothness prior to fill in between)."""
