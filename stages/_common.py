@@ -23,6 +23,9 @@ MaxIter = Annotated[int, pydantic.Field(ge=1, le=1_000_000)]
 #: a tolerance on a certified relative objective gap: a share of the objective, in [0, 1)
 GapTol = Annotated[float, pydantic.Field(ge=0, lt=1)]
 
+#: rounds of an exact active-set finish: 0 (none) to 20 (it converges in a few or cycles)
+FinishRounds = Annotated[int, pydantic.Field(ge=0, le=20)]
+
 
 def sweep_log(progress: bool):
     """Where an acquisition's messages (its plan, resuming, frames captured) go: the terminal, under the step's
