@@ -32,7 +32,7 @@ import zarr
 from rich.markup import escape
 
 from pipeline.compute import compute, scheduler_session
-from pipeline.errors import Problem, SelpathError, StageError
+from pipeline.errors import Problem, SelpathError, StageError, StoreError
 from pipeline.integrity import BadChunk, verify_store, write_manifest
 from pipeline.locks import store_locks
 from pipeline.outputs import PNG_MARKER, Staging, check_png, png_path, tidy_staging
@@ -203,13 +203,19 @@ class _Graph:
         chunks marked not captured, so its acquisition captures just those again; any other damaged output is
         recomputed whole (the outputs after it were made from its intact data and stay; after a capture, whose
         frames captured again differ by their noise, they are recomputed)."""
-        bad = verify_store(out.store)
+        capture = out.store in self.workflow.self_written
+        try:
+            bad = verify_store(out.store)
+        except StoreError as exc:  # its root metadata does not read: a capture cannot resume from it
+            if capture:
+                raise
+            bad = [BadChunk("zarr.json", None, exc.problems[0].message)]
         if not bad:
             return False
         self.damaged[out.store] = bad
         listed = "; ".join(str(b) for b in bad[:3]) + (" …" if len(bad) > 3 else "")
-        if out.store in self.workflow.self_written:
-            frames = forget_frames(out.store, bad)
+        if capture:
+            frames = forget_frames(out.store, bad)  # StoreError where a bad chunk is not a frame
             self.log(f"[yellow]verify[/]: {escape(out.store)}: {len(bad)} bad chunk(s) ({escape(listed)}); "
                      f"{frames} frame(s) will be captured again")
             return frames > 0 or _has_missing_frames(out.store)

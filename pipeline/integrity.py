@@ -88,6 +88,18 @@ def read_manifest(path: str | os.PathLike) -> dict[str, Any] | None:
         return dict(group[PROVENANCE_GROUP].attrs[MANIFEST])
     except (FileNotFoundError, KeyError, zarr.errors.GroupNotFoundError, zarr.errors.NodeTypeValidationError):
         return None
+    except Exception as exc:  # noqa: BLE001 - torn or garbled metadata: JSON, UTF-8 and zarr's own errors
+        raise unreadable_record(path, "manifest", exc) from exc
+
+
+def unreadable_record(path: str | os.PathLike, what: str, exc: Exception) -> StoreError:
+    """The error for a store whose ``_selpath`` record (provenance or manifest) exists but cannot be read: selpath
+    then cannot tell who wrote the store, from what, or whether it is complete, so it neither trusts nor
+    replaces it."""
+    return StoreError(Problem(f"its {what} record ({PROVENANCE_GROUP}/zarr.json) cannot be read "
+                              f"({_decode_error(exc)})", where=os.fspath(path),
+                              fix="restore the store from a backup; if it can be made again, delete it yourself "
+                              "and run again (selpath never deletes a store it cannot identify)"))
 
 
 def units_problems(ds: xr.Dataset, manifest: Mapping[str, Any] | None) -> list[Problem]:
@@ -171,12 +183,15 @@ def absent_chunks(path: str | os.PathLike, variables: Iterable[str]) -> list[Pro
 
 @dataclass(frozen=True)
 class BadChunk:
+    """A chunk of ``variable`` that is missing or does not decode; ``chunk`` None: the node's metadata
+    (``variable/zarr.json``, or ``_selpath/zarr.json`` for the store's records) is unreadable."""
+
     variable: str
-    chunk: tuple[int, ...]
+    chunk: tuple[int, ...] | None
     reason: str
 
     def __str__(self) -> str:
-        return f"{self.variable} chunk {self.chunk}: {self.reason}"
+        return f"{self.variable} {'metadata' if self.chunk is None else f'chunk {self.chunk}'}: {self.reason}"
 
 
 def _decode_error(exc: Exception) -> str:
@@ -197,19 +212,33 @@ def verify_store(path: str | os.PathLike) -> list[BadChunk]:
         raise StoreError(Problem(f"cannot be read as a zarr store ({type(exc).__name__}: {exc})", where=where,
                                  fix="check the path; a store whose metadata is gone cannot be verified")) from exc
     form = group.attrs.get("selpath_format", 0)
-    manifest = read_manifest(where) or {}
-    flags = {name[len(WRITTEN_PREFIX):]: np.asarray(array[...]) for name, array in _arrays(group)
-             if name.startswith(WRITTEN_PREFIX)}
-    data_vars = {name for name, array in _arrays(group) if _is_data(array, flags, name)}
     bad = []
-    for name, array in _arrays(group):
+    try:
+        manifest = read_manifest(where) or {}
+    except StoreError as exc:
+        manifest = {}
+        bad.append(BadChunk(PROVENANCE_GROUP, None, f"unreadable ({_decode_error(exc.__cause__ or exc)})"))
+    arrays, garbled = _readable_arrays(group, where)
+    bad.extend(BadChunk(name, None, f"unreadable ({_decode_error(exc)})") for name, exc in garbled)
+    flags = {}
+    for name, array in arrays:
+        if name.startswith(WRITTEN_PREFIX):
+            try:
+                flags[name[len(WRITTEN_PREFIX):]] = np.asarray(array[...])
+            except Exception:  # noqa: BLE001 - its bad chunks are listed below; its frames' chunks are then
+                pass  # checked where present and not expected where absent
+    data_vars = {name for name, array in arrays if _is_data(array, flags, name)}
+    flagged = {name[len(WRITTEN_PREFIX):] for name, _ in arrays if name.startswith(WRITTEN_PREFIX)}
+    for name, array in arrays:
         present = present_chunks(where, name, array)
         grid = array.cdata_shape
         for coords in itertools.product(*(range(n) for n in grid)):
             if present is not None and not present[coords]:
                 if form < CHECKSUMMED_FORMAT:  # format 1 skipped chunks holding only the fill value
                     expected = False
-                elif name in flags:  # a capture: a chunk is expected where its frame is flagged written
+                elif name in flagged:  # a capture's frames: expected where flagged written
+                    if name not in flags:  # the flags are unreadable (reported): which frames exist is unknown
+                        continue
                     frame = tuple(c * s for c, s in zip(coords[: flags[name].ndim], array.chunks, strict=False))
                     expected = bool(flags[name][frame])
                 else:  # coordinates and flags always; data once the store is complete
@@ -222,6 +251,32 @@ def verify_store(path: str | os.PathLike) -> list[BadChunk]:
             except Exception as exc:  # noqa: BLE001 - zarr and its codecs raise many types for bad bytes
                 bad.append(BadChunk(name, coords, f"corrupt ({_decode_error(exc)})"))
     return bad
+
+
+def _readable_arrays(group: zarr.Group, where: str) -> tuple[list[tuple[str, zarr.Array]],
+                                                              list[tuple[str, Exception]]]:
+    """The store's arrays, and the members whose metadata does not read (name, error). zarr lists members by
+    reading every ``zarr.json`` and fails on the first garbled one, so on failure each is opened on its own."""
+    try:
+        return list(_arrays(group)), []
+    except Exception:  # noqa: BLE001 - JSON, UTF-8 or zarr validation errors of some member
+        pass
+    names = remote.members(where) if remote.is_url(where) else sorted(
+        entry.name for entry in os.scandir(remote.local_path(where)) if entry.is_dir())
+    arrays, garbled = [], []
+    for name in sorted(names):
+        if name == PROVENANCE_GROUP:
+            continue  # the records: read by read_manifest
+        try:
+            node = group[name]
+        except KeyError:
+            continue  # a folder that is no zarr node
+        except Exception as exc:  # noqa: BLE001
+            garbled.append((name, exc))
+            continue
+        if isinstance(node, zarr.Array):
+            arrays.append((name, node))
+    return arrays, garbled
 
 
 def _is_data(array: zarr.Array, flags: Mapping[str, np.ndarray], name: str) -> bool:

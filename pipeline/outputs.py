@@ -58,6 +58,18 @@ def is_selpath_store(path: str | os.PathLike) -> bool:
     return isinstance(doc, dict) and "selpath_format" in (doc.get("attributes") or {})
 
 
+def _garbled_root(path: Path) -> bool:
+    """True if ``path/zarr.json`` exists but is not JSON (torn, truncated or overwritten): a damaged store, not a
+    folder of someone else's files."""
+    try:
+        json.loads((path / "zarr.json").read_text())
+    except FileNotFoundError:
+        return False
+    except (OSError, ValueError):
+        return True
+    return False
+
+
 def png_path(store: str | os.PathLike) -> str:
     """Where a figure output's PNG lands: ``<store without .zarr>.png``."""
     return f"{os.fspath(store).removesuffix(STORE_SUFFIX)}.png"
@@ -118,9 +130,13 @@ def output_problems(outputs: list[OutputPath], protected: Mapping[str, str | os.
                              "choose another path; selpath replaces only stores it wrote"))
             continue
         if path.exists() and not is_selpath_store(path):
-            problems.append((out.field, f"output {out.name!r}: {text} holds files that are not a selpath store "
+            garbled = _garbled_root(path)
+            problems.append((out.field, f"output {out.name!r}: {text} holds a store whose root metadata "
+                             "(zarr.json) cannot be read; selpath never replaces it" if garbled
+                             else f"output {out.name!r}: {text} holds files that are not a selpath store "
                              "(no selpath_format marker); selpath never replaces them",
-                             "choose another path, or move those files away"))
+                             "restore the store from a backup, or choose another path" if garbled
+                             else "choose another path, or move those files away"))
         elif path.exists():
             problems.extend((out.field, message, fix) for message, fix in _ownership(out, path))
         for other in outputs:
@@ -153,7 +169,11 @@ def _ownership(out: OutputPath, path: Path | str, names: list[str] | None = None
     listed here, for a local folder)."""
     from pipeline.provenance import read_provenance  # here: provenance reads stores, which write via outputs
 
-    provenance = read_provenance(path)
+    try:
+        provenance = read_provenance(path)
+    except StoreError as exc:  # a garbled record: no proof of who wrote the store, so it is kept
+        return [(f"output {out.name!r}: {exc.problems[0].message}; selpath does not replace a store it cannot "
+                 "identify", exc.problems[0].fix)]
     names = [p.name for p in Path(path).iterdir()] if names is None else names
     capture = any(name.startswith("written__") for name in names)
     if provenance is not None:

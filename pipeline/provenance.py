@@ -19,7 +19,7 @@ import numpy as np
 import zarr
 
 from pipeline import remote
-from pipeline.integrity import PROVENANCE_GROUP, consolidate, open_group
+from pipeline.integrity import PROVENANCE_GROUP, consolidate, open_group, unreadable_record
 
 
 def jsonable(value: Any) -> Any:
@@ -50,6 +50,8 @@ def read_provenance(path: str | os.PathLike) -> dict[str, Any] | None:
         return dict(group[PROVENANCE_GROUP].attrs["provenance"])
     except (FileNotFoundError, KeyError, zarr.errors.GroupNotFoundError, zarr.errors.NodeTypeValidationError):
         return None
+    except Exception as exc:  # noqa: BLE001 - torn or garbled metadata: JSON, UTF-8 and zarr's own errors
+        raise unreadable_record(path, "provenance", exc) from exc
 
 
 #: bytes read at a time when a store is identified by its content

@@ -31,6 +31,7 @@ import dask
 import dask.array as da
 import numpy as np
 import xarray as xr
+import zarr
 from dask.base import tokenize
 
 from pipeline import remote
@@ -414,17 +415,35 @@ def missing_frames(path: str | os.PathLike) -> dict[str, list[dict[str, Any]]]:
     return out
 
 
+def _is_frame_variable(group: zarr.Group, name: str) -> bool:
+    """True if ``name`` is a capture's frame variable: it has a readable ``written__`` flag array."""
+    if name.startswith(WRITTEN_PREFIX):
+        return False
+    try:
+        return isinstance(group[f"{WRITTEN_PREFIX}{name}"], zarr.Array)
+    except Exception:  # noqa: BLE001 - absent (KeyError) or its metadata garbled: not a frame to capture again
+        return False
+
+
 def forget_frames(path: str | os.PathLike, bad: Iterable[BadChunk]) -> int:
     """Mark the frames holding ``bad`` chunks (from :func:`~pipeline.integrity.verify_store`) as not captured,
-    so the acquisition captures them again when it next runs. Returns how many frames were marked."""
+    so the acquisition captures them again when it next runs. Returns how many frames were marked.
+
+    Only a frame can be captured again: a bad chunk of a coordinate, of a ``written__`` flag or of metadata
+    raises StoreError naming it, and no flag is changed."""
     where = os.fspath(path)
     group = open_group(where, mode="r+")
+    bad = list(bad)
+    others = [chunk for chunk in bad if chunk.chunk is None or not _is_frame_variable(group, chunk.variable)]
+    if others:
+        listed = "; ".join(str(chunk) for chunk in others[:3]) + (" …" if len(others) > 3 else "")
+        raise StoreError(Problem(f"{len(others)} bad chunk(s) of this capture are not frames and cannot be captured "
+                                 f"again ({listed})", where=where,
+                                 fix="restore the store from a backup, or move it "
+                                 "away and run again to capture from the start"))
     frames = set()
     for chunk in bad:
-        flag_name = f"{WRITTEN_PREFIX}{chunk.variable}"
-        if flag_name not in group:
-            continue
-        flags, array = group[flag_name], group[chunk.variable]
+        flags, array = group[f"{WRITTEN_PREFIX}{chunk.variable}"], group[chunk.variable]
         position = tuple(c * s for c, s in zip(chunk.chunk[: flags.ndim], array.chunks, strict=False))
         frames.add((chunk.variable, position))
     for variable, position in sorted(frames):

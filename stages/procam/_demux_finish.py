@@ -46,7 +46,9 @@ def active_set_finish(problem: DemuxProblem, transport: np.ndarray, data: np.nda
     q = problem.gram2
     c = 2.0 * (y / scale) @ problem.illumination - problem.beta / scale  # ∇f(T) = QT − c on the scaled data
     t = transport[todo].astype(np.float64) / scale
-    best_t, best_bound = transport[todo], bound[todo]
+    # start from the float64 bound of the incoming answer (the solver's is float32 and may read low), so every
+    # returned bound of these pixels is a float64 one of the returned transport
+    best_t, best_bound = transport[todo], certified_gap(problem, transport[todo].astype(np.float64), y)
     live = np.ones(todo.size, bool)
     free = t > 0
     for round_ in range(rounds):

@@ -61,7 +61,7 @@ finish (an earlier version did, for free accuracy at the same recorded iteration
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar
+from typing import ClassVar, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -116,6 +116,14 @@ def observed(data: np.ndarray, weight: np.ndarray | None = None) -> np.ndarray:
     """(P, N) bool: the observations that count, finite and (where ``weight`` is given) of weight > 0."""
     finite = np.isfinite(data)
     return finite if weight is None else (np.asarray(weight) > 0) & finite
+
+
+class _Start(NamedTuple):
+    """The warm start of every pixel, in the data's units, its bound and whether it was certified (not iterated)."""
+
+    certified: np.ndarray
+    transport: np.ndarray
+    gap: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -187,10 +195,19 @@ class DemuxADMM:
         ops = problem.operators(dtype)
         # without clipped frames one column stands for all (broadcast): the pool and batch carry no (P, N) zeros
         flags = clipped if any_clipped else np.zeros((data.shape[0], 1), bool)
-        transport, iterations, done, objective, gap = self._run(
+        transport, iterations, done, objective, gap, start = self._run(
             ops, jnp.asarray(np.where(weight, data, 0.0), dtype), jnp.asarray(weight, dtype), jnp.asarray(flags, dtype),
             masked=not bool(weight.all()) or any_clipped, slots=int(self.slots or batch_slots(problem.offsets)))
         transport, objective, gap = np.array(transport), np.array(objective), np.array(gap)
+        # a pixel certified at its warm start and never iterated keeps that start where the polish, which accepts
+        # any lower objective, raised its bound above gap_tol
+        lost = np.flatnonzero(start.certified & (gap > self.gap_tol))
+        if lost.size:
+            transport[lost] = start.transport[lost]
+            gap[lost] = start.gap[lost]
+            objective[lost] = problem.objective(start.transport[lost], np.where(weight, data, 0.0)[lost],
+                                                weight[lost], clipped[lost]).astype(objective.dtype)
+            done[lost] = True
         if self.finish_rounds and isinstance(problem, DemuxProblem):
             transport, objective, gap, done = self._finish(problem, data, weight, clipped, transport, objective,
                                                            gap, np.array(done))
@@ -222,14 +239,17 @@ class DemuxADMM:
     def _run(self, ops, data, weight, clipped, *, masked: bool, slots: int):
         """Start, set aside the pixels certified at their warm start (gap bound ≤ ``gap_tol``: no iteration), stream
         the others through a batch of ``slots`` (:func:`~stages.procam._demux_kernels.stream`), compact its tail
-        (:meth:`_iterate_tail`), finish: (transport, iterations, converged, objective, gap bound). A pixel is
+        (:meth:`_iterate_tail`), finish: (transport, iterations, converged, objective, gap bound, the warm start
+        as :class:`_Start`). A pixel is
         converged where its residuals met ``tol`` or where its final certified bound is at most ``gap_tol``."""
         p = data.shape[0]
         slots = min(slots, p)
         pool, scale, z0 = kernels.start(ops, data, weight, clipped, masked=masked, chunk=slots)
-        certified = np.asarray(kernels.gaps(ops, pool, z0, chunk=slots)) <= self.gap_tol
+        start_gap = np.asarray(kernels.gaps(ops, pool, z0, chunk=slots))
+        certified = start_gap <= self.gap_tol
         order = np.argsort(certified, kind="stable")  # the live pixels first, in their order
         live = int(p - certified.sum())
+        start = _Start(certified, np.asarray(z0 * scale), start_gap)  # in the pixels' own order
         if live < p:
             pool, z0 = Rows(*(a[order] for a in pool)), z0[order]
         limits = Limits(jnp.asarray(self.tol, data.dtype), jnp.asarray(self.max_iter, jnp.int32))
@@ -249,7 +269,7 @@ class DemuxADMM:
                                                    polish_iter=self.polish_iter, polish_rounds=self.polish_rounds,
                                                    masked=masked, chunk=slots)
         done_out = done_out | (np.asarray(gap) <= self.gap_tol)
-        return transport, iters_out, done_out, objective, gap
+        return transport, iters_out, done_out, objective, gap, start
 
     def _iterate_tail(self, ops, limits: Limits, pixel: np.ndarray, rows: Rows, batch: Batch, *, pool_size: int,
                       masked: bool):

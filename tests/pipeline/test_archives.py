@@ -156,6 +156,19 @@ def test_one_damaged_byte_after_a_move_is_found_by_verify_and_recomputed(archive
         {"capture": "reused", "absorption": "reused"}
 
 
+def test_an_output_whose_array_metadata_is_garbled_is_recomputed_by_verify(archive):
+    """Review finding: a torn ``zarr.json`` of one array made ``--verify`` crash with a raw JSONDecodeError. It is
+    a bad node like a bad chunk: listed by verify_store (not raised), and the output is computed again."""
+    result = archive / "out" / "absorption.zarr"
+    before = open_store(result)["absorption"].values
+    (result / "absorption" / "zarr.json").write_text('{"zarr_format": 3, "node_ty')
+    assert [(b.variable, b.chunk) for b in verify_store(result)] == [("absorption", None)]
+    report = run_workflow(load_workflow(archive / "small.yaml"), progress=False, verify=True)
+    assert {i: s.status for i, s in report.steps.items()} == {"capture": "reused", "absorption": "computed"}
+    np.testing.assert_array_equal(open_store(result)["absorption"].values, before)
+    assert not verify_store(result)
+
+
 def test_the_content_digest_ignores_where_a_store_is_and_when_its_files_were_written(archive, tmp_path):
     foreign = archive / "archive" / "foreign.zarr"
     copy = tmp_path / "somewhere" / "else.zarr"

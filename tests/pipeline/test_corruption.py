@@ -14,7 +14,7 @@ import xarray as xr
 import zarr
 from typer.testing import CliRunner
 
-from pipeline import StoreError, load_workflow, open_store, run_workflow, to_store
+from pipeline import SpecError, StoreError, load_workflow, open_store, run_workflow, to_store
 from pipeline.cli import app
 from pipeline.integrity import verify_store
 from pipeline.provenance import write_provenance
@@ -125,6 +125,41 @@ def test_run_with_verify_captures_again_only_the_frames_under_bad_chunks(tmp_pat
     xr.testing.assert_identical(open_store(store).load(), clean)
     shown = runner.invoke(app, ["run", str(path), "--verify", "--no-progress"], env={"COLUMNS": "200"})
     assert shown.exit_code == 0 and "reused" in shown.output, shown.output
+
+
+@pytest.mark.parametrize("damaged", ["written__target/c/0", "angle/c/0", "target/zarr.json"])
+def test_capture_damage_that_is_no_frame_is_named_and_nothing_is_changed(tmp_path, damaged):
+    """Review finding: ``--verify`` crashed with a raw ValueError on a garbled ``written__`` flag, and a bad
+    coordinate chunk (under no frame) was logged as "0 frame(s) will be captured again". A capture's flags,
+    coordinates and metadata cannot be captured again: verify_store lists them, the run stops with a StoreError
+    naming the chunk and the fix, and no byte of the store changes."""
+    path = make_workflow(tmp_path)
+    run_workflow(load_workflow(path), progress=False)
+    store = tmp_path / "capture.zarr"
+    (store / damaged).write_bytes(b"garbage")
+    variable = damaged.split("/")[0]
+    listed = verify_store(store)
+    assert [b.variable for b in listed] == [variable] and (listed[0].chunk is None) == damaged.endswith("zarr.json")
+    before = {p: p.read_bytes() for p in store.rglob("*") if p.is_file()}
+    with pytest.raises(StoreError, match=rf"1 bad chunk\(s\) of this capture are not frames .*{variable}.*"
+                                         r"restore the store from a backup"):
+        run_workflow(load_workflow(path), progress=False, verify=True)
+    assert {p: p.read_bytes() for p in store.rglob("*") if p.is_file()} == before
+
+
+def test_a_garbled_provenance_record_is_named_and_the_store_kept(tmp_path):
+    """A torn ``_selpath/zarr.json`` raised a raw JSONDecodeError from loading the workflow. Now the output check
+    names it, and the store (whose owner can no longer be proven) is neither trusted nor replaced."""
+    path = make_workflow(tmp_path)
+    run_workflow(load_workflow(path), progress=False)
+    store = tmp_path / "capture.zarr"
+    (store / "_selpath" / "zarr.json").write_text("{")
+    assert [(b.variable, b.chunk) for b in verify_store(store)] == [("_selpath", None)]
+    with pytest.raises(SpecError, match=r"provenance record \(_selpath/zarr.json\) cannot be read .*JSONDecodeError"):
+        load_workflow(path)
+    shown = runner.invoke(app, ["run", str(path), "--no-progress"], env={"COLUMNS": "200"})
+    assert shown.exit_code != 0 and "cannot be read" in shown.output and "Traceback" not in shown.output
+    assert (store / "target").is_dir()
 
 
 def test_a_store_without_a_completion_record_is_reported_incomplete(tmp_path):
