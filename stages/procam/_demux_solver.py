@@ -36,8 +36,8 @@ DESIGN §6), so this is a batched ADMM in plain JAX (kernels in
   first-order one, as tight as the solution's KKT conditions: on float32 solves stopped at ``tol`` it is
   typically 10–200× above the true gap (``converged`` means the residual test or a bound ≤ ``gap_tol``);
 * optionally (``finish_rounds``) an exact finish: primal–dual active-set rounds with float64 solves on each
-  pixel's free offsets (:mod:`stages.procam._demux_finish`), which takes the bound to ~1e-6 where ADMM leaves
-  ~1e-2, at about 5× ADMM's time.
+  pixel's free offsets (:mod:`stages.procam._demux_finish`), which takes the bound to ~1e-6 median, ≤ ``gap_tol``
+  everywhere, where ADMM leaves ~1e-2, at 3–8× ADMM's time (``benchmarks/demux_catalogue.py``).
 
 The full transport (§5.3.1) uses the same iteration with the Kronecker-factored operators of
 :class:`~stages.procam._demux_problem.SeparableDemuxProblem` (A = L_u ⊗ L, never formed): the kernels apply
@@ -136,8 +136,10 @@ class DemuxADMM:
     step; ``gap_tol``: a pixel whose certified relative objective gap is at most this is converged whatever
     its residuals say (checked at the warm start, where such a pixel is not iterated at all, and at the end);
     ``finish_rounds``: exact active-set rounds (float64 free-set solves, :mod:`stages.procam._demux_finish`) on
-    the pixels whose bound still exceeds ``gap_tol`` after the polish (dense problems, pixels without masked or
-    clipped frames; 0: none, the default while it costs several times ADMM's time);
+    the pixels whose bound still exceeds ``gap_tol`` after the polish (dense problems; masked and clipped frames
+    included); with it, ``converged`` means certified: bound ≤ ``gap_tol``, always (0: none, the default while it
+    costs several times ADMM's time; 16 certifies every pixel of every case of ``benchmarks/demux_catalogue.py``
+    to 1e-4);
     ``slots``: rows of the streaming batch (None: :func:`batch_slots`);
     ``dtype``: ``float32`` or ``float64`` arithmetic (float64 needs ``jax.enable_x64``); ``throw``: raise
     :class:`stages._solution.SolverError` when a pixel did not converge (default: keep going, the result
@@ -224,16 +226,18 @@ class DemuxADMM:
         return solution
 
     def _finish(self, problem: DemuxProblem, data, weight, clipped, transport, objective, gap, done):
-        """The exact active-set finish on the pixels in its scope whose bound exceeds ``gap_tol``; their objective,
-        bound (float64, of the returned transport) and converged flag follow."""
-        scope = np.flatnonzero(weight.all(axis=1) & ~clipped.any(axis=1) & np.isfinite(transport).all(axis=1)
-                               & (gap > self.gap_tol))
+        """The exact active-set finish on the finite pixels whose bound exceeds ``gap_tol``; their objective, bound
+        (float64, of the returned transport) and converged flag follow: converged where certified to ``gap_tol``,
+        so with a finish every converged pixel is certified (one whose rounds end above it is ``max_steps``)."""
+        scope = np.flatnonzero(np.isfinite(transport).all(axis=1) & (gap > self.gap_tol))
         if scope.size:
             value, bound = active_set_finish(problem, transport[scope], data[scope], gap[scope],
-                                             rounds=self.finish_rounds, gap_tol=self.gap_tol)
+                                             rounds=self.finish_rounds, gap_tol=self.gap_tol, weight=weight[scope],
+                                             clipped=clipped[scope])
             transport[scope], gap[scope] = value, bound.astype(gap.dtype)
-            objective[scope] = problem.objective(value, data[scope]).astype(objective.dtype)
-            done[scope] |= bound <= self.gap_tol
+            objective[scope] = problem.objective(value, np.where(weight[scope], data[scope], 0.0), weight[scope],
+                                                 clipped[scope]).astype(objective.dtype)
+            done[scope] = bound <= self.gap_tol  # with the finish, converged is certified, whatever the residuals
         return transport, objective, gap, done
 
     def _run(self, ops, data, weight, clipped, *, masked: bool, slots: int):

@@ -1,5 +1,5 @@
 """The exact active-set finish (#25): certified bounds below gap_tol where ADMM alone leaves them ~1e-2, the
-objective at Clarabel's optimum, and pixels outside its scope (masked or clipped frames) left as ADMM gave them."""
+objective at Clarabel's optimum, with masked and clipped frames as without."""
 
 from __future__ import annotations
 
@@ -32,7 +32,9 @@ def test_the_finish_certifies_every_pixel_and_reaches_clarabels_optimum(case):
     # a finished pixel's bound is of the returned (float32) transport in float64: a proof, recomputed here
     np.testing.assert_allclose(bound[touched], certified_gap(problem, finished.value.astype(float), data)[touched],
                                rtol=1e-6, atol=1e-15)  # the bound is stored in float32
-    assert bound.max() <= 1e-4 and finished.converged.all(), (bound.max(), plain.stats["gap_bound"].max())
+    assert bound.max() <= 1e-4, (bound.max(), plain.stats["gap_bound"].max())
+    # with the finish, converged means certified to gap_tol (1e-6 here: below the float32 floor for most pixels)
+    np.testing.assert_array_equal(finished.converged, bound <= 1e-6)
     assert np.all(bound <= plain.stats["gap_bound"])  # never worse than ADMM's own answer
     _, optimum = cvxpy_optimum(problem, data)
     value = problem.objective(finished.value.astype(float), data)
@@ -41,17 +43,33 @@ def test_the_finish_certifies_every_pixel_and_reaches_clarabels_optimum(case):
     assert np.all(finished.stats["objective"] <= plain.stats["objective"] * (1 + 1e-6))
 
 
-def test_pixels_with_masked_or_clipped_frames_keep_admms_answer():
-    delays, exposures, offsets = CASES["well-posed"]
+@pytest.mark.parametrize("case", ["well-posed", "rank-deficient"])
+def test_pixels_with_masked_and_clipped_frames_are_finished_to_clarabels_optimum(case):
+    """Masked (NaN) frames and clipped frames (the one-sided penalty, whose acting frames the finish re-decides
+    each round) get their own free-set Hessians: certified like the others, at Clarabel's optimum of the same
+    objective (``benchmarks.demux_catalogue.reference``: 1e-12 on the rescaled problem)."""
+    from benchmarks.demux_catalogue import reference
+
+    delays, exposures, offsets = CASES[case]
     a = sweep_matrix(delays, exposures, offsets)
     rng = np.random.default_rng(12)
-    data = sparse_transport(rng, 8, offsets) @ a.T
-    data[0, 3] = np.nan
-    clipped = np.zeros(data.shape, bool)
-    clipped[1, data[1].argmax()] = True
+    data = sparse_transport(rng, 24, offsets) @ a.T + rng.normal(0, 2e-3, (24, a.shape[0]))
+    data[rng.random(data.shape) < 0.1] = np.nan
+    level = np.nanpercentile(data, 90)  # the brightest 10 % of observations clip
+    clipped = np.isfinite(data) & (data >= level)
+    data = np.where(clipped, level, data)
+    assert clipped.any(axis=1).mean() > 0.25 and np.isnan(data).any(axis=1).mean() > 0.25
     problem = DemuxProblem.build(a)
     plain = DemuxADMM(gap_tol=1e-6).solve(problem, data, clipped=clipped)
-    finished = DemuxADMM(finish_rounds=6, gap_tol=1e-6).solve(problem, data, clipped=clipped)
-    np.testing.assert_array_equal(finished.value[:2], plain.value[:2])
-    np.testing.assert_array_equal(finished.stats["gap_bound"][:2], plain.stats["gap_bound"][:2])
-    assert finished.stats["gap_bound"][2:].max() <= 1e-4
+    finished = DemuxADMM(gap_tol=1e-6, finish_rounds=8).solve(problem, data, clipped=clipped)
+    bound = finished.stats["gap_bound"]
+    # measured: ADMM's bound max 0.13 (well-posed) / 0.69 (rank-deficient); finished max 5.1e-6 / 6.7e-6
+    assert bound.max() <= 1e-4 and np.all(bound <= plain.stats["gap_bound"]), (bound.max(),
+                                                                              plain.stats["gap_bound"].max())
+    seen = np.isfinite(data)
+    np.testing.assert_allclose(bound, certified_gap(problem, finished.value.astype(float), data, seen, clipped),
+                               rtol=1e-6, atol=1e-15)
+    optimum = reference(problem, data, seen, clipped)
+    value = problem.objective(finished.value.astype(float), data, seen, clipped)
+    assert np.all((value - optimum) / value <= bound + 1e-9)  # the bound holds
+    np.testing.assert_allclose(value, optimum, rtol=2e-5)
