@@ -26,7 +26,7 @@ import workflows as shipped
 from pipeline.compute import enable_compile_cache
 from pipeline.constraints import describe
 from pipeline.engine import RunReport, run_workflow
-from pipeline.errors import SelpathError, StoreError
+from pipeline.errors import Problem, SelpathError, StoreError
 from pipeline.integrity import open_group, verify_store
 from pipeline.locks import store_lock
 from pipeline.provenance import archive_stores, read_provenance
@@ -229,6 +229,31 @@ def validate(file: Annotated[Path, typer.Argument(help="workflow YAML file", met
     steps = len(workflow.steps)
     console.print(f"[green]ok[/]: {escape(workflow.name)}: {steps} step{'s' if steps != 1 else ''}, outputs "
                   + escape(", ".join(f"{n} -> {o.store}" for n, o in workflow.outputs.items())))
+
+
+@command("import")
+def import_(spec: Annotated[Path, typer.Argument(help="import spec (YAML): kind, frames, geometry or timing",
+                                                 metavar="SPEC", show_default=False)],
+            store: Annotated[Path, typer.Argument(help="capture store to write (a new .zarr path)", metavar="STORE",
+                                                  show_default=False)]) -> None:
+    """Turn frames made elsewhere (TIFF/PNG folders, .npy/.npz, HDF5) into a checked capture store.
+
+    The spec says the cube kind, where each variable's frames lie and the geometry or timing the stages read,
+    with units (docs/format.md, "Importing captures"). Frames are copied one by one; nothing is written into
+    the sources, and an existing store is never replaced.
+    """
+    from pipeline.store import to_store
+
+    with _guard():
+        if store.exists():
+            raise StoreError(Problem("exists; selpath import writes a new store and never replaces one",
+                                     where=str(store), fix="choose another path, or delete that store yourself"))
+        ds = default_registry()["import_capture"].func(spec=str(spec))
+        with dask.config.set(scheduler="threads"):
+            to_store(ds, store, ds.attrs["selpath_kind"])
+    sizes = ", ".join(f"{d} {n}" for d, n in ds.sizes.items())
+    console.print(f"[green]ok[/]: {escape(str(store))}: {ds.attrs['selpath_kind']} ({escape(sizes)}); "
+                  f"variables {escape(', '.join(map(str, ds.data_vars)))}")
 
 
 @command()

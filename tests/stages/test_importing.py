@@ -1,0 +1,147 @@
+"""Importing captures made elsewhere (#24 item 1): frames from TIFF folders, .npz, HDF5 and .npy plus an import
+spec become the same capture store the rig would have written; bad specs and frames are named."""
+
+from __future__ import annotations
+
+import h5py
+import numpy as np
+import pytest
+import tifffile
+import xarray as xr
+import yaml
+from typer.testing import CliRunner
+
+from pipeline import ConfigError, StageError, load_workflow, open_store, run_workflow
+from pipeline.cli import app
+from stages.importing import import_capture, read_frames
+from tests.devices.test_tomography_acquire import make_workflow
+
+runner = CliRunner()
+
+
+@pytest.fixture(scope="module")
+def original(tmp_path_factory) -> xr.Dataset:
+    """A simulated tomography capture (the acquisition's own store), loaded."""
+    folder = tmp_path_factory.mktemp("rig")
+    run_workflow(load_workflow(make_workflow(folder)), progress=False)
+    return open_store(folder / "capture.zarr").load()
+
+
+def _export(ds: xr.Dataset, folder) -> dict:
+    """The capture as a lab might hold it: target as one TIFF per angle (names that sort wrongly as text),
+    reference as an .npz member, backlit in an HDF5 file, dark as .npy; and its import spec (a renderer's
+    convention: pixel centres at j + 0.5)."""
+    (folder / "target").mkdir()
+    for i, frame in enumerate(ds["target"].values):
+        tifffile.imwrite(folder / "target" / f"frame_{i}.tif", frame)
+    np.savez(folder / "reference.npz", frames=ds["reference"].values, other=np.zeros(3))
+    with h5py.File(folder / "scan.h5", "w") as handle:
+        handle.create_dataset("/scan/backlit", data=ds["backlit"].values)
+    np.save(folder / "dark.npy", ds["dark"].values)
+    angles = ds["angle"].values
+    keep = ("camera_model", "light_angle_deg", "length_unit", "focal_length_px", "camera_distance",
+            "light_distance", "light_kind", "beam_height", "saturation_counts")
+    spec = {"kind": "tomography_capture",
+            "frames": {"target": "target", "reference": "reference.npz:frames", "backlit": "scan.h5:/scan/backlit",
+                       "dark": "dark.npy"},
+            "angles_deg": {"start_deg": float(angles[0]), "step_deg": float(angles[1] - angles[0]),
+                           "count": int(angles.size)},
+            "pixel_centres": "half",
+            "principal_point_px": [float(v) + 0.5 for v in ds.attrs["principal_point_px"]],
+            **{k: ds.attrs[k] for k in keep}}
+    (folder / "spec.yaml").write_text(yaml.safe_dump(spec, sort_keys=False))
+    return spec
+
+
+def test_a_tomography_capture_from_four_file_formats_imports_as_the_rig_wrote_it(original, tmp_path):
+    _export(original, tmp_path)
+    shown = runner.invoke(app, ["import", str(tmp_path / "spec.yaml"), str(tmp_path / "imported.zarr")],
+                          env={"COLUMNS": "200"})
+    assert shown.exit_code == 0, shown.output
+    imported = open_store(tmp_path / "imported.zarr").load()
+    for name in ("target", "reference", "backlit", "dark"):
+        np.testing.assert_array_equal(imported[name].values, original[name].values)  # bit for bit, frame order
+    np.testing.assert_array_equal(imported["angle"].values, original["angle"].values)
+    assert imported.attrs["principal_point_px"] == list(original.attrs["principal_point_px"])  # j + 0.5 → j
+    # the stages read it as they read the rig's own store: the same absorption, the same hull
+    workflow = tmp_path / "reprocess.yaml"
+    workflow.write_text("workflow: reprocess\nsteps:\n"
+                        "  - {id: capture, stage: import_capture, with: {spec: spec.yaml}}\n"
+                        "  - {id: absorption, stage: absorption, with: {capture: $capture}}\n"
+                        "outputs:\n  absorption: {from: absorption, store: out/absorption.zarr}\n")
+    run_workflow(load_workflow(workflow), progress=False)
+    from stages.tomography.calibrate import absorption
+
+    expected = absorption(original)
+    xr.testing.assert_allclose(open_store(tmp_path / "out" / "absorption.zarr")["absorption"].load(),
+                               expected["absorption"].load())
+    # a second run reuses it; a changed frame changes the import's identity and recomputes
+    assert run_workflow(load_workflow(workflow), progress=False).computed() == []
+    tifffile.imwrite(tmp_path / "target" / "frame_3.tif", original["target"].values[3] + 1)
+    assert run_workflow(load_workflow(workflow), progress=False).computed() == ["capture", "absorption"]
+
+
+@pytest.mark.parametrize("order", ["delay_major", "exposure_major"])
+def test_a_plane_to_ray_stack_in_either_frame_order(tmp_path, order):
+    rng = np.random.default_rng(0)
+    cube = rng.integers(0, 4095, (3, 2, 4, 5)).astype(np.uint16)  # (delay, exposure, row, col)
+    flat = cube.reshape(6, 4, 5) if order == "delay_major" else cube.transpose(1, 0, 2, 3).reshape(6, 4, 5)
+    np.save(tmp_path / "stack.npy", flat)
+    (tmp_path / "spec.yaml").write_text(yaml.safe_dump({
+        "kind": "plane_to_ray_capture", "frames": {"image": "stack.npy"}, "delays_us": [-170.0, 0.0, 170.0],
+        "exposures_us": [170.0, 510.0], "order": order, "scan_speed_px_per_us": 1 / 17, "line_time_us": 17.0,
+        "saturation_counts": 4095, "dark_level_counts": 64}))
+    ds = import_capture(spec=str(tmp_path / "spec.yaml"))
+    np.testing.assert_array_equal(ds["image"].values, cube)
+    assert ds["delay"].attrs["units"] == "us" and ds.attrs["dark_level_counts"] == 64
+    assert runner.invoke(app, ["import", str(tmp_path / "spec.yaml"), str(tmp_path / "c.zarr")]).exit_code == 0
+    np.testing.assert_array_equal(open_store(tmp_path / "c.zarr")["image"].values, cube)
+
+
+def test_bad_specs_and_frames_are_named_with_their_field(original, tmp_path):
+    spec = _export(original, tmp_path)
+    path = tmp_path / "spec.yaml"
+
+    def write(**changes):
+        path.write_text(yaml.safe_dump({k: v for k, v in {**spec, **changes}.items() if v is not None},
+                                       sort_keys=False))
+
+    write(light_angle_deg=None)
+    with pytest.raises(ConfigError, match=r"spec.yaml:1: light_angle_deg: is required but missing"):
+        import_capture(spec=str(path))
+    write(focal_length_px=None, length_unit="furlong")
+    with pytest.raises(ConfigError, match="a perspective camera needs focal_length_px"):
+        import_capture(spec=str(path))
+    write(length_unit="furlong")
+    with pytest.raises(ConfigError, match="length_unit 'furlong' is not one of"):
+        import_capture(spec=str(path))
+    write(angles_deg=list(range(23)))
+    with pytest.raises(StageError, match="frames.target has 24 frames for 23 angles"):
+        import_capture(spec=str(path))
+    write(frames={**spec["frames"], "reference": "reference.npz"})
+    with pytest.raises(StageError, match=r"has members \['frames', 'other'\]"):
+        import_capture(spec=str(path))
+    write(frames={**spec["frames"], "backlit": "scan.h5:/nope"})
+    with pytest.raises(StageError, match="has no dataset '/nope'"):
+        import_capture(spec=str(path))
+    write(frames={**spec["frames"], "target": "elsewhere"})
+    with pytest.raises(StageError, match="frames.target.*no frames at"):
+        import_capture(spec=str(path))
+    shown = runner.invoke(app, ["import", str(path), str(tmp_path / "x.zarr")], env={"COLUMNS": "200"})
+    assert shown.exit_code == 2 and "no frames at" in shown.output and "Traceback" not in shown.output
+    write(principal_point_px=None)  # the sensor's centre: pixel (cols − 1) / 2, (rows − 1) / 2
+    rows, cols = original.sizes["row"], original.sizes["col"]
+    assert import_capture(spec=str(path)).attrs["principal_point_px"] == [(cols - 1) / 2, (rows - 1) / 2]
+    write()
+    (tmp_path / "exists.zarr").mkdir()
+    shown = runner.invoke(app, ["import", str(path), str(tmp_path / "exists.zarr")], env={"COLUMNS": "200"})
+    assert shown.exit_code == 2 and "never replaces" in shown.output
+
+
+def test_frames_are_read_lazily_one_task_per_frame(original, tmp_path):
+    _export(original, tmp_path)
+    stack = read_frames("target", tmp_path)
+    assert stack.numblocks[0] == original.sizes["angle"] and stack.chunks[1] == (original.sizes["row"],)
+    h5 = read_frames("scan.h5:/scan/backlit", tmp_path)
+    assert h5.numblocks[0] == original.sizes["angle"]
+    np.testing.assert_array_equal(h5[5].compute(), original["backlit"].values[5])
