@@ -181,7 +181,7 @@ def lazy_chain() -> tuple[xr.Dataset, xr.Dataset, xr.Dataset, xr.Dataset]:
     """A small capture and its hull, sinogram and coverage, as graphs (nothing computed)."""
     scene = make_scene({"kind": "cylinder", "radius": f"{R} mm"}, cylinder_camera(None, 64), 60.0)
     with xr.set_options(keep_attrs=True):
-        cap = capture(scene, np.arange(0.0, 360.0, 30.0))
+        cap = capture(scene, np.arange(0.0, 360.0, 15.0))  # 15° views: 12 θ bins of 15°, none finer
     hull = visual_hull(silhouettes(cap))
     sino = bin_sinogram(align_paths(absorption(cap), hull), n_theta=12, n_x=16, x_extent=R)
     return cap, hull, sino, coverage(sino, hull)
@@ -209,7 +209,7 @@ def test_a_hull_of_the_old_layout_opens_and_feeds_every_stage(tmp_path, old_form
 
     rays = align_paths(absorption(cap), opened)
     xr.testing.assert_identical(rays.compute(), align_paths(absorption(cap), hull).compute())
-    sino = bin_sinogram(rays, n_theta=24, n_x=32, x_extent=1.02 * R).compute()
+    sino = bin_sinogram(rays, n_theta=12, n_x=32, x_extent=1.02 * R).compute()
     xr.testing.assert_identical(coverage(sino, opened).compute(), coverage(sino, hull).compute())
     xr.testing.assert_identical(fbp(sino, opened).compute(), fbp(sino, hull).compute())
     xr.testing.assert_identical(reconstruct_tv(sino, opened, max_iter=5).compute(),
@@ -227,3 +227,21 @@ def test_coverage_takes_the_light_angle_from_the_sinogram_when_the_hull_lacks_it
     bare.attrs.pop("light_angle_deg", None)
     assert "light_angle_deg" not in bare.attrs and "light_angle_deg" in sino.attrs
     xr.testing.assert_identical(coverage(sino, bare).compute(), cover.compute())
+
+
+def test_bins_finer_than_the_views_are_warned_of_and_leave_a_checkerboard():
+    """A user's report: 4° views binned into 180 θ bins observed about half the bins that 45 bins observe, without
+    a word. A ray's θ is its view's angle plus its pixel's offset, so at a fixed X only one bin in four holds one.
+    Measured on this cylinder (n_x 128): 0.527 of the bins observed at 180, 0.938 at 45."""
+    import warnings
+
+    scene = make_scene({"kind": "cylinder", "radius": f"{R} mm"}, cylinder_camera(None, 512), 60.0)
+    cap = capture(scene, np.arange(0.0, 360.0, 4.0))
+    rays = align_paths(absorption(cap), visual_hull(silhouettes(cap))).compute()
+    with pytest.warns(UserWarning, match=r"n_theta = 180 makes 1° bins, finer than the 4° between views.*"
+                                         r"one θ bin in 4 holds a ray.*n_theta ≤ 45"):
+        fine = bin_sinogram(rays, n_theta=180, n_x=128, x_extent=1.02 * R)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        coarse = bin_sinogram(rays, n_theta=45, n_x=128, x_extent=1.02 * R)
+    assert float(fine["observed"].mean()) < 0.6 < 0.9 < float(coarse["observed"].mean())
