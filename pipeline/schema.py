@@ -33,7 +33,9 @@ FORMAT_VERSION = 6
 
 PIXEL_DIMS = ("row", "col")
 CHANNEL_DIM = "channel"
-LENGTH_UNITS = frozenset({"m", "cm", "mm", "um", "px"})
+#: length units of a tomography store; "1": dimensionless (lengths in a unit the user keeps consistent, e.g. a
+#: renderer's scene units with the object's radius 1; σ is then per that unit, written "1")
+LENGTH_UNITS = frozenset({"m", "cm", "mm", "um", "px", "1"})
 ANGLE_UNITS = frozenset({"degree"})
 TIME_UNITS = frozenset({"us"})
 PX_UNITS = frozenset({"px"})
@@ -80,7 +82,7 @@ class CubeKind:
 RIG_ATTRS = {
     "camera_model": "'perspective' or 'orthographic'",
     "light_angle_deg": "light angle θ_l between the beam and the camera axis, degree",
-    "length_unit": "unit of every length attr and of sinogram x, e.g. 'mm'",
+    "length_unit": "unit of every length attr and of sinogram x: 'm', 'cm', 'mm', 'um', 'px' or '1' (dimensionless)",
 }
 #: Further attrs each camera model needs. ``principal_point_px`` is in every perspective store; a camera built
 #: from a config (``sensor_defaults``) may leave it out: it defaults to the sensor's centre.
@@ -403,6 +405,13 @@ def _dims_ok(actual: tuple[str, ...], expected: tuple[str, ...], kind: str) -> b
     return core == expected
 
 
+def in_length(template: str, length: str) -> str:
+    """``template`` with ``{length}`` replaced by ``length``; a dimensionless length ("1") gives σ the unit "1",
+    not "1/1"."""
+    units = template.replace("{length}", str(length))
+    return "1" if units == "1/1" else units
+
+
 def metadata(ds: xr.Dataset, kind: str) -> dict[str, tuple[str | None, str]]:
     """``{variable: (units, long_name)}`` the kind fixes for the variables ``ds`` has (``{length}`` resolved;
     a variable whose length unit ``ds`` does not tell is left out)."""
@@ -412,7 +421,7 @@ def metadata(ds: xr.Dataset, kind: str) -> dict[str, tuple[str | None, str]]:
     for name, var in KINDS[kind].variables.items():
         if name not in ds.data_vars or var.units == "" or (var.units and "{length}" in var.units and not length):
             continue
-        out[name] = (var.units.replace("{length}", str(length)) if var.units else None, var.long_name)
+        out[name] = (in_length(var.units, str(length)) if var.units else None, var.long_name)
     return out
 
 

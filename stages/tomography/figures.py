@@ -13,6 +13,7 @@ from matplotlib.patches import Rectangle
 
 from pipeline.constraints import Index
 from pipeline.registry import stage
+from pipeline.schema import in_length
 from stages._common import require_variables
 from stages._figures import as_figure, image_colorbar, panels, pixel_axes, rgba, shared_colorbar
 from stages.tomography.sinogram import coverage_model, optimal_light_angle
@@ -266,7 +267,7 @@ def reconstruction_figure(fbp: xr.Dataset, optimised: xr.Dataset, truth: xr.Data
     x = fbp["x"].values
     y = fbp["y"].values if "y" in fbp.coords else x
     unit = fbp["x"].attrs.get("units", "")
-    sigma_unit = fbp["sigma"].attrs.get("units") or (f"1/{unit}" if unit else "1/length")
+    sigma_unit = fbp["sigma"].attrs.get("units") or (in_length("1/{length}", unit) if unit else "1/length")
     reference = None
     if truth is not None:
         require_variables(truth, ("sigma",), "reconstruction_figure")

@@ -25,6 +25,7 @@ from devices.sim.scene import Scene, load_scene
 from pipeline.constraints import Count, Index, NonNegative, Positive, memory_problems
 from pipeline.errors import Problem, SelpathError, StageError
 from pipeline.registry import stage
+from pipeline.schema import in_length
 from pipeline.spec import StorePath
 from stages.tomography.acquire import AngleSweep
 from stages.tomography.paths import sinogram_coordinates
@@ -201,7 +202,7 @@ def phantom_truth(sinogram: xr.Dataset, /, *, scene: StorePath, n_pixels: Count 
     image = truth_raster(spec, n, extent, supersample)
     slices = sinogram["slice"].values
     return xr.Dataset(
-        {"sigma": (("slice", "y", "x"), np.broadcast_to(image, (len(slices), n, n)).copy(), {"units": f"1/{unit}"})},
+        {"sigma": (("slice", "y", "x"), np.broadcast_to(image, (len(slices), n, n)).copy(), {"units": in_length("1/{length}", unit)})},
         coords={"slice": ("slice", slices), "y": ("y", centres, {"units": unit}),
                 "x": ("x", centres, {"units": unit})},
         attrs={"selpath_kind": "reconstruction", "method": "truth", "scene": spec.scene, "cell_size": cell})

@@ -27,6 +27,7 @@ from devices.geometry import geometry_attrs
 from pipeline.constraints import Count, NonNegative, Positive, memory_problems
 from pipeline.errors import Problem, StageError
 from pipeline.registry import stage
+from pipeline.schema import in_length
 from stages._common import Dtype, MaxIter, require_variables
 from stages.tomography._admm import TVADMM
 from stages.tomography._filters import ramp_filter
@@ -168,7 +169,7 @@ def _output(sinogram: xr.Dataset, geometry: Geometry, variables: dict, attrs: di
     coords = {"y": ("y", centres, {"units": unit}), "x": ("x", centres, {"units": unit}),
               "slice": sinogram["slice"]}
     out = xr.Dataset(variables, coords=coords)
-    out["sigma"].attrs.update(units=f"1/{unit}", long_name="absorption coefficient σ")
+    out["sigma"].attrs.update(units=in_length("1/{length}", unit), long_name="absorption coefficient σ")
     out["observed_fraction"] = observed_share(sinogram["observed"])
     return out.assign_attrs(geometry_attrs(sinogram.attrs) | {"selpath_kind": "reconstruction",
                                                               "cell_size": geometry.cell} | attrs)

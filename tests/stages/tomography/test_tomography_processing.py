@@ -245,3 +245,24 @@ def test_bins_finer_than_the_views_are_warned_of_and_leave_a_checkerboard():
         warnings.simplefilter("error")
         coarse = bin_sinogram(rays, n_theta=45, n_x=128, x_extent=1.02 * R)
     assert float(fine["observed"].mean()) < 0.6 < 0.9 < float(coarse["observed"].mean())
+
+
+def test_a_dimensionless_length_unit_runs_the_chain_with_sigma_per_that_unit(tmp_path):
+    """Renders in scene units (object radius 1) had no length_unit to state. With "1" every stage runs; lengths
+    carry "1" and σ too (not "1/1"); the numbers are those of the same rig labelled in mm."""
+    from pipeline import to_store
+
+    scene = make_scene({"kind": "cylinder", "radius": f"{R} mm"}, cylinder_camera(None, 64), 60.0,
+                       inclusions=[{"shape": {"kind": "cylinder", "radius": "3 mm"}, "sigma": "0.05 /mm"}])
+    mm = capture(scene, np.arange(0.0, 360.0, 10.0))
+    unitless = mm.assign_attrs(length_unit="1")
+    results = {}
+    for name, cap in (("mm", mm), ("1", unitless)):
+        hull = visual_hull(silhouettes(cap))
+        sino = bin_sinogram(align_paths(absorption(cap), hull), n_theta=18, n_x=32, x_extent=1.02 * R)
+        results[name] = fbp(sino, hull).compute()
+        to_store(results[name], tmp_path / f"{name}.zarr", "reconstruction")  # the schema accepts it
+    got = open_store(tmp_path / "1.zarr")
+    assert got["x"].attrs["units"] == "1" and got["sigma"].attrs["units"] == "1"
+    assert open_store(tmp_path / "mm.zarr")["sigma"].attrs["units"] == "1/mm"
+    np.testing.assert_array_equal(got["sigma"].values, results["mm"]["sigma"].values)
