@@ -87,7 +87,8 @@ RIG_ATTRS = {
 #: Further attrs each camera model needs. ``principal_point_px`` is in every perspective store; a camera built
 #: from a config (``sensor_defaults``) may leave it out: it defaults to the sensor's centre.
 CAMERA_ATTRS: dict[str, tuple[str, ...]] = {
-    "perspective": ("focal_length_px", "principal_point_px", "camera_distance", "light_distance"),
+    # light_distance (D_l) is not required: a beam is a line, and where its source sits on it changes no ray
+    "perspective": ("focal_length_px", "principal_point_px", "camera_distance"),
     "orthographic": ("pixel_size",),
 }
 SENSOR_DEFAULTS = frozenset({"principal_point_px"})
@@ -442,8 +443,8 @@ def check_dataset(ds: xr.Dataset, kind: str) -> list[Problem]:
     >>> import numpy as np, xarray as xr
     >>> ds = xr.Dataset({"sigma": (("y", "x"), np.zeros((2, 2)))})
     >>> [p.message for p in check_dataset(ds, "reconstruction")]  # doctest: +NORMALIZE_WHITESPACE
-    ['dim y has no coordinate; it needs one with attrs units in [cm, m, mm, px, um]',
-     'dim x has no coordinate; it needs one with attrs units in [cm, m, mm, px, um]']
+    ['dim y has no coordinate; it needs one with attrs units in [1, cm, m, mm, px, um]',
+     'dim x has no coordinate; it needs one with attrs units in [1, cm, m, mm, px, um]']
     """
     if kind not in KINDS:
         known = ", ".join(sorted(KINDS))

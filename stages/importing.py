@@ -80,7 +80,7 @@ class TomographyImport(_Spec):
         None, description="perspective: [cx, cy] (column, row), px, in the convention of pixel_centres")
     camera_distance: float | None = Field(None, gt=0, description="perspective: D_c, camera to axis, length unit")
     light_distance: float | None = Field(None, gt=0, description="D_l, light source to axis, length unit "
-                                         "(a collimated beam: any value, e.g. 1; it only places the source)")
+                                         "(optional: it only places the beam's origin on its line)")
     pixel_size: float | None = Field(None, gt=0, description="orthographic: object-space size of a pixel")
     light_kind: Literal["beam", "sheet"] = Field("beam", description="a narrow beam, or a vertical light sheet")
     beam_height: float = Field(0.0, description="height of the beam above the stage's origin, length unit")
@@ -88,7 +88,7 @@ class TomographyImport(_Spec):
 
     @pydantic.model_validator(mode="after")
     def _camera(self) -> TomographyImport:
-        needs = {"perspective": ("focal_length_px", "camera_distance", "light_distance"),
+        needs = {"perspective": ("focal_length_px", "camera_distance"),
                  "orthographic": ("pixel_size",)}[self.camera_model]
         missing = [name for name in needs if getattr(self, name) is None]
         if missing:

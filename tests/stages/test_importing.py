@@ -40,7 +40,7 @@ def _export(ds: xr.Dataset, folder) -> dict:
     np.save(folder / "dark.npy", ds["dark"].values)
     angles = ds["angle"].values
     keep = ("camera_model", "light_angle_deg", "length_unit", "focal_length_px", "camera_distance",
-            "light_distance", "light_kind", "beam_height", "saturation_counts")
+            "light_kind", "beam_height", "saturation_counts")  # no light_distance: a collimated beam has none
     spec = {"kind": "tomography_capture",
             "frames": {"target": "target", "reference": "reference.npz:frames", "backlit": "scan.h5:/scan/backlit",
                        "dark": "dark.npy"},
@@ -63,6 +63,7 @@ def test_a_tomography_capture_from_four_file_formats_imports_as_the_rig_wrote_it
         np.testing.assert_array_equal(imported[name].values, original[name].values)  # bit for bit, frame order
     np.testing.assert_array_equal(imported["angle"].values, original["angle"].values)
     assert imported.attrs["principal_point_px"] == list(original.attrs["principal_point_px"])  # j + 0.5 → j
+    assert "light_distance" not in imported.attrs  # and nothing downstream needs it (the same absorption, below)
     # the stages read it as they read the rig's own store: the same absorption, the same hull
     workflow = tmp_path / "reprocess.yaml"
     workflow.write_text("workflow: reprocess\nsteps:\n"
@@ -75,6 +76,15 @@ def test_a_tomography_capture_from_four_file_formats_imports_as_the_rig_wrote_it
     expected = absorption(original)
     xr.testing.assert_allclose(open_store(tmp_path / "out" / "absorption.zarr")["absorption"].load(),
                                expected["absorption"].load())
+    # the rays traced through the imported geometry (no light_distance) are those of the rig's own store
+    from stages.tomography.hull import silhouettes, visual_hull
+    from stages.tomography.paths import align_paths
+
+    def rays(capture):
+        return align_paths(absorption(capture), visual_hull(silhouettes(capture))).compute()
+
+    xr.testing.assert_allclose(rays(imported)[["theta", "x", "absorption"]],
+                               rays(original)[["theta", "x", "absorption"]])
     # a second run reuses it; a changed frame changes the import's identity and recomputes
     assert run_workflow(load_workflow(workflow), progress=False).computed() == []
     tifffile.imwrite(tmp_path / "target" / "frame_3.tif", original["target"].values[3] + 1)
