@@ -220,6 +220,10 @@ def verify_store(path: str | os.PathLike) -> list[BadChunk]:
         bad.append(BadChunk(PROVENANCE_GROUP, None, f"unreadable ({_decode_error(exc.__cause__ or exc)})"))
     arrays, garbled = _readable_arrays(group, where)
     bad.extend(BadChunk(name, None, f"unreadable ({_decode_error(exc)})") for name, exc in garbled)
+    # a variable the manifest records whose array is gone (its zarr.json deleted, or replaced by a group's)
+    known = {name for name, _ in arrays} | {name for name, _ in garbled}
+    bad.extend(BadChunk(name, None, "missing (the manifest records it; no array of that name reads)")
+               for name in sorted(set(manifest.get("units", {})) - known))
     flags = {}
     for name, array in arrays:
         if name.startswith(WRITTEN_PREFIX):

@@ -5,7 +5,8 @@ and says in a small YAML *import spec* what they are: the cube kind, where each 
 geometry or timing the stages read, every field with its unit (:class:`TomographyImport`,
 :class:`PlaneToRayImport`; ``selpath schema`` shows neither, ``docs/format.md`` lists both). Frames are read
 lazily (one dask task per frame; ``.npy`` memory-mapped, HDF5 and image files opened per frame), so a capture
-larger than memory imports frame by frame. The spec's relative paths resolve against the spec's folder.
+larger than memory imports frame by frame; an ``.npz`` member is read whole (the format cannot be memory-mapped).
+The spec's relative paths resolve against the spec's folder.
 
 Pixel centres: selpath puts pixel j's centre at coordinate j (its area is [j − ½, j + ½]). A renderer or a
 calibration that puts it at j + ½ (pixel j spans [j, j + 1]: OpenGL, Mitsuba, many ray tracers) says
@@ -145,14 +146,41 @@ def _files(path: Path) -> list[Path]:
     return sorted(found, key=lambda p: _natural(p.name))
 
 
-def _read_image(file: Path) -> np.ndarray:
-    if file.suffix.lower() in (".tif", ".tiff"):
-        import tifffile
+def _read_image(file: Path, page: int | None = None) -> np.ndarray:
+    """One image file (or one page of a multi-page TIFF); a file that does not decode is named."""
+    try:
+        if file.suffix.lower() in (".tif", ".tiff"):
+            import tifffile
 
-        return tifffile.imread(file)
-    import imageio.v3 as iio
+            return tifffile.imread(file, key=page) if page is not None else tifffile.imread(file)
+        import imageio.v3 as iio
 
-    return np.asarray(iio.imread(file))
+        return np.asarray(iio.imread(file, plugin="pillow"))  # Pillow only: no guessing through other plugins
+    except (OSError, ValueError, KeyError, IndexError) as exc:
+        raise StageError(Problem(f"{file.name} cannot be read as an image ({type(exc).__name__}: {exc})",
+                                 where=os.fspath(file))) from None
+
+
+def _frame(file: Path, page: int | None, shape: tuple, dtype: np.dtype) -> np.ndarray:
+    """A frame of a stack, checked against the first frame's shape and dtype (a folder mixing 8- and 16-bit
+    files, or sizes, would otherwise be cast or broadcast silently)."""
+    image = _read_image(file, page)
+    if image.shape != shape or image.dtype != dtype:
+        raise StageError(Problem(f"{file.name}{'' if page is None else f' page {page}'} is {image.dtype} "
+                                 f"{image.shape}; the stack's first frame is {dtype} {shape}",
+                                 where=os.fspath(file), fix="frames of one stack share their size and bit depth"))
+    return image
+
+
+def _tiff_pages(file: Path) -> int:
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(file) as tiff:
+            return len(tiff.pages)
+    except (OSError, ValueError) as exc:
+        raise StageError(Problem(f"{file.name} cannot be read as a TIFF ({type(exc).__name__}: {exc})",
+                                 where=os.fspath(file))) from None
 
 
 class _HDF5Frames:
@@ -212,11 +240,15 @@ def read_frames(source: str, base: str | os.PathLike = ".", *, field: str = "") 
                                          f"files, or one of {', '.join(_ARRAY_SUFFIXES)})", where=where,
                                          fix="check the path in the import spec; relative paths start at the "
                                              "spec's folder"))
-            if len(files) == 1 and files[0].suffix.lower() in (".tif", ".tiff"):
-                array = _read_image(files[0])  # one file: a single frame or a multi-page stack
-            else:
-                first = _read_image(files[0])
-                frames = [da.from_delayed(dask.delayed(_read_image)(f), first.shape, first.dtype) for f in files]
+            pages = (_tiff_pages(files[0]) if len(files) == 1 and files[0].suffix.lower() in (".tif", ".tiff")
+                     else 0)
+            if len(files) == 1 and pages <= 1:
+                array = _read_image(files[0])  # one frame
+            else:  # a stack: one file per frame, or the pages of one TIFF, each read in its own task
+                parts = [(files[0], p) for p in range(pages)] if pages > 1 else [(f, None) for f in files]
+                first = _read_image(*parts[0])
+                frames = [da.from_delayed(dask.delayed(_frame)(f, p, first.shape, first.dtype), first.shape,
+                                          first.dtype) for f, p in parts]
                 return da.stack(frames)
     except FileNotFoundError as exc:
         raise StageError(Problem(f"no such file: {exc.filename or path}", where=where,
@@ -306,7 +338,7 @@ def _plane_to_ray(spec: PlaneToRayImport, base: Path) -> xr.Dataset:
 
 def spec_identity(settings) -> dict[str, str]:
     """The spec's text and every byte of the frames it names (SHA-256; never paths or modification times)."""
-    path = Path(settings.spec)
+    path = Path(settings.spec).resolve()  # as import_capture reads it: a symlinked spec's frames lie by its target
     digest = hashlib.sha256(path.read_bytes() if path.is_file() else b"")
     try:
         spec = read_spec(path)

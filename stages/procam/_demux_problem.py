@@ -278,8 +278,10 @@ def certified_gap(problem: DemuxProblem | SeparableDemuxProblem, transport: np.n
     constraint u ≤ 0, which its gradient u = 2 min(0, AT − y), every θ ≥ 0 and a shift on unclipped frames keep.
     """
     t = np.asarray(transport, np.float64)
+    if weight is not None:  # a frame is observed or not (the solver's rule): a fractional weight is not this QP's
+        weight = (np.asarray(weight) > 0).astype(np.float64)
     residual, target = _residual(problem, t, data, weight, clipped)
-    w = np.ones_like(target) if weight is None else np.asarray(weight, np.float64)
+    w = np.ones_like(target) if weight is None else weight
     e = w if clipped is None else w * ~np.asarray(clipped, bool)
     u = 2.0 * residual
     if isinstance(problem, SeparableDemuxProblem):

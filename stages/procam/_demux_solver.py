@@ -137,7 +137,9 @@ class DemuxADMM:
     its residuals say (checked at the warm start, where such a pixel is not iterated at all, and at the end);
     ``finish_rounds``: exact active-set rounds (float64 free-set solves, :mod:`stages.procam._demux_finish`) on
     the pixels whose bound still exceeds ``gap_tol`` after the polish (dense problems; masked and clipped frames
-    included); with it, ``converged`` means certified: bound ≤ ``gap_tol``, always (0: none, the default while it
+    included); with it, ``converged`` means certified: bound ≤ ``gap_tol`` (in float64 for every pixel the finish
+    touched; a pixel certified before it by the solver's float32 bound may read up to ~1 % above ``gap_tol`` in
+    float64) (0: none, the default while it
     costs several times ADMM's time; 16 certifies every pixel of every case of ``benchmarks/demux_catalogue.py``
     to 1e-4);
     ``slots``: rows of the streaming batch (None: :func:`batch_slots`);

@@ -147,6 +147,15 @@ def test_capture_damage_that_is_no_frame_is_named_and_nothing_is_changed(tmp_pat
     assert {p: p.read_bytes() for p in store.rglob("*") if p.is_file()} == before
 
 
+def test_an_array_whose_metadata_was_deleted_is_listed_by_verify(tmp_path):
+    """Review finding: with a variable's zarr.json deleted the array vanished from the group's listing and verify
+    said every chunk reads, while opening the store said the variable is missing."""
+    store = tmp_path / "sinogram.zarr"
+    to_store(minimal("sinogram"), store, "sinogram")
+    (store / "absorption" / "zarr.json").unlink()
+    assert [(b.variable, b.chunk) for b in verify_store(store)] == [("absorption", None)]
+
+
 def test_a_garbled_provenance_record_is_named_and_the_store_kept(tmp_path):
     """A torn ``_selpath/zarr.json`` raised a raw JSONDecodeError from loading the workflow. Now the output check
     names it, and the store (whose owner can no longer be proven) is neither trusted nor replaced."""

@@ -155,3 +155,41 @@ def test_frames_are_read_lazily_one_task_per_frame(original, tmp_path):
     h5 = read_frames("scan.h5:/scan/backlit", tmp_path)
     assert h5.numblocks[0] == original.sizes["angle"]
     np.testing.assert_array_equal(h5[5].compute(), original["backlit"].values[5])
+
+
+def test_a_stack_mixing_bit_depths_or_sizes_or_a_broken_file_is_named(tmp_path):
+    """Review finding: dask took every frame's dtype from the first file, so a 16-bit frame after an 8-bit one
+    came back as uint8 (301 → 45) without a word; a broken file was an 'unexpected' error."""
+    import imageio.v3 as iio
+
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    iio.imwrite(folder / "f_0.png", np.full((4, 5), 7, np.uint8))
+    iio.imwrite(folder / "f_1.png", np.full((4, 5), 301, np.uint16))
+    with pytest.raises(StageError, match=r"f_1.png is uint16 \(4, 5\); the stack's first frame is uint8 \(4, 5\)"):
+        read_frames("frames", tmp_path).compute()
+    (folder / "f_1.png").write_bytes(b"not a png")
+    with pytest.raises(StageError, match="f_1.png cannot be read as an image"):
+        read_frames("frames", tmp_path).compute()
+
+
+def test_a_multi_page_tiff_is_read_page_by_page(original, tmp_path):
+    tifffile.imwrite(tmp_path / "stack.tif", original["target"].values)
+    stack = read_frames("stack.tif", tmp_path)
+    assert stack.numblocks[0] == original.sizes["angle"]  # one task per page, nothing read whole
+    np.testing.assert_array_equal(stack.compute(), original["target"].values)
+
+
+def test_a_symlinked_spec_is_identified_by_the_frames_it_reads(original, tmp_path):
+    """Review finding: the identity hashed frames beside the link while the import read those beside its target,
+    so changed frames were never seen and a re-run reused a stale import."""
+    from stages.importing import spec_identity
+
+    real = tmp_path / "real"
+    real.mkdir()
+    _export(original, real)
+    (tmp_path / "link.yaml").symlink_to(real / "spec.yaml")
+    settings = type("Settings", (), {"spec": str(tmp_path / "link.yaml")})()
+    before = spec_identity(settings)
+    np.save(real / "dark.npy", original["dark"].values + 1)
+    assert spec_identity(settings) != before

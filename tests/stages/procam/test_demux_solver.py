@@ -280,3 +280,19 @@ def test_an_active_set_polish_round_lowers_the_worst_gap():
         f = problem.objective(DemuxADMM(polish_rounds=rounds).solve(problem, data).value, data)
         gaps[rounds] = (f - optimum) / f
     assert gaps[2].max() < 0.5 * gaps[1].max() and np.all(gaps[2] <= gaps[1] + 1e-6)
+
+
+def test_the_bound_reads_a_weight_as_observed_or_not():
+    """Review finding: a fractional weight (0.5) made the public certified_gap bound another objective than the
+    QP's and read 0 where f ≫ f*. A weight says only whether a frame is observed, as in the solver."""
+    from stages.procam._demux_problem import certified_gap
+
+    delays, exposures, offsets = CASES["well-posed"]
+    a = sweep_matrix(delays, exposures, offsets)
+    data = sparse_transport(np.random.default_rng(3), 8, offsets) @ a.T
+    problem = DemuxProblem.build(a)
+    wrong = np.zeros((8, len(offsets)))  # T = 0: far from optimal
+    half = np.where(np.arange(a.shape[0]) % 3 == 0, 0.0, 0.5) * np.ones((8, 1))
+    np.testing.assert_array_equal(certified_gap(problem, wrong, data, half),
+                                  certified_gap(problem, wrong, data, half > 0))
+    assert np.all(certified_gap(problem, wrong, data, half) > 0.5)
