@@ -311,7 +311,8 @@ def _print_archive(folder: Path) -> None:
         made = row["workflow"] is not None
         created = str(row["created"] or "")[:16].replace("T", " ")
         table.add_row(*(escape(str(row[k])) for k in ("store", "kind")),
-                      *((escape(str(row["workflow"])), escape(str(row["output"])), created) if made else
+                      *(("[red]provenance record unreadable[/]", "", "") if row.get("problem") else
+                        (escape(str(row["workflow"])), escape(str(row["output"])), created) if made else
                         ("[dim]outside a workflow[/]", "", "")))
     console.print(table)
     console.print("selpath inspect STORE shows one store in full, with its provenance.")

@@ -19,6 +19,7 @@ import numpy as np
 import zarr
 
 from pipeline import remote
+from pipeline.errors import StoreError
 from pipeline.integrity import PROVENANCE_GROUP, consolidate, open_group, unreadable_record
 
 
@@ -92,7 +93,8 @@ def store_identity(path: str | os.PathLike) -> dict[str, Any]:
 def archive_stores(folder: str | os.PathLike) -> list[dict[str, Any]]:
     """Every selpath store under ``folder`` (not descending into stores, skipping staging leftovers), with what
     its provenance says: path relative to the folder, kind, workflow, output, stage, creation time and whether a
-    workflow or another writer made it. Reads metadata only."""
+    workflow or another writer made it (``problem``: why its provenance record cannot be read, else None). Reads
+    metadata only."""
     from pipeline.outputs import is_selpath_store
 
     root = Path(folder)
@@ -101,10 +103,14 @@ def archive_stores(folder: str | os.PathLike) -> list[dict[str, Any]]:
     def visit(path: Path) -> None:
         if is_selpath_store(path):
             attrs = json.loads((path / "zarr.json").read_text()).get("attributes") or {}
-            prov = read_provenance(path) or {}
+            try:
+                prov, problem = read_provenance(path) or {}, None
+            except StoreError as exc:  # one garbled record: listed as such, the others still listed
+                prov, problem = {}, exc.problems[0].message
             found.append({"store": path.relative_to(root).as_posix() or ".", "kind": attrs.get("selpath_kind"),
                           "workflow": prov.get("workflow"), "output": prov.get("output"),
-                          "stage": (prov.get("step_record") or {}).get("stage"), "created": prov.get("created")})
+                          "stage": (prov.get("step_record") or {}).get("stage"), "created": prov.get("created"),
+                          "problem": problem})
             return
         for child in sorted(path.iterdir()):
             if child.is_dir() and not child.is_symlink() and not child.name.startswith("."):

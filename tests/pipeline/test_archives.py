@@ -225,6 +225,14 @@ def test_inspect_lists_an_archives_stores_with_their_provenance(archive, monkeyp
     assert all(store in result.output for store in rows)
     assert "small-absorption" in result.output and "reprocess" in result.output
 
+    # review finding: one store with a garbled provenance record made the whole listing fail
+    (archive / "results" / "again.zarr" / "_selpath" / "zarr.json").write_text("{")
+    rows = {r["store"]: r for r in archive_stores(archive)}
+    assert len(rows) == 5 and "cannot be read" in rows["results/again.zarr"]["problem"]
+    assert rows["out/absorption.zarr"]["problem"] is None
+    result = CliRunner().invoke(app, ["inspect", str(archive)])
+    assert result.exit_code == 0 and "provenance record unreadable" in result.output, result.output
+
 
 def _unprivileged() -> list[str] | None:
     """The command prefix that runs a process as ``nobody`` without capabilities (setpriv), if this runs as root,
