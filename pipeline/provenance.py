@@ -67,11 +67,16 @@ def content_digest(path: str | os.PathLike) -> str:
     digest = hashlib.sha256()
     root = Path(path)
     for file in sorted(p for p in root.rglob("*") if p.is_file()):
-        digest.update(f"{file.relative_to(root).as_posix()}:{file.stat().st_size}\n".encode())
-        with file.open("rb") as handle:
-            while block := handle.read(_BLOCK):
-                digest.update(block)
+        hash_file(digest, file, file.relative_to(root).as_posix())
     return digest.hexdigest()
+
+
+def hash_file(digest, file: Path, name: str) -> None:
+    """Feed ``name``, the file's size and every byte of ``file`` into ``digest`` (a hashlib object)."""
+    digest.update(f"{name}:{file.stat().st_size}\n".encode())
+    with file.open("rb") as handle:
+        while block := handle.read(_BLOCK):
+            digest.update(block)
 
 
 def store_identity(path: str | os.PathLike) -> dict[str, Any]:

@@ -31,6 +31,7 @@ import xarray as xr
 from pydantic import BaseModel, ConfigDict, Field
 
 from pipeline.errors import Problem, SelpathError, StageError
+from pipeline.provenance import hash_file
 from pipeline.registry import stage
 from pipeline.schema import LENGTH_UNITS
 from pipeline.spec import StorePath
@@ -203,16 +204,22 @@ class _HDF5Frames:
             return handle[self.key][index]
 
 
+def _split_source(source: str, base: str | os.PathLike) -> tuple[Path, str | None]:
+    """(the file or folder, the ``.npz`` member or HDF5 dataset or None) a frames source names; relative paths
+    resolve against ``base``."""
+    text, key = source, None
+    match = re.match(r"^(?P<path>.+?\.(?:npz|h5|hdf5)):(?P<key>.+)$", source, re.IGNORECASE)
+    if match:
+        text, key = match["path"], match["key"]
+    return (Path(text) if Path(text).is_absolute() else Path(base) / text), key
+
+
 def read_frames(source: str, base: str | os.PathLike = ".", *, field: str = "") -> da.Array:
     """The frames ``source`` names, lazily: ``path`` (a folder or glob of TIFF/PNG files, one frame each, in
     natural name order; a multi-page TIFF; ``.npy``), ``path.npz:member`` or ``path.h5:/dataset``. Relative paths
     resolve against ``base``. One chunk per frame (the leading axis); ``field`` names the spec field in errors."""
     where = f"import spec field {field}" if field else source
-    text, key = source, None
-    match = re.match(r"^(?P<path>.+?\.(?:npz|h5|hdf5)):(?P<key>.+)$", source, re.IGNORECASE)
-    if match:
-        text, key = match["path"], match["key"]
-    path = Path(text) if Path(text).is_absolute() else Path(base) / text
+    path, key = _split_source(source, base)
     suffix = path.suffix.lower()
     try:
         if suffix == ".npy":
@@ -223,12 +230,12 @@ def read_frames(source: str, base: str | os.PathLike = ".", *, field: str = "") 
                 if key is None and len(names) == 1:
                     key = names[0]
                 if key not in names:
-                    raise StageError(Problem(f"{path.name} has members {names}; name one as {text}:<member>",
+                    raise StageError(Problem(f"{path.name} has members {names}; name one as {source.rsplit(':', 1)[0] if key else source}:<member>",
                                              where=where))
                 array = members[key]
         elif suffix in (".h5", ".hdf5"):
             if key is None:
-                raise StageError(Problem(f"an HDF5 file needs its dataset: {text}:/path/to/dataset", where=where))
+                raise StageError(Problem(f"an HDF5 file needs its dataset: {source}:/path/to/dataset", where=where))
             try:
                 array = _HDF5Frames(path, key)
             except KeyError:
@@ -345,14 +352,9 @@ def spec_identity(settings) -> dict[str, str]:
     except Exception:  # noqa: BLE001 - the precheck reports it
         return {"spec_sha256": digest.hexdigest()}
     for source in spec.frames.model_dump(exclude_none=True).values():
-        text = re.sub(r"\.(npz|h5|hdf5):.*$", r".\1", source, flags=re.IGNORECASE)
-        target = Path(text) if Path(text).is_absolute() else path.parent / text
-        files = [target] if target.is_file() else _files(target)
-        for file in files:
-            digest.update(f"{file.name}:{file.stat().st_size}\n".encode())
-            with file.open("rb") as handle:
-                while block := handle.read(1 << 20):
-                    digest.update(block)
+        target, _ = _split_source(source, path.parent)
+        for file in [target] if target.is_file() else _files(target):
+            hash_file(digest, file, file.name)
     return {"spec_and_frames_sha256": digest.hexdigest()}
 
 
