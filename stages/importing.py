@@ -230,7 +230,8 @@ def read_frames(source: str, base: str | os.PathLike = ".", *, field: str = "") 
                 if key is None and len(names) == 1:
                     key = names[0]
                 if key not in names:
-                    raise StageError(Problem(f"{path.name} has members {names}; name one as {source.rsplit(':', 1)[0] if key else source}:<member>",
+                    named = source.rsplit(":", 1)[0] if key else source
+                    raise StageError(Problem(f"{path.name} has members {names}; name one as {named}:<member>",
                                              where=where))
                 array = members[key]
         elif suffix in (".h5", ".hdf5"):
