@@ -174,6 +174,26 @@ KINDS: dict[str, CubeKind] = {
             attr_checks=(camera_attr_problems,),
         ),
         CubeKind(
+            name="rig_calibration",
+            description="the tomography rig's axis column and light angle θ_l estimated from a capture "
+            "(calibrate_rig); its attrs are the corrected geometry",
+            variables={
+                "axis_column": Variable((), False, "principal point's column: where the axis is seen", units="px",
+                                        long_name="column the rotation axis is seen in"),
+                "axis_column_std": Variable((), False, "standard uncertainty", units="px",
+                                            long_name="standard uncertainty of axis_column"),
+                "light_angle": Variable((), False, "θ_l", units="degree", long_name="light angle θ_l"),
+                "light_angle_std": Variable((), False, "standard uncertainty", units="degree",
+                                            long_name="standard uncertainty of θ_l"),
+                "light_cost": Variable(("light_angle_trial",), False, "θ_l profile", units="1",
+                                       long_name="mean squared disagreement of reversed chords"),
+            },
+            coord_units={"light_angle_trial": ANGLE_UNITS},
+            attrs={**RIG_ATTRS, "stated_principal_point_px": "(col, row) principal point the capture stated, px",
+                   "stated_light_angle_deg": "θ_l the capture stated, degree"},
+            attr_checks=(camera_attr_problems,),
+        ),
+        CubeKind(
             name="absorption",
             description="total absorption A = log I_reference − log I_target per pixel, with flags",
             variables={

@@ -107,7 +107,7 @@ def simulated_rig(scene: Scene) -> TomographyRig:
     stage = SimRotaryStage()
     beam, backlight, samples = SimLight("beam"), SimLight("backlight"), SimSampleChanger()
     camera = SimCamera(scene, stage, beam, backlight, samples)
-    attrs = scene.geometry().attrs() | {
+    attrs = scene.stated_geometry().attrs() | {
         "saturation_counts": scene.sensor.saturation_level,
         "rig": "simulated",
         "scene": scene.scene,

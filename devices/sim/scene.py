@@ -16,6 +16,7 @@ names** under ``effects:`` (``scattering``, ``noise``); an unknown effect is an 
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import math
 import os
@@ -216,9 +217,25 @@ class OrthographicCameraSpec(_Model):
     rows: int = pydantic.Field(gt=0)
     cols: int = pydantic.Field(gt=0)
     pixel_size: Annotated[Length, pydantic.Field(gt=0)]
+    principal_point: tuple[Pixels, Pixels] | None = pydantic.Field(
+        None, description="(col, row) where the rotation axis and the height 0 are seen; default: the centre")
 
     def build(self) -> OrthographicCamera:
-        return OrthographicCamera(rows=self.rows, cols=self.cols, pixel_size=self.pixel_size)
+        return OrthographicCamera(rows=self.rows, cols=self.cols, pixel_size=self.pixel_size,
+                                  principal_point_px=self.principal_point)
+
+
+class Stated(_Model):
+    """What the rig's records say where they differ from the truth the simulator renders: a miscalibrated rig.
+
+    The frames show the scene's ``light`` and ``camera``; the capture's attrs record these values instead, as a
+    lab's notes would after the beam or the stage was moved (``calibrate_rig`` recovers the truth).
+    """
+
+    light_angle: Annotated[Angle, pydantic.Field(ge=0, le=180)] | None = pydantic.Field(
+        None, description="θ_l the records give")
+    principal_point: tuple[Pixels, Pixels] | None = pydantic.Field(
+        None, description="(col, row) the records give for the principal point (col: the rotation axis's column)")
 
 
 class Sensor(_Model):
@@ -274,6 +291,7 @@ class Scene(_Model):
     camera: Annotated[PerspectiveCameraSpec | OrthographicCameraSpec, pydantic.Field(discriminator="model")]
     sensor: Sensor = Sensor()
     effects: Effects = Effects()
+    stated: Stated | None = pydantic.Field(None, description="a miscalibrated rig: what its records say instead")
 
     @pydantic.model_validator(mode="after")
     def _scattering_needs_beam(self):
@@ -286,6 +304,17 @@ class Scene(_Model):
         return RigGeometry(self.camera.build(), light_angle_deg=self.light.angle, length_unit="mm",
                            light_distance=self.light.distance, light_kind=self.light.kind,
                            beam_height=self.light.height)
+
+    def stated_geometry(self) -> RigGeometry:
+        """The rig geometry the capture's attrs record: :meth:`geometry` unless ``stated`` overrides a value."""
+        geometry = self.geometry()
+        if self.stated is None:
+            return geometry
+        camera = geometry.camera
+        if self.stated.principal_point is not None:
+            camera = dataclasses.replace(camera, principal_point_px=tuple(self.stated.principal_point))
+        angle = self.stated.light_angle if self.stated.light_angle is not None else geometry.light_angle_deg
+        return dataclasses.replace(geometry, camera=camera, light_angle_deg=angle)
 
     def body(self) -> Prism:
         half = self.object.height / 2.0

@@ -1,0 +1,599 @@
+"""Geometric calibration of the tomography rig from its own capture (§4.2.5–4.2.6): where the rotation axis is
+seen, and the light's angle θ_l. No calibration target is needed; both come from consistency the rig's geometry
+must show, so a wrong value shows as a contradiction in the data.
+
+**Rotation-axis column** (``axis_column``, the principal point's column: the camera is aimed at the axis,
+:mod:`devices.geometry`). Each backlit silhouette's outer edge in a camera row is a ray tangent to the object's
+slice, i.e. a sample ``h = H(ψ)`` of the slice's support function H (the largest ``n(ψ)·p`` over the slice, n the
+tangent's outward normal in the object frame). Over a turn the left edges and the right edges sample the same H;
+seen from a wrong axis column they disagree by twice the error (in length at the axis). The fit minimises, per
+row, the left samples minus the right samples interpolated at the same ψ (and the reverse), as TomoPy's
+``find_center`` compares opposite projections, but exact under perspective and for any convex object. Edges are
+sub-pixel: where the backlit signal crosses halfway between the object's and the lit plane's levels (on a sensor
+that renders pixels all-or-nothing that is the pixel's edge, and an object off the axis dithers it over the turn).
+
+**Light angle θ_l** (``light_angle_deg``). The beam passes the axis (the rig points light and camera at it,
+§4.2.5, Fig. 13), so at stage angle φ it enters the slice's contour at the point of polar angle 90° − θ_l − φ
+(object frame). A pixel at (φ, c) sees the chord from that entry point to its exit point p_c; the same chord run
+backwards (entry p_c, exit the first entry point) is seen at the stage angle φ' = 90° − θ_l − arg p_c, in the
+column that sees the first entry point. Under the shortest-path model both carry the same absorption. With a
+wrong θ_l the pairs are wrong and disagree wherever the absorption varies (an inclusion); the fit minimises the
+absorption at (φ, c) minus the absorption interpolated (bilinearly in angle and column) at (φ', c'). A profile
+of the mean squared disagreement over ``stated ± search_deg`` finds the basin; least squares refines it.
+
+Both fits are least squares (Levenberg–Marquardt, scipy: the residuals are cheap numpy, a JAX trace cost seconds
+per fit) with the standard uncertainty s²(JᵀJ)⁻¹, s² the residual variance. Neighbouring residuals are not
+independent, so each uncertainty adds what the data cannot average away: the axis's is inflated by √(rows used)
+(a prism's rows repeat one silhouette) and floored by the edge quantisation, 1/√(12·n) px for n distinct sub-pixel
+edge positions (an object centred on the axis has edges that never move: n = 1, 0.29 px); θ_l's is inflated by √8
+(one absorption sample enters about four bilinear pairs, each pair twice), and adds, in quadrature, the spread of
+θ_l fitted on each quarter turn's pairs (the hull's error varies with direction) and how far θ_l moves when the axis
+moves by its uncertainty. On the test rigs the errors lie within 1.5 of these uncertainties.
+
+Assumed and not estimated: the focal length (or pixel size), the camera distance, the beam's height, and that the
+beam passes the axis (a beam offset from the axis is not in the rig model, DESIGN §8).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+import xarray as xr
+from scipy.optimize import least_squares
+from skimage.filters import threshold_otsu
+
+from devices.geometry import OrthographicCamera, PerspectiveCamera, RigGeometry, geometry_attrs
+from devices.sim.shapes import convex_polygon
+from pipeline.constraints import Count, NonNegative, Positive
+from pipeline.errors import Problem, StageError
+from pipeline.registry import stage
+from stages._common import require_variables, sorted_sweep
+from stages.tomography.calibrate import absorption as absorption_stage
+from stages.tomography.hull import intersect_half_planes, object_masks, silhouette_half_planes
+
+#: sweeps must cover a full turn (within this, degree) for the axis and light fits to pair opposite views
+FULL_TURN_TOLERANCE = 1e-6
+#: the θ_l profile's median must lie this far above its minimum (noise alone: about 3 %; the test rig's stick: 10×)
+MIN_PROFILE_DEPTH = 0.25
+
+
+# -- silhouette edges ---------------------------------------------------------------------------------------
+def silhouette_edges(signal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-pixel outer edges (left, right) of the silhouette in each row of backlit frames, NaN where unusable.
+
+    ``signal``: backlit counts above dark, (angle, row, col). Per frame, the level halfway between the means of
+    the object and the lit plane (Otsu's split, then the midpoint of the two classes' means) separates them; an
+    edge is where the signal crosses that level between the outermost object pixel and its lit neighbour
+    (linear interpolation between their centres: the pixel's edge on an all-or-nothing sensor). A row whose
+    object is absent, is not one run of pixels, or touches that side of the image gives NaN.
+    """
+    signal = np.asarray(signal, np.float64)
+    n_angle, n_row, n_col = signal.shape
+    left, right = np.full((n_angle, n_row), np.nan), np.full((n_angle, n_row), np.nan)
+    cols = np.arange(n_col)
+    for a, frame in enumerate(signal):
+        values = frame[np.isfinite(frame)]
+        if not values.size or np.ptp(values) <= 0:
+            continue
+        split = threshold_otsu(values)
+        low, high = values[values < split], values[values >= split]
+        if not low.size or not high.size:
+            continue
+        half = 0.5 * (low.mean() + high.mean())
+        inside = np.isfinite(frame) & (frame < half)
+        any_on = inside.any(axis=1)
+        first = np.where(any_on, inside.argmax(axis=1), -1)
+        last = np.where(any_on, n_col - 1 - inside[:, ::-1].argmax(axis=1), -1)
+        run = (cols[None, :] >= first[:, None]) & (cols[None, :] <= last[:, None])
+        one_run = any_on & (inside == run).all(axis=1)
+        rows = np.arange(n_row)
+        cover = np.clip((high.mean() - frame) / (high.mean() - low.mean()), 0.0, 1.0)  # share the object hides
+        ok_l = one_run & (first > 0)
+        r = rows[ok_l]
+        left[a, r] = first[ok_l] + 0.5 - cover[r, first[ok_l] - 1] - cover[r, first[ok_l]]
+        ok_r = one_run & (last < n_col - 1)
+        r = rows[ok_r]
+        right[a, r] = last[ok_r] - 0.5 + cover[r, last[ok_r]] + cover[r, last[ok_r] + 1]
+    return left, right
+
+
+# -- the camera in JAX: a slice's tangent rays and projection ----------------------------------------------
+@dataclass(frozen=True)
+class _SliceCamera:
+    """The x–y slice model of :meth:`devices.geometry.Camera.slice_rays` with the axis column ``cx`` free."""
+
+    model: str
+    scale: float  # focal length [px] (perspective) or pixel size [length] (orthographic)
+    distance: float  # camera distance [length]; 0 for orthographic
+
+    @classmethod
+    def of(cls, camera) -> _SliceCamera:
+        if isinstance(camera, PerspectiveCamera):
+            return cls("perspective", float(camera.focal_length_px), float(camera.camera_distance))
+        if isinstance(camera, OrthographicCamera):
+            return cls("orthographic", float(camera.pixel_size), 0.0)
+        raise StageError(Problem(f"calibrate_rig: no slice model for a {camera.model} camera"))
+
+    def rays(self, col, cx):
+        """Origins and directions (per unit depth) in lab (x, y) of sub-pixel columns, as slice_rays gives them."""
+        zeros = np.zeros_like(col)
+        if self.model == "perspective":
+            return (np.stack([zeros, zeros - self.distance], -1),
+                    np.stack([(col - cx) / self.scale, zeros + 1.0], -1))
+        return np.stack([(col - cx) * self.scale, zeros], -1), np.stack([zeros, zeros + 1.0], -1)
+
+    def column(self, q, cx):
+        """Sub-pixel column where lab points q (…, 2) are seen."""
+        if self.model == "perspective":
+            return cx + self.scale * q[..., 0] / (q[..., 1] + self.distance)
+        return cx + q[..., 0] / self.scale
+
+
+def _support_samples(edges, phi, side, cx, camera: _SliceCamera):
+    """(ψ, h) of the tangent lines through sub-pixel edge columns at stage angles φ [rad]; side −1 left, +1 right."""
+    origin, direction = camera.rays(edges, cx)
+    n_lab = side * np.stack([direction[..., 1], -direction[..., 0]], -1)
+    n_lab = n_lab / np.linalg.norm(n_lab, axis=-1, keepdims=True)
+    h = np.sum(n_lab * origin, -1)
+    c, s = np.cos(phi), np.sin(phi)  # object frame: Rᵀ(φ)·n
+    n_obj = np.stack([c * n_lab[..., 0] + s * n_lab[..., 1], -s * n_lab[..., 0] + c * n_lab[..., 1]], -1)
+    return np.arctan2(n_obj[..., 1], n_obj[..., 0]), h
+
+
+def _axis_residuals(cx, rows_data, camera: _SliceCamera):
+    pieces = []
+    for phi_l, e_l, phi_r, e_r, keep_l, keep_r in rows_data:
+        psi_l, h_l = _support_samples(e_l, phi_l, -1.0, cx, camera)
+        psi_r, h_r = _support_samples(e_r, phi_r, 1.0, cx, camera)
+        pieces.append((h_l - np.interp(psi_l, psi_r, h_r, period=2 * np.pi))[keep_l])
+        pieces.append((h_r - np.interp(psi_r, psi_l, h_l, period=2 * np.pi))[keep_r])
+    return np.concatenate(pieces)
+
+
+def _near(psi: np.ndarray, others: np.ndarray, gap: float) -> np.ndarray:
+    """Whether each angle ψ has a sample of ``others`` within ``gap`` on both sides (periodic)."""
+    grid = np.sort(np.mod(others, 2 * np.pi))
+    x = np.mod(psi, 2 * np.pi)
+    k = np.searchsorted(grid, x)
+    below = np.where(k > 0, x - grid[np.maximum(k - 1, 0)], x - (grid[-1] - 2 * np.pi))
+    above = np.where(k < len(grid), grid[np.minimum(k, len(grid) - 1)] - x, grid[0] + 2 * np.pi - x)
+    return (below <= gap) & (above <= gap)
+
+
+@dataclass(frozen=True)
+class Fit:
+    """A least-squares fit: values, standard uncertainties, residual RMS, residuals used."""
+
+    value: np.ndarray
+    std: np.ndarray
+    rms: float
+    count: int
+    converged: bool
+
+
+def _least_squares(residuals, start, inflation: float, step: float = 1e-4) -> Fit:
+    """Levenberg–Marquardt (scipy's MINPACK, central differences of ``step``) from ``start``; standard
+    uncertainties s²(JᵀJ)⁻¹ × ``inflation``², s² the residual variance."""
+    x0 = np.atleast_1d(np.asarray(start, float))
+    solution = least_squares(residuals, x0, method="lm", jac="3-point", diff_step=step, xtol=1e-12, ftol=1e-12)
+    r, jac = solution.fun, solution.jac
+    s2 = float(r @ r) / max(len(r) - len(x0), 1)
+    cov = s2 * np.linalg.pinv(jac.T @ jac)
+    std = np.sqrt(np.clip(np.diag(cov), 0, None)) * inflation
+    return Fit(solution.x, std, float(np.sqrt(np.mean(r**2))) if len(r) else np.nan, len(r), bool(solution.success))
+
+
+def fit_axis_column(left: np.ndarray, right: np.ndarray, angles_deg: np.ndarray, camera, start: float) -> Fit:
+    """The axis column from silhouette edges (angle, row) over a full turn; ``camera`` gives the rest."""
+    model = _SliceCamera.of(camera)
+    phi = np.deg2rad(np.asarray(angles_deg, float))
+    step = np.deg2rad(np.median(np.diff(np.sort(angles_deg)))) if len(angles_deg) > 1 else np.pi
+    rows_data = []
+    for r in range(left.shape[1]):
+        ok_l, ok_r = np.isfinite(left[:, r]), np.isfinite(right[:, r])
+        if ok_l.sum() < 8 or ok_r.sum() < 8:
+            continue
+        psi_l, _ = _support_samples(left[ok_l, r], phi[ok_l], -1.0, start, model)
+        psi_r, _ = _support_samples(right[ok_r, r], phi[ok_r], 1.0, start, model)
+        keep_l, keep_r = _near(psi_l, psi_r, 2.5 * step), _near(psi_r, psi_l, 2.5 * step)
+        if keep_l.sum() + keep_r.sum() < 8:
+            continue
+        rows_data.append((phi[ok_l], left[ok_l, r], phi[ok_r], right[ok_r, r], keep_l, keep_r))
+    if not rows_data:
+        raise StageError(Problem("calibrate_rig: no camera row has silhouette edges on both sides over the turn",
+                                 fix="the object must stay inside the image in the backlit frames (none touching "
+                                 "its sides) over a full turn; check the backlit and dark frames"))
+    fit = _least_squares(lambda p: _axis_residuals(p[0], rows_data, model), start, np.sqrt(len(rows_data)))
+    # edges that never move (an object centred on the axis) keep their quantisation error (±½ px on an
+    # all-or-nothing sensor) however many views there are: count the distinct sub-pixel edge positions per side
+    distinct = min(len(np.unique(np.round(np.asarray(d[k]) * 20) / 20)) for d in rows_data for k in (1, 3))
+    floor = 1.0 / np.sqrt(12.0 * distinct)
+    return Fit(fit.value, np.hypot(fit.std, floor), fit.rms, fit.count, fit.converged)
+
+
+# -- the light angle ----------------------------------------------------------------------------------------
+def _edge_at(corners, beta):
+    """Index of the contour edge a ray from the axis at polar angle β crosses (``corners``: the vertices' polar
+    angles, increasing from the first vertex, which has the smallest; edge k runs from vertex k to k + 1)."""
+    k = np.searchsorted(corners, np.mod(beta - corners[0], 2 * np.pi) + corners[0], side="right") - 1
+    return np.mod(k, len(corners))
+
+
+def _radius(normals, offsets, corners, beta):
+    """Distance from the axis to a convex polygon (containing the axis) along polar angles β [rad]."""
+    k = _edge_at(corners, beta)
+    n = normals[k]
+    return offsets[k] / (n[..., 0] * np.cos(beta) + n[..., 1] * np.sin(beta))
+
+
+@dataclass(frozen=True)
+class _LightData:
+    """One slice's pairs for the θ_l fit (angles in radians, everything float64)."""
+
+    table: np.ndarray  # (angle + 1, col) absorption, the first angle repeated at the end; NaN → 0
+    valid: np.ndarray  # (angle + 1, col) bool
+    phi: np.ndarray  # (P,) stage angle of each source pixel
+    exit: np.ndarray  # (P, 2) its exit point on the contour (object frame)
+    ray: np.ndarray  # (P, 2) the pixel's unit ray direction (object frame)
+    ray_cos: np.ndarray  # (P,) n·ray at the exit point (n: that edge's outward normal; negative)
+    value: np.ndarray  # (P,) its absorption
+    normals: np.ndarray  # (E, 2) outward normals of the contour's edges, edge k from vertex k to k + 1
+    offsets: np.ndarray  # (E,) n·p on edge k
+    corners: np.ndarray  # (E,) polar angles of the vertices, increasing (vertex 0 has the smallest)
+    phi0: float
+    step: float
+
+
+def _conjugates(params, data: _LightData, cx, camera: _SliceCamera, pixel: float):
+    """Fractional (angle index, column) where each pair's reversed chord is seen, and its exit point (lab).
+
+    ``params``: θ_l [degree] and the contour's outward offset [pixels at the axis]: the hull of binary silhouettes
+    is off by up to half a pixel, and the pairs are sensitive to it (0.1 mm moves θ_l by 0.4° on the test rig)."""
+    theta, offset = np.deg2rad(params[0]), params[1] * pixel
+    light = np.pi / 2 - theta
+    exit_ = data.exit + data.ray * (offset / data.ray_cos)[..., None]  # the moved edge meets the pixel's ray
+    phi_c = light - np.arctan2(exit_[..., 1], exit_[..., 0])  # stage angle whose beam enters at the exit point
+    beta = light - data.phi  # polar angle of the first chord's entry point (object frame)
+    radius = _radius(data.normals, data.offsets + offset, data.corners, beta)
+    entry = radius[..., None] * np.stack([np.cos(beta), np.sin(beta)], -1)
+    c, s = np.cos(phi_c), np.sin(phi_c)
+    q = np.stack([c * entry[..., 0] - s * entry[..., 1], s * entry[..., 0] + c * entry[..., 1]], -1)
+    col = camera.column(q, cx)
+    index = np.mod(phi_c - data.phi0, 2 * np.pi) / data.step
+    return index, col, q, phi_c
+
+
+def _bilinear(table, index, col):
+    i0, j0 = np.floor(index), np.floor(col)
+    fi, fj = index - i0, col - j0
+    i0 = np.clip(i0.astype(np.int64), 0, table.shape[0] - 2)
+    j0 = np.clip(j0.astype(np.int64), 0, table.shape[1] - 2)
+    return ((1 - fi) * (1 - fj) * table[i0, j0] + (1 - fi) * fj * table[i0, j0 + 1]
+            + fi * (1 - fj) * table[i0 + 1, j0] + fi * fj * table[i0 + 1, j0 + 1])
+
+
+def _pair_mask(params, data: _LightData, cx: float, camera: _SliceCamera, pixel: float,
+               min_exit_cos: float = 0.05) -> np.ndarray:
+    """Pairs whose reversed chord is seen: its exit faces the camera (not grazing), on the sensor, with four valid
+    neighbours in (angle, column)."""
+    index, col, q, phi_c = _conjugates(params, data, cx, camera, pixel)
+    n_angle, n_col = data.table.shape[0] - 1, data.table.shape[1]
+    i0, j0 = np.floor(index).astype(int), np.floor(col).astype(int)
+    on = np.isfinite(col) & (j0 >= 0) & (j0 < n_col - 1) & (i0 >= 0) & (i0 < n_angle)
+    i0, j0 = np.clip(i0, 0, n_angle - 1), np.clip(j0, 0, n_col - 2)
+    ok = on & data.valid[i0, j0] & data.valid[i0, j0 + 1] & data.valid[i0 + 1, j0] & data.valid[i0 + 1, j0 + 1]
+    # the outward normal where the reversed chord leaves (the edge the first chord's entry lies on), in the lab
+    edge = _edge_at(data.corners, np.pi / 2 - np.deg2rad(params[0]) - data.phi)
+    n = data.normals[edge]
+    c, s = np.cos(phi_c), np.sin(phi_c)
+    n_lab = np.stack([c * n[:, 0] - s * n[:, 1], s * n[:, 0] + c * n[:, 1]], -1)
+    if camera.model == "perspective":
+        view = np.array([0.0, -camera.distance]) - q
+        view = view / np.linalg.norm(view, axis=1, keepdims=True)
+    else:
+        view = np.tile([0.0, -1.0], (len(q), 1))
+    return ok & (np.einsum("ij,ij->i", n_lab, view) >= min_exit_cos)
+
+
+def _light_residuals(params, slices, cx, camera: _SliceCamera, pixel: float, masks):
+    pieces = []
+    for d, mask in zip(slices, masks, strict=True):
+        index, col, _, _ = _conjugates(params, d, cx, camera, pixel)
+        pieces.append((d.value - _bilinear(d.table, index, col))[mask])
+    return np.concatenate(pieces)
+
+
+def light_slice_data(absorption: np.ndarray, valid: np.ndarray, angles_deg: np.ndarray, polygon_vertices: np.ndarray,
+                     geometry: RigGeometry, cx: float, min_exit_cos: float = 0.05) -> _LightData | None:
+    """The pairs of one lit slice: its absorption (angle, col) over a full turn of equal steps, its contour."""
+    polygon = convex_polygon(polygon_vertices)
+    if not polygon.contains(np.zeros((1, 2)))[0]:
+        raise StageError(Problem("calibrate_rig: the rotation axis is outside the object's contour in the lit "
+                                 "slice; the light angle is calibrated on an object the beam's line (through the "
+                                 "axis) enters", fix="centre the object on the stage, or give light_angle: false"))
+    camera = geometry.camera
+    n_angle, n_col = absorption.shape
+    phi = np.deg2rad(np.asarray(angles_deg, float))
+    step = 2 * np.pi / n_angle
+    cols = np.arange(n_col, dtype=float)
+    model = _SliceCamera.of(camera)
+    origin, direction = model.rays(cols, cx)
+    direction = direction / np.linalg.norm(direction, axis=1, keepdims=True)
+    rows_phi, rows_col = np.meshgrid(phi, cols, indexing="ij")
+    c, s = np.cos(rows_phi.ravel()), np.sin(rows_phi.ravel())
+    o = np.tile(origin, (n_angle, 1))
+    d = np.tile(direction, (n_angle, 1))
+    o_obj = np.stack([c * o[:, 0] + s * o[:, 1], -s * o[:, 0] + c * o[:, 1]], 1)
+    d_obj = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], 1)
+    seen = polygon.interval(o_obj, d_obj)
+    p_c = o_obj + np.where(seen.hit, seen.t_in, 0.0)[:, None] * d_obj
+    cos_exit = np.abs(np.einsum("ij,ij->i", d_obj, seen.normal_in))
+    use = seen.hit & (cos_exit >= min_exit_cos) & valid.ravel()
+    if use.sum() < 16:
+        return None
+    vertices = np.asarray(polygon_vertices, float)
+    corners = np.arctan2(vertices[:, 1], vertices[:, 0])
+    vertices = np.roll(vertices, -int(np.argmin(corners)), axis=0)  # counter-clockwise from the smallest angle
+    corners = np.roll(corners, -int(np.argmin(corners)))
+    normals, offsets = polygon_half_planes(vertices)
+    table = np.where(valid, absorption, 0.0)
+    ray_cos = np.einsum("ij,ij->i", d_obj, seen.normal_in)
+    return _LightData(np.concatenate([table, table[:1]]), np.concatenate([valid, valid[:1]]),
+                      rows_phi.ravel()[use], p_c[use], d_obj[use], ray_cos[use], absorption.ravel()[use],
+                      normals, offsets, corners, float(phi[0]), step)
+
+
+def polygon_half_planes(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Outward unit normals and offsets {n·p ≤ h} of a counter-clockwise convex polygon's edges."""
+    v = np.asarray(vertices, float)
+    edge = np.roll(v, -1, axis=0) - v
+    normals = np.stack([edge[:, 1], -edge[:, 0]], 1)
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    return normals, np.einsum("ij,ij->i", normals, v)
+
+
+def light_cost(params, slices, cx: float, camera: _SliceCamera, pixel: float) -> tuple[float, int]:
+    """Mean squared disagreement of reversed chords at (θ_l, contour offset), and the pairs it is taken over."""
+    masks = [_pair_mask(params, d, cx, camera, pixel) for d in slices]
+    r = _light_residuals(params, slices, cx, camera, pixel, masks)
+    return (float(np.mean(r**2)) if len(r) else np.nan), len(r)
+
+
+def fit_light_angle(slices, cx: float, camera, stated: float, search_deg: float, step_deg: float
+                    ) -> tuple[Fit, np.ndarray, np.ndarray, np.ndarray]:
+    """θ_l and the contour's offset: a profile of :func:`light_cost` over ``stated ± search_deg`` (offset 0), then
+    least squares in both from the profile's minimum (twice, the pairs chosen again at the first answer).
+
+    Returns the fit (values and uncertainties of θ_l [degree] and the offset [pixels at the axis]) and the profile
+    (trial angles, mean squared disagreement, pairs)."""
+    model = _SliceCamera.of(camera)
+    pixel = float(camera.axis_pixel_size)
+    trials = stated + np.arange(-search_deg, search_deg + step_deg / 2, step_deg)
+    trials = trials[(trials >= 0) & (trials <= 180)]
+    profile = np.array([light_cost((t, 0.0), slices, cx, model, pixel) for t in trials])
+    cost, pairs = profile[:, 0], profile[:, 1].astype(int)
+    enough = pairs >= max(16, 0.25 * pairs.max())
+    if not enough.any() or not np.isfinite(cost[enough]).any():
+        raise StageError(Problem("calibrate_rig: no reversed chord is seen at any trial light angle",
+                                 fix="capture a full turn with the beam's far side in view, or give light_angle: false"))
+    params = np.array([trials[int(np.nanargmin(np.where(enough, cost, np.nan)))], 0.0])
+    for _ in range(2):
+        masks = [_pair_mask(params, d, cx, model, pixel) for d in slices]
+        fit = _least_squares(lambda p: _light_residuals(p, slices, cx, model, pixel, masks), params, np.sqrt(8.0))
+        params = fit.value
+    # (the √8: one absorption sample enters about four pairs through the bilinear weights, and each pair twice)
+    # The contour's error varies with direction (each part of the hull is cut by other views' edges); the pairs of
+    # each quarter turn see another part of it. Their fits' spread, over √4, is the systematic part of θ_l's error.
+    quarters = []
+    for q in range(4):
+        part = [m & (np.floor(np.mod(d.phi - d.phi0, 2 * np.pi) / (np.pi / 2)) == q) for d, m in zip(slices, masks)]
+        if sum(int(m.sum()) for m in part) >= 16:
+            quarters.append(_least_squares(lambda p, part=part: _light_residuals(p, slices, cx, model, pixel, part),
+                                           params, 1.0).value)
+    if len(quarters) >= 2:
+        spread = np.std(quarters, axis=0, ddof=1) / np.sqrt(len(quarters))
+        fit = Fit(fit.value, np.hypot(fit.std, spread), fit.rms, fit.count, fit.converged)
+    return fit, trials, cost, pairs
+
+
+# -- the stages ---------------------------------------------------------------------------------------------
+def _full_turn(angles: np.ndarray, what: str) -> None:
+    steps = np.diff(angles)
+    if len(angles) < 8 or not np.allclose(steps, steps[0], rtol=0, atol=1e-6) or \
+            abs(len(angles) * steps[0] - 360.0) > FULL_TURN_TOLERANCE * 360 + 1e-6:
+        raise StageError(Problem(f"calibrate_rig: {what} needs a full turn in equal steps; the capture's angles "
+                                 f"are {angles[:3].round(3).tolist()} … {angles[-2:].round(3).tolist()} "
+                                 f"({len(angles)} views)", fix="capture 0 ≤ φ < 360° in equal steps"))
+
+
+def _spread(n: int, count: int) -> np.ndarray:
+    return np.unique(np.linspace(0, n - 1, min(count, n)).round().astype(int))
+
+
+@stage("calibrate_rig")
+def calibrate_rig(capture: xr.Dataset, /, *, axis: bool = True, light_angle: bool = True,
+                  search_deg: Positive = 5.0, search_step_deg: Positive = 0.25, rows: Count = 32,
+                  min_signal: NonNegative = 1.0) -> xr.Dataset:
+    """Estimate the rotation axis's column and the light angle θ_l from a capture, with uncertainties.
+
+    The result holds the estimates, their standard uncertainties, the values the capture stated and the fit
+    residuals (attrs, and as 0-d variables), the θ_l profile (``light_cost`` over ``light_angle_trial``), and the
+    corrected rig geometry in its attrs; ``apply_rig_calibration`` writes it into a capture's attrs. See the
+    module's docstring for the method and its assumptions.
+
+    Parameters
+    ----------
+    capture : xr.Dataset
+        A ``tomography_capture`` store over a full turn in equal steps: ``backlit`` (and ``dark``) frames for the
+        axis, ``target`` and ``reference`` for θ_l [counts]; attrs: the rig geometry as stated.
+    axis : bool
+        Estimate the axis column (else keep the stated principal point).
+    light_angle : bool
+        Estimate θ_l (needs an object with absorbing structure, the axis inside it, and the beam's far side seen).
+    search_deg : float
+        Half-width of the θ_l profile around the stated value [degree].
+    search_step_deg : float
+        Step of that profile [degree].
+    rows : int
+        Camera rows (spread over the object's height) whose silhouettes fit the axis; the lit rows fit θ_l.
+    min_signal : float
+        Counts above dark below which a pixel's absorption is not used for θ_l [counts].
+    """
+    if not axis and not light_angle:
+        raise StageError(Problem("calibrate_rig: nothing to calibrate", fix="set axis or light_angle to true"))
+    capture = sorted_sweep(capture, "angle", "calibrate_rig")
+    n_rows, n_cols = capture.sizes["row"], capture.sizes["col"]
+    stated = RigGeometry.from_attrs(capture.attrs, n_rows, n_cols, where="calibrate_rig: capture")
+    angles = capture["angle"].values.astype(float)
+    _full_turn(angles, "calibration")
+    cx_stated, cy = stated.camera.centre_px
+    cx, axis_fit = cx_stated, None
+    dark = capture["dark"] if "dark" in capture else None
+    if axis:
+        require_variables(capture, ("backlit",), "calibrate_rig")
+        mask = object_masks(capture["backlit"], dark, midpoint=True).any("angle").any("col").values
+        candidates = np.flatnonzero(mask)
+        if not len(candidates):
+            raise StageError(Problem("calibrate_rig: no backlit frame shows the object",
+                                     fix="check the backlit and dark frames"))
+        use_rows = candidates[_spread(len(candidates), rows)]
+        backlit = capture["backlit"].isel(row=use_rows)
+        signal = (backlit - dark.isel(row=use_rows)) if dark is not None else backlit
+        left, right = silhouette_edges(signal.transpose("angle", "row", "col").values)
+        axis_fit = fit_axis_column(left, right, angles, stated.camera, cx_stated)
+        cx = float(axis_fit.value[0])
+    geometry = RigGeometry(type(stated.camera)(**{**_camera_fields(stated.camera), "principal_point_px": (cx, cy)}),
+                           **{k: getattr(stated, k) for k in ("light_angle_deg", "length_unit", "light_distance",
+                                                               "light_kind", "beam_height")})
+    light_fit, profile = None, None
+    if light_angle:
+        require_variables(capture, ("target", "reference", "backlit"), "calibrate_rig")
+        lit = geometry.lit_rows()
+        lit = lit[_spread(len(lit), max(1, min(rows, 8)))]
+        part = capture.isel(row=lit)
+        flags_ok = absorption_stage(part, min_signal=min_signal)
+        values = flags_ok["absorption"].transpose("angle", "row", "col").values.astype(float)
+        valid = (flags_ok["flags"].transpose("angle", "row", "col").values == 0) & np.isfinite(values)
+        hull_mask = object_masks(part["backlit"], dark.isel(row=lit) if dark is not None else None, midpoint=True)
+        hull_mask = hull_mask.transpose("angle", "row", "col").values
+
+        def lit_slices(column: float) -> list[_LightData]:
+            camera = type(geometry.camera)(**{**_camera_fields(geometry.camera),
+                                              "principal_point_px": (column, cy)})
+            out = []
+            for k in range(len(lit)):
+                normals, offsets, _ = silhouette_half_planes(hull_mask[:, k], angles, camera)
+                polygon = intersect_half_planes(normals, offsets)
+                data = None if polygon is None else light_slice_data(
+                    values[:, k], valid[:, k], angles, polygon, dataclasses.replace(geometry, camera=camera), column)
+                if data is not None:
+                    out.append(data)
+            if not out:
+                raise StageError(Problem("calibrate_rig: no lit slice has a contour and valid absorption",
+                                         fix="check the target, reference and backlit frames, or give "
+                                         "light_angle: false"))
+            return out
+
+        light_fit, trials, cost, pairs = fit_light_angle(lit_slices(cx), cx, geometry.camera,
+                                                         stated.light_angle_deg, search_deg, search_step_deg)
+        if axis_fit is not None:  # the axis's uncertainty moves θ_l too: refit one standard uncertainty away
+            moved = cx + float(axis_fit.std[0])
+            shifted, *_ = fit_light_angle(lit_slices(moved), moved, geometry.camera, float(light_fit.value[0]),
+                                          min(search_deg, 1.0), search_step_deg)
+            light_fit = Fit(light_fit.value, np.hypot(light_fit.std, shifted.value - light_fit.value),
+                            light_fit.rms, light_fit.count, light_fit.converged)
+        theta_l, theta_std = float(light_fit.value[0]), float(light_fit.std[0])
+        edge = abs(theta_l - stated.light_angle_deg) >= search_deg - search_step_deg
+        depth = float(np.nanmedian(cost) / np.nanmin(cost) - 1.0) if np.nanmin(cost) > 0 else np.inf
+        if edge or not np.isfinite(theta_std) or theta_std > search_deg / 3 or depth < MIN_PROFILE_DEPTH:
+            raise StageError(Problem(
+                f"calibrate_rig: θ_l is not determined by this capture (estimate {theta_l:.3f}° ± "
+                f"{theta_std:.3f}° within the search {stated.light_angle_deg:g} ± {search_deg:g}°; the profile's "
+                f"median lies {depth:.0%} above its minimum, {MIN_PROFILE_DEPTH:.0%} needed)",
+                fix="the absorption must vary (an object with an inclusion); widen search_deg if the estimate sits "
+                "at its edge; or give light_angle: false"))
+        profile = (trials, cost, pairs)
+        geometry = RigGeometry(geometry.camera, theta_l, geometry.length_unit, geometry.light_distance,
+                               geometry.light_kind, geometry.beam_height)
+    return _calibration_dataset(capture, stated, geometry, axis_fit, light_fit, profile)
+
+
+def _camera_fields(camera) -> dict:
+    return {f.name: getattr(camera, f.name) for f in dataclasses.fields(camera)}
+
+
+def _calibration_dataset(capture, stated: RigGeometry, geometry: RigGeometry, axis_fit: Fit | None,
+                         light_fit: Fit | None, profile) -> xr.Dataset:
+    px, deg = {"units": "px"}, {"units": "degree"}
+    data, attrs = {}, {}
+    if axis_fit is not None:
+        unit = stated.camera.axis_pixel_size
+        data |= {"axis_column": ((), axis_fit.value[0], px | {"long_name": "column the rotation axis is seen in"}),
+                 "axis_column_std": ((), axis_fit.std[0], px | {"long_name": "standard uncertainty of axis_column"}),
+                 "axis_column_stated": ((), stated.camera.centre_px[0], px | {"long_name": "axis column stated"}),
+                 "axis_residual_rms": ((), axis_fit.rms / unit, px | {
+                     "long_name": "RMS disagreement of left and right silhouette tangents, pixels at the axis"})}
+        attrs |= {"axis_edges_used": axis_fit.count, "axis_converged": axis_fit.converged}
+    if light_fit is not None:
+        trials, cost, pairs = profile
+        data |= {"light_angle": ((), light_fit.value[0], deg | {"long_name": "light angle θ_l"}),
+                 "light_angle_std": ((), light_fit.std[0], deg | {"long_name": "standard uncertainty of θ_l"}),
+                 "contour_offset": ((), light_fit.value[1], px | {
+                     "long_name": "outward offset of the lit slice's contour fitted with θ_l, pixels at the axis"}),
+                 "contour_offset_std": ((), light_fit.std[1], px | {"long_name": "standard uncertainty of it"}),
+                 "light_angle_stated": ((), stated.light_angle_deg, deg | {"long_name": "θ_l stated"}),
+                 "light_residual_rms": ((), light_fit.rms, {"units": "1", "long_name":
+                                                            "RMS absorption disagreement of reversed chords"}),
+                 "light_cost": (("light_angle_trial",), cost, {"units": "1", "long_name":
+                                                               "mean squared disagreement of reversed chords"}),
+                 "light_pairs": (("light_angle_trial",), pairs, {"units": "1", "long_name": "pairs compared"})}
+        attrs |= {"light_pairs_used": light_fit.count, "light_converged": light_fit.converged}
+    coords = {"light_angle_trial": ("light_angle_trial", profile[0], deg)} if profile is not None else {}
+    return xr.Dataset(data, coords=coords, attrs=geometry_attrs(capture.attrs) | geometry.attrs() | attrs | {
+        "selpath_kind": "rig_calibration", "stated_principal_point_px": list(stated.camera.centre_px),
+        "stated_light_angle_deg": stated.light_angle_deg})
+
+
+#: camera attrs a calibration must share with the capture it is applied to (it estimates none of them)
+_SHARED = ("camera_model", "focal_length_px", "camera_distance", "pixel_size", "length_unit", "light_kind",
+           "beam_height")
+
+
+@stage("apply_rig_calibration")
+def apply_rig_calibration(capture: xr.Dataset, calibration: xr.Dataset, /) -> xr.Dataset:
+    """The capture with the calibrated rig geometry in its attrs (frames untouched, lazy); the values it stated
+    are kept as ``stated_principal_point_px`` and ``stated_light_angle_deg``.
+
+    Parameters
+    ----------
+    capture : xr.Dataset
+        A ``tomography_capture`` store of the rig (the calibrated one, or a later capture on the same rig).
+    calibration : xr.Dataset
+        A ``calibrate_rig`` result. Its camera (model, focal length or pixel size, distance), length unit and
+        light kind must be the capture's: a calibration of another rig is refused.
+    """
+    if calibration.attrs.get("selpath_kind") != "rig_calibration":
+        raise StageError(Problem("apply_rig_calibration: the calibration is not a calibrate_rig result "
+                                 f"(selpath_kind {calibration.attrs.get('selpath_kind')!r})"))
+    differ = [f"{k}: capture {capture.attrs.get(k)!r}, calibration {calibration.attrs.get(k)!r}" for k in _SHARED
+              if not _same(capture.attrs.get(k), calibration.attrs.get(k))]
+    if differ:
+        raise StageError(Problem("apply_rig_calibration: the calibration is of another rig (" + "; ".join(differ)
+                                 + ")", fix="calibrate from a capture of this rig"))
+    stated = RigGeometry.from_attrs(capture.attrs, capture.sizes["row"], capture.sizes["col"],
+                                    where="apply_rig_calibration: capture")
+    updates = {"stated_principal_point_px": list(stated.camera.centre_px),
+               "stated_light_angle_deg": stated.light_angle_deg}
+    if "axis_column" in calibration:
+        updates["principal_point_px"] = [float(calibration["axis_column"]), stated.camera.centre_px[1]]
+    if "light_angle" in calibration:
+        updates["light_angle_deg"] = float(calibration["light_angle"])
+    return capture.assign_attrs(updates)
+
+
+def _same(a, b) -> bool:
+    if isinstance(a, int | float) and isinstance(b, int | float):
+        return bool(np.isclose(a, b, rtol=1e-9, atol=0))
+    return a == b
