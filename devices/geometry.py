@@ -46,6 +46,13 @@ def to_object(points_lab: np.ndarray, angle_deg: float) -> np.ndarray:
     return np.asarray(points_lab, float) @ rotation_z(angle_deg)  # row vectors: q·R(φ) = (R(φ)ᵀ q)ᵀ
 
 
+def to_object_xy(v: np.ndarray, phi: np.ndarray) -> np.ndarray:
+    """Lab (x, y) points or directions (N, 2) in the object frame, each at its own stage angle φ (N,) [rad]:
+    R(−φ)·v; ``to_object_xy(v, −φ)`` turns object vectors into the lab."""
+    c, s = np.cos(phi), np.sin(phi)
+    return np.stack([c * v[..., 0] + s * v[..., 1], -s * v[..., 0] + c * v[..., 1]], axis=-1)
+
+
 def to_lab(points_object: np.ndarray, angle_deg: float) -> np.ndarray:
     """Object points (or directions), shape (N, 3), in the lab at stage angle φ: R(φ)·p."""
     return np.asarray(points_object, float) @ rotation_z(angle_deg).T

@@ -130,6 +130,12 @@ class Polygon:
             return Interval(t_in, t_out, None, None)
         return Interval(t_in, t_out, self._normals[i_in], self._normals[i_out])
 
+    @property
+    def half_planes(self) -> tuple[np.ndarray, np.ndarray]:
+        """Outward unit normals (K, 2) and offsets (K,) of the edges, ``n·p ≤ h`` inside; edge k runs from vertex k
+        to vertex k + 1."""
+        return self._normals, self._offsets
+
     def contains(self, points: np.ndarray) -> np.ndarray:
         return np.all(np.asarray(points, float) @ self._normals.T <= self._offsets + 1e-12, axis=1)
 

@@ -19,7 +19,7 @@ from skimage.filters import threshold_otsu
 from skimage.measure import label
 from skimage.morphology import remove_small_holes, remove_small_objects
 
-from devices.geometry import Camera, RigGeometry, geometry_attrs
+from devices.geometry import Camera, RigGeometry, geometry_attrs, to_object_xy
 from pipeline.constraints import Index, Positive
 from pipeline.errors import Problem, StageError
 from pipeline.quality import usable_share
@@ -36,15 +36,25 @@ def _silhouette_kernel(backlit: np.ndarray, dark: np.ndarray, *, threshold: floa
         finite = np.isfinite(frame)
         level = threshold
         if level is None:
-            values = frame[finite]
-            level = threshold_otsu(values) if values.size and np.ptp(values) > 0 else np.inf
-            if midpoint and np.isfinite(level):  # halfway between the two classes' means (one isodata step)
-                level = 0.5 * (values[values < level].mean() + values[values >= level].mean())
+            levels = backlight_levels(frame[finite])
+            level = np.inf if levels is None else (0.5 * (levels[1] + levels[2]) if midpoint else levels[0])
         mask = finite & (frame < level)  # the object blocks the lit plane
         if min_size > 0:
             mask = _fill_small_holes(remove_small_objects(mask, max_size=min_size), min_size)
         out.reshape(-1, *signal.shape[-2:])[i] = mask
     return out
+
+
+def backlight_levels(values: np.ndarray) -> tuple[float, float, float] | None:
+    """Otsu's level splitting a backlit frame's finite values into object and lit plane, and the two classes'
+    means (object, plane); None where the values do not split (empty, constant)."""
+    if not values.size or np.ptp(values) <= 0:
+        return None
+    level = threshold_otsu(values)
+    low, high = values[values < level], values[values >= level]
+    if not low.size or not high.size:
+        return None
+    return float(level), float(low.mean()), float(high.mean())
 
 
 def _fill_small_holes(mask: np.ndarray, max_size: int) -> np.ndarray:
@@ -119,29 +129,36 @@ def silhouette_half_planes(mask_row: np.ndarray, angles_deg: np.ndarray, camera:
     views that give no constraint: empty, touching the image border (that side), non-convex (gaps).
 
     The ray through a silhouette's outer pixel edge is tangent to the object: the half-plane is bounded by it,
-    on the object's side."""
-    normals, offsets = [], []
-    counts = {"empty": 0, "border": 0, "gaps": 0}
+    on the object's side (:func:`tangent_half_planes`)."""
+    mask_row = np.asarray(mask_row, bool)
     cols = mask_row.shape[-1]
-    for phi, line in zip(angles_deg, mask_row, strict=True):
-        on = np.flatnonzero(line)
-        if not len(on):
-            counts["empty"] += 1
-            continue
-        if len(on) != on[-1] - on[0] + 1:
-            counts["gaps"] += 1  # not one run: the hull uses the outermost edges (its convex hull)
-        rotation = np.array([[np.cos(np.deg2rad(phi)), -np.sin(np.deg2rad(phi))],
-                             [np.sin(np.deg2rad(phi)), np.cos(np.deg2rad(phi))]])
-        origins, directions = camera.slice_rays(camera.outer_edges(on[0], on[-1]))
-        for k, (side, inside) in enumerate(((-1.0, on[0] > 0), (1.0, on[-1] < cols - 1))):
-            if not inside:
-                counts["border"] += 1
-                continue
-            slope, depth = directions[k]
-            n_lab = side * np.array([depth, -slope]) / np.hypot(depth, slope)  # the ray's normal, away from the object
-            normals.append(rotation.T @ n_lab)  # n·R(φ)p = (R(φ)ᵀ n)·p
-            offsets.append(float(n_lab @ origins[k]))
-    return np.array(normals).reshape(-1, 2), np.array(offsets), counts
+    on = mask_row.any(axis=1)
+    first = np.where(on, mask_row.argmax(axis=1), 0)
+    last = np.where(on, cols - 1 - mask_row[:, ::-1].argmax(axis=1), cols - 1)
+    counts = {"empty": int((~on).sum()), "border": int((on & (first == 0)).sum() + (on & (last == cols - 1)).sum()),
+              "gaps": int((on & (mask_row.sum(axis=1) != last - first + 1)).sum())}
+    # (a gapped row: the hull uses its outermost edges, its convex hull)
+    left, right = camera.outer_edges(first.astype(float), last.astype(float))
+    left = np.where(on & (first > 0), left, np.nan)
+    right = np.where(on & (last < cols - 1), right, np.nan)
+    normals, offsets = tangent_half_planes(left, right, angles_deg, camera)
+    return normals, offsets, counts
+
+
+def tangent_half_planes(left: np.ndarray, right: np.ndarray, angles_deg: np.ndarray, camera: Camera
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """Half-planes ``n·p ≤ h`` (object frame) bounded by the rays through a slice's outer silhouette edges, sub-pixel
+    columns per angle (NaN: that side gives none), in the order left, right of each angle in turn."""
+    phi = np.deg2rad(np.asarray(angles_deg, float))
+    edges = np.stack([left, right], axis=1)  # (angle, side)
+    origins, directions = camera.slice_rays(np.nan_to_num(edges.ravel()))
+    side = np.tile([-1.0, 1.0], len(phi))
+    n_lab = side[:, None] * np.stack([directions[:, 1], -directions[:, 0]], 1)
+    n_lab /= np.linalg.norm(n_lab, axis=1, keepdims=True)  # the ray's normal, away from the object
+    offsets = np.einsum("ij,ij->i", n_lab, origins)
+    normals = to_object_xy(n_lab, np.repeat(phi, 2))  # n·R(φ)p = (R(φ)ᵀ n)·p
+    keep = np.isfinite(edges.ravel())
+    return normals[keep], offsets[keep]
 
 
 def intersect_half_planes(normals: np.ndarray, offsets: np.ndarray) -> np.ndarray | None:

@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 import xarray as xr
 
-from devices.geometry import RigGeometry, geometry_attrs
+from devices.geometry import RigGeometry, geometry_attrs, to_object_xy
 from devices.sim.shapes import convex_polygon
 from pipeline.constraints import Fraction
 from pipeline.errors import Problem, StageError
@@ -54,12 +54,6 @@ def sinogram_coordinates(entry: np.ndarray, exit_: np.ndarray) -> tuple[np.ndarr
     return np.where(wrap, theta_deg - 180.0, theta_deg), np.where(wrap, -x, x)
 
 
-def _to_object(v: np.ndarray, phi: np.ndarray) -> np.ndarray:
-    """Lab vectors (N, 2) in the object frame at stage angles φ (N,) [rad]: R(−φ)·v."""
-    c, s = np.cos(phi), np.sin(phi)
-    return np.stack([c * v[:, 0] + s * v[:, 1], -s * v[:, 0] + c * v[:, 1]], axis=1)
-
-
 def _align_kernel(absorption, flags, angle, row, col, vertices, n_vertices, *, geometry: RigGeometry,
                   min_exit_cos: float):
     shape = np.broadcast_shapes(absorption.shape, angle.shape, row.shape, col.shape)
@@ -82,12 +76,12 @@ def _align_kernel(absorption, flags, angle, row, col, vertices, n_vertices, *, g
         pixel = col[sel].astype(float)
         cam_o, cam_d = geometry.camera.slice_rays(pixel)
         cam_d /= np.linalg.norm(cam_d, axis=1, keepdims=True)
-        o, d = _to_object(cam_o, phi), _to_object(cam_d, phi)
+        o, d = to_object_xy(cam_o, phi), to_object_xy(cam_d, phi)
         seen = polygon.interval(o, d)
         p_c = o + np.where(seen.hit, seen.t_in, 0.0)[:, None] * d
         cos_exit = np.abs(np.einsum("ij,ij->i", d, seen.normal_in))
-        light_o = _to_object(np.tile(beam_origin[:2], (len(pixel), 1)), phi)
-        light_d = _to_object(np.tile(beam_direction[:2], (len(pixel), 1)), phi)
+        light_o = to_object_xy(np.tile(beam_origin[:2], (len(pixel), 1)), phi)
+        light_d = to_object_xy(np.tile(beam_direction[:2], (len(pixel), 1)), phi)
         light = polygon.interval(light_o, light_d)
         p_l = light_o + np.where(light.hit, light.t_in, 0.0)[:, None] * light_d
         length = np.linalg.norm(p_c - p_l, axis=1)

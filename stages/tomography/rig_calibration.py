@@ -9,8 +9,8 @@ tangent's outward normal in the object frame). Over a turn the left edges and th
 seen from a wrong axis column they disagree by twice the error (in length at the axis). The fit minimises, per
 row, the left samples minus the right samples interpolated at the same ψ (and the reverse), as TomoPy's
 ``find_center`` compares opposite projections, but exact under perspective and for any convex object. Edges are
-sub-pixel: where the backlit signal crosses halfway between the object's and the lit plane's levels (on a sensor
-that renders pixels all-or-nothing that is the pixel's edge, and an object off the axis dithers it over the turn).
+sub-pixel by area coverage (:func:`silhouette_edges`; on a sensor that renders pixels all-or-nothing that is the
+pixel's edge, and an object off the axis dithers it over the turn).
 
 **Light angle θ_l** (``light_angle_deg``). The beam passes the axis (the rig points light and camera at it,
 §4.2.5, Fig. 13), so at stage angle φ it enters the slice's contour at the point of polar angle 90° − θ_l − φ
@@ -41,17 +41,17 @@ from dataclasses import dataclass
 
 import numpy as np
 import xarray as xr
+from scipy.ndimage import map_coordinates
 from scipy.optimize import least_squares
-from skimage.filters import threshold_otsu
 
-from devices.geometry import OrthographicCamera, PerspectiveCamera, RigGeometry, geometry_attrs
+from devices.geometry import Camera, RigGeometry, geometry_attrs, to_object_xy
 from devices.sim.shapes import convex_polygon
 from pipeline.constraints import Count, NonNegative, Positive
 from pipeline.errors import Problem, StageError
 from pipeline.registry import stage
 from stages._common import require_variables, sorted_sweep
 from stages.tomography.calibrate import absorption as absorption_stage
-from stages.tomography.hull import intersect_half_planes, object_masks, silhouette_half_planes
+from stages.tomography.hull import backlight_levels, intersect_half_planes, tangent_half_planes
 
 #: sweeps must cover a full turn (within this, degree) for the axis and light fits to pair opposite views
 FULL_TURN_TOLERANCE = 1e-6
@@ -60,93 +60,60 @@ MIN_PROFILE_DEPTH = 0.25
 
 
 # -- silhouette edges ---------------------------------------------------------------------------------------
-def silhouette_edges(signal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Sub-pixel outer edges (left, right) of the silhouette in each row of backlit frames, NaN where unusable.
+def silhouette_edges(signal: np.ndarray) -> np.ndarray:
+    """Sub-pixel outer edges (left, right) of the silhouette in each row of backlit frames, NaN where unusable:
+    (angle, row, 2).
 
-    ``signal``: backlit counts above dark, (angle, row, col). Per frame, the level halfway between the means of
-    the object and the lit plane (Otsu's split, then the midpoint of the two classes' means) separates them; an
-    edge is where the signal crosses that level between the outermost object pixel and its lit neighbour
-    (linear interpolation between their centres: the pixel's edge on an all-or-nothing sensor). A row whose
-    object is absent, is not one run of pixels, or touches that side of the image gives NaN.
+    ``signal``: backlit counts above dark, (angle, row, col). Per frame the object's and the lit plane's levels are
+    the means of Otsu's two classes (:func:`stages.tomography.hull.backlight_levels`); a pixel is object below
+    halfway between them. A pixel's signal between the two levels is the share of it the object hides (area
+    coverage), so the edge lies that share inside the outermost object pixel and its lit neighbour together: the
+    pixel's edge on an all-or-nothing sensor, sub-pixel on a real one. A row whose object is absent, is not one run
+    of pixels, or touches that side of the image gives NaN.
     """
     signal = np.asarray(signal, np.float64)
     n_angle, n_row, n_col = signal.shape
-    left, right = np.full((n_angle, n_row), np.nan), np.full((n_angle, n_row), np.nan)
-    cols = np.arange(n_col)
+    edges = np.full((n_angle, n_row, 2), np.nan)
+    cols, rows = np.arange(n_col), np.arange(n_row)
     for a, frame in enumerate(signal):
-        values = frame[np.isfinite(frame)]
-        if not values.size or np.ptp(values) <= 0:
+        levels = backlight_levels(frame[np.isfinite(frame)])
+        if levels is None:
             continue
-        split = threshold_otsu(values)
-        low, high = values[values < split], values[values >= split]
-        if not low.size or not high.size:
-            continue
-        half = 0.5 * (low.mean() + high.mean())
-        inside = np.isfinite(frame) & (frame < half)
+        _, dark, lit = levels
+        inside = np.isfinite(frame) & (frame < 0.5 * (dark + lit))
         any_on = inside.any(axis=1)
         first = np.where(any_on, inside.argmax(axis=1), -1)
         last = np.where(any_on, n_col - 1 - inside[:, ::-1].argmax(axis=1), -1)
         run = (cols[None, :] >= first[:, None]) & (cols[None, :] <= last[:, None])
         one_run = any_on & (inside == run).all(axis=1)
-        rows = np.arange(n_row)
-        cover = np.clip((high.mean() - frame) / (high.mean() - low.mean()), 0.0, 1.0)  # share the object hides
-        ok_l = one_run & (first > 0)
-        r = rows[ok_l]
-        left[a, r] = first[ok_l] + 0.5 - cover[r, first[ok_l] - 1] - cover[r, first[ok_l]]
-        ok_r = one_run & (last < n_col - 1)
-        r = rows[ok_r]
-        right[a, r] = last[ok_r] - 0.5 + cover[r, last[ok_r]] + cover[r, last[ok_r] + 1]
-    return left, right
+        cover = np.clip((lit - frame) / (lit - dark), 0.0, 1.0)  # share of each pixel the object hides
+        r = rows[one_run & (first > 0)]
+        edges[a, r, 0] = first[r] + 0.5 - cover[r, first[r] - 1] - cover[r, first[r]]
+        r = rows[one_run & (last < n_col - 1)]
+        edges[a, r, 1] = last[r] - 0.5 + cover[r, last[r]] + cover[r, last[r] + 1]
+    return edges
 
 
-# -- the camera in JAX: a slice's tangent rays and projection ----------------------------------------------
-@dataclass(frozen=True)
-class _SliceCamera:
-    """The x–y slice model of :meth:`devices.geometry.Camera.slice_rays` with the axis column ``cx`` free."""
-
-    model: str
-    scale: float  # focal length [px] (perspective) or pixel size [length] (orthographic)
-    distance: float  # camera distance [length]; 0 for orthographic
-
-    @classmethod
-    def of(cls, camera) -> _SliceCamera:
-        if isinstance(camera, PerspectiveCamera):
-            return cls("perspective", float(camera.focal_length_px), float(camera.camera_distance))
-        if isinstance(camera, OrthographicCamera):
-            return cls("orthographic", float(camera.pixel_size), 0.0)
-        raise StageError(Problem(f"calibrate_rig: no slice model for a {camera.model} camera"))
-
-    def rays(self, col, cx):
-        """Origins and directions (per unit depth) in lab (x, y) of sub-pixel columns, as slice_rays gives them."""
-        zeros = np.zeros_like(col)
-        if self.model == "perspective":
-            return (np.stack([zeros, zeros - self.distance], -1),
-                    np.stack([(col - cx) / self.scale, zeros + 1.0], -1))
-        return np.stack([(col - cx) * self.scale, zeros], -1), np.stack([zeros, zeros + 1.0], -1)
-
-    def column(self, q, cx):
-        """Sub-pixel column where lab points q (…, 2) are seen."""
-        if self.model == "perspective":
-            return cx + self.scale * q[..., 0] / (q[..., 1] + self.distance)
-        return cx + q[..., 0] / self.scale
+# -- the rotation axis --------------------------------------------------------------------------------------
+def _with_axis(camera: Camera, column: float) -> Camera:
+    """``camera`` with the rotation axis (the principal point's column) seen at ``column``."""
+    return dataclasses.replace(camera, principal_point_px=(float(column), camera.centre_px[1]))
 
 
-def _support_samples(edges, phi, side, cx, camera: _SliceCamera):
-    """(ψ, h) of the tangent lines through sub-pixel edge columns at stage angles φ [rad]; side −1 left, +1 right."""
-    origin, direction = camera.rays(edges, cx)
-    n_lab = side * np.stack([direction[..., 1], -direction[..., 0]], -1)
-    n_lab = n_lab / np.linalg.norm(n_lab, axis=-1, keepdims=True)
-    h = np.sum(n_lab * origin, -1)
-    c, s = np.cos(phi), np.sin(phi)  # object frame: Rᵀ(φ)·n
-    n_obj = np.stack([c * n_lab[..., 0] + s * n_lab[..., 1], -s * n_lab[..., 0] + c * n_lab[..., 1]], -1)
-    return np.arctan2(n_obj[..., 1], n_obj[..., 0]), h
+def _support_samples(edges, angles_deg, side: float, camera: Camera):
+    """(ψ, h) of the finite sub-pixel edges of one side (−1 left, +1 right) over the angles: each tangent's outward
+    normal angle ψ in the object frame and its offset h = H(ψ) (:func:`stages.tomography.hull.tangent_half_planes`)."""
+    none = np.full_like(edges, np.nan)
+    normals, offsets = tangent_half_planes(*((edges, none) if side < 0 else (none, edges)), angles_deg, camera)
+    return np.arctan2(normals[:, 1], normals[:, 0]), offsets
 
 
-def _axis_residuals(cx, rows_data, camera: _SliceCamera):
+def _axis_residuals(column, rows_data, angles_deg, camera: Camera):
+    camera = _with_axis(camera, column)
     pieces = []
-    for phi_l, e_l, phi_r, e_r, keep_l, keep_r in rows_data:
-        psi_l, h_l = _support_samples(e_l, phi_l, -1.0, cx, camera)
-        psi_r, h_r = _support_samples(e_r, phi_r, 1.0, cx, camera)
+    for left, right, keep_l, keep_r in rows_data:
+        psi_l, h_l = _support_samples(left, angles_deg, -1.0, camera)
+        psi_r, h_r = _support_samples(right, angles_deg, 1.0, camera)
         pieces.append((h_l - np.interp(psi_l, psi_r, h_r, period=2 * np.pi))[keep_l])
         pieces.append((h_r - np.interp(psi_r, psi_l, h_l, period=2 * np.pi))[keep_r])
     return np.concatenate(pieces)
@@ -185,30 +152,31 @@ def _least_squares(residuals, start, inflation: float, step: float = 1e-4) -> Fi
     return Fit(solution.x, std, float(np.sqrt(np.mean(r**2))) if len(r) else np.nan, len(r), bool(solution.success))
 
 
-def fit_axis_column(left: np.ndarray, right: np.ndarray, angles_deg: np.ndarray, camera, start: float) -> Fit:
-    """The axis column from silhouette edges (angle, row) over a full turn; ``camera`` gives the rest."""
-    model = _SliceCamera.of(camera)
-    phi = np.deg2rad(np.asarray(angles_deg, float))
-    step = np.deg2rad(np.median(np.diff(np.sort(angles_deg)))) if len(angles_deg) > 1 else np.pi
+def fit_axis_column(edges: np.ndarray, angles_deg: np.ndarray, camera: Camera) -> Fit:
+    """The axis column from sub-pixel silhouette edges (angle, row, left/right) over a full turn, starting at
+    ``camera``'s; the rest of ``camera`` is taken as it is."""
+    gap = 2.5 * np.deg2rad(360.0 / len(angles_deg))
+    start = camera.centre_px[0]
     rows_data = []
-    for r in range(left.shape[1]):
-        ok_l, ok_r = np.isfinite(left[:, r]), np.isfinite(right[:, r])
-        if ok_l.sum() < 8 or ok_r.sum() < 8:
+    for r in range(edges.shape[1]):
+        left, right = edges[:, r, 0], edges[:, r, 1]
+        if np.isfinite(left).sum() < 8 or np.isfinite(right).sum() < 8:
             continue
-        psi_l, _ = _support_samples(left[ok_l, r], phi[ok_l], -1.0, start, model)
-        psi_r, _ = _support_samples(right[ok_r, r], phi[ok_r], 1.0, start, model)
-        keep_l, keep_r = _near(psi_l, psi_r, 2.5 * step), _near(psi_r, psi_l, 2.5 * step)
+        psi_l, _ = _support_samples(left, angles_deg, -1.0, camera)
+        psi_r, _ = _support_samples(right, angles_deg, 1.0, camera)
+        keep_l, keep_r = _near(psi_l, psi_r, gap), _near(psi_r, psi_l, gap)
         if keep_l.sum() + keep_r.sum() < 8:
             continue
-        rows_data.append((phi[ok_l], left[ok_l, r], phi[ok_r], right[ok_r, r], keep_l, keep_r))
+        rows_data.append((left, right, keep_l, keep_r))
     if not rows_data:
         raise StageError(Problem("calibrate_rig: no camera row has silhouette edges on both sides over the turn",
                                  fix="the object must stay inside the image in the backlit frames (none touching "
                                  "its sides) over a full turn; check the backlit and dark frames"))
-    fit = _least_squares(lambda p: _axis_residuals(p[0], rows_data, model), start, np.sqrt(len(rows_data)))
+    fit = _least_squares(lambda p: _axis_residuals(p[0], rows_data, angles_deg, camera), start,
+                         np.sqrt(len(rows_data)))
     # edges that never move (an object centred on the axis) keep their quantisation error (±½ px on an
     # all-or-nothing sensor) however many views there are: count the distinct sub-pixel edge positions per side
-    distinct = min(len(np.unique(np.round(np.asarray(d[k]) * 20) / 20)) for d in rows_data for k in (1, 3))
+    distinct = min(len(np.unique(np.round(side[np.isfinite(side)] * 20) / 20)) for d in rows_data for side in d[:2])
     floor = 1.0 / np.sqrt(12.0 * distinct)
     return Fit(fit.value, np.hypot(fit.std, floor), fit.rms, fit.count, fit.converged)
 
@@ -246,133 +214,107 @@ class _LightData:
     step: float
 
 
-def _conjugates(params, data: _LightData, cx, camera: _SliceCamera, pixel: float):
-    """Fractional (angle index, column) where each pair's reversed chord is seen, and its exit point (lab).
+def _conjugates(params, data: _LightData, camera: Camera):
+    """Fractional (angle index, column) where each pair's reversed chord is seen, and that stage angle φ' [rad].
 
     ``params``: θ_l [degree] and the contour's outward offset [pixels at the axis]: the hull of binary silhouettes
     is off by up to half a pixel, and the pairs are sensitive to it (0.1 mm moves θ_l by 0.4° on the test rig)."""
-    theta, offset = np.deg2rad(params[0]), params[1] * pixel
+    theta, offset = np.deg2rad(params[0]), params[1] * camera.axis_pixel_size
     light = np.pi / 2 - theta
     exit_ = data.exit + data.ray * (offset / data.ray_cos)[..., None]  # the moved edge meets the pixel's ray
     phi_c = light - np.arctan2(exit_[..., 1], exit_[..., 0])  # stage angle whose beam enters at the exit point
     beta = light - data.phi  # polar angle of the first chord's entry point (object frame)
     radius = _radius(data.normals, data.offsets + offset, data.corners, beta)
     entry = radius[..., None] * np.stack([np.cos(beta), np.sin(beta)], -1)
-    c, s = np.cos(phi_c), np.sin(phi_c)
-    q = np.stack([c * entry[..., 0] - s * entry[..., 1], s * entry[..., 0] + c * entry[..., 1]], -1)
-    col = camera.column(q, cx)
+    q = to_object_xy(entry, -phi_c)  # in the lab at φ'
+    _, col = camera.project(np.column_stack([q, np.zeros(len(q))]))
     index = np.mod(phi_c - data.phi0, 2 * np.pi) / data.step
-    return index, col, q, phi_c
+    return index, col, phi_c
 
 
-def _bilinear(table, index, col):
-    i0, j0 = np.floor(index), np.floor(col)
-    fi, fj = index - i0, col - j0
-    i0 = np.clip(i0.astype(np.int64), 0, table.shape[0] - 2)
-    j0 = np.clip(j0.astype(np.int64), 0, table.shape[1] - 2)
-    return ((1 - fi) * (1 - fj) * table[i0, j0] + (1 - fi) * fj * table[i0, j0 + 1]
-            + fi * (1 - fj) * table[i0 + 1, j0] + fi * fj * table[i0 + 1, j0 + 1])
-
-
-def _pair_mask(params, data: _LightData, cx: float, camera: _SliceCamera, pixel: float,
-               min_exit_cos: float = 0.05) -> np.ndarray:
+def _pair_mask(params, data: _LightData, camera: Camera, min_exit_cos: float = 0.05) -> np.ndarray:
     """Pairs whose reversed chord is seen: its exit faces the camera (not grazing), on the sensor, with four valid
     neighbours in (angle, column)."""
-    index, col, q, phi_c = _conjugates(params, data, cx, camera, pixel)
+    index, col, phi_c = _conjugates(params, data, camera)
     n_angle, n_col = data.table.shape[0] - 1, data.table.shape[1]
     i0, j0 = np.floor(index).astype(int), np.floor(col).astype(int)
     on = np.isfinite(col) & (j0 >= 0) & (j0 < n_col - 1) & (i0 >= 0) & (i0 < n_angle)
     i0, j0 = np.clip(i0, 0, n_angle - 1), np.clip(j0, 0, n_col - 2)
     ok = on & data.valid[i0, j0] & data.valid[i0, j0 + 1] & data.valid[i0 + 1, j0] & data.valid[i0 + 1, j0 + 1]
-    # the outward normal where the reversed chord leaves (the edge the first chord's entry lies on), in the lab
-    edge = _edge_at(data.corners, np.pi / 2 - np.deg2rad(params[0]) - data.phi)
-    n = data.normals[edge]
-    c, s = np.cos(phi_c), np.sin(phi_c)
-    n_lab = np.stack([c * n[:, 0] - s * n[:, 1], s * n[:, 0] + c * n[:, 1]], -1)
-    if camera.model == "perspective":
-        view = np.array([0.0, -camera.distance]) - q
-        view = view / np.linalg.norm(view, axis=1, keepdims=True)
-    else:
-        view = np.tile([0.0, -1.0], (len(q), 1))
-    return ok & (np.einsum("ij,ij->i", n_lab, view) >= min_exit_cos)
+    # the outward normal where the reversed chord leaves (the edge the first chord's entry lies on), in the lab,
+    # against the ray of the pixel that sees it (as align_paths judges grazing exits)
+    normal = to_object_xy(data.normals[_edge_at(data.corners, np.pi / 2 - np.deg2rad(params[0]) - data.phi)], -phi_c)
+    _, ray = camera.slice_rays(np.nan_to_num(col))
+    ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+    return ok & (-np.einsum("ij,ij->i", normal, ray) >= min_exit_cos)
 
 
-def _light_residuals(params, slices, cx, camera: _SliceCamera, pixel: float, masks):
+def _light_residuals(params, slices) -> np.ndarray:
+    """Absorption of each pair minus its reversed chord's; ``slices``: (pairs, camera) of each lit slice."""
     pieces = []
-    for d, mask in zip(slices, masks, strict=True):
-        index, col, _, _ = _conjugates(params, d, cx, camera, pixel)
-        pieces.append((d.value - _bilinear(d.table, index, col))[mask])
+    for d, camera in slices:
+        index, col, _ = _conjugates(params, d, camera)
+        pieces.append(d.value - map_coordinates(d.table, [index, col], order=1, mode="nearest"))  # bilinear
     return np.concatenate(pieces)
 
 
+def _seen_pairs(params, slices, camera: Camera, keep=None) -> list[tuple[_LightData, Camera]]:
+    """Each slice's pairs whose reversed chord is seen at ``params`` (:func:`_pair_mask`), and where ``keep`` (a
+    function of the pairs' stage angles) says so: the residuals then compute only what they use."""
+    out = []
+    for d in slices:
+        mask = _pair_mask(params, d, camera) & (keep(d.phi - d.phi0) if keep is not None else True)
+        out.append((dataclasses.replace(d, phi=d.phi[mask], exit=d.exit[mask], ray=d.ray[mask],
+                                        ray_cos=d.ray_cos[mask], value=d.value[mask]), camera))
+    return out
+
+
 def light_slice_data(absorption: np.ndarray, valid: np.ndarray, angles_deg: np.ndarray, polygon_vertices: np.ndarray,
-                     geometry: RigGeometry, cx: float, min_exit_cos: float = 0.05) -> _LightData | None:
+                     camera: Camera, min_exit_cos: float = 0.05) -> _LightData | None:
     """The pairs of one lit slice: its absorption (angle, col) over a full turn of equal steps, its contour."""
-    polygon = convex_polygon(polygon_vertices)
+    vertices = np.asarray(polygon_vertices, float)
+    corners = np.arctan2(vertices[:, 1], vertices[:, 0])
+    start = int(np.argmin(corners))  # counter-clockwise from the smallest polar angle (see _edge_at)
+    polygon = convex_polygon(np.roll(vertices, -start, axis=0))
     if not polygon.contains(np.zeros((1, 2)))[0]:
         raise StageError(Problem("calibrate_rig: the rotation axis is outside the object's contour in the lit "
                                  "slice; the light angle is calibrated on an object the beam's line (through the "
                                  "axis) enters", fix="centre the object on the stage, or give light_angle: false"))
-    camera = geometry.camera
     n_angle, n_col = absorption.shape
-    phi = np.deg2rad(np.asarray(angles_deg, float))
-    step = 2 * np.pi / n_angle
-    cols = np.arange(n_col, dtype=float)
-    model = _SliceCamera.of(camera)
-    origin, direction = model.rays(cols, cx)
-    direction = direction / np.linalg.norm(direction, axis=1, keepdims=True)
-    rows_phi, rows_col = np.meshgrid(phi, cols, indexing="ij")
-    c, s = np.cos(rows_phi.ravel()), np.sin(rows_phi.ravel())
-    o = np.tile(origin, (n_angle, 1))
-    d = np.tile(direction, (n_angle, 1))
-    o_obj = np.stack([c * o[:, 0] + s * o[:, 1], -s * o[:, 0] + c * o[:, 1]], 1)
-    d_obj = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], 1)
+    phi = np.repeat(np.deg2rad(np.asarray(angles_deg, float)), n_col)
+    origin, direction = camera.slice_rays(np.tile(np.arange(n_col, dtype=float), n_angle))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    o_obj, d_obj = to_object_xy(origin, phi), to_object_xy(direction, phi)
     seen = polygon.interval(o_obj, d_obj)
     p_c = o_obj + np.where(seen.hit, seen.t_in, 0.0)[:, None] * d_obj
-    cos_exit = np.abs(np.einsum("ij,ij->i", d_obj, seen.normal_in))
-    use = seen.hit & (cos_exit >= min_exit_cos) & valid.ravel()
+    ray_cos = np.einsum("ij,ij->i", d_obj, seen.normal_in)
+    use = seen.hit & (np.abs(ray_cos) >= min_exit_cos) & valid.ravel()
     if use.sum() < 16:
         return None
-    vertices = np.asarray(polygon_vertices, float)
-    corners = np.arctan2(vertices[:, 1], vertices[:, 0])
-    vertices = np.roll(vertices, -int(np.argmin(corners)), axis=0)  # counter-clockwise from the smallest angle
-    corners = np.roll(corners, -int(np.argmin(corners)))
-    normals, offsets = polygon_half_planes(vertices)
+    normals, offsets = polygon.half_planes
     table = np.where(valid, absorption, 0.0)
-    ray_cos = np.einsum("ij,ij->i", d_obj, seen.normal_in)
     return _LightData(np.concatenate([table, table[:1]]), np.concatenate([valid, valid[:1]]),
-                      rows_phi.ravel()[use], p_c[use], d_obj[use], ray_cos[use], absorption.ravel()[use],
-                      normals, offsets, corners, float(phi[0]), step)
+                      phi[use], p_c[use], d_obj[use], ray_cos[use], absorption.ravel()[use],
+                      normals, offsets, np.roll(corners, -start), float(phi[0]), 2 * np.pi / n_angle)
 
 
-def polygon_half_planes(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Outward unit normals and offsets {n·p ≤ h} of a counter-clockwise convex polygon's edges."""
-    v = np.asarray(vertices, float)
-    edge = np.roll(v, -1, axis=0) - v
-    normals = np.stack([edge[:, 1], -edge[:, 0]], 1)
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    return normals, np.einsum("ij,ij->i", normals, v)
-
-
-def light_cost(params, slices, cx: float, camera: _SliceCamera, pixel: float) -> tuple[float, int]:
+def light_cost(params, slices, camera: Camera) -> tuple[float, int]:
     """Mean squared disagreement of reversed chords at (θ_l, contour offset), and the pairs it is taken over."""
-    masks = [_pair_mask(params, d, cx, camera, pixel) for d in slices]
-    r = _light_residuals(params, slices, cx, camera, pixel, masks)
+    r = _light_residuals(params, _seen_pairs(params, slices, camera))
     return (float(np.mean(r**2)) if len(r) else np.nan), len(r)
 
 
-def fit_light_angle(slices, cx: float, camera, stated: float, search_deg: float, step_deg: float
+def fit_light_angle(slices, camera: Camera, stated: float, search_deg: float, step_deg: float
                     ) -> tuple[Fit, np.ndarray, np.ndarray, np.ndarray]:
     """θ_l and the contour's offset: a profile of :func:`light_cost` over ``stated ± search_deg`` (offset 0), then
     least squares in both from the profile's minimum (twice, the pairs chosen again at the first answer).
 
-    Returns the fit (values and uncertainties of θ_l [degree] and the offset [pixels at the axis]) and the profile
-    (trial angles, mean squared disagreement, pairs)."""
-    model = _SliceCamera.of(camera)
-    pixel = float(camera.axis_pixel_size)
+    ``camera`` sees the axis where the slices were built. Returns the fit (values and uncertainties of θ_l
+    [degree] and the offset [pixels at the axis]) and the profile (trial angles, mean squared disagreement,
+    pairs)."""
     trials = stated + np.arange(-search_deg, search_deg + step_deg / 2, step_deg)
     trials = trials[(trials >= 0) & (trials <= 180)]
-    profile = np.array([light_cost((t, 0.0), slices, cx, model, pixel) for t in trials])
+    profile = np.array([light_cost((t, 0.0), slices, camera) for t in trials])
     cost, pairs = profile[:, 0], profile[:, 1].astype(int)
     enough = pairs >= max(16, 0.25 * pairs.max())
     if not enough.any() or not np.isfinite(cost[enough]).any():
@@ -380,18 +322,18 @@ def fit_light_angle(slices, cx: float, camera, stated: float, search_deg: float,
                                  fix="capture a full turn with the beam's far side in view, or give light_angle: false"))
     params = np.array([trials[int(np.nanargmin(np.where(enough, cost, np.nan)))], 0.0])
     for _ in range(2):
-        masks = [_pair_mask(params, d, cx, model, pixel) for d in slices]
-        fit = _least_squares(lambda p: _light_residuals(p, slices, cx, model, pixel, masks), params, np.sqrt(8.0))
+        seen = _seen_pairs(params, slices, camera)
+        fit = _least_squares(lambda p: _light_residuals(p, seen), params, np.sqrt(8.0))
         params = fit.value
     # (the √8: one absorption sample enters about four pairs through the bilinear weights, and each pair twice)
     # The contour's error varies with direction (each part of the hull is cut by other views' edges); the pairs of
     # each quarter turn see another part of it. Their fits' spread, over √4, is the systematic part of θ_l's error.
     quarters = []
     for q in range(4):
-        part = [m & (np.floor(np.mod(d.phi - d.phi0, 2 * np.pi) / (np.pi / 2)) == q) for d, m in zip(slices, masks)]
-        if sum(int(m.sum()) for m in part) >= 16:
-            quarters.append(_least_squares(lambda p, part=part: _light_residuals(p, slices, cx, model, pixel, part),
-                                           params, 1.0).value)
+        part = _seen_pairs(params, slices, camera,
+                           keep=lambda phi, q=q: np.floor(np.mod(phi, 2 * np.pi) / (np.pi / 2)) == q)
+        if sum(len(d.value) for d, _ in part) >= 16:
+            quarters.append(_least_squares(lambda p, part=part: _light_residuals(p, part), params, 1.0).value)
     if len(quarters) >= 2:
         spread = np.std(quarters, axis=0, ddof=1) / np.sqrt(len(quarters))
         fit = Fit(fit.value, np.hypot(fit.std, spread), fit.rms, fit.count, fit.converged)
@@ -448,46 +390,32 @@ def calibrate_rig(capture: xr.Dataset, /, *, axis: bool = True, light_angle: boo
     stated = RigGeometry.from_attrs(capture.attrs, n_rows, n_cols, where="calibrate_rig: capture")
     angles = capture["angle"].values.astype(float)
     _full_turn(angles, "calibration")
-    cx_stated, cy = stated.camera.centre_px
-    cx, axis_fit = cx_stated, None
-    dark = capture["dark"] if "dark" in capture else None
+    require_variables(capture, ("backlit",), "calibrate_rig")
+    edges = _all_edges(capture)  # one pass over the backlit frames serves both fits
+    geometry, axis_fit = stated, None
     if axis:
-        require_variables(capture, ("backlit",), "calibrate_rig")
-        mask = object_masks(capture["backlit"], dark, midpoint=True).any("angle").any("col").values
-        candidates = np.flatnonzero(mask)
+        candidates = np.flatnonzero(np.isfinite(edges).any(axis=(0, 2)))
         if not len(candidates):
-            raise StageError(Problem("calibrate_rig: no backlit frame shows the object",
+            raise StageError(Problem("calibrate_rig: no backlit frame shows the object inside the image",
                                      fix="check the backlit and dark frames"))
-        use_rows = candidates[_spread(len(candidates), rows)]
-        backlit = capture["backlit"].isel(row=use_rows)
-        signal = (backlit - dark.isel(row=use_rows)) if dark is not None else backlit
-        left, right = silhouette_edges(signal.transpose("angle", "row", "col").values)
-        axis_fit = fit_axis_column(left, right, angles, stated.camera, cx_stated)
-        cx = float(axis_fit.value[0])
-    geometry = RigGeometry(type(stated.camera)(**{**_camera_fields(stated.camera), "principal_point_px": (cx, cy)}),
-                           **{k: getattr(stated, k) for k in ("light_angle_deg", "length_unit", "light_distance",
-                                                               "light_kind", "beam_height")})
+        axis_fit = fit_axis_column(edges[:, candidates[_spread(len(candidates), rows)]], angles, stated.camera)
+        geometry = dataclasses.replace(stated, camera=_with_axis(stated.camera, axis_fit.value[0]))
     light_fit, profile = None, None
     if light_angle:
-        require_variables(capture, ("target", "reference", "backlit"), "calibrate_rig")
+        require_variables(capture, ("target", "reference"), "calibrate_rig")
         lit = geometry.lit_rows()
         lit = lit[_spread(len(lit), max(1, min(rows, 8)))]
-        part = capture.isel(row=lit)
-        flags_ok = absorption_stage(part, min_signal=min_signal)
+        flags_ok = absorption_stage(capture.isel(row=lit), min_signal=min_signal)
         values = flags_ok["absorption"].transpose("angle", "row", "col").values.astype(float)
         valid = (flags_ok["flags"].transpose("angle", "row", "col").values == 0) & np.isfinite(values)
-        hull_mask = object_masks(part["backlit"], dark.isel(row=lit) if dark is not None else None, midpoint=True)
-        hull_mask = hull_mask.transpose("angle", "row", "col").values
 
-        def lit_slices(column: float) -> list[_LightData]:
-            camera = type(geometry.camera)(**{**_camera_fields(geometry.camera),
-                                              "principal_point_px": (column, cy)})
+        def lit_slices(camera: Camera) -> list[_LightData]:
             out = []
-            for k in range(len(lit)):
-                normals, offsets, _ = silhouette_half_planes(hull_mask[:, k], angles, camera)
-                polygon = intersect_half_planes(normals, offsets)
-                data = None if polygon is None else light_slice_data(
-                    values[:, k], valid[:, k], angles, polygon, dataclasses.replace(geometry, camera=camera), column)
+            for k, row in enumerate(lit):
+                polygon = intersect_half_planes(*tangent_half_planes(edges[:, row, 0], edges[:, row, 1], angles,
+                                                                     camera))
+                data = None if polygon is None else light_slice_data(values[:, k], valid[:, k], angles, polygon,
+                                                                     camera)
                 if data is not None:
                     out.append(data)
             if not out:
@@ -496,11 +424,11 @@ def calibrate_rig(capture: xr.Dataset, /, *, axis: bool = True, light_angle: boo
                                          "light_angle: false"))
             return out
 
-        light_fit, trials, cost, pairs = fit_light_angle(lit_slices(cx), cx, geometry.camera,
+        light_fit, trials, cost, pairs = fit_light_angle(lit_slices(geometry.camera), geometry.camera,
                                                          stated.light_angle_deg, search_deg, search_step_deg)
         if axis_fit is not None:  # the axis's uncertainty moves θ_l too: refit one standard uncertainty away
-            moved = cx + float(axis_fit.std[0])
-            shifted, *_ = fit_light_angle(lit_slices(moved), moved, geometry.camera, float(light_fit.value[0]),
+            moved = _with_axis(geometry.camera, axis_fit.value[0] + axis_fit.std[0])
+            shifted, *_ = fit_light_angle(lit_slices(moved), moved, float(light_fit.value[0]),
                                           min(search_deg, 1.0), search_step_deg)
             light_fit = Fit(light_fit.value, np.hypot(light_fit.std, shifted.value - light_fit.value),
                             light_fit.rms, light_fit.count, light_fit.converged)
@@ -515,13 +443,18 @@ def calibrate_rig(capture: xr.Dataset, /, *, axis: bool = True, light_angle: boo
                 fix="the absorption must vary (an object with an inclusion); widen search_deg if the estimate sits "
                 "at its edge; or give light_angle: false"))
         profile = (trials, cost, pairs)
-        geometry = RigGeometry(geometry.camera, theta_l, geometry.length_unit, geometry.light_distance,
-                               geometry.light_kind, geometry.beam_height)
+        geometry = dataclasses.replace(geometry, light_angle_deg=theta_l)
     return _calibration_dataset(capture, stated, geometry, axis_fit, light_fit, profile)
 
 
-def _camera_fields(camera) -> dict:
-    return {f.name: getattr(camera, f.name) for f in dataclasses.fields(camera)}
+def _all_edges(capture: xr.Dataset) -> np.ndarray:
+    """:func:`silhouette_edges` of every backlit frame (dark subtracted), (angle, row, 2), lazily one task per angle
+    chunk and computed at once (the edges are small: two numbers per row and view)."""
+    signal = capture["backlit"] - capture["dark"] if "dark" in capture else capture["backlit"]
+    edges = xr.apply_ufunc(silhouette_edges, signal.transpose("angle", "row", "col").chunk({"row": -1, "col": -1}),
+                           input_core_dims=[["row", "col"]], output_core_dims=[["row", "side"]], dask="parallelized",
+                           output_dtypes=[np.float64], dask_gufunc_kwargs={"output_sizes": {"side": 2}})
+    return np.asarray(edges.transpose("angle", "row", "side").values)
 
 
 def _calibration_dataset(capture, stated: RigGeometry, geometry: RigGeometry, axis_fit: Fit | None,

@@ -129,12 +129,14 @@ def test_silhouette_edges_are_pixel_edges_on_binary_frames_and_sub_pixel_on_blur
     frame = np.full((1, 40, 60), 100.0)
     frame[0, :, 5:12] = 0.0  # object on columns 5..11: outer edges at 4.5 and 11.5
     frame[0, 1, 4] = 75.0  # a quarter covered: the edge is a quarter pixel further out
-    left, right = silhouette_edges(frame)  # (levels: halfway between the classes' means, ≈ 50)
+    edges = silhouette_edges(frame)  # (levels: halfway between the classes' means, ≈ 50)
+    left, right = edges[..., 0], edges[..., 1]
     assert left[0, :2].tolist() == pytest.approx([4.5, 4.25], abs=0.01)
     assert right[0, :2].tolist() == pytest.approx([11.5, 11.5], abs=0.01)
     touching = frame.copy()
     touching[0, 0, :3] = 0.0  # a second run (and at the border): that row gives nothing
-    left, right = silhouette_edges(touching)
+    edges = silhouette_edges(touching)
+    left, right = edges[..., 0], edges[..., 1]
     assert np.isnan(left[0, 0]) and np.isnan(right[0, 0])
 
 
