@@ -213,7 +213,7 @@ def _checked_pair(capture: xr.Dataset, stage_name: str, saturation_level: float 
         # backlit frames were dark-subtracted with the others (subtract_background's default variables); a pixel
         # whose backlit value is missing (NaN, inf: e.g. a frame never filmed) is not known to be off the object
         dark = None if subtracted or not background_name else background
-        mask = object_masks(backlit, dark, threshold=silhouette_threshold, midpoint=True)
+        mask = object_masks(backlit, dark, threshold=silhouette_threshold)
         object_mask = mask | ~np.isfinite(backlit)
         silhouette_share = _silhouette_share(backlit if dark is None else backlit - dark, mask)
     value, flags = xr.apply_ufunc(

@@ -28,8 +28,8 @@ from pipeline.schema import with_metadata
 from stages._common import require_variables, sorted_sweep
 
 
-def _silhouette_kernel(backlit: np.ndarray, dark: np.ndarray, *, threshold: float | None, min_size: int,
-                       midpoint: bool = False) -> np.ndarray:
+def _silhouette_kernel(backlit: np.ndarray, dark: np.ndarray, *, threshold: float | None, min_size: int
+                       ) -> np.ndarray:
     signal = backlit.astype(np.float64) - dark
     out = np.zeros(signal.shape, dtype=bool)
     for i, frame in enumerate(signal.reshape(-1, *signal.shape[-2:])):
@@ -37,7 +37,7 @@ def _silhouette_kernel(backlit: np.ndarray, dark: np.ndarray, *, threshold: floa
         level = threshold
         if level is None:
             levels = backlight_levels(frame[finite])
-            level = np.inf if levels is None else (0.5 * (levels[1] + levels[2]) if midpoint else levels[0])
+            level = np.inf if levels is None else 0.5 * (levels[1] + levels[2])
         mask = finite & (frame < level)  # the object blocks the lit plane
         if min_size > 0:
             mask = _fill_small_holes(remove_small_objects(mask, max_size=min_size), min_size)
@@ -73,22 +73,21 @@ MIN_SIZE = 16
 
 
 def object_masks(backlit: xr.DataArray, dark: xr.DataArray | None = None, *, threshold: float | None = None,
-                 min_size: int = MIN_SIZE, midpoint: bool = False) -> xr.DataArray:
+                 min_size: int = MIN_SIZE) -> xr.DataArray:
     """True where the object hides the lit plane in ``backlit`` (dims ``angle, row, col``), ``dark`` (``row, col``;
     None: 0) subtracted: the kernel of :func:`silhouettes`, lazy, one task per angle chunk.
 
-    ``midpoint``: without a ``threshold``, move Otsu's level halfway between the means of the two classes it
-    splits. skimage's Otsu returns the first histogram bin of a tie, which for a well separated backlight (no
-    pixel between the classes) lies at the top of the object's noise, e.g. 0.4 counts above dark where the lit
-    plane is at 2,000: it then splits the noise of small frames. The silhouettes stage keeps Otsu's level as it
-    was (its hulls, and the reconstructions checked against them, are unchanged); the background flag uses the
-    midpoint, which in that case lies above Otsu's level: a larger object, so the flag drops no ray."""
+    Without a ``threshold`` the level lies halfway between the means of the two classes Otsu's method splits
+    (:func:`backlight_levels`), not at Otsu's level itself: skimage's Otsu returns the first histogram bin of a tie,
+    which for a well separated backlight (no pixel between the classes) lies at the top of the object's noise,
+    e.g. 0.4 counts above dark where the lit plane is at 2,000, and then splits that noise (the border rows of the
+    calibration workflow's capture had 52 gapped silhouette rows, none with the midpoint)."""
     backlit = backlit.chunk({"row": -1, "col": -1})
     dark = xr.zeros_like(backlit.isel(angle=0, drop=True)) if dark is None else dark
     mask = xr.apply_ufunc(_silhouette_kernel, backlit, dark.chunk({"row": -1, "col": -1}),
                           input_core_dims=[["row", "col"], ["row", "col"]], output_core_dims=[["row", "col"]],
                           dask="parallelized", output_dtypes=[bool],
-                          kwargs={"threshold": threshold, "min_size": min_size, "midpoint": midpoint})
+                          kwargs={"threshold": threshold, "min_size": min_size})
     return mask.transpose("angle", ..., "row", "col")
 
 
@@ -103,7 +102,8 @@ def silhouettes(capture: xr.Dataset, /, *, threshold: Positive | None = None,
         A ``tomography_capture`` store (``acquire_tomography``): ``backlit`` [counts] over (angle, row, col), and
         ``dark`` (row, col) where present, subtracted here: give raw frames, not ``subtract_dark``'s output.
     threshold : float or None
-        Counts above dark below which a pixel is object; None: Otsu's threshold per frame [counts].
+        Counts above dark below which a pixel is object; None: per frame, halfway between the object's and the lit
+        plane's levels (the means of Otsu's two classes) [counts].
     min_size : int
         Blobs and holes up to this many pixels are removed (noise, dust); 0: none [px].
     """
