@@ -149,7 +149,7 @@ SHIPPED = [  # (workflow, old, new, message)
      "(fix: expected float > 0)"),
     ("tomography-sim.yaml", "{rays: $rays, n_theta: 180, n_x: 128}", "{rays: $rays, n_theta: 1, n_x: 128}",
      "wf.yaml:35: steps[5].with.n_theta: setting of stage 'bin_sinogram' Input should be greater than or equal to "
-     "2 (got 1) (fix: expected int ≥ 2)"),
+     "2 (got 1) (fix: expected int ≥ 2 | None)"),
     ("tomography-sim.yaml", "{rays: $rays, n_theta: 180, n_x: 128}", "{rays: $rays, n_theta: 1000000, n_x: 1000000}",
      "wf.yaml:35: steps[5].with: one slice's binned sinogram (1,000,000 × 1,000,000 bins, sums and counts in "
      "float64) would take 14.6 TiB, more than 50% of this machine's memory (16.0 GiB) (fix: lower n_theta or n_x)"),

@@ -266,3 +266,63 @@ def test_a_dimensionless_length_unit_runs_the_chain_with_sigma_per_that_unit(tmp
     assert got["x"].attrs["units"] == "1" and got["sigma"].attrs["units"] == "1"
     assert open_store(tmp_path / "mm.zarr")["sigma"].attrs["units"] == "1/mm"
     np.testing.assert_array_equal(got["sigma"].values, results["mm"]["sigma"].values)
+
+
+def _filled_by_hand(observed: np.ndarray) -> float:
+    """filled_fraction by its definition, bin by bin: a bin is between observed bins when both X neighbours or
+    both θ neighbours hold a ray; θ wraps to 0° with X mirrored."""
+    n_theta, n_x = observed.shape[-2:]
+    hits = between = 0
+    for s in np.ndindex(observed.shape[:-2]):
+        o = observed[s]
+        for i in range(n_theta):
+            for j in range(n_x):
+                x_pair = 0 < j < n_x - 1 and o[i, j - 1] and o[i, j + 1]
+                before = o[i - 1, j] if i > 0 else o[n_theta - 1, n_x - 1 - j]
+                after = o[i + 1, j] if i < n_theta - 1 else o[0, n_x - 1 - j]
+                if x_pair or (before and after):
+                    between += 1
+                    hits += bool(o[i, j])
+    return hits / max(between, 1)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_filled_fraction_counts_the_holes_between_observed_bins(seed):
+    """Against the definition evaluated bin by bin, on random masks (dense and sparse), the θ wrap included."""
+    from stages.tomography.sinogram import filled_share
+
+    rng = np.random.default_rng(seed)
+    observed = rng.random((2, 7, 9)) < (0.3, 0.6, 0.8, 0.95)[seed]
+    got = filled_share(xr.DataArray(observed, dims=("slice", "theta", "x")), (7, 9))
+    assert float(got) == pytest.approx(_filled_by_hand(observed), abs=1e-12)
+    full = filled_share(xr.DataArray(np.ones((1, 4, 5), bool), dims=("slice", "theta", "x")), (4, 5))
+    assert float(full) == 1.0
+
+
+def test_default_bins_follow_the_capture_and_fill_it():
+    """Without n_theta/n_x: one θ bin per view step (4° → 45) and one X bin per pixel pitch at the axis, which over
+    the default extent (the sensor's width at the axis) is cols + 1. These bins fill ≥ 97 % of the bins between
+    observed ones (measured 98.6 %); twice finer in θ and thrice in X fill under half (measured 0.18), with a
+    warning for each and the capture's counts in the advice."""
+    import warnings
+
+    from pipeline.quality import ADVISE, FIX
+
+    cols = 160
+    scene = make_scene({"kind": "cylinder", "radius": f"{R} mm"}, cylinder_camera(30.0, cols), 45.0)
+    cap = capture(scene, np.arange(0.0, 360.0, 4.0))
+    rays = align_paths(absorption(cap), visual_hull(silhouettes(cap))).compute()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        sino = bin_sinogram(rays)
+    assert (sino.sizes["theta"], sino.sizes["x"]) == (45, cols + 1)
+    assert (sino.attrs["capture_n_theta"], sino.attrs["capture_n_x"]) == (45, cols + 1)
+    filled = sino["filled_fraction"]
+    assert float(filled) >= filled.attrs[ADVISE] == 0.97
+    assert "n_theta ≤ 45, n_x ≤ 161" in filled.attrs[FIX]
+    with pytest.warns(UserWarning) as record:
+        fine = bin_sinogram(rays, n_theta=90, n_x=3 * cols)
+    assert any("finer than the 4° between views" in str(w.message) for w in record)
+    assert any("less than half the" in str(w.message) and "n_x ≤ 161" in str(w.message) for w in record)
+    assert float(fine["filled_fraction"]) < 0.5
+    assert (fine.attrs["capture_n_theta"], fine.attrs["capture_n_x"]) == (45, cols + 1)
