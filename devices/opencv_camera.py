@@ -27,10 +27,14 @@ class OpenCVCamera:
         Value for ``CAP_PROP_EXPOSURE`` (units depend on the backend).
     discard : int
         Frames read and dropped before each capture (stale frames in the driver's queue).
+    keep_first : bool
+        The frame read to learn the shape is the first capture (a free-running camera); False: it is dropped and
+        every capture reads a new frame (a camera triggered per capture, whose first frame came before the sweep
+        set anything).
     """
 
     def __init__(self, source: int | str, *, width: int | None = None, height: int | None = None,
-                 exposure: float | None = None, discard: int = 0):
+                 exposure: float | None = None, discard: int = 0, keep_first: bool = True):
         self.source, self.discard = str(source), discard
         self._capture = cv2.VideoCapture(source)
         if not self._capture.isOpened():
@@ -42,7 +46,7 @@ class OpenCVCamera:
                 self._capture.set(prop, value)
         first = self._read("first frame")
         self._shape = first.shape
-        self._pending: np.ndarray | None = first
+        self._pending: np.ndarray | None = first if keep_first else None
         if (width and first.shape[1] != width) or (height and first.shape[0] != height):
             raise DeviceError(f"camera delivers {first.shape[1]}×{first.shape[0]} frames, not {width}×{height}",
                               port=self.source, fix="request a size the camera supports")

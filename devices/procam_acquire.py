@@ -108,15 +108,25 @@ def capture_template(instruments: ProcamInstruments, kind: str, delays, exposure
                       attrs={"selpath_kind": kind, **instruments.attrs, **(extra_attrs or {})})
 
 
-def sweep_frames(instruments: ProcamInstruments, store, template: xr.Dataset, kind: str, pattern_of: Callable,
+def sweep_frames(instruments: ProcamInstruments, store, template: xr.Dataset, kind: str, show: Callable,
                  progress: bool, log: Callable[[str], None]) -> xr.Dataset:
     """Capture every missing frame of ``template`` into ``store`` (created or resumed, and locked while the
-    sweep runs), showing ``pattern_of(line)`` (line None for sweeps without lines)."""
+    sweep runs), ``show(line)`` putting each frame's pattern on the projector (line None for sweeps without
+    lines)."""
     with store_lock(store, purpose=kind):
-        return _sweep_frames(instruments, store, template, kind, pattern_of, progress, log)
+        return _sweep_frames(instruments, store, template, kind, show, progress, log)
 
 
-def _sweep_frames(instruments: ProcamInstruments, store, template: xr.Dataset, kind: str, pattern_of: Callable,
+def show_line(projector, position: float, width: float) -> None:
+    """A vertical line (``devices.patterns.vertical_line``) on ``projector``: drawn by the projector itself where
+    it can (``show_line``: one command instead of a pattern upload), else shown as a pattern."""
+    if hasattr(projector, "show_line"):
+        projector.show_line(position, width)
+    else:
+        projector.show(vertical_line(projector.shape, position, width))
+
+
+def _sweep_frames(instruments: ProcamInstruments, store, template: xr.Dataset, kind: str, show: Callable,
                   progress: bool, log: Callable[[str], None]) -> xr.Dataset:
     delays, exposures = template["delay"].values, template["exposure"].values
     refuse_impossible(instruments, delays, exposures)
@@ -145,7 +155,7 @@ def _sweep_frames(instruments: ProcamInstruments, store, template: xr.Dataset, k
         task = bar.add_task("capture", total=len(todo))
         for frame in todo:
             if current.get("line", object()) != frame.get("line"):
-                instruments.projector.show(pattern_of(frame.get("line")))
+                show(frame.get("line"))
                 current["line"] = frame.get("line")
             if current.get("exposure") != frame["exposure"]:
                 _verified(instruments.sync.set_exposure(frame["exposure"]), frame["exposure"], "exposure", instruments)
@@ -247,7 +257,8 @@ def acquire_plane_to_ray(instruments: ProcamInstruments, store: str | os.PathLik
             exposures = sorted({*map(float, exposures), float(extra["hdr_added_exposure_us"])})
     template = capture_template(instruments, "plane_to_ray_capture", delays, exposures, extra_attrs=extra)
     pattern = white(instruments.projector.shape)
-    return sweep_frames(instruments, store, template, "plane_to_ray_capture", lambda _: pattern, progress, log)
+    return sweep_frames(instruments, store, template, "plane_to_ray_capture",
+                        lambda _: instruments.projector.show(pattern), progress, log)
 
 
 def _existing_hdr(store: str | os.PathLike) -> dict[str, Any] | None:
@@ -267,9 +278,8 @@ def acquire_full_transport(instruments: ProcamInstruments, store: str | os.PathL
     """A vertical line at each l_p (width l_w) × every (delay, exposure): a ``full_transport_capture`` store."""
     template = capture_template(instruments, "full_transport_capture", delays, exposures, lines,
                                 {"line_width_px": float(line_width)})
-    shape = instruments.projector.shape
     return sweep_frames(instruments, store, template, "full_transport_capture",
-                        lambda position: vertical_line(shape, position, line_width), progress, log)
+                        lambda position: show_line(instruments.projector, position, line_width), progress, log)
 
 
 def checkerboard_shifts(square: tuple[int, int], per_axis: int) -> np.ndarray:

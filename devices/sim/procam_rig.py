@@ -87,3 +87,27 @@ def simulated_procam_rig(scene: ProcamScene, limits: SyncLimits = DEFAULT_LIMITS
     attrs = rig.attrs() | {"rig": "simulated", "scene": scene.scene, "effects": list(scene.effect_names()),
                            "simulated_scene": scene.model_dump(mode="json", exclude={"rig": {"frame_interval"}})}
     return ProcamInstruments(sync, projector, camera, attrs)
+
+
+class FakeProcamHardware:
+    """The simulated rig behind the hardware path, for tests of ``rig: hardware``: the fake sync firmware on a
+    pseudo-terminal (the sync and projector protocols of ``docs/devices.md``, with its faults) driving a
+    simulated projector, and a rolling-shutter camera that renders what the firmware holds. ``port`` is what a
+    rig file's ``sync.url`` names; ``camera`` stands in for the OpenCV camera. A context manager."""
+
+    def __init__(self, scene: ProcamScene, faults=None, *, limits: SyncLimits = DEFAULT_LIMITS, slots: int = 8):
+        from devices.sim.sync_firmware import FakeSyncFirmware
+
+        rig = scene.rig
+        self.projector = SimProjector((rig.projector_rows, rig.projector_cols))
+        self.firmware = FakeSyncFirmware(faults, limits=limits, screen=self.projector,
+                                         projector_shape=(rig.projector_rows, rig.projector_cols), slots=slots)
+        self.camera = SimRollingShutterCamera(scene, self.firmware.controller, self.projector)
+        self.port = self.firmware.port
+
+    def __enter__(self) -> FakeProcamHardware:
+        self.firmware.__enter__()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.firmware.close()

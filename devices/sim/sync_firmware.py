@@ -6,6 +6,11 @@ The line faults of :mod:`devices.sim.firmware` apply, plus one of the device's o
 
 ``drift``  apply a ``DELAY``/``EXPO`` three steps off the value asked for (within the limits), but answer as
            if it were exact (a controller whose counter clock is off); only the read-back catches it.
+``corrupt`` store a pattern ``ROW`` with one byte flipped but answer ``OK`` (:mod:`devices.sim.projector_firmware`);
+           only the slot's checksum catches it.
+
+With a ``screen`` (e.g. the simulated projector) the firmware also drives the projector: the pattern commands
+of :mod:`devices.sim.projector_firmware`.
 
 ``python -m devices.sim.sync_firmware`` prints a port a real driver can open.
 """
@@ -16,6 +21,7 @@ from collections.abc import Mapping
 
 from devices.protocols import SyncLimits, SyncStatus
 from devices.sim.firmware import FakeFirmware, serve_by_hand
+from devices.sim.projector_firmware import PatternMemory
 from pipeline.errors import DeviceError
 
 #: the limits of the simulated controller: ±10 ms delay, 10 µs … 20 ms exposure (one 50 Hz frame), 1 µs step
@@ -65,18 +71,26 @@ class SimSyncController:
 
 
 class FakeSyncFirmware(FakeFirmware):
-    """A :class:`SimSyncController` (delay 0 µs, exposure 1000 µs, not armed) answering on a pseudo-terminal."""
+    """A :class:`SimSyncController` (delay 0 µs, exposure 1000 µs, not armed) answering on a pseudo-terminal;
+    with a ``screen`` (anything with ``show(pattern)``) also the projector's ``projector_shape`` pattern memory."""
 
-    DEVICE_FAULTS = ("drift",)
+    DEVICE_FAULTS = ("drift", "corrupt")
     NAME = "fake-sync-firmware"
 
-    def __init__(self, faults: Mapping[int, str] | None = None, *, limits: SyncLimits = DEFAULT_LIMITS):
+    def __init__(self, faults: Mapping[int, str] | None = None, *, limits: SyncLimits = DEFAULT_LIMITS,
+                 screen=None, projector_shape: tuple[int, int] = (720, 1280), slots: int = 8):
         super().__init__(faults)
         self.controller = SimSyncController(limits)
+        self.patterns = PatternMemory(projector_shape, screen, slots) if screen is not None else None
 
     def execute(self, command: str, fault: str | None) -> str:
         name, _, argument = command.partition(" ")
         lim = self.controller.limits
+        if self.patterns is not None:
+            with self._lock:
+                reply = self.patterns.execute(name, argument, fault)
+            if reply is not None:
+                return reply
         if name == "*IDN?":
             return "IDN selpath,fake-sync,1.0"
         if name == "LIM?":

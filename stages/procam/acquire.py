@@ -23,6 +23,7 @@ from devices.procam_acquire import ProcamInstruments, capture_template, checkerb
 from devices.procam_acquire import acquire_checkerboards as checkerboard_sweep
 from devices.procam_acquire import acquire_full_transport as full_sweep
 from devices.procam_acquire import acquire_plane_to_ray as plane_sweep
+from devices.procam_hardware import load_procam_hardware, procam_hardware_rig
 from devices.sim.procam_rig import simulated_procam_rig
 from devices.sim.procam_scene import ProcamRig, ProcamScene, load_procam_scene
 from devices.sim.sync_firmware import DEFAULT_LIMITS
@@ -106,11 +107,29 @@ def _checked_scene(settings, sweep) -> list[str]:
 
 
 def _precheck(settings) -> list[str]:
+    if getattr(settings, "rig", "sim") == "hardware":
+        return _hardware_problems(settings)
+    if not settings.scene:
+        return ["rig 'sim' needs the setting 'scene' (a projector-camera scene file)"]
     return _checked_scene(settings, lambda _: (settings.delays.values(), settings.exposures))
 
 
+def _hardware_problems(settings) -> list[str]:
+    """Read the rig file at validation time; the controller's limits are read (and a sweep it cannot do is
+    refused) when the acquisition opens it, before anything moves."""
+    if not settings.hardware:
+        return ["rig 'hardware' needs the setting 'hardware' (a projector-camera rig file, docs/devices.md)"]
+    problems = [f"{name} is a setting of the simulated rig (rig: sim); a hardware rig's sensor is the camera's"
+                for name in ("scene", "sensor", "rig_changes") if getattr(settings, name)]
+    try:
+        load_procam_hardware(settings.hardware)
+    except SelpathError as exc:
+        problems += [f"hardware file: {p}" for p in getattr(exc, "problems", [exc])]
+    return problems
+
+
 def _identity(settings) -> dict:
-    source = Path(settings.scene)
+    source = Path(settings.hardware if getattr(settings, "rig", "sim") == "hardware" else settings.scene)
     digest = hashlib.sha256(source.read_bytes()).hexdigest() if source.is_file() else None
     return {"rig": settings.rig, "file": str(source), "sha256": digest, "sensor": settings.sensor,
             "rig_changes": settings.rig_changes}
@@ -122,6 +141,22 @@ def _simulated_rig(scene: StorePath, sensor: SensorSize | None, rig_changes: Rig
     """The simulated rig showing ``scene`` (at ``sensor`` size and with ``rig_changes`` when given), closed when
     the sweep ends."""
     instruments = simulated_procam_rig(_scene(scene, sensor, rig_changes))
+    try:
+        yield instruments
+    finally:
+        instruments.close()
+
+
+@contextmanager
+def _rig(rig: str, scene: StorePath, hardware: StorePath, sensor: SensorSize | None,
+         rig_changes: RigChanges | None) -> Iterator[ProcamInstruments]:
+    """The simulated rig (``sim``) or the rig a hardware file describes (``hardware``), closed when the sweep
+    ends."""
+    if rig == "sim":
+        with _simulated_rig(scene, sensor, rig_changes) as instruments:
+            yield instruments
+        return
+    instruments = procam_hardware_rig(load_procam_hardware(hardware))
     try:
         yield instruments
     finally:
@@ -141,9 +176,7 @@ def _acquisition(name: str):
     return register
 
 
-_SHARED_DOCS = """    rig : str
-        ``sim``: the transport simulator.
-    sensor : [rows, cols] or None
+_SHARED_DOCS = """    sensor : [rows, cols] or None
         Render at this sensor size instead of the scene rig's (scenes are drawn in fractions of the image); a
         frame that would not fit in memory is refused.
     rig_changes : dict or None
@@ -159,11 +192,12 @@ _SHARED_DOCS = """    rig : str
 def acquire_plane_to_ray(
     *,
     store: StorePath,
-    scene: StorePath,
     delays: TimeSweep,
     exposures: Exposures,
     hdr: Literal["off", "auto"] = "off",
-    rig: Literal["sim"] = "sim",
+    rig: Literal["sim", "hardware"] = "sim",
+    scene: StorePath = "",
+    hardware: StorePath = "",
     sensor: SensorSize | None = None,
     rig_changes: RigChanges | None = None,
     progress: bool = True,
@@ -174,8 +208,13 @@ def acquire_plane_to_ray(
     ----------
     store : str
         Zarr store the frames land in; an existing store of the same sweep resumes.
+    rig : str
+        ``sim``: the transport simulator showing ``scene``; ``hardware``: the sync controller, projector and
+        camera of the ``hardware`` rig file (docs/devices.md).
     scene : str
-        Projector–camera scene file (``workflows/scenes/*.yaml``).
+        Projector–camera scene file (``workflows/scenes/*.yaml``), for ``rig: sim``.
+    hardware : str
+        Projector–camera rig file, for ``rig: hardware``.
     delays : TimeSweep
         Sync delays t_d {start, stop, step} [µs], stop included (stop ≥ start), at most 100 000 delays.
     exposures : list of float
@@ -188,7 +227,7 @@ def acquire_plane_to_ray(
         highlight that clips within one line time gets nothing added (only attenuation helps). ``off``: the
         exposures as given.
     """
-    with _simulated_rig(scene, sensor, rig_changes) as instruments:
+    with _rig(rig, scene, hardware, sensor, rig_changes) as instruments:
         return plane_sweep(instruments, store, delays.values(), exposures, hdr=hdr == "auto", progress=progress,
                            log=sweep_log(progress))
 
@@ -197,12 +236,13 @@ def acquire_plane_to_ray(
 def acquire_full_transport(
     *,
     store: StorePath,
-    scene: StorePath,
     delays: TimeSweep,
     exposures: Exposures,
     lines: PixelSweep,
     line_width: Positive,
-    rig: Literal["sim"] = "sim",
+    rig: Literal["sim", "hardware"] = "sim",
+    scene: StorePath = "",
+    hardware: StorePath = "",
     sensor: SensorSize | None = None,
     rig_changes: RigChanges | None = None,
     progress: bool = True,
@@ -213,8 +253,13 @@ def acquire_full_transport(
     ----------
     store : str
         Zarr store the frames land in; an existing store of the same sweep resumes.
+    rig : str
+        ``sim``: the transport simulator showing ``scene``; ``hardware``: the sync controller, projector and
+        camera of the ``hardware`` rig file (docs/devices.md).
     scene : str
-        Projector–camera scene file.
+        Projector–camera scene file (``workflows/scenes/*.yaml``), for ``rig: sim``.
+    hardware : str
+        Projector–camera rig file, for ``rig: hardware``.
     delays : TimeSweep
         Sync delays t_d [µs], stop included (stop ≥ start), at most 100 000 delays.
     exposures : list of float
@@ -224,7 +269,7 @@ def acquire_full_transport(
     line_width : float
         Line width l_w [px].
     """
-    with _simulated_rig(scene, sensor, rig_changes) as instruments:
+    with _rig(rig, scene, hardware, sensor, rig_changes) as instruments:
         return full_sweep(instruments, store, delays.values(), exposures, lines.values(), line_width,
                           progress=progress, log=sweep_log(progress))
 
@@ -250,6 +295,8 @@ def acquire_scan_calibration(
         Zarr store the frames land in.
     scene : str
         Scene file (a flat white target is best).
+    rig : str
+        ``sim``: the transport simulator (a hardware rig's camera would need a global-shutter mode: not yet).
     delays : TimeSweep
         Trigger delays after VSYNC [µs], stop included (stop ≥ start), at most 100 000 delays; the band must stay
         inside the sensor.
@@ -263,7 +310,8 @@ def acquire_scan_calibration(
         template = capture_template(instruments, "plane_to_ray_capture", delays.values(), exposures,
                                     extra_attrs={"shutter": "global"})
         pattern = white(instruments.projector.shape)
-        return sweep_frames(instruments, store, template, "plane_to_ray_capture", lambda _: pattern, progress,
+        return sweep_frames(instruments, store, template, "plane_to_ray_capture",
+                            lambda _: instruments.projector.show(pattern), progress,
                             sweep_log(progress))
 
 

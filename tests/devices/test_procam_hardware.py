@@ -1,0 +1,349 @@
+"""``rig: hardware`` for the projector–camera sweeps: the serial sync controller and the projector behind it
+(pattern slots, lines drawn by the controller) against the fake firmware on a pseudo-terminal, with a simulated
+camera standing in for OpenCV's. The whole path must give the simulated rig's frames, survive the line's faults,
+keep every frame through a disconnect or a SIGKILL, and resume."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import xarray as xr
+import yaml
+import zarr
+
+import devices.procam_hardware as procam_hardware
+from devices.patterns import checkerboard, vertical_line
+from devices.procam_acquire import acquire_full_transport, acquire_plane_to_ray
+from devices.procam_hardware import load_procam_hardware, procam_hardware_rig
+from devices.protocols import SyncLimits
+from devices.serial_line import SerialLine
+from devices.serial_projector import SyncLineProjector, quantise
+from devices.sim.procam_rig import FakeProcamHardware, simulated_procam_rig
+from devices.sim.procam_scene import ProcamScene
+from pipeline.engine import run_workflow
+from pipeline.errors import DeviceDisconnected, DeviceError, SpecError
+from pipeline.provenance import read_provenance
+from pipeline.spec import load_workflow
+from pipeline.store import missing_frames, open_store
+
+SCENE = {
+    "scene": "tiny-candle", "background": {"albedo": 0.4},
+    "objects": [{"name": "candle", "region": {"kind": "rectangle", "x": [0.2, 0.6], "y": [0.2, 0.8]}, "albedo": 0.9,
+                 "effects": {"subsurface": {"width": "3 px", "fraction": 0.6}}}],
+    "rig": {"camera_rows": 24, "camera_cols": 32, "projector_rows": 16, "projector_cols": 32,
+            "noise": {"gain": 1.0, "read_std": 2.0, "seed": 3}, "jitter": {"std": "2 us"}},
+}
+DELAYS, EXPOSURES = [-68.0, -34.0, 0.0, 34.0], [85.0, 170.0]
+
+
+def scene(**rig) -> ProcamScene:
+    spec = {**SCENE, "rig": SCENE["rig"] | rig}
+    return ProcamScene.model_validate(spec)
+
+
+def rig_file(folder: Path, port: str, **changes) -> Path:
+    """A rig file for ``port`` whose timing and levels are the scene rig's (17 µs rows and line time)."""
+    spec = {"sync": {"url": port, "timeout_s": 0.5}, "camera": {"source": 0},
+            "scan": {"row_period_us": 17.0, "line_time_us": 17.0}, "dark_level": 0.0, "saturation_level": 4095.0}
+    path = folder / "procam-rig.yaml"
+    path.write_text(yaml.safe_dump(spec | changes))
+    return path
+
+
+@pytest.fixture
+def fake_camera(monkeypatch):
+    """``use(hardware)``: the rig's OpenCV camera is ``hardware.camera``; the settings it was opened with are kept."""
+    opened = []
+
+    def use(hardware: FakeProcamHardware):
+        def open_camera(source, **settings):
+            opened.append((source, settings))
+            return hardware.camera
+        monkeypatch.setattr(procam_hardware, "OpenCVCamera", open_camera)
+        return opened
+
+    return use
+
+
+def test_a_hardware_sweep_gives_the_simulated_rigs_frames_and_uploads_the_white_pattern_once(tmp_path, fake_camera):
+    """Bit for bit: the frames through the serial line, the projector's slot and the triggered camera equal the
+    simulated rig's at the same settings; the white pattern is uploaded once and verified by its checksum."""
+    want = acquire_plane_to_ray(simulated_procam_rig(scene()), tmp_path / "sim.zarr", DELAYS, EXPOSURES,
+                                progress=False).load()
+    with FakeProcamHardware(scene()) as hardware:
+        opened = fake_camera(hardware)
+        instruments = procam_hardware_rig(load_procam_hardware(rig_file(tmp_path, hardware.port)))
+        try:
+            got = acquire_plane_to_ray(instruments, tmp_path / "hw.zarr", DELAYS, EXPOSURES, progress=False).load()
+        finally:
+            instruments.close()
+        received = hardware.firmware.received
+    assert opened == [(0, {"width": None, "height": None, "exposure": None, "discard": 0, "keep_first": False})]
+    xr.testing.assert_identical(got["image"].drop_attrs(), want["image"].drop_attrs())
+    for name in ("scan_speed_px_per_us", "line_time_us", "projector_shape", "dark_level_counts", "saturation_counts"):
+        assert got.attrs[name] == want.attrs[name], name
+    assert got.attrs["rig"] == "hardware" and got.attrs["sync_controller"] == "selpath,fake-sync,1.0"
+    commands = [c.split()[0] for c in received]
+    assert commands.count("UPLOAD") == 1 and commands.count("SUM?") == 1 and commands.count("SHOW") == 1
+    assert commands.count("ROW") == 16 and commands.count("ARM") == 1 + len(DELAYS) * len(EXPOSURES)
+
+
+def test_full_transport_lines_are_drawn_by_the_controller(tmp_path, fake_camera):
+    """Each l_p is one LINE command (no upload) confirmed by PAT?, and the frames equal the simulated rig's (odd
+    widths at whole-pixel centres: the 8-bit projector shows the line exactly)."""
+    lines, width = [4.0, 11.0, 20.0], 3.0
+    want = acquire_full_transport(simulated_procam_rig(scene()), tmp_path / "sim.zarr", [0.0, 34.0], [170.0], lines,
+                                  width, progress=False).load()
+    with FakeProcamHardware(scene()) as hardware:
+        fake_camera(hardware)
+        instruments = procam_hardware_rig(load_procam_hardware(rig_file(tmp_path, hardware.port)))
+        try:
+            got = acquire_full_transport(instruments, tmp_path / "hw.zarr", [0.0, 34.0], [170.0], lines, width,
+                                         progress=False).load()
+        finally:
+            instruments.close()
+        received = hardware.firmware.received
+    xr.testing.assert_identical(got["image"].drop_attrs(), want["image"].drop_attrs())
+    assert [c for c in received if c.startswith("LINE")] == [f"LINE {p:.3f} 3.000" for p in lines]
+    assert not any(c.startswith("UPLOAD") for c in received)
+
+
+def _projector(hardware: FakeProcamHardware, timeout_s: float = 0.3) -> SyncLineProjector:
+    return SyncLineProjector(SerialLine(hardware.port, timeout_s=timeout_s))
+
+
+def test_patterns_are_kept_by_content_and_the_least_recently_used_slot_is_reused():
+    boards = [checkerboard((16, 32), 4, (0, s)) for s in (0, 2, 4)]
+    with FakeProcamHardware(scene(), slots=2) as hardware:
+        projector = _projector(hardware)
+        for board in (boards[0], boards[1], boards[0], boards[2], boards[0], boards[1]):
+            projector.show(board)
+            np.testing.assert_array_equal(hardware.projector.pattern, board)
+            assert projector.showing().startswith("SLOT ")
+        # 0 and 1 uploaded; 0 again from its slot; 2 replaces 1 (used longest ago); 0 kept; 1 uploaded again
+        assert projector.uploads == 4
+        projector.line.close()
+
+
+def test_grey_levels_are_shown_at_the_projectors_8_bits_and_bad_patterns_are_refused():
+    ramp = np.broadcast_to(np.linspace(0, 1, 32), (16, 32))
+    with FakeProcamHardware(scene()) as hardware:
+        projector = _projector(hardware)
+        projector.show(ramp)
+        np.testing.assert_array_equal(hardware.projector.pattern, np.rint(ramp * 255) / 255)
+        assert np.max(np.abs(hardware.projector.pattern - ramp)) <= 0.5 / 255
+        for bad, message in ((ramp * 2, r"spans \[0, 2\]"), (np.full((16, 32), np.nan), "NaN"),
+                             (np.ones((8, 32)), r"pattern is \(8, 32\); the projector is \(16, 32\)")):
+            with pytest.raises(DeviceError, match=message):
+                projector.show(bad)
+        projector.show_line(7.0, 2.0)
+        np.testing.assert_array_equal(hardware.projector.pattern, np.rint(vertical_line((16, 32), 7.0, 2.0) * 255) / 255)
+        projector.line.close()
+
+
+def test_a_corrupted_upload_is_caught_by_its_checksum_and_sent_again():
+    """The firmware stores a row with a flipped byte but answers OK: the slot's CRC-32 differs, the pattern is
+    uploaded again, and what is shown is the pattern. Corrupted twice: an error naming slot and checksums."""
+    board = checkerboard((16, 32), 4)
+    rows = 16
+    first_row, second_upload_row = 2, rows + 4  # PROJ?, UPLOAD, ROW×16, SUM?, UPLOAD, ROW…
+    with FakeProcamHardware(scene(), faults={first_row: "corrupt"}) as hardware:
+        projector = _projector(hardware)
+        projector.show(board)
+        np.testing.assert_array_equal(hardware.projector.pattern, board)
+        assert projector.uploads == 2
+        projector.line.close()
+    with FakeProcamHardware(scene(), faults={first_row: "corrupt", second_upload_row: "corrupt"}) as hardware:
+        projector = _projector(hardware)
+        with pytest.raises(DeviceError, match=r"slot 0 holds a pattern with CRC-32 [0-9A-F]{8}, not the "
+                                              r"[0-9A-F]{8} uploaded \(2 uploads\)"):
+            projector.show(board)
+        assert hardware.projector.pattern is None  # still the white it started with: the board was never shown
+        projector.line.close()
+
+
+@pytest.mark.parametrize("fault", ["lost-reply", "garble", "late", "stray", "noise"])
+@pytest.mark.parametrize("at", ["ROW", "SHOW", "LINE"])
+def test_line_faults_on_pattern_commands_are_resolved(fault, at):
+    """A lost or garbled reply to a row is answered by writing the row again (idempotent); to SHOW or LINE by
+    asking PAT? what is shown, never by resending; either way the right pattern is on the projector."""
+    board = checkerboard((16, 32), 4)
+    index = {"ROW": 2, "SHOW": 19, "LINE": 0}[at]  # PROJ?, UPLOAD, ROW×16, SUM?, SHOW / LINE
+    with FakeProcamHardware(scene(), faults={index: fault}) as hardware:
+        projector = _projector(hardware)
+        if at == "LINE":
+            projector.show_line(5.0, 3.0)
+            want = vertical_line((16, 32), 5.0, 3.0)
+        else:
+            projector.show(board)
+            want = board
+        assert hardware.firmware.received[index].startswith(at)
+        np.testing.assert_array_equal(hardware.projector.pattern, want)
+        assert sum(c.startswith(("SHOW", "LINE")) for c in hardware.firmware.received) == 1  # never resent
+        projector.line.close()
+
+
+def test_a_projector_that_shows_something_else_is_caught_by_the_read_back(monkeypatch):
+    from devices.sim.projector_firmware import PatternMemory
+
+    real = PatternMemory._show
+
+    def stuck(self, args, fault):  # acknowledges, changes nothing
+        real(self, args, fault)
+        self.shown = "NONE"
+        return f"OK SHOW {args[0]}"
+
+    monkeypatch.setattr(PatternMemory, "_show", stuck)
+    with FakeProcamHardware(scene()) as hardware:
+        projector = _projector(hardware)
+        with pytest.raises(DeviceError, match=r"the controller shows 'NONE' after 'SHOW 0'"):
+            projector.show(checkerboard((16, 32), 4))
+        projector.line.close()
+
+
+def _uninterrupted(tmp_path: Path) -> xr.Dataset:
+    return acquire_plane_to_ray(simulated_procam_rig(scene()), tmp_path / "want.zarr", DELAYS, EXPOSURES,
+                                progress=False).load()
+
+
+def test_a_disconnect_mid_sweep_keeps_every_frame_and_the_rerun_resumes(tmp_path, fake_camera):
+    want = _uninterrupted(tmp_path)
+    store = tmp_path / "hw.zarr"
+    with FakeProcamHardware(scene(), faults={40: "disconnect"}) as hardware:
+        fake_camera(hardware)
+        instruments = procam_hardware_rig(load_procam_hardware(rig_file(tmp_path, hardware.port)))
+        with pytest.raises(DeviceDisconnected, match="the port went away") as caught:
+            acquire_plane_to_ray(instruments, store, DELAYS, EXPOSURES, progress=False)
+        instruments.close()
+    assert caught.value.port == hardware.port and "resume" in caught.value.fix
+    kept = len(DELAYS) * len(EXPOSURES) - len(missing_frames(store)["image"])
+    assert 0 < kept < len(DELAYS) * len(EXPOSURES)
+    with FakeProcamHardware(scene()) as hardware:  # reconnected: a fresh controller, patterns gone
+        fake_camera(hardware)
+        instruments = procam_hardware_rig(load_procam_hardware(rig_file(tmp_path, hardware.port)))
+        try:
+            got = acquire_plane_to_ray(instruments, store, DELAYS, EXPOSURES, progress=False).load()
+        finally:
+            instruments.close()
+        rearmed = sum(c == "ARM" for c in hardware.firmware.received) - 1  # the one on opening
+    assert rearmed == len(DELAYS) * len(EXPOSURES) - kept  # only the missing frames were captured again
+    xr.testing.assert_identical(got["image"].drop_attrs(), want["image"].drop_attrs())
+
+
+def test_a_sweep_the_controller_cannot_do_is_refused_before_anything_moves(tmp_path, fake_camera):
+    limits = SyncLimits(delay_min=-100.0, delay_max=30.0, exposure_min=10.0, exposure_max=150.0, step=1.0)
+    with FakeProcamHardware(scene(), limits=limits) as hardware:
+        fake_camera(hardware)
+        instruments = procam_hardware_rig(load_procam_hardware(rig_file(tmp_path, hardware.port)))
+        try:
+            with pytest.raises(SpecError, match=r"delays span \[-68, 34\] µs; the controller does \[-100, 30\] "
+                                                r"µs.*\n.*exposures span \[85, 170\] µs; the controller does \[10, 150\]"):
+                acquire_plane_to_ray(instruments, tmp_path / "c.zarr", DELAYS, EXPOSURES, progress=False)
+        finally:
+            instruments.close()
+        assert not any(c.startswith(("DELAY", "EXPO", "UPLOAD")) for c in hardware.firmware.received)
+    assert not (tmp_path / "c.zarr").exists()
+
+
+WORKFLOW = """\
+workflow: procam-hardware
+scheduler: synchronous
+steps:
+  - id: capture
+    stage: acquire_plane_to_ray
+    with: {rig: hardware, hardware: procam-rig.yaml, delays: {start: -68, stop: 34, step: 34}, exposures: [85, 170],
+           store: capture.zarr, progress: false}
+"""
+
+
+@pytest.mark.parametrize("change, message", [
+    ({"hardware": None}, "rig 'hardware' needs the setting 'hardware'"),
+    ({"scene": "scene.yaml"}, "scene is a setting of the simulated rig"),
+    ({"sensor": [12, 16]}, "sensor is a setting of the simulated rig"),
+    ({"hardware": "broken.yaml"}, r"hardware file: .*broken.yaml:1: scan: is required but missing"),
+])
+def test_a_hardware_workflow_is_checked_before_anything_moves(tmp_path, change, message):
+    rig_file(tmp_path, "/dev/null")
+    (tmp_path / "broken.yaml").write_text("sync: {url: /dev/null}\ncamera: {source: 0}\n")
+    spec = yaml.safe_load(WORKFLOW)
+    settings = spec["steps"][0]["with"]
+    for key, value in change.items():
+        settings.pop(key) if value is None else settings.__setitem__(key, value)
+    path = tmp_path / "wf.yaml"
+    path.write_text(yaml.safe_dump(spec))
+    with pytest.raises(SpecError, match=message):
+        load_workflow(path)
+
+
+KILLED_RUN = """\
+import sys
+import devices.procam_hardware as procam_hardware
+from devices.sim.procam_rig import FakeProcamHardware
+from devices.sim.procam_scene import ProcamScene
+from pipeline.engine import run_workflow
+from pipeline.spec import load_workflow
+import json, os
+folder = sys.argv[1]
+scene = ProcamScene.model_validate(json.loads(open(os.path.join(folder, "scene.json")).read()))
+with FakeProcamHardware(scene) as hardware:
+    link = os.path.join(folder, "port")
+    os.symlink(hardware.port, link + ".new")
+    os.replace(link + ".new", link)
+    procam_hardware.OpenCVCamera = lambda source, **settings: hardware.camera
+    run_workflow(load_workflow(os.path.join(folder, "workflow.yaml")), progress=False)
+"""
+
+
+def written_frames(store: Path) -> int:
+    try:
+        return int(np.sum(zarr.open_group(str(store), mode="r")["written__image"][:]))
+    except Exception:  # not created yet, or mid-creation
+        return 0
+
+
+def test_sigkill_mid_hardware_sweep_then_rerun_gives_the_uninterrupted_store(tmp_path, fake_camera):
+    """A real SIGKILL of a `run_workflow` process driving the fake controller through its pseudo-terminal (the rig
+    file names a stable link to it, as /dev/serial/by-id/… does); run again, only the missing frames are
+    captured and the store equals the uninterrupted sweep's."""
+    import json
+
+    want = _uninterrupted(tmp_path)
+    folder = tmp_path / "run"
+    folder.mkdir()
+    paced = scene(frame_interval="60 ms")
+    (folder / "scene.json").write_text(json.dumps(paced.model_dump(mode="json")))
+    rig_file(folder, str(folder / "port"))
+    (folder / "workflow.yaml").write_text(WORKFLOW)
+    (folder / "run.py").write_text(KILLED_RUN)
+    store = folder / "capture.zarr"
+    process = subprocess.Popen([sys.executable, str(folder / "run.py"), str(folder)], cwd=Path.cwd(),
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 120
+    while written_frames(store) < 3 and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.02)
+    process.kill()
+    _, err = process.communicate()
+    kept = written_frames(store)
+    assert 3 <= kept < 8, f"the kill must land mid-sweep ({kept} frames; {err.decode()[-400:]})"
+    assert read_provenance(store) is None
+
+    with FakeProcamHardware(scene()) as hardware:
+        (folder / "port").unlink()
+        (folder / "port").symlink_to(hardware.port)
+        fake_camera(hardware)
+        run_workflow(load_workflow(folder / "workflow.yaml"), progress=False)
+        rearmed = sum(c == "ARM" for c in hardware.firmware.received) - 1
+    assert rearmed == 8 - kept
+    got = open_store(store).load()
+    xr.testing.assert_identical(got["image"].drop_attrs(), want["image"].drop_attrs())
+    assert read_provenance(store)["step_hash"]
+    assert not missing_frames(store)["image"]
+
+
+def test_quantise_is_the_projectors_grey_levels():
+    assert quantise(np.array([0.0, 0.5, 1.0, 1 / 255, 0.3])).tolist() == [0, 128, 255, 1, 76]
