@@ -22,7 +22,7 @@ import numpy as np
 import xarray as xr
 from rich.progress import Progress, TextColumn, TimeElapsedColumn
 
-from devices.patterns import checkerboard, vertical_line, white
+from devices.patterns import checkerboard, gray_code_levels, vertical_line, white
 from devices.protocols import Camera, Projector, SyncController
 from pipeline.compute import BAR_COLUMNS, show_bars
 from pipeline.errors import DeviceError, Problem, SpecError
@@ -296,34 +296,66 @@ def acquire_checkerboards(instruments: ProcamInstruments, store: str | os.PathLi
     ``floodlit`` (global shutter, the exposure spanning the whole scan: Nayar's frames) or ``epipolar`` (rolling
     shutter at ``delay``/``exposure``, normally 0 and t_p: the epipolar frames)."""
     shifts = np.asarray(shifts, dtype=int)
+    shape = instruments.projector.shape
+    coords = {"shift": ("shift", np.arange(len(shifts)), {"units": "1", "long_name": "checkerboard shift number"}),
+              "shift_row": ("shift", shifts[:, 0], {"units": "px", "long_name": "board shift in projector rows"}),
+              "shift_col": ("shift", shifts[:, 1], {"units": "px", "long_name": "board shift in projector columns"})}
+    return pattern_stack(instruments, store, "checkerboard_capture", coords,
+                         lambda i: checkerboard(shape, square, tuple(shifts[i])),
+                         {"square_px": [int(v) for v in square]}, mode=mode, delay=delay, exposure=exposure,
+                         progress=progress, log=log, what=f"{mode} checkerboard",
+                         describe=lambda i: f"{mode} board shifted by {tuple(shifts[i])} px")
+
+
+def acquire_gray_code(instruments: ProcamInstruments, store: str | os.PathLike, *, delay: float, exposure: float,
+                      progress: bool = True, log: Callable[[str], None] = lambda _: None) -> xr.Dataset:
+    """White, black, then every column and row bit of the projector's Gray code with its inverse
+    (:func:`devices.patterns.gray_code_levels`) into a ``gray_code_capture`` store, resumable, with the rolling
+    shutter at ``delay``/``exposure``: an exposure of many rows lets every pixel see the projector rows around
+    its own, so the codes tell which row and column light it directly (``stages.procam.rectify``)."""
+    levels, column_bits, row_bits = gray_code_levels(instruments.projector.shape)
+    coords = {"pattern": ("pattern", np.arange(len(levels)),
+                          {"units": "1", "long_name": "pattern number: white, black, column bits, row bits"})}
+    return pattern_stack(instruments, store, "gray_code_capture", coords, lambda i: levels[i] / 255.0,
+                         {"column_bits": column_bits, "row_bits": row_bits}, mode="epipolar", delay=delay,
+                         exposure=exposure, progress=progress, log=log, what="Gray code",
+                         describe=lambda i: f"Gray code pattern {i}")
+
+
+def pattern_stack(instruments: ProcamInstruments, store: str | os.PathLike, kind: str, coords: dict,
+                  pattern_of: Callable[[int], np.ndarray], attrs: Mapping[str, Any], *, mode: str, delay: float,
+                  exposure: float, progress: bool, log: Callable[[str], None], what: str,
+                  describe: Callable[[int], str]) -> xr.Dataset:
+    """One frame per pattern ``pattern_of(i)`` at one delay and exposure into a ``kind`` store over the first of
+    ``coords``' dims, resumable: ``floodlit`` (global shutter) or ``epipolar`` (the synchronised rolling
+    shutter)."""
     rows, cols = instruments.camera.shape
     refuse_impossible(instruments, [delay], [exposure])
     if mode == "floodlit":
         if not hasattr(instruments.camera, "set_shutter"):
-            raise DeviceError("floodlit checkerboards need a camera with a global-shutter mode (set_shutter)",
+            raise DeviceError("floodlit patterns need a camera with a global-shutter mode (set_shutter)",
                               command="set_shutter", fix="use mode: epipolar, or a camera with a global shutter")
         instruments.camera.set_shutter("global")
     elif hasattr(instruments.camera, "set_shutter"):
         instruments.camera.set_shutter("rolling")  # a camera left in global mode by a floodlit stack
-    index = np.arange(len(shifts))
+    dim = next(iter(coords))
+    count = len(coords[dim][1])
     template = xr.Dataset(
-        {"image": (("shift", "row", "col"), da.zeros((len(shifts), rows, cols), dtype=np.float32,
-                                                    chunks=(1, min(rows, CAPTURE_BAND_ROWS), cols)),
+        {"image": ((dim, "row", "col"), da.zeros((count, rows, cols), dtype=np.float32,
+                                                 chunks=(1, min(rows, CAPTURE_BAND_ROWS), cols)),
                    {"units": "counts"})},
-        coords={"shift": ("shift", index, {"units": "1", "long_name": "checkerboard shift number"}),
-                "shift_row": ("shift", shifts[:, 0], {"units": "px", "long_name": "board shift in projector rows"}),
-                "shift_col": ("shift", shifts[:, 1], {"units": "px", "long_name": "board shift in projector columns"})},
-        attrs={"selpath_kind": "checkerboard_capture", **instruments.attrs, "square_px": [int(v) for v in square],
-               "mode": mode, "shutter": "global" if mode == "floodlit" else "rolling", "delay_us": float(delay),
+        coords=coords,
+        attrs={"selpath_kind": kind, **instruments.attrs, **attrs, "mode": mode,
+               "shutter": "global" if mode == "floodlit" else "rolling", "delay_us": float(delay),
                "exposure_us": float(exposure)})
-    with store_lock(store, purpose="checkerboard_capture"):
-        create_capture(store, template, "checkerboard_capture")
-        todo = [int(f["shift"]) for f in missing_frames(store)["image"]]
+    with store_lock(store, purpose=kind):
+        create_capture(store, template, kind)
+        todo = [int(f[dim]) for f in missing_frames(store)["image"]]
         if not todo:
             log(f"   every frame is already captured in {store}")
             return open_store(store)
-        log(f"   capturing {len(todo)} {mode} checkerboard frame(s) into {store}"
-            + (" (resuming: the others are already captured)" if len(todo) < len(shifts) else ""))
+        log(f"   capturing {len(todo)} {what} frame(s) into {store}"
+            + (" (resuming: the others are already captured)" if len(todo) < count else ""))
         _verified(instruments.sync.set_exposure(exposure), exposure, "exposure", instruments)
         _verified(instruments.sync.set_delay(delay), delay, "delay", instruments)
         began = time.perf_counter()
@@ -331,9 +363,9 @@ def acquire_checkerboards(instruments: ProcamInstruments, store: str | os.PathLi
                       transient=True) as bar:
             task = bar.add_task("capture", total=len(todo))
             for i in todo:
-                instruments.projector.show(checkerboard(instruments.projector.shape, square, tuple(shifts[i])))
+                instruments.projector.show(pattern_of(i))
                 instruments.sync.arm()
-                write_frame(store, "image", {"shift": i}, instruments.camera.capture())
-                bar.update(task, advance=1, description=f"capture: {mode} board shifted by {tuple(shifts[i])} px")
+                write_frame(store, "image", {dim: i}, instruments.camera.capture())
+                bar.update(task, advance=1, description=f"capture: {describe(i)}")
         log(f"   captured {len(todo)} frame(s) in {time.perf_counter() - began:.1f} s")
     return open_store(store)

@@ -30,7 +30,7 @@ from typing import Annotated, Literal
 import numpy as np
 import pydantic
 
-from devices.sim.scene import Pixels, quantity, saturation_above_dark
+from devices.sim.scene import Angle, Pixels, quantity, saturation_above_dark
 from pipeline.yaml_source import load_yaml_model
 
 Micros = quantity({"us": 1.0, "ms": 1e3, "s": 1e6}, "170 us", "a duration")
@@ -148,6 +148,19 @@ class SensorNoise(_Model):
     seed: int = pydantic.Field(0, ge=0)
 
 
+class Misalignment(_Model):
+    """A rig whose rows are not epipolar (§6.1 assumes they are): the light a camera pixel (s, c) receives
+    directly comes from projector row s + δ (in camera rows), δ(s, c) = shift + tan(roll)·(c − (C − 1)/2) — a
+    projector rolled about its axis and shifted, as seen on the camera's rows."""
+
+    roll: Angle = pydantic.Field("0 deg", description="rotation of the projector's rows against the camera's")
+    shift: Pixels = pydantic.Field("0 px", description="offset of the projector's rows, camera rows")
+
+    def offset(self, cols: np.ndarray, camera_cols: int) -> np.ndarray:
+        """δ [camera rows] of pixels in camera columns ``cols`` (the same on every row)."""
+        return self.shift + np.tan(np.deg2rad(self.roll)) * (np.asarray(cols, float) - (camera_cols - 1) / 2)
+
+
 class ProcamRig(_Model):
     """The synchronised projector–camera rig (§5.3.2) and the effects of its own it simulates."""
 
@@ -167,6 +180,7 @@ class ProcamRig(_Model):
     jitter: Jitter | None = None
     noise: SensorNoise | None = None
     frame_interval: Micros = pydantic.Field("0 us", ge=0, description="simulated readout time per frame")
+    misalignment: Misalignment | None = pydantic.Field(None, description="rows not epipolar (default: rectified)")
 
     _levels = pydantic.model_validator(mode="after")(lambda self: saturation_above_dark(self))
 

@@ -25,6 +25,7 @@ tolerance (``pattern_rtol``).
 
 from __future__ import annotations
 
+import dataclasses
 import zlib
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -195,7 +196,11 @@ def tile_lobes(scene: ProcamScene, tile: Tile,
             lobes += direct_lobes(index, albedo, named, tile, rig)
         for name in named.names():
             lobes += table[name](index, albedo, named, tile, rig)
-    return [lobe for lobe in lobes if lobe.index.size], u_direct
+    lobes = [lobe for lobe in lobes if lobe.index.size]
+    if rig.misalignment is not None:  # every path of a pixel arrives δ(s, c) rows off its epipolar row
+        delta = rig.misalignment.offset(tile.cols, rig.camera_cols)
+        lobes = [dataclasses.replace(lobe, dv=lobe.dv + delta[lobe.index]) for lobe in lobes]
+    return lobes, u_direct
 
 
 # -- time integration ----------------------------------------------------------------------------------
@@ -357,10 +362,16 @@ def render_frame(scene: ProcamScene, delay: float, exposure: float, pattern: np.
     return out
 
 
+def seen_rows(rig: ProcamRig) -> np.ndarray:
+    """The projector row that lights each camera row on a rectified rig: the one under the camera row's centre,
+    ⌊(s + ½) · P_rows / C_rows⌋ (rows as unit cells, so camera row s's centre s + ½ lies at (s + ½)·P/C in
+    projector rows)."""
+    return ((2 * np.arange(rig.camera_rows) + 1) * rig.projector_rows) // (2 * rig.camera_rows)
+
+
 def on_camera_rows(rig: ProcamRig, row_profile: np.ndarray) -> np.ndarray:
-    """A projector-row profile (or pattern, rows first) rectified onto camera rows (projector row
-    ⌊s · P_rows / C_rows⌋ lights row s)."""
-    return row_profile[(np.arange(rig.camera_rows) * rig.projector_rows) // rig.camera_rows]
+    """A projector-row profile (or pattern, rows first) rectified onto camera rows (:func:`seen_rows`)."""
+    return row_profile[seen_rows(rig)]
 
 
 def pattern_terms(rig: ProcamRig, pattern: np.ndarray | None, *, rtol: float = PATTERN_RTOL,

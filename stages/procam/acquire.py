@@ -22,6 +22,7 @@ from devices.patterns import white
 from devices.procam_acquire import ProcamInstruments, capture_template, checkerboard_shifts, sweep_frames
 from devices.procam_acquire import acquire_checkerboards as checkerboard_sweep
 from devices.procam_acquire import acquire_full_transport as full_sweep
+from devices.procam_acquire import acquire_gray_code as gray_code_stack
 from devices.procam_acquire import acquire_plane_to_ray as plane_sweep
 from devices.procam_hardware import load_procam_hardware, procam_hardware_rig
 from devices.sim.procam_rig import simulated_procam_rig
@@ -381,3 +382,63 @@ def acquire_checkerboards(
     with _simulated_rig(scene, sensor, rig_changes) as instruments:
         return checkerboard_sweep(instruments, store, (square, square), shifts, mode=mode, delay=delay,
                                   exposure=exposure, progress=progress, log=sweep_log(progress))
+
+
+def gray_code_window(line_time: float, scan_speed: float, max_offset_rows: float) -> tuple[float, float]:
+    """(t_d, t_e) [µs] of a Gray-code frame: delay 0 and an exposure that also takes in the projector rows up to
+    ``max_offset_rows`` camera rows from each camera row's own (t_p + 2·max_offset / v_p, whole µs)."""
+    return 0.0, float(np.ceil(line_time + 2 * max_offset_rows / scan_speed))
+
+
+def _gray_code_precheck(settings) -> list[str]:
+    if settings.rig == "hardware":
+        return _hardware_problems(settings)
+    if not settings.scene:
+        return ["rig 'sim' needs the setting 'scene' (a projector-camera scene file)"]
+    return _checked_scene(settings, lambda spec: tuple([v] for v in gray_code_window(
+        spec.rig.line_time, spec.rig.scan_speed, settings.max_offset_rows)))
+
+
+@stage("acquire_gray_code", precheck=_gray_code_precheck, identity=_identity, writes=lambda settings: settings.store,
+       variables=lambda settings: ["image"])
+def acquire_gray_code(
+    *,
+    store: StorePath,
+    rig: Literal["sim", "hardware"] = "sim",
+    scene: StorePath = "",
+    hardware: StorePath = "",
+    max_offset_rows: Positive = 16.0,
+    sensor: SensorSize | None = None,
+    rig_changes: RigChanges | None = None,
+    progress: bool = True,
+) -> xr.Dataset:
+    """White, black and the projector's Gray codes (each column and row bit and its inverse, ``cv2.structured_light``)
+    at t_d = 0 with an exposure of many rows, frame by frame and resumably: what ``decode_gray_code`` turns into the
+    projector pixel lighting each camera pixel, and ``epipolar_alignment`` into the rig's row misalignment.
+
+    Parameters
+    ----------
+    store : str
+        Zarr store the frames land in (a ``gray_code_capture``); an existing store of the same codes resumes.
+    rig : str
+        ``sim``: the transport simulator showing ``scene``; ``hardware``: the rig file ``hardware``.
+    scene : str
+        Projector–camera scene file, for ``rig: sim``.
+    hardware : str
+        Projector–camera rig file, for ``rig: hardware`` (docs/devices.md).
+    max_offset_rows : float
+        Misalignment the codes can still see [camera rows]: the exposure spans t_p + 2·max_offset / v_p, so each
+        camera row also integrates the projector rows this far from its own (global light from them too).
+    sensor : [rows, cols] or None
+        Render at this sensor size instead of the scene rig's (``rig: sim``).
+    rig_changes : dict or None
+        Changes to the scene's rig (``rig: sim``), as for ``acquire_plane_to_ray``.
+    progress : bool
+        Show a progress bar.
+    """
+    with _rig(rig, scene, hardware, sensor, rig_changes) as instruments:
+        attrs = instruments.attrs
+        delay, exposure = gray_code_window(float(attrs["line_time_us"]), float(attrs["scan_speed_px_per_us"]),
+                                           max_offset_rows)
+        return gray_code_stack(instruments, store, delay=delay, exposure=exposure, progress=progress,
+                               log=sweep_log(progress))

@@ -34,7 +34,7 @@ import xarray as xr
 
 from devices.patterns import checkerboard
 from devices.sim.procam_scene import ProcamScene
-from devices.sim.procam_transport import on_camera_rows, render_frame
+from devices.sim.procam_transport import on_camera_rows, render_frame, seen_rows
 from pipeline.constraints import Count, Fraction, Index, NonNegative, Positive
 from pipeline.errors import Problem, StageError
 from pipeline.registry import stage
@@ -261,7 +261,7 @@ def projector_pattern(scene: ProcamScene, on_camera: np.ndarray) -> np.ndarray:
     """A projector pattern whose rows, rectified onto camera rows, are ``on_camera`` (camera rows × projector
     columns): projector row p shows the first camera row that sees it (or the nearest above)."""
     rig = scene.rig
-    seen = (np.arange(rig.camera_rows) * rig.projector_rows) // rig.camera_rows
+    seen = seen_rows(rig)
     first = np.searchsorted(seen, np.arange(rig.projector_rows), side="left").clip(0, rig.camera_rows - 1)
     pattern = on_camera[first]
     if not np.array_equal(on_camera_rows(rig, pattern), on_camera):

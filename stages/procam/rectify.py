@@ -1,0 +1,359 @@
+"""Are the sync rows epipolar? Gray-code correspondences, the rig's row misalignment, and rectified transport.
+
+The synchronised rig rests on one assumption (§5.2, §6.1): projector and camera are a rectified stereo pair, so the
+light a camera row receives directly comes from the projector row the sync pairs with it. A projector rolled or
+shifted against the camera breaks it: pixel (s, c)'s direct light comes from δ(s, c) rows off, the epipolar frames
+lose it once |δ| exceeds the lit line's height, and the plane-to-ray transport's direct peak sits at offset δ
+instead of 0, a different δ in every column.
+
+- ``decode_gray_code``: from a ``gray_code_capture`` (white, black, every column and row bit with its inverse,
+  ``cv2.structured_light``'s codes), the projector column and row that light each pixel directly, to sub-pixel
+  (neighbouring codes differ in one bit, whose contrast says how the pixel's light splits between the two; see
+  ``_axis``); pixels in shadow (white − black below a share of the sensor's range) or with two bits whose pattern
+  and inverse are too close (global light, clipping) are left undecoded (NaN). Vectorised over row bands by hand:
+  OpenCV's ``getProjPixel`` answers one pixel per call and whole pixels only (tested as the peer).
+- ``epipolar_alignment``: δ = decoded row, in camera rows, minus the camera row (the sync pairs camera row s with
+  projector row (s + ½)·P/C − ½, P and C their row counts), and a robust fit δ = shift + tan(roll)·(c − c₀) + slope·
+  (s − s₀), which averages the codes' whole-row quantisation away. Warns when the rows are not epipolar: when the
+  fitted |δ| of one pixel in ten exceeds half the lit line's height (v_p·t_p rows).
+- ``rectify_transport``: the plane-to-ray transport re-indexed per pixel, T'(o) = T(o + δ(s, c)) (linear
+  interpolation along the offset; NaN where o + δ leaves the solved window), so the direct peak is back at offset 0.
+  The projector's scan cannot be re-rowed after the fact: this rectifies the measured transport, and the fit says
+  how to turn the projector (−roll) to rectify the rig itself.
+
+Not yet: intrinsics and pose from a checkerboard target (``calibrateCamera``/``stereoCalibrate``/``stereoRectify``).
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import xarray as xr
+
+from pipeline.constraints import Fraction, Index, Positive
+from pipeline.errors import Problem, StageError
+from pipeline.quality import usable_share
+from pipeline.registry import stage
+from pipeline.schema import with_metadata
+from stages._common import require_variables
+
+#: below this share of decoded pixels a correspondence map means nothing
+DECODED_FLOOR = 0.05
+#: fit rounds, each dropping pixels more than TRIM robust deviations off the previous fit
+FIT_ROUNDS, TRIM = 4, 4.0
+
+
+def _gray(value: np.ndarray) -> np.ndarray:
+    return value ^ (value >> 1)
+
+
+def _axis(contrast: np.ndarray, size: int, min_contrast: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One axis's bits (bits, ...) of contrast c = (pattern − inverse) / (white − black) → (sub-pixel position, ok).
+
+    The nearest projector pixel r is the Gray code of the bits' signs. Neighbouring pixels' codes differ in one
+    bit, so light split between r and r + f·1 (a pixel seen between two, |f| ≤ ½) dims exactly that bit's contrast
+    to |1 − 2f| and leaves the others whole: the position is r + (|c₋| − |c₊|) / 2, c₊ and c₋ the contrasts of the
+    bits r shares with its neighbours above and below (exact for a pixel that integrates two neighbours; a
+    symmetric blur dims both alike and cancels). One bit may therefore be unclear (|c| < min_contrast: the pixel
+    lies on that bit's edge); two or more: undecoded. Returns the position, whether it is decoded, and the code's
+    sharpness: the smallest contrast of the bits not shared with a neighbour (1: light from at most two
+    neighbouring pixels; less: light spread wider, whose position this model biases)."""
+    n = contrast.shape[0]
+    weights = 2 ** np.arange(n - 1, -1, -1)
+    bits = (contrast > 0).astype(np.int64)
+    binary = np.cumsum(bits, axis=0) % 2  # binary-reflected Gray code, most significant first
+    nearest = np.tensordot(weights, binary, axes=1)
+    ok = (np.sum(np.abs(contrast) < min_contrast, axis=0) <= 1) & (nearest < size)
+
+    def flipped_bit(a: np.ndarray, b: np.ndarray) -> np.ndarray:  # bit index (MSB first) where codes a, b differ
+        return n - 1 - np.log2(np.maximum(_gray(a) ^ _gray(b), 1)).astype(np.int64)
+
+    strength = np.abs(contrast)
+    take = np.indices(nearest.shape)
+    up = np.minimum(nearest + 1, size - 1)
+    down = np.maximum(nearest - 1, 0)
+    bit_up, bit_down = flipped_bit(nearest, up), flipped_bit(nearest, down)
+    c_up = np.where(up > nearest, strength[(bit_up, *take)], 1.0)
+    c_down = np.where(down < nearest, strength[(bit_down, *take)], 1.0)
+    # (not clipped at 1: a full-contrast bit's noise is symmetric about 1, and clipping it would bias the position)
+    position = nearest + np.clip((c_down - c_up) / 2, -0.5, 0.5)
+    # the other bits keep their full contrast for light from two neighbours only; light spread wider (global
+    # light, a blurred code) dims them too: their smallest contrast says how sharp the pixel's code is
+    index = np.arange(n).reshape((n,) + (1,) * nearest.ndim)
+    others = np.where((index == bit_up) | (index == bit_down), np.inf, strength)
+    sharpness = np.minimum(np.min(others, axis=0), 1.0) if n > 2 else np.ones(nearest.shape)
+    return position, ok, sharpness
+
+
+def _coarse_axis(contrast: np.ndarray, size: int, drop: int, min_contrast: float
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_axis` on the bits coarser than the camera resolves: without the ``drop`` least significant bits a
+    Gray code counts blocks of 2^drop pixels (its top bits are the code of value >> drop), whose centre is returned,
+    in projector pixels."""
+    kept = contrast.shape[0] - drop
+    units, ok, sharpness = _axis(contrast[:kept], -(-size // 2**drop), min_contrast)
+    return (units + 0.5) * 2**drop - 0.5, ok, sharpness
+
+
+def resolved_drop(projector: int, camera: int) -> int:
+    """Least significant Gray-code bits a camera of ``camera`` pixels cannot resolve across ``projector`` pixels: a
+    camera pixel spans P / C projector pixels, so bits whose stripes are narrower alias (ceil(log2(P / C)), ≥ 0).
+
+    >>> resolved_drop(720, 1200), resolved_drop(720, 120), resolved_drop(48, 48)
+    (0, 3, 0)
+    """
+    return max(0, int(np.ceil(np.log2(projector / camera) - 1e-9)))
+
+
+def _decode_band(stack: np.ndarray, *, column_bits: int, row_bits: int, shape: tuple[int, int], min_lit: float,
+                 min_contrast: float, drop: tuple[int, int]) -> np.ndarray:
+    """(..., pattern) frames → (..., 3) projector (col, row) to sub-pixel and the code's sharpness (the smaller of
+    the two axes'), NaN where the pixel is not decoded."""
+    stack = np.moveaxis(stack.astype(np.float64), -1, 0)
+    lit = stack[0] - stack[1]
+    finite = np.all(np.isfinite(stack), axis=0)
+    ok = finite & (lit >= min_lit)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        contrast = np.where(ok, (stack[2::2] - stack[3::2]) / np.where(ok, lit, 1.0), 0.0)
+    col, col_ok, col_sharp = _coarse_axis(contrast[:column_bits], shape[1], drop[1], min_contrast)
+    row, row_ok, row_sharp = _coarse_axis(contrast[column_bits:column_bits + row_bits], shape[0], drop[0],
+                                          min_contrast)
+    ok &= col_ok & row_ok
+    return np.stack([np.where(ok, col, np.nan), np.where(ok, row, np.nan),
+                     np.where(ok, np.minimum(col_sharp, row_sharp), np.nan)], axis=-1)
+
+
+@stage("decode_gray_code")
+def decode_gray_code(capture: xr.Dataset, /, *, min_lit: Fraction = 0.02, min_contrast: Fraction = 0.2,
+                     unresolved_bits: tuple[Index, Index] | None = None) -> xr.Dataset:
+    """The projector column and row lighting each camera pixel directly, from Gray codes (lazy, per row band).
+
+    A camera with fewer pixels than the projector along an axis cannot resolve that axis's finest stripes: those bits
+    are left out (:func:`resolved_drop`; attr ``bits_unresolved`` [rows, cols]) and positions are found in blocks of
+    2^dropped projector pixels. Returns ``projector_col`` and ``projector_row`` [projector px, pixel centres at whole
+    numbers, sub-pixel] over (row, col), NaN where undecoded, and the usable share ``decoded_fraction`` (floor 5 %).
+
+    Parameters
+    ----------
+    capture : xr.Dataset
+        A ``gray_code_capture`` (``acquire_gray_code``): ``image`` [counts] over (pattern, row, col): white, black,
+        then each column bit and its inverse (most significant first), then each row bit likewise; attrs
+        ``column_bits``, ``row_bits``, ``projector_shape`` [rows, cols], ``saturation_counts`` and
+        ``dark_level_counts`` [counts].
+    min_lit : float
+        A pixel is in shadow below this share of the sensor's range (saturation − dark) between white and black [1].
+    min_contrast : float
+        A bit is clear when |pattern − inverse| reaches this share of the pixel's white − black [1]. One unclear bit
+        per axis is the edge the pixel lies on (its contrast gives the sub-pixel position); two or more (global light
+        as strong as direct, clipped frames) leave the pixel undecoded.
+    unresolved_bits : [rows, cols] or None
+        Least significant bits per axis to leave out; None: those finer than the camera's pixels if it saw the whole
+        projector (:func:`resolved_drop` of the two sizes). Give it for a camera that sees part of the projector
+        magnified (none unresolved: [0, 0]).
+    """
+    require_variables(capture, ("image",), "decode_gray_code")
+    attrs = capture.attrs
+    missing = [a for a in ("column_bits", "row_bits", "projector_shape", "saturation_counts", "dark_level_counts")
+               if a not in attrs]
+    if missing:
+        raise StageError(Problem(f"the capture does not say which codes it holds or its sensor's range (missing "
+                                 f"attrs: {', '.join(missing)})", fix="capture it with acquire_gray_code"))
+    column_bits, row_bits = int(attrs["column_bits"]), int(attrs["row_bits"])
+    shape = (int(attrs["projector_shape"][0]), int(attrs["projector_shape"][1]))
+    image = capture["image"]
+    if tuple(image.dims) != ("pattern", "row", "col") or image.sizes["pattern"] != 2 + 2 * (column_bits + row_bits):
+        raise StageError(Problem(f"image is {dict(image.sizes)}; expected (pattern, row, col) with 2 + 2·({column_bits}"
+                                 f" + {row_bits}) patterns", path="image", fix="capture it with acquire_gray_code"))
+    full_scale = float(attrs["saturation_counts"]) - float(attrs["dark_level_counts"])
+    drop = (tuple(int(b) for b in unresolved_bits) if unresolved_bits is not None else
+            (resolved_drop(shape[0], image.sizes["row"]), resolved_drop(shape[1], image.sizes["col"])))
+    if drop[1] >= column_bits or drop[0] >= row_bits:
+        raise StageError(Problem(f"unresolved_bits {list(drop)} leave no row or column bit of {row_bits} and "
+                                 f"{column_bits}", fix="leave out fewer bits"))
+    band = image.chunk({"pattern": -1, "row": min(64, image.sizes["row"]), "col": -1})
+    both = xr.apply_ufunc(
+        _decode_band, band, input_core_dims=[["pattern"]], output_core_dims=[["axis"]], dask="parallelized",
+        output_dtypes=[np.float64], dask_gufunc_kwargs={"output_sizes": {"axis": 3}},
+        kwargs={"column_bits": column_bits, "row_bits": row_bits, "shape": shape, "min_lit": min_lit * full_scale,
+                "min_contrast": min_contrast, "drop": drop})
+    col = both.isel(axis=0, drop=True).drop_attrs(deep=False)
+    row = both.isel(axis=1, drop=True).drop_attrs(deep=False)
+    sharpness = both.isel(axis=2, drop=True).drop_attrs(deep=False)
+    out = xr.Dataset({
+        "projector_col": col.assign_attrs(units="px", long_name="projector column lighting the pixel"),
+        "projector_row": row.assign_attrs(units="px", long_name="projector row lighting the pixel"),
+        "code_sharpness": sharpness.assign_attrs(units="1", long_name="smallest contrast of the bits no neighbour "
+                                                 "shares: 1 direct light only, less with global light"),
+        "decoded_fraction": usable_share(
+            np.isfinite(col).mean(), floor=DECODED_FLOOR, what="pixels whose projector column and row were decoded",
+            fix="light the scene brighter or lower min_lit; a scene dominated by global light needs a lower "
+            "min_contrast"),
+    }, attrs={"selpath_kind": "projector_correspondence", "projector_shape": list(shape),
+              "min_lit": min_lit, "min_contrast": min_contrast, "bits_unresolved": [drop[0], drop[1]],
+              **{k: attrs[k] for k in ("scan_speed_px_per_us", "line_time_us") if k in attrs}})
+    return with_metadata(out, "projector_correspondence")
+
+
+def row_offsets(projector_row: np.ndarray, projector_rows: int) -> np.ndarray:
+    """δ [camera rows] of decoded projector rows (rows, cols): the decoded row on the camera's row scale minus the
+    camera row (the sync pairs camera row s with projector row (s + ½)·P/C − ½).
+
+    Two camera rows lit by one projector row: its centre lies between them.
+
+    >>> row_offsets(np.array([[0.0], [0.0]]), 1)
+    array([[ 0.5],
+           [-0.5]])
+    """
+    rows = projector_row.shape[0]
+    scale = rows / projector_rows
+    return (projector_row + 0.5) * scale - 0.5 - np.arange(rows)[:, None]
+
+
+def fit_misalignment(delta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Robust least squares δ ≈ b₀ + b₁·(c − c₀) + b₂·(s − s₀) over the finite δ (rows, cols), c₀ and s₀ the image
+    centre: rounds of a fit that drop pixels more than TRIM robust deviations (1.4826·MAD) off the previous one.
+    Returns the coefficients and their standard errors (cluster-robust, one cluster per camera row)."""
+    rows, cols = delta.shape
+    s, c = np.nonzero(np.isfinite(delta))
+    y = delta[s, c]
+    design = np.stack([np.ones_like(y), c - (cols - 1) / 2, s - (rows - 1) / 2], axis=1)
+    keep = np.ones(y.size, bool)
+    for _ in range(FIT_ROUNDS):
+        coef, *_ = np.linalg.lstsq(design[keep], y[keep], rcond=None)
+        residual = y - design @ coef
+        spread = 1.4826 * np.median(np.abs(residual[keep] - np.median(residual[keep])))
+        keep = np.abs(residual) <= TRIM * max(spread, 1e-9)
+    coef, *_ = np.linalg.lstsq(design[keep], y[keep], rcond=None)
+    # the codes' quantisation errs alike along a camera row (its pixels see the same rows), so the covariance is
+    # the cluster-robust sandwich with one cluster per camera row, not σ²(XᵀX)⁻¹ (which was 4× too small)
+    x, e, g = design[keep], y[keep] - design[keep] @ coef, s[keep]
+    bread = np.linalg.inv(x.T @ x)
+    scores = np.zeros((rows, 3))
+    np.add.at(scores, g, x * e[:, None])
+    clusters = np.count_nonzero(np.any(scores != 0, axis=1))
+    meat = scores.T @ scores * clusters / max(clusters - 1, 1)
+    return coef, np.sqrt(np.diag(bread @ meat @ bread))
+
+
+@stage("epipolar_alignment")
+def epipolar_alignment(correspondence: xr.Dataset, /, *, tolerance_rows: Positive | None = None,
+                       min_sharpness: Fraction = 0.75) -> xr.Dataset:
+    """How far each pixel's direct light is off its epipolar row, decoded and fitted, and whether the rows are
+    epipolar (a UserWarning with the numbers when not).
+
+    Returns ``measured`` (δ of each decoded pixel, NaN elsewhere) and ``model`` (the fit at every pixel) [camera
+    rows] over (row, col); attrs ``shift_rows``, ``roll_deg`` (the projector's rows turned against the camera's:
+    turn it by −roll to rectify the rig), ``row_slope`` (δ per camera row: a row-scale mismatch), their standard
+    errors (``*_std``), ``median_abs_rows`` and ``p90_abs_rows`` (of the model over the decoded pixels),
+    ``residual_rows`` (robust spread of measured − model: the codes' quantisation) and ``tolerance_rows``.
+
+    Parameters
+    ----------
+    correspondence : xr.Dataset
+        A ``projector_correspondence`` (``decode_gray_code``): ``projector_row`` [projector px] over (row, col),
+        attr ``projector_shape``; ``scan_speed_px_per_us`` and ``line_time_us`` where known.
+    tolerance_rows : float or None
+        |δ| the epipolar frames tolerate [camera rows]; None: half the lit line's height, v_p·t_p / 2 (half a row
+        without the rig's timing).
+    min_sharpness : float
+        The fit uses the pixels whose code is at least this sharp (``code_sharpness`` [1]: global light such as
+        subsurface scattering blurs a code and biases its sub-pixel position, by up to 0.2 rows in the tests); all
+        decoded pixels when fewer than 100 are. Attr ``fit_pixels`` says how many were used.
+    """
+    require_variables(correspondence, ("projector_row",), "epipolar_alignment")
+    attrs = correspondence.attrs
+    if "projector_shape" not in attrs:
+        raise StageError(Problem("attr projector_shape is missing; the projector's rows set the row scale",
+                                 fix="decode the correspondence with decode_gray_code"))
+    if tolerance_rows is None:
+        speed, line = attrs.get("scan_speed_px_per_us"), attrs.get("line_time_us")
+        tolerance_rows = float(speed) * float(line) / 2 if speed and line else 0.5
+    decoded = correspondence["projector_row"].transpose("row", "col")
+    delta = row_offsets(np.asarray(decoded.values, float), int(attrs["projector_shape"][0]))
+    if np.isfinite(delta).sum() < 3:
+        raise StageError(Problem(f"{int(np.isfinite(delta).sum())} decoded pixel(s); a fit needs at least 3",
+                                 fix="see decode_gray_code's decoded_fraction"))
+    sharp = np.isfinite(delta)
+    if "code_sharpness" in correspondence:
+        sharpness = np.asarray(correspondence["code_sharpness"].transpose("row", "col").values, float)
+        if np.count_nonzero(sharp & (sharpness >= min_sharpness)) >= 100:
+            sharp &= sharpness >= min_sharpness
+    coef, std = fit_misalignment(np.where(sharp, delta, np.nan))
+    rows, cols = delta.shape
+    s, c = np.mgrid[:rows, :cols]
+    model = coef[0] + coef[1] * (c - (cols - 1) / 2) + coef[2] * (s - (rows - 1) / 2)
+    seen = np.isfinite(delta)
+    magnitude = np.abs(model[seen])
+    spread = 1.4826 * np.median(np.abs((delta - model)[seen] - np.median((delta - model)[seen])))
+    fitted = {"shift_rows": float(coef[0]), "shift_rows_std": float(std[0]),
+              "roll_deg": float(np.rad2deg(np.arctan(coef[1]))), "roll_deg_std": float(np.rad2deg(std[1])),
+              "row_slope": float(coef[2]), "row_slope_std": float(std[2]),
+              "median_abs_rows": float(np.median(magnitude)), "p90_abs_rows": float(np.quantile(magnitude, 0.9)),
+              "residual_rows": float(spread), "tolerance_rows": float(tolerance_rows),
+              "fit_pixels": int(np.count_nonzero(sharp))}
+    if fitted["p90_abs_rows"] > tolerance_rows:
+        warnings.warn(f"epipolar_alignment: the sync rows are not epipolar: the direct light of one pixel in ten is "
+                      f"{fitted['p90_abs_rows']:.2f} rows or more off its row (median {fitted['median_abs_rows']:.2f}; "
+                      f"shift {fitted['shift_rows']:.2f} rows, roll {fitted['roll_deg']:.3f}°), beyond the "
+                      f"{tolerance_rows:.2f} rows the epipolar frames tolerate: they lose direct light and the "
+                      "transport's direct peak leaves offset 0. Rectify the transport (rectify_transport) or turn "
+                      f"the projector by {-fitted['roll_deg']:.3f}° about its axis", UserWarning, stacklevel=2)
+    dims = ("row", "col")
+    coords = {d: correspondence[d] for d in dims if d in correspondence.coords}
+    out = xr.Dataset({
+        "measured": (dims, delta, {"units": "px", "long_name": "decoded row offset δ, camera rows"}),
+        "model": (dims, model, {"units": "px", "long_name": "fitted row offset δ, camera rows"}),
+    }, coords=coords, attrs={"selpath_kind": "epipolar_alignment", **fitted,
+                             "projector_shape": list(attrs["projector_shape"])})
+    return with_metadata(out, "epipolar_alignment")
+
+
+def _shift_offsets(transport: np.ndarray, delta: np.ndarray, *, offsets: np.ndarray) -> np.ndarray:
+    """(..., offset) transport → the same re-indexed at offsets + δ (linear; NaN outside the grid), all pixels at
+    once (``np.searchsorted`` of every query on the shared grid)."""
+    n = offsets.size
+    flat = transport.reshape(-1, n).astype(np.float64)
+    want = offsets[None, :] + np.asarray(delta, float).reshape(-1, 1)
+    inside = (want >= offsets[0]) & (want <= offsets[-1])
+    left = np.clip(np.searchsorted(offsets, want, side="right") - 1, 0, max(n - 2, 0))
+    right = np.minimum(left + 1, n - 1)
+    span = np.where(right > left, offsets[right] - offsets[left], 1.0)
+    weight = np.where(right > left, (want - offsets[left]) / span, 0.0)
+    value = (np.take_along_axis(flat, left, axis=1) * (1 - weight)
+             + np.take_along_axis(flat, right, axis=1) * weight)
+    return np.where(inside, value, np.nan).reshape(transport.shape).astype(transport.dtype)
+
+
+@stage("rectify_transport")
+def rectify_transport(transport: xr.Dataset, alignment: xr.Dataset, /) -> xr.Dataset:
+    """A plane-to-ray transport re-indexed so that each pixel's epipolar row is offset 0: T'(o) = T(o + δ(s, c))
+    (lazy; linear interpolation along the offset, NaN where o + δ leaves the solved offsets).
+
+    Parameters
+    ----------
+    transport : xr.Dataset
+        A ``plane_to_ray_transport`` (``demux_plane_to_ray``): ``transport`` over (offset, row, col), offsets
+        [camera rows] evenly or unevenly spaced, increasing.
+    alignment : xr.Dataset
+        An ``epipolar_alignment`` of the same rig and sensor: ``model`` δ [camera rows] over (row, col).
+    """
+    require_variables(transport, ("transport",), "rectify_transport")
+    require_variables(alignment, ("model",), "rectify_transport")
+    t = transport["transport"]
+    sizes = {d: t.sizes[d] for d in ("row", "col")}
+    if {d: alignment["model"].sizes.get(d) for d in ("row", "col")} != sizes:
+        raise StageError(Problem(f"the transport is {sizes['row']} × {sizes['col']} px, the alignment "
+                                 f"{dict(alignment['model'].sizes)}", fix="align the rig with the same sensor"))
+    if t.chunks is not None:
+        t = t.chunk({"offset": -1})
+    offsets = np.asarray(transport["offset"].values, float)
+    delta = alignment["model"].drop_vars([d for d in ("row", "col") if d in alignment.coords])
+    moved = xr.apply_ufunc(
+        _shift_offsets, t, delta, input_core_dims=[["offset"], []], output_core_dims=[["offset"]],
+        dask="parallelized", output_dtypes=[t.dtype], kwargs={"offsets": offsets})
+    out = transport.copy()
+    out["transport"] = moved.transpose(*t.dims).assign_attrs(t.attrs)
+    out.attrs = {**transport.attrs, "rectified_shift_rows": alignment.attrs.get("shift_rows"),
+                 "rectified_roll_deg": alignment.attrs.get("roll_deg")}
+    return out
