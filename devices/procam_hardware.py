@@ -5,7 +5,7 @@ Example (``docs/devices.md``)::
 
     sync: {url: /dev/ttyACM0, timeout_s: 1}
     camera: {source: 0, width: 1600, height: 1200, discard: 0}
-    scan: {row_period_us: 17.0, line_time_us: 17.0}   # 1/v_p and t_p, from acquire_scan_calibration
+    scan: {row_period_us: 17.0, line_time_us: 17.0}   # 1/v_p (µs per camera row) and t_p, from calibrate_scan_speed
     dark_level: 64          # counts
     saturation_level: 4095  # counts
 
@@ -40,7 +40,8 @@ class SyncConfig(_Model):
 class ScanConfig(_Model):
     """The raster scan's timing, from the scan-speed calibration (§5.3.2; ``calibrate_scan_speed``)."""
 
-    row_period_us: float = pydantic.Field(gt=0, description="time between successive projector rows, 1/v_p [µs]")
+    row_period_us: float = pydantic.Field(gt=0, description="µs the scan takes per camera row: 1/v_p, v_p in camera "
+                                          "rows per µs as calibrate_scan_speed reports it")
     line_time_us: float = pydantic.Field(gt=0, description="t_p, how long one row is lit [µs]")
 
 

@@ -318,7 +318,36 @@ KINDS: dict[str, CubeKind] = {
             attrs={"shift_rows": "fitted δ at the image centre, camera rows",
                    "roll_deg": "fitted rotation of the projector's rows against the camera's, degree",
                    "median_abs_rows": "median |δ| of the model over the decoded pixels, camera rows",
-                   "tolerance_rows": "|δ| above which the rows are not epipolar: the lit line's height, camera rows"},
+                   "tolerance_rows": "|δ| above which the rows are not epipolar (default half the lit line's height), camera rows"},
+        ),
+        CubeKind(
+            name="stereo_target_capture",
+            description="a checkerboard target at several poses under white, black and the projector's Gray codes",
+            variables={"image": Variable(("pose", "pattern", *_FRAME), **_COUNTS)},
+            coord_units={"pose": frozenset({"1"}), "pattern": frozenset({"1"})},
+            attrs={"column_bits": "column bits (as in a gray_code_capture)", "row_bits": "row bits",
+                   "projector_shape": "[rows, cols] of the projector",
+                   "board_corners": "[columns, rows] of the board's inner corners",
+                   "board_square_mm": "side of a board square, mm", **_CAMERA_LEVELS},
+        ),
+        CubeKind(
+            name="procam_stereo_calibration",
+            description="camera and projector intrinsics, their relative pose and the rectification "
+            "(calibrate_procam_stereo)",
+            variables={
+                "camera_matrix": Variable(("i", "j"), units="px", long_name="camera intrinsics K_c"),
+                "projector_matrix": Variable(("i", "j"), units="px", long_name="projector intrinsics K_p"),
+                "rotation": Variable(("i", "j"), units="1", long_name="projector from camera rotation R"),
+                "translation": Variable(("i",), units="mm", long_name="projector from camera translation t"),
+            },
+            coord_units={},
+            attrs={"reprojection_rms_px": "stereo reprojection error, px",
+                   "roll_deg": "rotation of the projector about its optical axis against the camera, degree",
+                   "row_disparity_before": "median |row difference| of corresponding corners on the camera's "
+                   "scale, unrectified, px",
+                   "row_disparity_after": "the same after stereoRectify, px",
+                   "sync_rows_median": "median |projector row as the sync pairs it − camera row| at the corners, "
+                   "camera rows"},
         ),
         CubeKind(
             name="short_range",

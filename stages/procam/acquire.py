@@ -27,6 +27,7 @@ from devices.procam_acquire import acquire_plane_to_ray as plane_sweep
 from devices.procam_hardware import load_procam_hardware, procam_hardware_rig
 from devices.sim.procam_rig import simulated_procam_rig
 from devices.sim.procam_scene import ProcamRig, ProcamScene, load_procam_scene
+from devices.sim.stereo_target import capture_target, load_stereo_target
 from devices.sim.sync_firmware import DEFAULT_LIMITS
 from pipeline.constraints import Count, Positive, memory_problems
 from pipeline.errors import SelpathError
@@ -107,12 +108,17 @@ def _checked_scene(settings, sweep) -> list[str]:
     return DEFAULT_LIMITS.problems(delays, exposures) + frame_problems(spec)
 
 
-def _precheck(settings) -> list[str]:
+def _rig_precheck(settings, sweep) -> list[str]:
+    """The hardware rig file's problems, or the scene's against ``sweep(scene) = (delays, exposures)``."""
     if getattr(settings, "rig", "sim") == "hardware":
         return _hardware_problems(settings)
     if not settings.scene:
         return ["rig 'sim' needs the setting 'scene' (a projector-camera scene file)"]
-    return _checked_scene(settings, lambda _: (settings.delays.values(), settings.exposures))
+    return _checked_scene(settings, sweep)
+
+
+def _precheck(settings) -> list[str]:
+    return _rig_precheck(settings, lambda _: (settings.delays.values(), settings.exposures))
 
 
 def _hardware_problems(settings) -> list[str]:
@@ -129,10 +135,15 @@ def _hardware_problems(settings) -> list[str]:
     return problems
 
 
+def _file_identity(path) -> dict:
+    """A rig or scene file by its path and content (sha256; None where it is not a file)."""
+    source = Path(path)
+    return {"file": str(source), "sha256": hashlib.sha256(source.read_bytes()).hexdigest() if source.is_file() else None}
+
+
 def _identity(settings) -> dict:
-    source = Path(settings.hardware if getattr(settings, "rig", "sim") == "hardware" else settings.scene)
-    digest = hashlib.sha256(source.read_bytes()).hexdigest() if source.is_file() else None
-    return {"rig": settings.rig, "file": str(source), "sha256": digest, "sensor": settings.sensor,
+    source = settings.hardware if getattr(settings, "rig", "sim") == "hardware" else settings.scene
+    return {"rig": settings.rig, **_file_identity(source), "sensor": settings.sensor,
             "rig_changes": settings.rig_changes}
 
 
@@ -391,11 +402,7 @@ def gray_code_window(line_time: float, scan_speed: float, max_offset_rows: float
 
 
 def _gray_code_precheck(settings) -> list[str]:
-    if settings.rig == "hardware":
-        return _hardware_problems(settings)
-    if not settings.scene:
-        return ["rig 'sim' needs the setting 'scene' (a projector-camera scene file)"]
-    return _checked_scene(settings, lambda spec: tuple([v] for v in gray_code_window(
+    return _rig_precheck(settings, lambda spec: tuple([v] for v in gray_code_window(
         spec.rig.line_time, spec.rig.scan_speed, settings.max_offset_rows)))
 
 
@@ -412,9 +419,11 @@ def acquire_gray_code(
     rig_changes: RigChanges | None = None,
     progress: bool = True,
 ) -> xr.Dataset:
-    """White, black and the projector's Gray codes (each column and row bit and its inverse, ``cv2.structured_light``)
-    at t_d = 0 with an exposure of many rows, frame by frame and resumably: what ``decode_gray_code`` turns into the
-    projector pixel lighting each camera pixel, and ``epipolar_alignment`` into the rig's row misalignment.
+    """White, black and the projector's Gray codes at t_d = 0, frame by frame and resumably.
+
+    Each column and row bit with its inverse (``cv2.structured_light``), with an exposure of many rows: what
+    ``decode_gray_code`` turns into the projector pixel lighting each camera pixel, and ``epipolar_alignment`` into
+    the rig's row misalignment.
 
     Parameters
     ----------
@@ -442,3 +451,36 @@ def acquire_gray_code(
                                            max_offset_rows)
         return gray_code_stack(instruments, store, delay=delay, exposure=exposure, progress=progress,
                                log=sweep_log(progress))
+
+
+def _target_precheck(settings) -> list[str]:
+    try:
+        load_stereo_target(settings.scene)
+    except SelpathError as exc:
+        return [f"scene file: {p}" for p in getattr(exc, "problems", [exc])]
+    return []
+
+
+def _target_identity(settings) -> dict:
+    return {"rig": "sim", **_file_identity(settings.scene)}
+
+
+@stage("acquire_stereo_target", precheck=_target_precheck, identity=_target_identity,
+       writes=lambda settings: settings.store, variables=lambda settings: ["image"])
+def acquire_stereo_target(*, store: StorePath, scene: StorePath, progress: bool = True) -> xr.Dataset:
+    """A checkerboard target at several poses under white, black and Gray codes, filmed by a simulated pinhole pair.
+
+    The pair and the target are ``scene``'s (``devices.sim.stereo_target``); frames are written one by one and a
+    rerun resumes: what ``calibrate_procam_stereo`` calibrates the pair from.
+
+    Parameters
+    ----------
+    store : str
+        Zarr store the frames land in (a ``stereo_target_capture``); an existing store of the same scene resumes.
+    scene : str
+        Stereo target scene file (``workflows/scenes/stereo-target.yaml``): camera and projector intrinsics, the
+        projector's pose (baseline, roll, pitch, yaw), the board and its poses, light and noise.
+    progress : bool
+        Show a progress bar.
+    """
+    return capture_target(load_stereo_target(scene), store, progress=progress, log=sweep_log(progress))

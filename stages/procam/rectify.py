@@ -56,7 +56,8 @@ def _axis(contrast: np.ndarray, size: int, min_contrast: float) -> tuple[np.ndar
     to |1 − 2f| and leaves the others whole: the position is r + (|c₋| − |c₊|) / 2, c₊ and c₋ the contrasts of the
     bits r shares with its neighbours above and below (exact for a pixel that integrates two neighbours; a
     symmetric blur dims both alike and cancels). One bit may therefore be unclear (|c| < min_contrast: the pixel
-    lies on that bit's edge); two or more: undecoded. Returns the position, whether it is decoded, and the code's
+    lies on that bit's edge) if it is one the nearest pixel shares with a neighbour; two or more, or another bit:
+    undecoded. Returns the position, whether it is decoded, and the code's
     sharpness: the smallest contrast of the bits not shared with a neighbour (1: light from at most two
     neighbouring pixels; less: light spread wider, whose position this model biases)."""
     n = contrast.shape[0]
@@ -81,7 +82,10 @@ def _axis(contrast: np.ndarray, size: int, min_contrast: float) -> tuple[np.ndar
     # the other bits keep their full contrast for light from two neighbours only; light spread wider (global
     # light, a blurred code) dims them too: their smallest contrast says how sharp the pixel's code is
     index = np.arange(n).reshape((n,) + (1,) * nearest.ndim)
-    others = np.where((index == bit_up) | (index == bit_down), np.inf, strength)
+    shared = (index == bit_up) | (index == bit_down)
+    # the one unclear bit must be an edge of the nearest pixel; any other makes the code a jump, not a split
+    ok &= ~np.any((strength < min_contrast) & ~shared, axis=0)
+    others = np.where(shared, np.inf, strength)
     sharpness = np.minimum(np.min(others, axis=0), 1.0) if n > 2 else np.ones(nearest.shape)
     return position, ok, sharpness
 
@@ -93,7 +97,8 @@ def _coarse_axis(contrast: np.ndarray, size: int, drop: int, min_contrast: float
     in projector pixels."""
     kept = contrast.shape[0] - drop
     units, ok, sharpness = _axis(contrast[:kept], -(-size // 2**drop), min_contrast)
-    return (units + 0.5) * 2**drop - 0.5, ok, sharpness
+    # (the last block may overhang the projector's last pixel: its centre is kept on the projector)
+    return np.minimum((units + 0.5) * 2**drop - 0.5, size - 0.5), ok, sharpness
 
 
 def resolved_drop(projector: int, camera: int) -> int:
@@ -122,6 +127,15 @@ def _decode_band(stack: np.ndarray, *, column_bits: int, row_bits: int, shape: t
     ok &= col_ok & row_ok
     return np.stack([np.where(ok, col, np.nan), np.where(ok, row, np.nan),
                      np.where(ok, np.minimum(col_sharp, row_sharp), np.nan)], axis=-1)
+
+
+def check_code_count(patterns: int, column_bits: int, row_bits: int) -> None:
+    """Refuse a stack that is not white, black and every bit's pair: a truncated one would decode from fewer bits."""
+    want = 2 + 2 * (column_bits + row_bits)
+    if patterns != want:
+        raise StageError(Problem(f"{patterns} patterns; white, black and {column_bits} column and {row_bits} row bits "
+                                 f"with their inverses are 2 + 2·({column_bits} + {row_bits}) = {want}", path="image",
+                                 fix="capture the whole stack (a killed acquisition resumes where it stopped)"))
 
 
 @stage("decode_gray_code")
@@ -162,9 +176,10 @@ def decode_gray_code(capture: xr.Dataset, /, *, min_lit: Fraction = 0.02, min_co
     column_bits, row_bits = int(attrs["column_bits"]), int(attrs["row_bits"])
     shape = (int(attrs["projector_shape"][0]), int(attrs["projector_shape"][1]))
     image = capture["image"]
-    if tuple(image.dims) != ("pattern", "row", "col") or image.sizes["pattern"] != 2 + 2 * (column_bits + row_bits):
-        raise StageError(Problem(f"image is {dict(image.sizes)}; expected (pattern, row, col) with 2 + 2·({column_bits}"
-                                 f" + {row_bits}) patterns", path="image", fix="capture it with acquire_gray_code"))
+    if tuple(image.dims) != ("pattern", "row", "col"):
+        raise StageError(Problem(f"image has dims {image.dims}; expected (pattern, row, col)", path="image",
+                                 fix="capture it with acquire_gray_code"))
+    check_code_count(image.sizes["pattern"], column_bits, row_bits)
     full_scale = float(attrs["saturation_counts"]) - float(attrs["dark_level_counts"])
     drop = (tuple(int(b) for b in unresolved_bits) if unresolved_bits is not None else
             (resolved_drop(shape[0], image.sizes["row"]), resolved_drop(shape[1], image.sizes["col"])))
@@ -220,10 +235,13 @@ def fit_misalignment(delta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     design = np.stack([np.ones_like(y), c - (cols - 1) / 2, s - (rows - 1) / 2], axis=1)
     keep = np.ones(y.size, bool)
     for _ in range(FIT_ROUNDS):
+        _require_spread(s[keep], c[keep])
         coef, *_ = np.linalg.lstsq(design[keep], y[keep], rcond=None)
         residual = y - design @ coef
-        spread = 1.4826 * np.median(np.abs(residual[keep] - np.median(residual[keep])))
-        keep = np.abs(residual) <= TRIM * max(spread, 1e-9)
+        centre = np.median(residual[keep])  # one-sided outliers pull the fit: trim around the bulk, not around 0
+        spread = 1.4826 * np.median(np.abs(residual[keep] - centre))
+        keep = np.abs(residual - centre) <= TRIM * max(spread, 1e-9)
+    _require_spread(s[keep], c[keep])
     coef, *_ = np.linalg.lstsq(design[keep], y[keep], rcond=None)
     # the codes' quantisation errs alike along a camera row (its pixels see the same rows), so the covariance is
     # the cluster-robust sandwich with one cluster per camera row, not σ²(XᵀX)⁻¹ (which was 4× too small)
@@ -236,11 +254,21 @@ def fit_misalignment(delta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return coef, np.sqrt(np.diag(bread @ meat @ bread))
 
 
+def _require_spread(rows: np.ndarray, cols: np.ndarray) -> None:
+    """A shift, a roll and a row slope need decoded pixels in at least two rows and two columns (and 3 of them)."""
+    if rows.size < 3 or np.unique(rows).size < 2 or np.unique(cols).size < 2:
+        raise StageError(Problem(f"{rows.size} decoded pixel(s) in {np.unique(rows).size} row(s) and "
+                                 f"{np.unique(cols).size} column(s): a shift, a roll and a row slope need pixels in at "
+                                 "least two rows and two columns", fix="see decode_gray_code's decoded_fraction; "
+                                 "light more of the scene"))
+
+
 @stage("epipolar_alignment")
 def epipolar_alignment(correspondence: xr.Dataset, /, *, tolerance_rows: Positive | None = None,
                        min_sharpness: Fraction = 0.75) -> xr.Dataset:
-    """How far each pixel's direct light is off its epipolar row, decoded and fitted, and whether the rows are
-    epipolar (a UserWarning with the numbers when not).
+    """How far each pixel's direct light is off its epipolar row, decoded and fitted, and whether the rows are epipolar.
+
+    A UserWarning gives the numbers when they are not.
 
     Returns ``measured`` (δ of each decoded pixel, NaN elsewhere) and ``model`` (the fit at every pixel) [camera
     rows] over (row, col); attrs ``shift_rows``, ``roll_deg`` (the projector's rows turned against the camera's:
@@ -271,9 +299,6 @@ def epipolar_alignment(correspondence: xr.Dataset, /, *, tolerance_rows: Positiv
         tolerance_rows = float(speed) * float(line) / 2 if speed and line else 0.5
     decoded = correspondence["projector_row"].transpose("row", "col")
     delta = row_offsets(np.asarray(decoded.values, float), int(attrs["projector_shape"][0]))
-    if np.isfinite(delta).sum() < 3:
-        raise StageError(Problem(f"{int(np.isfinite(delta).sum())} decoded pixel(s); a fit needs at least 3",
-                                 fix="see decode_gray_code's decoded_fraction"))
     sharp = np.isfinite(delta)
     if "code_sharpness" in correspondence:
         sharpness = np.asarray(correspondence["code_sharpness"].transpose("row", "col").values, float)
@@ -287,7 +312,7 @@ def epipolar_alignment(correspondence: xr.Dataset, /, *, tolerance_rows: Positiv
     magnitude = np.abs(model[seen])
     spread = 1.4826 * np.median(np.abs((delta - model)[seen] - np.median((delta - model)[seen])))
     fitted = {"shift_rows": float(coef[0]), "shift_rows_std": float(std[0]),
-              "roll_deg": float(np.rad2deg(np.arctan(coef[1]))), "roll_deg_std": float(np.rad2deg(std[1])),
+              "roll_deg": float(np.rad2deg(np.arctan(coef[1]))), "roll_deg_std": float(np.rad2deg(std[1] / (1 + coef[1] ** 2))),
               "row_slope": float(coef[2]), "row_slope_std": float(std[2]),
               "median_abs_rows": float(np.median(magnitude)), "p90_abs_rows": float(np.quantile(magnitude, 0.9)),
               "residual_rows": float(spread), "tolerance_rows": float(tolerance_rows),
@@ -320,15 +345,17 @@ def _shift_offsets(transport: np.ndarray, delta: np.ndarray, *, offsets: np.ndar
     right = np.minimum(left + 1, n - 1)
     span = np.where(right > left, offsets[right] - offsets[left], 1.0)
     weight = np.where(right > left, (want - offsets[left]) / span, 0.0)
-    value = (np.take_along_axis(flat, left, axis=1) * (1 - weight)
-             + np.take_along_axis(flat, right, axis=1) * weight)
+    lower, upper = np.take_along_axis(flat, left, axis=1), np.take_along_axis(flat, right, axis=1)
+    # (a query on a grid point takes that point alone: a NaN beside it does not spread)
+    value = np.where(weight == 0, lower, np.where(weight == 1, upper, lower * (1 - weight) + upper * weight))
     return np.where(inside, value, np.nan).reshape(transport.shape).astype(transport.dtype)
 
 
 @stage("rectify_transport")
 def rectify_transport(transport: xr.Dataset, alignment: xr.Dataset, /) -> xr.Dataset:
-    """A plane-to-ray transport re-indexed so that each pixel's epipolar row is offset 0: T'(o) = T(o + δ(s, c))
-    (lazy; linear interpolation along the offset, NaN where o + δ leaves the solved offsets).
+    """A plane-to-ray transport re-indexed so that each pixel's epipolar row is offset 0: T'(o) = T(o + δ(s, c)).
+
+    Lazy; linear interpolation along the offset, NaN where o + δ leaves the solved offsets.
 
     Parameters
     ----------
@@ -348,6 +375,9 @@ def rectify_transport(transport: xr.Dataset, alignment: xr.Dataset, /) -> xr.Dat
     if t.chunks is not None:
         t = t.chunk({"offset": -1})
     offsets = np.asarray(transport["offset"].values, float)
+    if offsets.size < 2 or np.any(np.diff(offsets) <= 0):
+        raise StageError(Problem("the transport's offsets must increase (at least two of them)", path="offset",
+                                 fix="a plane_to_ray_transport from demux_plane_to_ray"))
     delta = alignment["model"].drop_vars([d for d in ("row", "col") if d in alignment.coords])
     moved = xr.apply_ufunc(
         _shift_offsets, t, delta, input_core_dims=[["offset"], []], output_core_dims=[["offset"]],

@@ -115,6 +115,7 @@ def test_only_named_effects_run():
     assert set(calls) == set(tr.EFFECTS)
 
 
+@pytest.mark.slow  # 11 s: in the slow job, so the default job keeps its 8-minute budget
 def test_full_transport_with_a_vertical_line_matches_the_separable_model():
     s = scene(MIXED)
     rig = s.rig

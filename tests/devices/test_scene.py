@@ -25,10 +25,12 @@ effects:
 
 
 PROCAM_SCENES = {"book-candle-mirrorball", "white-materials", "arm-vein", "disco-glass-marble", "flat-white"}
+#: scenes of the pinhole projector–camera pair that films a calibration target (devices.sim.stereo_target)
+TARGET_SCENES = {"stereo-target"}
 
 
 def test_the_shipped_scenes_of_chapter_4_load():
-    names = {load_scene(p).scene for p in SCENES if p.stem not in PROCAM_SCENES}
+    names = {load_scene(p).scene for p in SCENES if p.stem not in PROCAM_SCENES | TARGET_SCENES}
     assert {"phantom-cylinder", "gelatin-bin", "triangle-prism"} <= names
     assert {f"cylinder-in-cylinder-s{s}" for s in (1, 2, 3, 5)} <= names
     sigma_s = {load_scene(p).effects.scattering.sigma_s for p in SCENES if "cylinder-in-cylinder" in p.name}
@@ -66,6 +68,18 @@ def test_one_mistake_one_exact_error(old, new, message):
 def test_inclusion_outside_the_object_is_refused():
     with pytest.raises(ConfigError, match=r"inclusions\[0\] .* reaches outside the object"):
         load_scene(GOOD.replace("[4 mm, 0 mm]", "[40 mm, 0 mm]"))
+
+
+def test_the_shipped_target_scene_loads_with_a_projector_whose_rows_span_the_cameras():
+    from devices.sim.stereo_target import load_stereo_target
+
+    scene = load_stereo_target(next(p for p in SCENES if p.stem == "stereo-target"))
+    camera, projector = scene.camera, scene.projector
+    # the sync pairs projector row (s + ½)·P/C − ½ with camera row s: f and the principal row scale alike
+    assert projector.focal_px * camera.height / projector.height == pytest.approx(camera.focal_px, rel=1e-5)
+    assert (projector.principal_px[1] + 0.5) * camera.height / projector.height == pytest.approx(
+        (camera.height - 1) / 2 + 0.5)
+    assert scene.pose.roll == pytest.approx(0.5)
 
 
 def test_the_shipped_projector_camera_scenes_of_chapter_5_load():

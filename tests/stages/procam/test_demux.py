@@ -178,6 +178,7 @@ def test_no_pixels_give_empty_results():
     assert transport.shape == (0, 9) and iterations.shape == solution.converged.shape == objective.shape == (0,)
 
 
+@pytest.mark.slow  # 11 s: in the slow job, so the default job keeps its 8-minute budget
 def test_padding_and_masked_pixels_keep_the_other_calls_on_the_unmasked_path(monkeypatch):
     """A call with any masked observation pays the masked path (twice the products per iteration, and its own
     compile): the padding of the last call is unmasked (a weight of 0 once sent whole calls down that path), and
