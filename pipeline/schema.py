@@ -331,6 +331,17 @@ KINDS: dict[str, CubeKind] = {
                    "board_square_mm": "side of a board square, mm", **_CAMERA_LEVELS},
         ),
         CubeKind(
+            name="camera_calibration",
+            description="a camera's intrinsics and distortion from a checkerboard target (calibrate_camera)",
+            variables={"camera_matrix": Variable(("i", "j"), units="px", long_name="camera intrinsics K"),
+                       "distortion": Variable(("k",), units="1", long_name="k1, k2, p1, p2, k3")},
+            coord_units={},
+            attrs={"focal_length_px": "mean of fx and fy, px", "principal_point_px": "[cx, cy], px",
+                   "reprojection_rms_px": "reprojection error, px",
+                   "distortion_max_px": "largest shift of a pixel inside the sensor by the distortion, px",
+                   "sensor_px": "[rows, cols] of the calibrated sensor"},
+        ),
+        CubeKind(
             name="procam_stereo_calibration",
             description="camera and projector intrinsics, their relative pose and the rectification "
             "(calibrate_procam_stereo)",

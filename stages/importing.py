@@ -20,6 +20,8 @@ import glob
 import hashlib
 import os
 import re
+import struct
+import zipfile
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -119,14 +121,41 @@ class PlaneToRayImport(_Spec):
     dark_level_counts: float = Field(description="raw counts of an unlit pixel (black level)")
 
 
-ImportSpec = Annotated[TomographyImport | PlaneToRayImport, Field(discriminator="kind")]
+class FullTransportImport(_Spec):
+    """A projector–camera line sweep (``full_transport_capture``), §5.3: a vertical line at each l_p × every
+    (delay, exposure)."""
+
+    kind: Literal["full_transport_capture"]
+    frames: PlaneToRayFrames
+    delays_us: list[float] = Field(min_length=1, description="sync delays t_d of the sweep, µs")
+    exposures_us: list[float] = Field(min_length=1, description="exposures t_e of the sweep, µs")
+    lines_px: list[float] = Field(min_length=1, description="line centres l_p, projector columns (pixel centres at "
+                                  "whole numbers)")
+    order: tuple[Literal["delay", "exposure", "line"], ...] = Field(
+        ("delay", "exposure", "line"), description="a 3-D stack's frame order, slowest first: [delay, exposure, "
+        "line] = every line of the first (delay, exposure) first")
+    line_width_px: float = Field(gt=0, description="width l_w of the projected line, projector columns")
+    scan_speed_px_per_us: float = Field(gt=0, description="projector scan speed v_p, camera rows per µs")
+    line_time_us: float = Field(gt=0, description="projector line time t_p, µs")
+    saturation_counts: float = Field(description="raw counts at and above which a pixel is clipped")
+    dark_level_counts: float = Field(description="raw counts of an unlit pixel (black level)")
+
+    @pydantic.field_validator("order")
+    @classmethod
+    def _permutation(cls, order):
+        if sorted(order) != ["delay", "exposure", "line"]:
+            raise ValueError(f"order {list(order)} must name delay, exposure and line once each")
+        return order
+
+
+ImportSpec = Annotated[TomographyImport | PlaneToRayImport | FullTransportImport, Field(discriminator="kind")]
 
 
 class _SpecFile(pydantic.RootModel):
     root: ImportSpec
 
 
-def read_spec(path: str | os.PathLike) -> TomographyImport | PlaneToRayImport:
+def read_spec(path: str | os.PathLike) -> TomographyImport | PlaneToRayImport | FullTransportImport:
     """The import spec at ``path``, validated (one ConfigError lists every problem with its line)."""
     return load_yaml_model(path, _SpecFile, what="import spec").root
 
@@ -233,7 +262,8 @@ def read_frames(source: str, base: str | os.PathLike = ".", *, field: str = "") 
                     named = source.rsplit(":", 1)[0] if key else source
                     raise StageError(Problem(f"{path.name} has members {names}; name one as {named}:<member>",
                                              where=where))
-                array = members[key]
+                stored = _npz_stored_member(path, key)  # np.savez: memory-mapped in place, read frame by frame
+                array = stored if stored is not None else members[key]  # np.savez_compressed: read whole
         elif suffix in (".h5", ".hdf5"):
             if key is None:
                 raise StageError(Problem(f"an HDF5 file needs its dataset: {source}:/path/to/dataset", where=where))
@@ -265,6 +295,35 @@ def read_frames(source: str, base: str | os.PathLike = ".", *, field: str = "") 
         raise StageError(Problem(f"{path} cannot be read ({type(exc).__name__}: {exc})", where=where)) from None
     chunks = (1, *array.shape[1:]) if len(array.shape) > 2 else array.shape
     return da.from_array(array, chunks=chunks, asarray=True)
+
+
+def _npz_stored_member(path: Path, key: str) -> np.ndarray | None:
+    """The member ``key`` of an ``.npz`` memory-mapped in place when it is stored uncompressed (``np.savez``), so
+    frames are read one by one like a ``.npy``'s; None when it is compressed (``np.savez_compressed``: the zip must
+    inflate it whole) or not a plain C/Fortran array. numpy cannot memory-map an ``.npz`` itself; the zip's local
+    header says where the member's ``.npy`` bytes start, and numpy's own header reader says where its data does."""
+    with zipfile.ZipFile(path) as archive:
+        info = archive.getinfo(f"{key}.npy")
+        if info.compress_type != zipfile.ZIP_STORED:
+            return None
+    with open(path, "rb") as file:
+        file.seek(info.header_offset)
+        local = file.read(30)
+        if local[:4] != b"PK\x03\x04":
+            return None
+        name_length, extra_length = struct.unpack("<HH", local[26:30])
+        start = info.header_offset + 30 + name_length + extra_length
+        file.seek(start)
+        version = np.lib.format.read_magic(file)
+        read_header = {(1, 0): np.lib.format.read_array_header_1_0,
+                       (2, 0): np.lib.format.read_array_header_2_0}.get(version)
+        if read_header is None:  # a newer header (utf-8 field names): read whole
+            return None
+        shape, fortran, dtype = read_header(file)
+        if dtype.hasobject:
+            return None
+        offset = file.tell()
+    return np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=shape, order="F" if fortran else "C")
 
 
 def _check_values(frames: da.Array, where: str) -> None:
@@ -344,6 +403,33 @@ def _plane_to_ray(spec: PlaneToRayImport, base: Path) -> xr.Dataset:
                       attrs={"selpath_kind": spec.kind, **attrs})
 
 
+def _full_transport(spec: FullTransportImport, base: Path) -> xr.Dataset:
+    image = _frames(spec, base)["image"]
+    sizes = {"delay": len(spec.delays_us), "exposure": len(spec.exposures_us), "line": len(spec.lines_px)}
+    want = (sizes["delay"], sizes["exposure"], sizes["line"])
+    count = int(np.prod(want))
+    if image.ndim == 3:
+        if image.shape[0] != count:
+            raise StageError(Problem(f"frames.image has {image.shape[0]} frames for {sizes['delay']} delays × "
+                                     f"{sizes['exposure']} exposures × {sizes['line']} lines", where="import spec"))
+        stacked = image.reshape(*(sizes[d] for d in spec.order), *image.shape[1:])
+        image = stacked.transpose(*(spec.order.index(d) for d in ("delay", "exposure", "line")), 3, 4)
+    elif image.ndim != 5 or image.shape[:3] != want:
+        raise StageError(Problem(f"frames.image is {image.shape}; expected ({', '.join(map(str, want))}, row, col) "
+                                 f"or ({count}, row, col)", where="import spec"))
+    _check_values(image, "frames.image")
+    attrs = spec.model_dump(exclude={"kind", "frames", "delays_us", "exposures_us", "lines_px", "order"})
+    return xr.Dataset({"image": (("delay", "exposure", "line", "row", "col"), image,
+                                 {"units": "counts", "long_name": "sensor counts"})},
+                      coords={"delay": ("delay", np.asarray(spec.delays_us, float),
+                                        {"units": "us", "long_name": "sync delay t_d"}),
+                              "exposure": ("exposure", np.asarray(spec.exposures_us, float),
+                                           {"units": "us", "long_name": "exposure t_e"}),
+                              "line": ("line", np.asarray(spec.lines_px, float),
+                                       {"units": "px", "long_name": "line centre l_p"})},
+                      attrs={"selpath_kind": spec.kind, **attrs})
+
+
 def spec_identity(settings) -> dict[str, str]:
     """The spec's text and every byte of the frames it names (SHA-256; never paths or modification times)."""
     path = Path(settings.spec).resolve()  # as import_capture reads it: a symlinked spec's frames lie by its target
@@ -374,11 +460,14 @@ def import_capture(*, spec: StorePath) -> xr.Dataset:
     Parameters
     ----------
     spec : str
-        Path of the import spec (YAML): ``kind`` (``tomography_capture`` or ``plane_to_ray_capture``), ``frames``
+        Path of the import spec (YAML): ``kind`` (``tomography_capture``, ``plane_to_ray_capture`` or
+        ``full_transport_capture``), ``frames``
         (where each variable's frames lie: a folder or glob of TIFF/PNG files, a multi-page TIFF, ``.npy``,
         ``file.npz:member`` or ``file.h5:/dataset``, relative to the spec's folder) and the geometry or timing
         the stages read, with units (docs/format.md, "Importing captures").
     """
     parsed = read_spec(spec)
     base = Path(spec).resolve().parent
-    return _tomography(parsed, base) if isinstance(parsed, TomographyImport) else _plane_to_ray(parsed, base)
+    if isinstance(parsed, TomographyImport):
+        return _tomography(parsed, base)
+    return _plane_to_ray(parsed, base) if isinstance(parsed, PlaneToRayImport) else _full_transport(parsed, base)

@@ -26,6 +26,7 @@ from pipeline.errors import Problem, StageError
 from pipeline.registry import stage
 from pipeline.schema import with_metadata
 from stages._common import require_variables
+from stages.camera_target import board_points, camera_corners
 from stages.procam.rectify import _decode_band, check_code_count, resolved_drop
 
 #: decoded pixels a corner's local homography needs (it has 8 degrees of freedom)
@@ -38,15 +39,6 @@ def euler_angles(r: np.ndarray) -> tuple[float, float, float]:
     yaw = np.degrees(np.arcsin(np.clip(-r[2, 0], -1.0, 1.0)))
     pitch = np.degrees(np.arctan2(r[2, 1], r[2, 2]))
     return float(roll), float(pitch), float(yaw)
-
-
-def camera_corners(white: np.ndarray, corners: tuple[int, int]) -> np.ndarray | None:
-    """The board's inner corners in a frame, sub-pixel (N, 2) float32 in OpenCV's order, or None if not all found."""
-    finite = np.nan_to_num(np.asarray(white, float))
-    top = np.percentile(finite, 99.5)
-    image = np.clip(finite / max(top, 1e-12) * 255, 0, 255).astype(np.uint8)
-    found, points = cv2.findChessboardCornersSB(image, tuple(corners), flags=cv2.CALIB_CB_ACCURACY)
-    return points.reshape(-1, 2).astype(np.float32) if found else None
 
 
 def projector_corners(corners: np.ndarray, col: np.ndarray, row: np.ndarray, usable: np.ndarray,
@@ -123,8 +115,7 @@ def calibrate_procam_stereo(target: xr.Dataset, /, *, window_px: Count = 10, min
     rows, cols = image.sizes["row"], image.sizes["col"]
     drop = (resolved_drop(projector_shape[0], rows), resolved_drop(projector_shape[1], cols))
     full_scale = float(attrs["saturation_counts"]) - float(attrs["dark_level_counts"])
-    grid = np.stack(np.meshgrid(np.arange(corners_shape[0]), np.arange(corners_shape[1])), axis=-1).reshape(-1, 2)
-    board = np.hstack([grid * float(attrs["board_square_mm"]), np.zeros((grid.shape[0], 1))]).astype(np.float32)
+    board = board_points(corners_shape, float(attrs["board_square_mm"]))
 
     objects, cam_points, proj_points, used = [], [], [], []
     for pose in range(image.sizes["pose"]):

@@ -4,6 +4,7 @@ nothing added where only attenuation helps, and a resumed sweep keeping what was
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from devices.procam_acquire import acquire_plane_to_ray
 from devices.sim.procam_rig import simulated_procam_rig
@@ -22,6 +23,7 @@ def _window_error(capture, out, s) -> float:
     return float(np.median(np.abs(ratio - 1)))
 
 
+@pytest.mark.slow  # 10 s: in the slow job, so the default job keeps its 8-minute budget
 def test_hdr_adds_the_exposure_that_unclips_a_bright_lobe_and_states_its_cost(tmp_path):
     s = highlight_scene(7_000.0, albedo=0.9, effects={"subsurface": {"width": "10 px", "fraction": 0.9}})
     logs: list[str] = []

@@ -211,6 +211,7 @@ def test_a_pixel_certified_at_its_warm_start_stays_certified_beside_live_ones():
                                    rtol=1e-4)
 
 
+@pytest.mark.slow  # 10 s: in the slow job, so the default job keeps its 8-minute budget
 def test_the_catalogue_is_solved_finite_and_certified_with_the_finish():
     """Every case of ``benchmarks/demux_catalogue.py`` (thesis-like sweeps, all-zero, NaN and clipped frames,
     1e-8 and 1e8 data with β not rescaled, N < K, a wide exposure with cond 5e6), small: the defaults' answers

@@ -108,6 +108,31 @@ def test_a_plane_to_ray_stack_in_either_frame_order(tmp_path, order):
     np.testing.assert_array_equal(open_store(tmp_path / "c.zarr")["image"].values, cube)
 
 
+@pytest.mark.parametrize("order", [["delay", "exposure", "line"], ["line", "exposure", "delay"]])
+def test_a_line_sweep_imports_in_any_frame_order_as_the_cube_a_sweep_writes(tmp_path, order):
+    """A full-transport stack written in another frame order comes back as the (delay, exposure, line) cube, frame
+    for frame; an order that is not a permutation is named."""
+    rng = np.random.default_rng(1)
+    cube = rng.integers(0, 4095, (3, 2, 4, 5, 6)).astype(np.uint16)  # (delay, exposure, line, row, col)
+    axes = [("delay", "exposure", "line").index(d) for d in order]
+    np.save(tmp_path / "stack.npy", cube.transpose(*axes, 3, 4).reshape(24, 5, 6))
+    spec = {"kind": "full_transport_capture", "frames": {"image": "stack.npy"}, "delays_us": [-170.0, 0.0, 170.0],
+            "exposures_us": [170.0, 510.0], "lines_px": [10.0, 20.0, 30.0, 40.0], "order": order,
+            "line_width_px": 10.0, "scan_speed_px_per_us": 1 / 17, "line_time_us": 17.0, "saturation_counts": 4095,
+            "dark_level_counts": 64}
+    (tmp_path / "spec.yaml").write_text(yaml.safe_dump(spec))
+    ds = import_capture(spec=str(tmp_path / "spec.yaml"))
+    np.testing.assert_array_equal(ds["image"].values, cube)
+    assert ds["line"].attrs["units"] == "px" and ds.attrs["line_width_px"] == 10.0
+    assert runner.invoke(app, ["import", str(tmp_path / "spec.yaml"), str(tmp_path / "c.zarr")]).exit_code == 0
+    stored = open_store(tmp_path / "c.zarr")
+    assert stored.attrs["selpath_kind"] == "full_transport_capture"
+    np.testing.assert_array_equal(stored["image"].values, cube)
+    (tmp_path / "bad.yaml").write_text(yaml.safe_dump(spec | {"order": ["delay", "delay", "line"]}))
+    with pytest.raises(ConfigError, match=r"order: .*must name delay, exposure and line once each"):
+        import_capture(spec=str(tmp_path / "bad.yaml"))
+
+
 def test_bad_specs_and_frames_are_named_with_their_field(original, tmp_path):
     spec = _export(original, tmp_path)
     path = tmp_path / "spec.yaml"
@@ -193,3 +218,24 @@ def test_a_symlinked_spec_is_identified_by_the_frames_it_reads(original, tmp_pat
     before = spec_identity(settings)
     np.save(real / "dark.npy", original["dark"].values + 1)
     assert spec_identity(settings) != before
+
+
+def test_an_uncompressed_npz_member_is_memory_mapped_and_a_compressed_one_still_reads(tmp_path):
+    """``np.savez`` members are mapped in place (frames read one by one, like a ``.npy``), C or Fortran order;
+    ``np.savez_compressed`` ones are inflated whole (the zip cannot be read in pieces); both give the same frames."""
+    from stages.importing import _npz_stored_member
+
+    rng = np.random.default_rng(2)
+    frames = rng.integers(0, 4095, (4, 3, 5)).astype(np.uint16)
+    fortran = np.asfortranarray(rng.random((3, 4, 2)))
+    np.savez(tmp_path / "plain.npz", image=frames, other=fortran)
+    np.savez_compressed(tmp_path / "packed.npz", image=frames)
+    mapped = _npz_stored_member(tmp_path / "plain.npz", "image")
+    assert isinstance(mapped, np.memmap)
+    np.testing.assert_array_equal(mapped, frames)
+    np.testing.assert_array_equal(_npz_stored_member(tmp_path / "plain.npz", "other"), fortran)
+    assert _npz_stored_member(tmp_path / "packed.npz", "image") is None
+    for name in ("plain.npz:image", "packed.npz"):
+        lazy = read_frames(name, tmp_path)
+        assert lazy.chunks[0] == (1, 1, 1, 1)
+        np.testing.assert_array_equal(lazy.compute(), frames)
