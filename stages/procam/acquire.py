@@ -328,7 +328,11 @@ def acquire_scan_calibration(
 
 
 def _checkerboard_precheck(settings) -> list[str]:
-    return _checked_scene(settings, lambda spec: tuple([v] for v in exposure_window(spec, settings.mode)))
+    problems = _rig_precheck(settings, lambda spec: tuple([v] for v in exposure_window(spec, settings.mode)))
+    if settings.rig == "hardware" and settings.mode == "floodlit":
+        problems.append("mode floodlit needs the camera's global shutter; a hardware rig's OpenCV camera has none "
+                        "(use mode: epipolar)")
+    return problems
 
 
 def exposure_window(spec: ProcamScene, mode: str) -> tuple[float, float]:
@@ -349,11 +353,12 @@ def exposure_window(spec: ProcamScene, mode: str) -> tuple[float, float]:
 def acquire_checkerboards(
     *,
     store: StorePath,
-    scene: StorePath,
     mode: Literal["floodlit", "epipolar"],
     square: Count = 24,
     shifts_per_axis: Count = 4,
-    rig: Literal["sim"] = "sim",
+    rig: Literal["sim", "hardware"] = "sim",
+    scene: StorePath = "",
+    hardware: StorePath = "",
     sensor: SensorSize | None = None,
     rig_changes: RigChanges | None = None,
     progress: bool = True,
@@ -365,8 +370,6 @@ def acquire_checkerboards(
     ----------
     store : str
         Zarr store the frames land in (a ``checkerboard_capture``); an existing store of the same boards resumes.
-    scene : str
-        Projector–camera scene file (``workflows/scenes/*.yaml``).
     mode : str
         ``floodlit``: the camera's global shutter open over the whole scan (the regular image under the board);
         ``epipolar``: the synchronised rolling shutter at t_d = 0, t_e = t_p (only the pixel's own epipolar plane).
@@ -376,7 +379,12 @@ def acquire_checkerboards(
         Shifts per axis, evenly over one period (two squares) [1]: shifts_per_axis² frames (at least 2 per axis,
         so that every pixel is seen lit and dark; the thesis shifted its board 128 times).
     rig : str
-        ``sim``: the transport simulator.
+        ``sim``: the transport simulator showing ``scene``; ``hardware``: the rig file ``hardware`` (epipolar mode
+        only: its camera has no global shutter).
+    scene : str
+        Projector–camera scene file (``workflows/scenes/*.yaml``), for ``rig: sim``.
+    hardware : str
+        Projector–camera rig file, for ``rig: hardware`` (docs/devices.md).
     sensor : [rows, cols] or None
         Render at this sensor size instead of the scene rig's; a frame that would not fit in memory is refused.
     rig_changes : dict or None
@@ -384,13 +392,15 @@ def acquire_checkerboards(
     progress : bool
         Show a progress bar.
     """
-    spec = _scene(scene, sensor, rig_changes)
-    delay, exposure = exposure_window(spec, mode)
     if shifts_per_axis < 2:
         raise SelpathError(f"shifts_per_axis is {shifts_per_axis}: at least 2 are needed, so that every pixel of "
                            "the board is seen lit and dark")
     shifts = checkerboard_shifts((square, square), shifts_per_axis)
-    with _simulated_rig(scene, sensor, rig_changes) as instruments:
+    with _rig(rig, scene, hardware, sensor, rig_changes) as instruments:
+        if rig == "sim":
+            delay, exposure = exposure_window(_scene(scene, sensor, rig_changes), mode)
+        else:  # the synchronised epipolar frame: t_d = 0, t_e = t_p (floodlit is refused by the sweep)
+            delay, exposure = 0.0, float(np.ceil(float(instruments.attrs["line_time_us"])))
         return checkerboard_sweep(instruments, store, (square, square), shifts, mode=mode, delay=delay,
                                   exposure=exposure, progress=progress, log=sweep_log(progress))
 

@@ -373,3 +373,43 @@ def test_gray_codes_through_the_controllers_slots_equal_the_simulated_rigs(tmp_p
     seen = np.isfinite(decoded)
     assert seen.mean() > 0.9
     np.testing.assert_allclose(decoded[seen], np.broadcast_to(np.arange(32), (24, 32))[seen], atol=0.25)  # noise
+
+
+def test_epipolar_checkerboards_on_hardware_equal_the_simulated_rigs_and_floodlit_is_refused(tmp_path, fake_camera):
+    """Each distinct board is one upload verified by its checksum (a repeated one is shown from its slot), the frames
+    equal the simulated rig's; a hardware
+    workflow asking for floodlit boards (a global shutter the OpenCV camera lacks) fails validation, and the
+    acquisition stage at t_d = 0, t_e = t_p runs through the serial path."""
+    from devices.procam_acquire import acquire_checkerboards, checkerboard_shifts
+
+    shifts = checkerboard_shifts((4, 4), 2)
+    want = acquire_checkerboards(simulated_procam_rig(scene()), tmp_path / "sim.zarr", (4, 4), shifts,
+                                 mode="epipolar", delay=0.0, exposure=17.0, progress=False).load()
+    with FakeProcamHardware(scene()) as hardware:
+        fake_camera(hardware)
+        instruments = procam_hardware_rig(load_procam_hardware(rig_file(tmp_path, hardware.port)))
+        try:
+            got = acquire_checkerboards(instruments, tmp_path / "hw.zarr", (4, 4), shifts, mode="epipolar",
+                                        delay=0.0, exposure=17.0, progress=False).load()
+        finally:
+            instruments.close()
+        # shifts of one square give the complementary board, of two squares the same one: 2 distinct boards of 4
+        assert sum(c.startswith("UPLOAD") for c in hardware.firmware.received) == 2
+    xr.testing.assert_identical(got["image"].drop_attrs(), want["image"].drop_attrs())
+
+    boards = {"workflow": "boards", "scheduler": "synchronous", "steps": [{
+        "id": "boards", "stage": "acquire_checkerboards",
+        "with": {"rig": "hardware", "hardware": "procam-rig.yaml", "mode": "floodlit", "square": 4,
+                 "shifts_per_axis": 2, "store": "boards.zarr", "progress": False}}]}
+    (tmp_path / "wf.yaml").write_text(yaml.safe_dump(boards))
+    with pytest.raises(SpecError, match="mode floodlit needs the camera's global shutter"):
+        load_workflow(tmp_path / "wf.yaml")
+    boards["steps"][0]["with"]["mode"] = "epipolar"
+    (tmp_path / "wf.yaml").write_text(yaml.safe_dump(boards))
+    with FakeProcamHardware(scene()) as hardware:
+        rig_file(tmp_path, hardware.port)
+        fake_camera(hardware)
+        run_workflow(load_workflow(tmp_path / "wf.yaml"), progress=False)
+    stored = open_store(tmp_path / "boards.zarr")
+    assert stored.attrs["delay_us"] == 0.0 and stored.attrs["exposure_us"] == 17.0
+    xr.testing.assert_identical(stored["image"].drop_attrs(), want["image"].drop_attrs())
