@@ -12,7 +12,7 @@ import numpy as np
 import pydantic
 import xarray as xr
 
-from pipeline.errors import Problem, StageError
+from pipeline.errors import Problem, SelpathError, StageError
 
 #: the float precision of a solver's arithmetic (a stage setting)
 Dtype = Literal["float32", "float64"]
@@ -37,6 +37,15 @@ def sweep_log(progress: bool):
 
     console = Console()
     return lambda message: console.print(escape(message), highlight=False)
+
+
+def read_file(load, path, what: str) -> tuple[object | None, list[str]]:
+    """``load(path)`` and no problems, or None and every problem it raised, each headed ``"{what} file: "`` (a
+    stage's precheck reads its scene or rig file at validation time)."""
+    try:
+        return load(path), []
+    except SelpathError as exc:
+        return None, [f"{what} file: {p}" for p in getattr(exc, "problems", [exc])]
 
 
 def require_variables(ds: xr.Dataset, names: tuple[str, ...], stage_name: str) -> None:

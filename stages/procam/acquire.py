@@ -33,7 +33,7 @@ from pipeline.constraints import Count, Positive, memory_problems
 from pipeline.errors import SelpathError
 from pipeline.registry import stage
 from pipeline.spec import StorePath
-from stages._common import sweep_log
+from stages._common import read_file, sweep_log
 from stages._sweeps import Sweep
 
 
@@ -100,10 +100,10 @@ def frame_problems(spec: ProcamScene) -> list[str]:
 def _checked_scene(settings, sweep) -> list[str]:
     """Read the scene, check ``sweep(scene) = (delays, exposures)`` against the controller's limits and a frame
     against this machine's memory at validation time."""
-    try:
-        spec = _scene(settings.scene, settings.sensor, settings.rig_changes)
-    except SelpathError as exc:
-        return [f"scene file: {p}" for p in getattr(exc, "problems", [exc])]
+    spec, problems = read_file(lambda path: _scene(path, settings.sensor, settings.rig_changes), settings.scene,
+                               "scene")
+    if problems:
+        return problems
     delays, exposures = sweep(spec)
     return DEFAULT_LIMITS.problems(delays, exposures) + frame_problems(spec)
 
@@ -128,11 +128,7 @@ def _hardware_problems(settings) -> list[str]:
         return ["rig 'hardware' needs the setting 'hardware' (a projector-camera rig file, docs/devices.md)"]
     problems = [f"{name} is a setting of the simulated rig (rig: sim); a hardware rig's sensor is the camera's"
                 for name in ("scene", "sensor", "rig_changes") if getattr(settings, name)]
-    try:
-        load_procam_hardware(settings.hardware)
-    except SelpathError as exc:
-        problems += [f"hardware file: {p}" for p in getattr(exc, "problems", [exc])]
-    return problems
+    return problems + read_file(load_procam_hardware, settings.hardware, "hardware")[1]
 
 
 def _file_identity(path) -> dict:
@@ -464,11 +460,7 @@ def acquire_gray_code(
 
 
 def _target_precheck(settings) -> list[str]:
-    try:
-        load_stereo_target(settings.scene)
-    except SelpathError as exc:
-        return [f"scene file: {p}" for p in getattr(exc, "problems", [exc])]
-    return []
+    return read_file(load_stereo_target, settings.scene, "scene")[1]
 
 
 def _target_identity(settings) -> dict:

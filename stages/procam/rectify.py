@@ -221,8 +221,17 @@ def row_offsets(projector_row: np.ndarray, projector_rows: int) -> np.ndarray:
            [-0.5]])
     """
     rows = projector_row.shape[0]
-    scale = rows / projector_rows
-    return (projector_row + 0.5) * scale - 0.5 - np.arange(rows)[:, None]
+    return paired_camera_row(projector_row, projector_rows, rows) - np.arange(rows)[:, None]
+
+
+def paired_camera_row(projector_row, projector_rows: int, camera_rows: int):
+    """The camera row the sync pairs with (sub-pixel) projector row p: (p + ½)·C/P − ½, rows as unit cells with
+    centres at whole numbers.
+
+    >>> float(paired_camera_row(359.5, 720, 1200))
+    599.5
+    """
+    return (np.asarray(projector_row, float) + 0.5) * camera_rows / projector_rows - 0.5
 
 
 def fit_misalignment(delta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -27,7 +27,7 @@ from pipeline.registry import stage
 from pipeline.schema import with_metadata
 from stages._common import require_variables
 from stages.camera_target import board_points, camera_corners
-from stages.procam.rectify import _decode_band, check_code_count, resolved_drop
+from stages.procam.rectify import _decode_band, check_code_count, paired_camera_row, resolved_drop
 
 #: decoded pixels a corner's local homography needs (it has 8 degrees of freedom)
 MIN_HOMOGRAPHY_PIXELS = 12
@@ -151,7 +151,7 @@ def calibrate_procam_stereo(target: xr.Dataset, /, *, window_px: Count = 10, min
     cams, projs = np.concatenate(cam_points), np.concatenate(proj_points)
     before = np.abs(_rows(cams, k_c, d_c, None, k_c) - _rows(projs, k_p, d_p, None, k_c))
     after = np.abs(_rows(cams, k_c, d_c, r1, p1) - _rows(projs, k_p, d_p, r2, p2))
-    sync = np.abs((projs[:, 1] + 0.5) * rows / projector_shape[0] - 0.5 - cams[:, 1])  # row_offsets' pairing
+    sync = np.abs(paired_camera_row(projs[:, 1], projector_shape[0], rows) - cams[:, 1])
     roll, pitch, yaw = euler_angles(r)
     summary = {
         "reprojection_rms_px": float(rms), "camera_rms_px": float(rms_c), "projector_rms_px": float(rms_p),

@@ -21,10 +21,9 @@ from devices.sim.rig import simulated_rig
 from devices.sim.scene import load_scene
 from devices.tomography_acquire import acquire_tomography as sweep
 from pipeline.constraints import memory_problems
-from pipeline.errors import SelpathError
 from pipeline.registry import stage
 from pipeline.spec import StorePath
-from stages._common import sweep_log
+from stages._common import read_file, sweep_log
 from stages._sweeps import Sweep
 
 
@@ -50,10 +49,9 @@ def _precheck(settings) -> list[str]:
     name = "scene" if settings.rig == "sim" else "hardware"
     if not source:
         return [f"rig {settings.rig!r} needs the setting {name!r} (a YAML file)"]
-    try:
-        spec = (load_scene if settings.rig == "sim" else load_hardware)(source)
-    except SelpathError as exc:
-        return [f"{name} file: {p}" for p in getattr(exc, "problems", [exc])]
+    spec, problems = read_file(load_scene if settings.rig == "sim" else load_hardware, source, name)
+    if problems:
+        return problems
     if len(settings.angles.values()) == 0:
         return ["the angle sweep is empty"]
     if settings.rig == "sim":  # the simulator traces one ray per pixel: (rows × cols, 3) float64 end points

@@ -23,10 +23,11 @@ from devices.geometry import to_object
 from devices.sim import tomography as tomo
 from devices.sim.scene import Scene, load_scene
 from pipeline.constraints import Count, Index, NonNegative, Positive, memory_problems
-from pipeline.errors import Problem, SelpathError, StageError
+from pipeline.errors import Problem, StageError
 from pipeline.registry import stage
 from pipeline.schema import in_length
 from pipeline.spec import StorePath
+from stages._common import read_file
 from stages.tomography.acquire import AngleSweep
 from stages.tomography.paths import sinogram_coordinates
 from stages.tomography.sinogram import Bins, bin_index
@@ -36,11 +37,7 @@ LightAngle = Annotated[float, pydantic.Field(ge=0, le=180)]
 
 
 def _precheck(settings) -> list[str]:
-    try:
-        load_scene(settings.scene)
-    except SelpathError as exc:
-        return [f"scene file: {p}" for p in getattr(exc, "problems", [exc])]
-    return []
+    return read_file(load_scene, settings.scene, "scene")[1]
 
 
 def ray_problems(n_theta: int, n_x: int) -> list[str]:

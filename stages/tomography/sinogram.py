@@ -114,15 +114,16 @@ def bin_sinogram(rays: xr.Dataset, /, *, n_theta: Bins | None = None, n_x: Bins 
     extent = float(x_extent if x_extent is not None else rays.attrs.get("x_extent", np.nan))
     if not np.isfinite(extent) or extent <= 0:
         raise StageError(Problem("the X extent of the grid is unknown", fix="set x_extent"))
-    supported = capture_bins(rays, extent)
+    step, pitch = capture_sampling(rays)
+    supported = capture_bins(step, pitch, extent)
     n_theta = supported[0] if n_theta is None else n_theta
     n_x = supported[1] if n_x is None else n_x
     if n_theta < 2 or n_x < 2:
         raise StageError(Problem(f"n_theta = {n_theta}, n_x = {n_x}; both must be at least 2"))
     if problems := _bin_memory(n_theta, n_x):
         raise StageError([Problem(p) for p in problems])
-    _warn_finer_than_views(rays, n_theta)
-    _warn_finer_than_pixels(rays, n_x, extent)
+    _warn_finer_than_views(n_theta, step)
+    _warn_finer_than_pixels(n_x, extent, pitch, supported[1])
     whole = {"angle": -1, "col": -1, "row": 1}
     parts = [rays[v].chunk(whole) for v in ("theta", "x", "absorption")]
     both = xr.apply_ufunc(  # one stacked output (see stages.tomography.paths on dask and multi-output graphs)
@@ -147,33 +148,37 @@ def bin_sinogram(rays: xr.Dataset, /, *, n_theta: Bins | None = None, n_x: Bins 
         "x_extent": extent, "capture_n_theta": supported[0], "capture_n_x": supported[1]}), "sinogram")
 
 
-def capture_bins(rays: xr.Dataset, extent: float) -> tuple[int, int]:
-    """The bins a capture's sampling fills: (n_theta, n_x) = (180° / view step, 2·extent / pitch + 1), the pitch
-    being one pixel's size at the axis (perspective: camera_distance / focal_length_px; orthographic: pixel_size).
+def capture_sampling(rays: xr.Dataset) -> tuple[float | None, float | None]:
+    """How finely a capture samples the sinogram: the step between views [degree] (None without two views) and one
+    pixel's size at the axis [length unit] (perspective: camera_distance / focal_length_px; orthographic:
+    pixel_size; None without a camera in the attrs)."""
+    step = view_step_deg(rays["angle"].values) if "angle" in rays.coords else None
+    try:
+        pitch = RigGeometry.from_attrs(rays.attrs, where="bin_sinogram: rays").camera.axis_pixel_size
+    except StageError:
+        pitch = None
+    return step, pitch
+
+
+def capture_bins(step: float | None, pitch: float | None, extent: float) -> tuple[int, int]:
+    """The bins a capture's sampling fills: (n_theta, n_x) = (180° / view step, 2·extent / pitch + 1).
 
     At a fixed X consecutive views' rays lie one view step apart in θ; at a fixed θ neighbouring pixels' rays lie
     about half an exit-point spacing apart in X, which is at least one pitch. Measured on simulated cylinders:
     these bins leave 1–2 % of the bins between observed ones empty; bins half as wide in X 4–5 %, in θ 32–47 %.
-    Without angles (one view) n_theta is 180; without a camera n_x is 256.
+    Without a view step (one view) n_theta is 180; without a pitch n_x is 256.
+
+    >>> capture_bins(4.0, 0.1, 8.0)
+    (45, 161)
     """
-    step = view_step_deg(rays["angle"].values) if "angle" in rays.coords else None
     n_theta = max(2, int(np.floor(180.0 / step + 1e-6))) if step else 180
-    try:
-        pitch = RigGeometry.from_attrs(rays.attrs, where="bin_sinogram: rays").camera.axis_pixel_size
-    except StageError:
-        return n_theta, 256
-    return n_theta, max(2, int(np.rint(2 * extent / pitch)) + 1)
+    return n_theta, (max(2, int(np.rint(2 * extent / pitch)) + 1) if pitch else 256)
 
 
-def _warn_finer_than_pixels(rays: xr.Dataset, n_x: int, extent: float) -> None:
+def _warn_finer_than_pixels(n_x: int, extent: float, pitch: float | None, supported: int) -> None:
     """X bins narrower than half a pixel pitch at the axis: neighbouring pixels' rays skip bins."""
-    try:
-        pitch = RigGeometry.from_attrs(rays.attrs, where="bin_sinogram: rays").camera.axis_pixel_size
-    except StageError:
-        return
     width = 2 * extent / (n_x - 1)
-    if width < 0.5 * pitch * (1 - 1e-6):
-        supported = int(np.rint(2 * extent / pitch)) + 1
+    if pitch is not None and width < 0.5 * pitch * (1 - 1e-6):
         warnings.warn(f"bin_sinogram: n_x = {n_x} makes X bins of {width:.3g}, less than half the {pitch:.3g} a "
                       f"pixel spans at the axis: neighbouring pixels' rays skip bins, holes that the coverage and "
                       f"the reconstructions count as missing data; bin n_x ≤ {supported}", UserWarning, stacklevel=3)
@@ -211,20 +216,17 @@ def view_step_deg(angles) -> float | None:
     return float(np.median(np.diff(np.append(unique, unique[0] + 360.0))))
 
 
-def _warn_finer_than_views(rays: xr.Dataset, n_theta: int) -> None:
+def _warn_finer_than_views(n_theta: int, step: float | None) -> None:
     """Bins finer than the views: a ray's θ is its view's angle plus a pixel's offset, so at a fixed X only one θ
     bin in (view step / bin width) holds rays and the sinogram is a checkerboard of unobserved bins that are only
-    binning (measured: 4° views into 180 bins observed 0.44 of the bins, into 45 bins 0.88)."""
-    if "angle" not in rays.coords:
-        return
-    step = view_step_deg(rays["angle"].values)
+    binning (measured: 4° views into 180 bins observed 0.53 of the bins, into 45 bins 0.94)."""
     width = 180.0 / n_theta
     if step is not None and width < step * (1 - 1e-6):
         warnings.warn(f"bin_sinogram: n_theta = {n_theta} makes {width:.3g}° bins, finer than the {step:.3g}° "
                       f"between views: at a fixed X only about one θ bin in {step / width:.2g} holds a ray, a "
                       "checkerboard of unobserved bins that the coverage and the reconstructions count as missing "
                       f"data; bin n_theta ≤ {int(np.floor(180.0 / step + 1e-6))} or capture more angles",
-                      UserWarning, stacklevel=2)
+                      UserWarning, stacklevel=3)
 
 
 #: floor of ``observed_fraction``: the demo observes 72 % of its bins; one or two views under 2 %
