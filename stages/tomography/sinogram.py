@@ -83,7 +83,7 @@ def _bin_memory(n_theta: int, n_x: int) -> list[str]:
 
 #: ``filled_fraction`` below this: the engine logs the advice to bin coarser. Measured on simulated cylinders
 #: (perspective and orthographic, 1–4° views): bins at the capture's own sampling fill 0.98–0.99; X bins of half
-#: the pixel pitch 0.946–0.958; θ bins of half the view step 0.53–0.68.
+#: the pixel pitch 0.934–0.948; θ bins of half the view step 0.53–0.68 (benchmarks/sinogram_bins.py).
 FILLED_ADVICE = 0.97
 
 
@@ -165,7 +165,8 @@ def capture_bins(step: float | None, pitch: float | None, extent: float) -> tupl
 
     At a fixed X consecutive views' rays lie one view step apart in θ; at a fixed θ neighbouring pixels' rays lie
     about half an exit-point spacing apart in X, which is at least one pitch. Measured on simulated cylinders:
-    these bins leave 1–2 % of the bins between observed ones empty; bins half as wide in X 4–5 %, in θ 32–47 %.
+    these bins leave 1–2 % of the bins between observed ones empty; bins half as wide in X 5–7 %, in θ 32–47 %
+    (``benchmarks/sinogram_bins.py``).
     Without a view step (one view) n_theta is 180; without a pitch n_x is 256.
 
     >>> capture_bins(4.0, 0.1, 8.0)
