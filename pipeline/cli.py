@@ -203,7 +203,8 @@ def workflows(
     """List the workflows selpath ships (or copy them, with their scenes, to edit)."""
     if copy is None:
         for name in shipped.names():
-            console.print(f"{name}  {escape(str(shipped.path(name)))}")
+            after = f"  (run {shipped.AFTER[name]} first)" if name in shipped.AFTER else ""
+            console.print(f"{name}  {escape(str(shipped.path(name)))}{after}")
         console.print("(read-only where selpath is installed: `selpath workflows --copy DIR` to run or edit them)")
         return
     with _guard():

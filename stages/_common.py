@@ -5,7 +5,9 @@ Kept small on purpose: a helper lands here only when both ``stages.tomography`` 
 
 from __future__ import annotations
 
+import hashlib
 import warnings
+from pathlib import Path
 from typing import Annotated, Literal
 
 import numpy as np
@@ -37,6 +39,13 @@ def sweep_log(progress: bool):
 
     console = Console()
     return lambda message: console.print(escape(message), highlight=False)
+
+
+def file_identity(path) -> dict:
+    """A file a stage reads (a scene, rig or label file) by its path and content (sha256; None where it is not a
+    file), for the stage's ``identity``: provenance changes when the file does."""
+    source = Path(path)
+    return {"file": str(source), "sha256": hashlib.sha256(source.read_bytes()).hexdigest() if source.is_file() else None}
 
 
 def read_file(load, path, what: str) -> tuple[object | None, list[str]]:

@@ -13,6 +13,10 @@ from pathlib import Path
 #: what ``selpath demo`` runs: instrument → shipped workflow (each writes the report its ``report:`` names)
 DEMO = {"tomography": "tomography-sim", "procam": "procam-sim"}
 
+#: a shipped workflow that reads what another writes → that one: run it first, in the same folder (until then the
+#: reader does not validate: its input store does not exist yet)
+AFTER = {"procam-materials-apply": "procam-materials"}
+
 
 def folder() -> Path:
     """The folder holding the shipped workflow files (``*.yaml``) and ``scenes/``."""

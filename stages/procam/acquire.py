@@ -8,10 +8,8 @@ mode at several exposures and delays, for :func:`stages.procam.calibrate.calibra
 
 from __future__ import annotations
 
-import hashlib
 from collections.abc import Iterator
 from contextlib import contextmanager
-from pathlib import Path
 from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
@@ -33,7 +31,7 @@ from pipeline.constraints import Count, Positive, memory_problems
 from pipeline.errors import SelpathError
 from pipeline.registry import stage
 from pipeline.spec import StorePath
-from stages._common import read_file, sweep_log
+from stages._common import file_identity, read_file, sweep_log
 from stages._sweeps import Sweep
 
 
@@ -131,15 +129,9 @@ def _hardware_problems(settings) -> list[str]:
     return problems + read_file(load_procam_hardware, settings.hardware, "hardware")[1]
 
 
-def _file_identity(path) -> dict:
-    """A rig or scene file by its path and content (sha256; None where it is not a file)."""
-    source = Path(path)
-    return {"file": str(source), "sha256": hashlib.sha256(source.read_bytes()).hexdigest() if source.is_file() else None}
-
-
 def _identity(settings) -> dict:
     source = settings.hardware if getattr(settings, "rig", "sim") == "hardware" else settings.scene
-    return {"rig": settings.rig, **_file_identity(source), "sensor": settings.sensor,
+    return {"rig": settings.rig, **file_identity(source), "sensor": settings.sensor,
             "rig_changes": settings.rig_changes}
 
 
@@ -464,7 +456,7 @@ def _target_precheck(settings) -> list[str]:
 
 
 def _target_identity(settings) -> dict:
-    return {"rig": "sim", **_file_identity(settings.scene)}
+    return {"rig": "sim", **file_identity(settings.scene)}
 
 
 @stage("acquire_stereo_target", precheck=_target_precheck, identity=_target_identity,

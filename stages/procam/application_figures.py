@@ -320,3 +320,89 @@ def transport_matrix_figure(transport: xr.Dataset, /, *,
         return _draw_matrices([transport_matrix(column, offsets) for column in columns], titles, gamma)
 
     return as_figure(render, *(column.data for column in slices), caption=caption, size=MATRIX_SIZE)
+
+
+#: the material figure's size [in]: regular image, mean profiles, label map, confusion matrix
+MATERIAL_SIZE = (12.0, 3.0)
+
+
+def _draw_materials(image, delays, mean, names, label, truth, confusion, brightness_accuracy) -> np.ndarray:
+    from matplotlib.colors import ListedColormap
+
+    fig, axes = panels(1, 4, size=MATERIAL_SIZE, width_ratios=[1.3, 1.1, 1.3, 1.0])
+    colours = [f"C{k % 10}" for k in range(len(names))]
+    axes[0].imshow(image, cmap="gray", vmin=0, vmax=display_top(image), interpolation="nearest")
+    axes[0].set_title("(a) regular image", fontsize=8)
+    pixel_axes(axes[0], fontsize=7)
+    for k, name in enumerate(names):
+        axes[1].plot(delays, mean[k], color=colours[k], label=name, lw=1.2)
+    axes[1].set(xlabel="sync delay t_d [µs]", ylabel="profile / its area")
+    axes[1].set_title("(b) mean delay profiles (training)", fontsize=8)
+    axes[1].legend(fontsize=6)
+    axes[1].tick_params(labelsize=7)
+    axes[1].xaxis.label.set_size(7)
+    axes[1].yaxis.label.set_size(7)
+    shown = np.ma.masked_where((label < 0) | (truth < 0), label)
+    axes[2].imshow(shown, cmap=ListedColormap(colours), vmin=-0.5, vmax=len(names) - 0.5, interpolation="nearest")
+    axes[2].set_facecolor("black")
+    axes[2].set_title("(c) classified by delay profile", fontsize=8)
+    pixel_axes(axes[2], ylabel=None, fontsize=7)
+    if confusion is None:
+        axes[3].text(0.5, 0.5, "no labels:\nnot scored", ha="center", va="center", fontsize=8)
+        axes[3].set_axis_off()
+    else:
+        rows = confusion / np.maximum(confusion.sum(axis=1, keepdims=True), 1)
+        axes[3].imshow(rows, cmap="Blues", vmin=0, vmax=1)
+        for (i, j), value in np.ndenumerate(rows):
+            axes[3].text(j, i, f"{100 * value:.1f}", ha="center", va="center", fontsize=6,
+                         color="white" if value > 0.6 else "black")
+        ticks = range(len(names))
+        axes[3].set_xticks(ticks, names, rotation=45, ha="right", fontsize=6)
+        axes[3].set_yticks(ticks, names, fontsize=6)
+        axes[3].set_xlabel("predicted", fontsize=7)
+        axes[3].set_title(f"(d) confusion [%]; brightness: {np.nanmean(brightness_accuracy):.0%}", fontsize=8)
+    return rgba(fig)
+
+
+@stage("material_figure")
+def material_figure(classification: xr.Dataset, classifier: xr.Dataset, /) -> xr.Dataset:
+    """Figs. 51–52: the regular image, the classes' mean delay profiles, the pixels classified, the confusion matrix.
+
+    Parameters
+    ----------
+    classification : xr.Dataset
+        A ``material_classification`` store (``classify_materials``); scored (with its ``confusion``) or not.
+    classifier : xr.Dataset
+        The ``material_classifier`` store that classified it (its mean training profiles are drawn).
+    """
+    for name, ds, needed in (("classification", classification, ("label", "image")),
+                             ("classifier", classifier, ("mean_profile",))):
+        if not set(needed) <= set(ds.data_vars):
+            raise StageError(Problem(f"{name} lacks {needed}", where=name,
+                                     fix="wire in classify_materials' and train_material_classifier's outputs"))
+    names = [str(v) for v in classifier["material"].values]
+    scored = "confusion" in classification.data_vars
+    source = classifier.attrs.get("source_kind", "plane_to_ray_capture")
+    unlabelled = ", or unlabelled" if scored else ""
+    panel_d = ("the confusion matrix over the labelled pixels, each true class (row) in percent of its pixels, with "
+               "the brightness-only baseline's mean per-class accuracy in the title" if scored else
+               "no confusion matrix: the capture was classified without labels")
+    made = "delay sweep at one exposure" if source == "plane_to_ray_capture" else "demultiplexed transport"
+    caption = f"""Material recognition from delay profiles (thesis Figs. 51–52): (a) the regular image of the
+        capture classified (the profiles' area, counts; the materials are all white); (b) each class's mean
+        training profile over the sync delay t_d [µs], divided by its area so albedo cancels (from a {made});
+        (c) every pixel classified by an RBF-kernel SVM on its profile (C = {classifier.attrs.get('svm_C', '?')},
+        γ = {classifier.attrs.get('svm_gamma', '?')} per delay count, by {classifier.attrs.get('folds', '?')}-fold
+        cross-validation; black: no usable profile{unlabelled}); (d) {panel_d}."""
+    args = [classification["image"].data, classifier["delay"].values, classifier["mean_profile"].values, names,
+            classification["label"].data,
+            classification["true_label"].data if scored else np.zeros(classification["label"].shape, np.int16),
+            classification["confusion"].data if scored else None,
+            classification["brightness_accuracy"].data if scored else None]
+
+    def render(image, delays, mean, names, label, truth, confusion, brightness):
+        return _draw_materials(np.asarray(image), delays, mean, names, np.asarray(label), np.asarray(truth),
+                               None if confusion is None else np.asarray(confusion),
+                               None if brightness is None else np.asarray(brightness))
+
+    return as_figure(render, *args, caption=caption, size=MATERIAL_SIZE)

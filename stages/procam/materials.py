@@ -1,0 +1,454 @@
+"""Material recognition from delay profiles (thesis §5.4.9, Figs. 51–52).
+
+A pixel's **delay profile** is its intensity over the sync delay t_d: light that scattered below the surface before
+leaving through the pixel entered at other epipolar planes, so it arrives at other delays, and the more translucent
+the material the broader the profile. Divided by its area (the sum over delays) a profile no longer depends on the
+albedo or the light's power, only on how the material spreads light; materials that look alike under room light
+(white milk, soap, toothpaste) then differ. Profiles come from a delay sweep at one exposure (the thesis's) or
+from a demultiplexed plane-to-ray transport, whose offsets o are delays o/v_p.
+
+A support vector machine with a radial (Gaussian) kernel, in a scikit-learn ``Pipeline`` after standardising each
+delay, is trained on labelled pixels of one capture (C and γ by stratified cross-validation) and classifies the
+pixels of another. A classifier of the same kind on the area alone (the regular image's brightness: this rig is
+monochrome, so brightness is all its colour is) is trained beside it as the baseline that shows why colour fails.
+
+The trained pair is stored in the classifier's store as a skops archive (``model``, bytes): skops rather than
+joblib because loading a pickle runs whatever code it names, while skops loads only the types it trusts
+(scikit-learn's), so a classifier store received from someone else is safe to open. The store's provenance
+(workflow, inputs, settings) is the model's.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+from typing import Annotated, Literal
+
+import dask.array as da
+import numpy as np
+import pydantic
+import xarray as xr
+
+from pipeline.constraints import Count, Index, Positive
+from pipeline.errors import Problem, StageError
+from pipeline.quality import usable_share
+from pipeline.registry import stage
+from pipeline.spec import StorePath
+from stages._common import file_identity, require_variables
+
+#: bits of the profiles' ``flags``
+SATURATED, NONFINITE, NO_LIGHT = 1, 2, 4
+FLAG_MASKS = [SATURATED, NONFINITE, NO_LIGHT]
+FLAG_MEANINGS = "saturated nonfinite no_light"
+#: below this share of pixels with a usable profile the profiles mean nothing
+USABLE_FLOOR = 0.01
+#: the normal quantile of the accuracies' 95 % confidence intervals
+Z95 = 1.959963984540054
+#: the default grids of the cross-validation: C, and γ in units of 1/(number of delays) (scikit-learn's "scale"
+#: after standardising)
+C_GRID, GAMMA_GRID = (1.0, 10.0, 100.0), (0.1, 0.3, 1.0)
+
+Grid = Annotated[tuple[Positive, ...], pydantic.Field(min_length=1)]
+#: where the truth comes from: the simulated scene's objects, or a label image file
+Labels = Literal["scene", "image"]
+
+
+def _frames(source: xr.Dataset, exposure: float | None) -> tuple[xr.DataArray, xr.DataArray, dict]:
+    """The source's frames over ``delay`` [counts above dark, µs], the pixels seen saturated, and what it was."""
+    if "transport" in source.data_vars and "offset" in source["transport"].dims:
+        speed = source.attrs.get("scan_speed_px_per_us")
+        if not speed:
+            raise StageError(Problem("the transport has no scan_speed_px_per_us: its offsets cannot be delays",
+                                     fix="wire in the output of demux_plane_to_ray"))
+        t = source["transport"]
+        frames = t.assign_coords(offset=t["offset"] / float(speed)).rename(offset="delay")
+        censored = (source["censored"] if "censored" in source.data_vars
+                    else xr.zeros_like(t.isel(offset=0), dtype=bool))
+        return frames, censored, {"source_kind": "plane_to_ray_transport"}
+    if "image" in source.data_vars and set(source["image"].dims) == {"delay", "exposure", "row", "col"}:
+        image = source["image"]
+        exposures = source["exposure"].values
+        if exposure is None and len(exposures) > 1:
+            raise StageError(Problem(f"the capture has {len(exposures)} exposures {exposures.tolist()} µs; a delay "
+                                     "profile is a sweep at one", fix="give exposure: one of them"))
+        exposure = float(exposures[0]) if exposure is None else float(exposure)
+        if not np.any(np.isclose(exposures, exposure)):
+            raise StageError(Problem(f"exposure {exposure:g} µs is not in the capture",
+                                     fix=f"choose one of {exposures.tolist()}"))
+        frames = image.sel(exposure=exposure, method="nearest").drop_vars("exposure")
+        level = float(source.attrs.get("saturation_counts", np.inf))
+        dark = float(source.attrs.get("dark_level_counts", 0.0))
+        return ((frames.astype(np.float32) - dark), (frames >= level).any("delay"),
+                {"source_kind": "plane_to_ray_capture", "exposure_us": exposure})
+    raise StageError(Problem(f"neither a plane-to-ray capture nor a plane-to-ray transport: variables "
+                             f"{sorted(map(str, source.data_vars))}",
+                             fix="wire in acquire_plane_to_ray's capture or demux_plane_to_ray's transport"))
+
+
+@stage("delay_profiles")
+def delay_profiles(source: xr.Dataset, /, *, exposure: Positive | None = None) -> xr.Dataset:
+    """Per-pixel delay profiles normalised by their area, so albedo cancels (§5.4.9, Fig. 51b).
+
+    Returns ``profile`` over (delay, row, col) [1, summing to 1 over delay], ``area`` [counts: the profile's sum,
+    the regular image], ``rms_delay`` [µs: √(Σ profile·t_d²), the profile's spread about t_d = 0] and ``flags``
+    (saturated, nonfinite, no_light: area ≤ 0); flagged pixels' profiles are NaN. Refused when under 1 % of the
+    pixels have a usable profile.
+
+    Parameters
+    ----------
+    source : xr.Dataset
+        A ``plane_to_ray_capture`` (``image`` over delay, exposure, row, col [counts]; attrs ``dark_level_counts``
+        and ``saturation_counts`` where known) or a ``plane_to_ray_transport`` (``transport`` over offset, row,
+        col, attr ``scan_speed_px_per_us``: offset o is delay o / v_p).
+    exposure : float or None
+        The capture's exposure whose delay sweep is the profile [µs]; None: the capture's only one.
+    """
+    frames, saturated, what = _frames(source, exposure)
+    frames = frames.chunk({"delay": -1}) if frames.chunks else frames
+    area = frames.sum("delay")
+    nonfinite = (~np.isfinite(frames)).any("delay")
+    flags = (saturated.astype(np.uint8) * SATURATED) | (nonfinite.astype(np.uint8) * NONFINITE) | (
+        (~(area > 0) & ~nonfinite).astype(np.uint8) * NO_LIGHT)
+    profile = (frames / area).where(flags == 0)
+    delay = frames["delay"]
+    spread = np.sqrt(np.maximum((profile * delay**2).sum("delay", skipna=False), 0.0))
+    keep = {k: v for k, v in source.attrs.items() if k != "selpath_kind"}
+    return xr.Dataset(
+        {"profile": profile.drop_attrs(deep=False).assign_attrs(units="1", long_name="delay profile / its area"),
+         "area": area.where(~nonfinite).drop_attrs(deep=False).assign_attrs(
+             units="counts", long_name="area of the delay profile (the regular image)"),
+         "rms_delay": spread.drop_attrs(deep=False).assign_attrs(
+             units="us", long_name="RMS delay of the profile about t_d = 0"),
+         "flags": flags.drop_attrs(deep=False).assign_attrs(
+             flag_masks=FLAG_MASKS, flag_meanings=FLAG_MEANINGS,
+             long_name="why a pixel is invalid (CF flags; 0: valid)"),
+         "usable_fraction": usable_share(
+             (flags == 0).mean(), floor=USABLE_FLOOR,
+             what="pixels with a usable delay profile (light, finite, unsaturated)",
+             fix="check that the projector lit the scene and the frames are not all dark, saturated or missing")},
+        coords={"delay": ("delay", delay.values.astype(float), {"units": "us", "long_name": "sync delay t_d"})},
+        attrs=keep | what | {"selpath_kind": "delay_profiles"})
+
+
+# -- labels ----------------------------------------------------------------------------------------------------
+
+
+def label_map(profiles: xr.Dataset, labels: str, image: str, classes: tuple[str, ...] | None,
+              where: str) -> tuple[np.ndarray, tuple[str, ...]]:
+    """Integer codes over (row, col) (0: unlabelled, k: ``classes[k − 1]``) and the class names.
+
+    ``labels`` is ``scene`` (the objects of the simulated scene the capture was rendered from, named as in the
+    scene file; the background unlabelled) or ``image``: ``image`` is then the path of an integer image (.npy, or
+    PNG/TIFF) of the frame's size, whose codes 1 … n ``classes`` names.
+    """
+    shape = (profiles.sizes["row"], profiles.sizes["col"])
+    labels, image = (image, "") if labels == "image" else (labels, image)
+    if labels == "scene":
+        from devices.sim.procam_transport import Tile
+        from stages.procam.multiplexing import simulated_scene
+
+        scene = simulated_scene(profiles, where)
+        tile = Tile.of(scene, 0, scene.rig.camera_rows)
+        names = tuple(obj.name for obj in scene.objects)
+        codes = (tile.label + 1).reshape(tile.shape)
+        if codes.shape != shape:
+            raise StageError(Problem(f"the scene renders {codes.shape}, the profiles are {shape}", where=where))
+    else:
+        if not labels or not os.path.exists(labels):
+            raise StageError(Problem(f"no label image at {labels!r}", where=where,
+                                     fix="give an integer image (.npy, .png, .tif) of codes 1 … n, 0 unlabelled"))
+        if labels.endswith(".npy"):
+            codes = np.load(labels, allow_pickle=False)
+        else:
+            import imageio.v3 as iio
+
+            codes = iio.imread(labels)
+        if codes.shape != shape or not np.issubdtype(codes.dtype, np.integer):
+            raise StageError(Problem(f"the label image {labels} is {codes.dtype} {codes.shape}; the profiles are "
+                                     f"{shape}: labels must be integer codes of the same size", where=where))
+        if not classes:
+            raise StageError(Problem(f"the label image {labels} has codes but no class names", where=where,
+                                     fix="give classes: the names of codes 1, 2, …"))
+        names = tuple(classes)
+        if codes.min() < 0 or codes.max() > len(names):
+            raise StageError(Problem(f"the label image {labels} has codes {int(codes.min())} … {int(codes.max())}; "
+                                     f"classes names {len(names)} (codes 1 … {len(names)}, 0 unlabelled)",
+                                     where=where))
+    if not (codes > 0).any():
+        raise StageError(Problem("no pixel is labelled", where=where,
+                                 fix="label some pixels of each material with its code (0 is unlabelled)"))
+    return codes.astype(np.int16), names
+
+
+# -- training ----------------------------------------------------------------------------------------------------
+
+
+def _pixels(profiles: xr.Dataset, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Profiles (pixels, delays) and areas (pixels,) of flat pixel ``index``, read only where they lie."""
+    flat = profiles["profile"].transpose("delay", "row", "col").data.reshape(profiles.sizes["delay"], -1)
+    area = profiles["area"].data.reshape(-1)
+    if isinstance(flat, da.Array):
+        flat, area = da.compute(flat[:, index], area[index])
+    else:
+        flat, area = flat[:, index], area[index]
+    return np.asarray(flat, np.float64).T, np.asarray(area, np.float64)
+
+
+def _fit(features: np.ndarray, truth: np.ndarray, grid: dict, folds: int, seed: int):
+    from sklearn.model_selection import GridSearchCV, StratifiedKFold
+    from sklearn.pipeline import Pipeline
+    from sklearn.preprocessing import StandardScaler
+    from sklearn.svm import SVC
+
+    search = GridSearchCV(Pipeline([("scale", StandardScaler()), ("svm", SVC(kernel="rbf"))]), grid,
+                          cv=StratifiedKFold(folds, shuffle=True, random_state=seed))
+    search.fit(features, truth)
+    return search
+
+
+def training_sample(codes: np.ndarray, flags: np.ndarray, names: tuple[str, ...], per_class: int, folds: int,
+                    seed: int) -> np.ndarray:
+    """Flat indices of up to ``per_class`` labelled pixels with usable profiles of each class (seeded)."""
+    rng = np.random.default_rng(seed)
+    usable = (flags == 0).ravel()
+    chosen, problems = [], []
+    for k, name in enumerate(names, start=1):
+        labelled = codes.ravel() == k
+        index = np.flatnonzero(labelled & usable)
+        if labelled.any() and index.size < folds:
+            problems.append(Problem(f"class {name!r} has {index.size} labelled pixels with a usable profile (of "
+                                    f"{int(labelled.sum())} labelled; the rest have zero area, or are saturated "
+                                    f"or missing); cross-validation over {folds} folds needs {folds}",
+                                    fix="label more pixels of it, or check its frames"))
+        chosen.append(rng.choice(index, min(per_class, index.size), replace=False) if index.size else index)
+    present = [name for k, name in enumerate(names, start=1) if (codes == k).any()]
+    if len(present) < 2:
+        problems.append(Problem(f"the labels hold {len(present)} class(es) {present}: a classifier needs at least 2",
+                                fix="label pixels of at least two materials"))
+    if problems:
+        raise StageError(problems)
+    return np.concatenate(chosen)
+
+
+def _label_precheck(settings) -> list[str]:
+    if settings.labels == "image" and not os.path.isfile(settings.label_image):
+        return [f"labels: image needs label_image, an integer label image; {settings.label_image!r} is not a file"]
+    return []
+
+
+def _label_identity(settings) -> dict:
+    return file_identity(settings.label_image) if settings.labels == "image" else {"labels": settings.labels}
+
+
+@stage("train_material_classifier", precheck=_label_precheck, identity=_label_identity)
+def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scene",
+                              label_image: StorePath = "", classes: tuple[str, ...] | None = None, samples_per_class: Count = 1000,
+                              folds: Annotated[int, pydantic.Field(ge=2, le=20)] = 5, seed: Index = 0,
+                              c_grid: Grid = C_GRID, gamma_grid: Grid = GAMMA_GRID) -> xr.Dataset:
+    """Train an RBF-kernel SVM on labelled pixels' delay profiles, and the brightness-only baseline (§5.4.9).
+
+    Hyper-parameters by stratified cross-validation over ``folds`` folds on the training pixels. Returns the
+    ``model`` (a skops archive, bytes), the mean and spread of each class's profiles (Fig. 51b), the pixels used and
+    both classifiers' cross-validated accuracy; attrs the chosen C and γ and what the model was trained on.
+    Refused: fewer than 2 classes, a class with fewer usable labelled pixels than folds, no labelled pixel.
+
+    Parameters
+    ----------
+    profiles : xr.Dataset
+        A ``delay_profiles`` store (``delay_profiles``).
+    labels : str
+        ``scene``: the objects of the simulated scene the capture records (attr ``simulated_scene``), by name;
+        ``image``: the label image ``label_image``.
+    label_image : str
+        Path (relative to the workflow) of an integer label image (.npy, .png, .tif) of the frame's size: 0
+        unlabelled, codes 1 … n named by ``classes``.
+    classes : tuple of str or None
+        The names of a label image's codes 1, 2, …; None with ``labels: scene``.
+    samples_per_class : int
+        Training pixels drawn per class (at most; all when a class has fewer) [1].
+    folds : int
+        Folds of the stratified cross-validation [1].
+    seed : int
+        Seed of the pixel draw and of the folds.
+    c_grid : tuple of float
+        SVM regularisation C to try [1].
+    gamma_grid : tuple of float
+        RBF width γ to try, in units of 1/(number of delays) [1]: 1 is scikit-learn's ``gamma="scale"`` on
+        standardised profiles.
+    """
+    import skops.io
+    import sklearn
+
+    require_variables(profiles, ("profile", "area", "flags"), "train_material_classifier")
+    codes, names = label_map(profiles, labels, label_image, classes, "profiles")
+    flags = np.asarray(profiles["flags"].values)
+    index = training_sample(codes, flags, names, samples_per_class, folds, seed)
+    features, area = _pixels(profiles, index)
+    truth = codes.ravel()[index] - 1
+    n_delay = features.shape[1]
+    search = _fit(features, truth, {"svm__C": list(c_grid), "svm__gamma": [g / n_delay for g in gamma_grid]},
+                  folds, seed)
+    baseline = _fit(area[:, None], truth, {"svm__C": list(c_grid), "svm__gamma": list(gamma_grid)}, folds, seed)
+    model = skops.io.dumps({"profile": search.best_estimator_, "brightness": baseline.best_estimator_})
+    present = np.unique(truth)
+    kept = [names[k] for k in present]
+    mean = np.stack([features[truth == k].mean(0) for k in present])
+    spread = np.stack([features[truth == k].std(0) for k in present])
+    keep = {k: v for k, v in profiles.attrs.items() if k not in ("selpath_kind", "simulated_scene")}
+    scene = profiles.attrs.get("simulated_scene", {})
+    delay = profiles["delay"]
+    material = ("material", kept, {"long_name": "material class"})
+    return xr.Dataset(
+        {"model": ("byte", np.frombuffer(model, np.uint8),
+                   {"long_name": "the profile and brightness classifiers, a skops archive", "format": "skops",
+                    "sha256": hashlib.sha256(model).hexdigest()}),
+         "mean_profile": (("material", "delay"), mean, {"units": "1", "long_name": "mean training profile"}),
+         "profile_spread": (("material", "delay"), spread,
+                            {"units": "1", "long_name": "standard deviation of the training profiles"}),
+         "training_pixels": ("material", np.bincount(truth, minlength=len(names))[present],
+                             {"units": "1", "long_name": "training pixels"}),
+         "cv_accuracy": ((), search.best_score_, {"units": "1", "long_name": "cross-validated accuracy, profiles"}),
+         "brightness_cv_accuracy": ((), baseline.best_score_,
+                                    {"units": "1", "long_name": "cross-validated accuracy, brightness only"})},
+        coords={"material": material, "delay": ("delay", delay.values, dict(delay.attrs))},
+        attrs=keep | {"selpath_kind": "material_classifier", "svm_C": float(search.best_params_["svm__C"]),
+                      "svm_gamma": float(search.best_params_["svm__gamma"]) * n_delay,
+                      "svm_gamma_units": "1/(number of delays)",
+                      "brightness_C": float(baseline.best_params_["svm__C"]),
+                      "brightness_gamma": float(baseline.best_params_["svm__gamma"]),
+                      "folds": folds, "seed": seed, "samples_per_class": samples_per_class,
+                      "labels": label_image if labels == "image" else labels, "training_scene": scene.get("scene", ""),
+                      "scikit_learn_version": sklearn.__version__, "skops_version": skops.__version__})
+
+
+# -- classification ----------------------------------------------------------------------------------------------
+
+
+def load_classifiers(classifier: xr.Dataset) -> dict:
+    """The profile and brightness classifiers of a ``material_classifier`` store, loaded with skops's trusted types
+    only (a store that names any other type is refused)."""
+    import skops.io
+
+    data = np.asarray(classifier["model"].values, np.uint8).tobytes()
+    if hashlib.sha256(data).hexdigest() != classifier["model"].attrs.get("sha256"):
+        raise StageError(Problem("the classifier's model does not match its recorded sha256: the store is "
+                                 "corrupt or was edited", where="classifier", fix="train it again"))
+    untrusted = skops.io.get_untrusted_types(data=data)
+    if untrusted:
+        raise StageError(Problem(f"the classifier's model names types skops does not trust: {untrusted}",
+                                 where="classifier", fix="train the classifier with train_material_classifier"))
+    return skops.io.loads(data)
+
+
+def _predict(model, features: np.ndarray) -> np.ndarray:
+    """Class index per pixel of (…, features), −1 where a feature is NaN."""
+    flat = features.reshape(-1, features.shape[-1])
+    ok = np.isfinite(flat).all(axis=1)
+    out = np.full(flat.shape[0], -1, np.int16)
+    if ok.any():
+        out[ok] = model.predict(flat[ok])
+    return out.reshape(features.shape[:-1])
+
+
+def wilson_interval(successes, trials, z: float = Z95):
+    """Wilson score interval (low, high) of a binomial proportion (element-wise; NaN where trials is 0)."""
+    n = np.where(trials > 0, trials, np.nan)
+    p = successes / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return centre - half, centre + half
+
+
+def _scores(truth: xr.DataArray, predicted: xr.DataArray, n: int, prefix: str, names) -> dict:
+    """Confusion matrix, per-class accuracy and its 95 % interval, and the overall accuracy (lazy)."""
+    labelled = (truth >= 0) & (predicted >= 0)
+    code = xr.where(labelled, truth.astype(np.int64) * n + predicted, n * n).data.reshape(-1)
+    counts = (da.bincount(code, minlength=n * n + 1) if isinstance(code, da.Array)
+              else np.bincount(code, minlength=n * n + 1))[: n * n].reshape(n, n)
+    confusion = xr.DataArray(counts, dims=("true_material", "material"))
+    right, total = xr.DataArray(np.diagonal(counts) if not isinstance(counts, da.Array)
+                                else da.diagonal(counts), dims="material"), confusion.sum("material").rename(
+        true_material="material")
+    low, high = wilson_interval(right, total)
+    return {f"{prefix}confusion": confusion.assign_attrs(units="1", long_name="pixels by true and predicted class"),
+            f"{prefix}accuracy": (right / total.where(total > 0)).assign_attrs(
+                units="1", long_name="share of the class's pixels classified right"),
+            f"{prefix}accuracy_low": low.assign_attrs(units="1", long_name="95 % Wilson interval, low end"),
+            f"{prefix}accuracy_high": high.assign_attrs(units="1", long_name="95 % Wilson interval, high end"),
+            f"{prefix}overall_accuracy": (right.sum() / total.sum()).assign_attrs(
+                units="1", long_name="share of labelled pixels classified right")}
+
+
+@stage("classify_materials", precheck=_label_precheck, identity=_label_identity)
+def classify_materials(profiles: xr.Dataset, classifier: xr.Dataset, /, *, labels: Labels | None = None,
+                       label_image: StorePath = "", classes: tuple[str, ...] | None = None) -> xr.Dataset:
+    """Classify every pixel of a capture by its delay profile, and by brightness alone (§5.4.9, Figs. 51c, 52).
+
+    Returns ``label`` and ``brightness_label`` over (row, col) (index into ``material``; −1: no usable profile) and
+    the regular image ``image`` [counts]; with ``labels``, the truth ``true_label``, ``confusion`` over
+    (true_material, material), per-class ``accuracy`` with its 95 % Wilson interval and ``overall_accuracy``, and
+    the same for the brightness baseline (``brightness_`` prefix). Refused: profiles over other delays, another
+    source kind or exposure than the classifier's, a model store whose hash does not match.
+
+    Parameters
+    ----------
+    profiles : xr.Dataset
+        A ``delay_profiles`` store of the capture to classify (never the training capture's pixels: a new capture).
+    classifier : xr.Dataset
+        A ``material_classifier`` store (``train_material_classifier``, or ``load_store`` of a saved one).
+    labels : str or None
+        The truth to score against, as ``train_material_classifier`` takes it (``scene``, or ``image`` with
+        ``label_image``); its classes must be among the classifier's. None: classify only.
+    label_image : str
+        Path of the label image with ``labels: image``.
+    classes : tuple of str or None
+        The names of a label image's codes 1, 2, ….
+    """
+    require_variables(profiles, ("profile", "area", "flags"), "classify_materials")
+    require_variables(classifier, ("model", "mean_profile"), "classify_materials")
+    trained = classifier["delay"].values
+    delays = profiles["delay"].values
+    problems = []
+    if trained.shape != delays.shape or not np.allclose(trained, delays, atol=1e-6):
+        problems.append(Problem(f"the classifier was trained on {trained.size} delays {trained[0]:g} … "
+                                f"{trained[-1]:g} µs; these profiles have {delays.size} ({delays[0]:g} … "
+                                f"{delays[-1]:g} µs)", fix="capture the same delay sweep as the training capture"))
+    for key in ("source_kind", "exposure_us"):
+        if classifier.attrs.get(key) != profiles.attrs.get(key):
+            problems.append(Problem(f"the classifier's {key} is {classifier.attrs.get(key)!r}, the profiles' "
+                                    f"{profiles.attrs.get(key)!r}", fix="classify profiles made as the training ones"))
+    if problems:
+        raise StageError(problems)
+    models = load_classifiers(classifier)
+    names = [str(v) for v in classifier["material"].values]
+    profile = profiles["profile"].transpose("row", "col", "delay")
+    profile = profile.chunk({"delay": -1}) if profile.chunks else profile
+    out = dict(output_dtypes=[np.int16], dask="parallelized")
+    label = xr.apply_ufunc(lambda x: _predict(models["profile"], x), profile, input_core_dims=[["delay"]], **out)
+    bright = xr.apply_ufunc(lambda x: _predict(models["brightness"], x[..., None]), profiles["area"], **out)
+    meaning = {"units": None, "long_name": "class index into material (−1: no usable profile)"}
+    result = {"label": label.assign_attrs(meaning),
+              "brightness_label": bright.where(label >= 0, -1).astype(np.int16).assign_attrs(meaning),
+              "image": profiles["area"]}
+    if labels is not None:
+        codes, truth_names = label_map(profiles, labels, label_image, classes, "profiles")
+        unknown = sorted(set(truth_names) - set(names))
+        if unknown:
+            raise StageError(Problem(f"the labels name classes the classifier does not know: {unknown}",
+                                     fix=f"label only its classes {names}"))
+        lookup = np.array([-1] + [names.index(n) for n in truth_names], np.int16)
+        truth = xr.DataArray(lookup[codes], dims=("row", "col"))
+        result["true_label"] = truth.assign_attrs(units=None, long_name="true class index (−1: unlabelled)")
+        result |= _scores(truth, result["label"], len(names), "", names)
+        result |= _scores(truth, result["brightness_label"], len(names), "brightness_", names)
+        result["classified_fraction"] = usable_share(
+            ((truth >= 0) & (label >= 0)).sum() / max(int((truth >= 0).sum()), 1), floor=0.5,
+            what="labelled pixels with a usable profile",
+            fix="check the capture's frames: labelled pixels are dark, saturated or missing")
+    keep = {k: v for k, v in profiles.attrs.items() if k not in ("selpath_kind",)}
+    return xr.Dataset(result, coords={"material": ("material", names, {"long_name": "material class"}),
+                                      "true_material": ("true_material", names, {"long_name": "true class"})},
+                      attrs=keep | {"selpath_kind": "material_classification",
+                                    "model_sha256": classifier["model"].attrs.get("sha256"),
+                                    "training_scene": classifier.attrs.get("training_scene", ""),
+                                    "labels": (label_image if labels == "image" else labels) or ""})

@@ -1,0 +1,188 @@
+"""Material recognition (§5.4.9): delay profiles against the simulator's lobes, the SVM on a new capture against the
+thesis's goal, and bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import scipy.stats
+import xarray as xr
+
+import workflows
+from devices.sim.procam_scene import ProcamScene, load_procam_scene
+from pipeline import StageError
+from pipeline.quality import enforce
+from pipeline.store import open_store, to_store
+from stages.procam.materials import (classify_materials, delay_profiles, train_material_classifier,
+                                     wilson_interval)
+from stages.procam.multiplexing import noiseless
+from tests.stages.procam.test_demux import capture_of
+
+#: the materials capture's sweep: ±340 µs every 17 µs (one camera row per step) at t_e = 170 µs
+SWEEP = np.arange(-340.0, 341.0, 17.0)
+SENSOR = {"camera_rows": 120, "camera_cols": 160}
+
+
+def lobe_scene(widths, fractions, albedos=None, **rig) -> ProcamScene:
+    """Side-by-side vertical strips, one subsurface material each, on a rig whose rows match the projector's."""
+    n = len(widths)
+    albedos = albedos or [0.8] * n
+    objects = [{"name": f"m{k}", "region": {"kind": "rectangle", "x": [k / n, (k + 1) / n], "y": [0.0, 1.0]},
+                "albedo": albedos[k], "effects": {"subsurface": {"width": f"{w} px", "fraction": f}}}
+               for k, (w, f) in enumerate(zip(widths, fractions, strict=True))]
+    base = {"camera_rows": 96, "camera_cols": 96, "projector_rows": 96, "projector_cols": 96}
+    return ProcamScene.model_validate({"scene": "lobes", "background": {"albedo": 0.0}, "objects": objects,
+                                       "rig": base | rig})
+
+
+def test_profiles_spread_as_the_simulators_lobes():
+    """t_e = t_p = the delay step = one row period: the delay sweep samples the transport itself, so the profile's
+    mean square delay is τ²·Σ o²·T(o) / Σ T(o) with T = (1 − f)·δ + f·Laplace(w) integrated over unit offset cells,
+    computed here from scipy's Laplace distribution over the swept offsets. Within 1e-5 (float32 frames), at
+    pixels whose lobes stay inside the projector."""
+    widths, fractions = (1.5, 2.5, 3.5), (0.4, 0.7, 0.85)
+    s = noiseless(lobe_scene(widths, fractions, camera_cols=258, projector_cols=258))
+    tau = s.rig.row_period
+    offsets = np.arange(-40, 41)
+    capture = capture_of(s, offsets * tau, np.array([tau]))
+    profiles = delay_profiles(capture).compute()
+    assert profiles.attrs["source_kind"] == "plane_to_ray_capture"
+    np.testing.assert_allclose(profiles["profile"].sum("delay").values, 1.0, rtol=1e-5)
+    for k, (w, f) in enumerate(zip(widths, fractions, strict=True)):
+        cell = scipy.stats.laplace(scale=w).cdf(offsets + 0.5) - scipy.stats.laplace(scale=w).cdf(offsets - 0.5)
+        mass = f * cell + (1 - f) * (offsets == 0)
+        truth = np.sqrt(tau**2 * (offsets**2 * mass).sum() / mass.sum())
+        centre = profiles["rms_delay"].isel(row=48, col=43 + 86 * k).item()
+        assert centre == pytest.approx(truth, rel=1e-5), (w, centre, truth)
+    # broader lobes, broader profiles: the order the classifier relies on
+    spreads = [profiles["rms_delay"].isel(row=48, col=43 + 86 * k).item() for k in range(3)]
+    assert spreads == sorted(spreads)
+
+
+def test_area_normalised_profiles_cancel_albedo():
+    """The same material at albedo 0.3 and 0.9: the same profile (to float32 rounding), areas in the ratio 1:3."""
+    s = noiseless(lobe_scene((4.0, 4.0), (0.7, 0.7), albedos=[0.3, 0.9], camera_cols=256, projector_cols=256))
+    profiles = delay_profiles(capture_of(s, SWEEP, np.array([170.0]))).compute()
+    dim, bright = profiles.isel(row=48, col=64), profiles.isel(row=48, col=192)
+    np.testing.assert_allclose(dim["profile"].values, bright["profile"].values, rtol=1e-5)
+    assert bright["area"].item() / dim["area"].item() == pytest.approx(3.0, rel=1e-5)
+
+
+def materials(name: str, seed: int) -> xr.Dataset:
+    """A capture of a shipped materials scene over the sweep, with the noise drawn from ``seed``, recording its scene
+    as the simulated rig does."""
+    s = load_procam_scene(workflows.scene(name))
+    s = s.with_rig(**SENSOR, noise=s.rig.noise.model_copy(update={"seed": seed}))
+    capture = capture_of(s, SWEEP, np.array([170.0]))
+    return capture.assign_attrs(simulated_scene=s.model_dump(mode="json"))
+
+
+@pytest.fixture(scope="module")
+def trained():
+    profiles = delay_profiles(materials("white-materials", 0))
+    return profiles, train_material_classifier(profiles, samples_per_class=300, seed=0)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_the_svm_recognises_every_material_of_a_new_capture_and_brightness_does_not(trained, seed):
+    """Trained on one capture, scored on another (the materials placed otherwise, another noise draw: never the
+    same pixels): ≥ 90 % per class with the 95 % interval's low end above 85 % (the thesis's goal), for two seeds
+    (training draw and folds, and the new capture's noise); brightness alone (the rig's only colour) stays below
+    75 % on average and fails some class outright (< 60 %)."""
+    _, classifier = trained
+    if seed:
+        classifier = train_material_classifier(trained[0], samples_per_class=300, seed=seed)
+    profiles = delay_profiles(materials("white-materials-shuffled", 10 + seed))
+    scored = classify_materials(profiles, classifier, labels="scene").compute()
+    assert scored["accuracy"].min() >= 0.9, scored["accuracy"].values
+    assert scored["accuracy_low"].min() >= 0.85
+    assert scored["brightness_accuracy"].mean() < 0.75
+    assert scored["brightness_accuracy"].min() < 0.6
+    # the confusion matrix counts every labelled pixel once
+    assert int(scored["confusion"].sum()) == int((scored["true_label"] >= 0).sum())
+
+
+def test_a_classifier_travels_in_its_store_and_a_tampered_one_is_refused(trained, tmp_path):
+    profiles, classifier = trained
+    path = tmp_path / "classifier.zarr"
+    to_store(classifier, path, "material_classifier")
+    stored = open_store(path)
+    assert stored.attrs["svm_C"] in (1.0, 10.0, 100.0)
+    assert set(stored["material"].values) == {"hand soap", "fat-free milk", "2 % milk", "whole milk", "toothpaste"}
+    a = classify_materials(profiles, classifier)["label"].values
+    b = classify_materials(profiles, stored)["label"].values
+    np.testing.assert_array_equal(a, b)
+    tampered = stored.load().copy(deep=True)
+    tampered["model"].values[100] ^= 1
+    with pytest.raises(StageError, match="does not match its recorded sha256"):
+        classify_materials(profiles, tampered)
+
+
+def test_wilson_interval_matches_scipy():
+    for k, n in [(0, 10), (9, 10), (10, 10), (4880, 5000), (37, 41)]:
+        low, high = wilson_interval(np.float64(k), np.float64(n))
+        ci = scipy.stats.binomtest(k, n).proportion_ci(confidence_level=0.95, method="wilson")
+        assert (low, high) == pytest.approx((ci.low, ci.high), abs=1e-12)
+
+
+def test_bad_training_and_classification_input_is_refused(trained, tmp_path):
+    profiles, classifier = trained
+    one = np.zeros((120, 160), np.int16)
+    one[10:20, 10:20] = 1
+    np.save(tmp_path / "one.npy", one)
+    with pytest.raises(StageError, match="at least 2"):
+        train_material_classifier(profiles, labels="image", label_image=str(tmp_path / "one.npy"), classes=("a",))
+    np.save(tmp_path / "none.npy", np.zeros((120, 160), np.int16))
+    with pytest.raises(StageError, match="no pixel is labelled"):
+        train_material_classifier(profiles, labels="image", label_image=str(tmp_path / "none.npy"),
+                                  classes=("a", "b"))
+    with pytest.raises(StageError, match="has codes but no class names"):
+        train_material_classifier(profiles, labels="image", label_image=str(tmp_path / "one.npy"))
+    np.save(tmp_path / "three.npy", one * 3)
+    with pytest.raises(StageError, match="has codes 0 … 3; classes names 2"):
+        train_material_classifier(profiles, labels="image", label_image=str(tmp_path / "three.npy"),
+                                  classes=("a", "b"))
+    # a class whose labelled pixels all have zero area (a dark patch)
+    capture = materials("white-materials", 0)
+    capture["image"][:, :, 40:50, 40:50] = 0.0
+    two = np.zeros((120, 160), np.int16)
+    two[10:20, 10:20], two[40:50, 40:50] = 1, 2
+    np.save(tmp_path / "two.npy", two)
+    with pytest.raises(StageError, match="class 'dark' has 0 labelled pixels with a usable profile"):
+        train_material_classifier(delay_profiles(capture), labels="image", label_image=str(tmp_path / "two.npy"),
+                                  classes=("lit", "dark"))
+    # an all-dark capture has no usable profile at all
+    with pytest.raises(StageError, match="usable delay profile"):
+        enforce(delay_profiles(capture.assign(image=xr.zeros_like(capture["image"]))))
+    # profiles of another sweep than the training one
+    other = delay_profiles(materials("white-materials", 0).isel(delay=slice(None, None, 2)))
+    with pytest.raises(StageError, match="trained on 41 delays"):
+        classify_materials(other, classifier)
+    # scoring against classes the classifier never saw
+    with pytest.raises(StageError, match="does not know"):
+        classify_materials(profiles, classifier, labels="image", label_image=str(tmp_path / "two.npy"),
+                           classes=("lit", "dark"))
+
+
+@pytest.mark.slow
+def test_the_two_material_workflows_train_store_and_apply_a_classifier(tmp_path):
+    """The shipped pair end to end (about 45 s): procam-materials trains and stores the classifier; then, in the same
+    folder, procam-materials-apply loads it (validated only now that the store exists) and scores a new capture at
+    ≥ 90 % per class; the classification names the model it used by its sha256, and the figure is drawn."""
+    import shutil
+
+    from pipeline import load_workflow
+    from pipeline.engine import run_workflow
+    from pipeline.provenance import read_provenance
+
+    for name in ("procam-materials", "procam-materials-apply"):
+        shutil.copy(workflows.path(name), tmp_path / f"{name}.yaml")
+    shutil.copytree(workflows.folder() / "scenes", tmp_path / "scenes")
+    run_workflow(load_workflow(tmp_path / "procam-materials.yaml"), progress=False)
+    classifier = open_store(tmp_path / "out/procam-materials/classifier.zarr")
+    assert read_provenance(tmp_path / "out/procam-materials/classifier.zarr")["workflow"] == "procam-materials"
+    run_workflow(load_workflow(tmp_path / "procam-materials-apply.yaml"), progress=False)
+    scored = open_store(tmp_path / "out/procam-materials-apply/classification.zarr")
+    assert float(scored["accuracy"].min()) >= 0.9 and float(scored["brightness_accuracy"].mean()) < 0.75
+    assert scored.attrs["model_sha256"] == classifier["model"].attrs["sha256"]
+    assert (tmp_path / "out/procam-materials-apply/materials-figure.png").is_file()
