@@ -370,6 +370,15 @@ KINDS: dict[str, CubeKind] = {
             coord_units={"max_delay": TIME_UNITS},
         ),
         CubeKind(
+            name="delay_choice",
+            description="the delay that shows a structure below the surface best, and its images (§5.4.7)",
+            variables={"image": Variable(("view", *_FRAME), units="counts",
+                                         long_name="regular, far-range indirect, chosen-delay"),
+                       "contrast": Variable(("delay",), units="1", long_name="Weber contrast |μ_s − μ_v| / μ_s of the frame")},
+            coord_units={"delay": TIME_UNITS},
+            attrs={"chosen_delay_us": "the delay of the highest contrast, µs"},
+        ),
+        CubeKind(
             name="delay_profiles",
             description="per-pixel delay profiles normalised by their area, so albedo cancels (§5.4.9)",
             variables={"profile": Variable(("delay", *_FRAME), units="1", long_name="delay profile / its area"),

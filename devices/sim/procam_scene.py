@@ -6,7 +6,8 @@ disparity (where its direct correspondence lies in the projector) and the light-
 shows; the ground-truth transport of a pixel is assembled from *only the effects its object names*
 (``devices.sim.procam_transport``), each as separable lobes in offset space:
 
-``subsurface``               an isotropic exponential lobe at the direct correspondence (candle, milk, soap);
+``subsurface``               an isotropic exponential lobe at the direct correspondence (candle, milk, soap),
+                             optionally with an absorbing layer below the surface (a vein: :class:`Absorber`);
 ``diffuse_interreflection``  a broad, horizontally extended lobe whose strength falls with the distance from
                              a concave corner (the book's gutter);
 ``specular_interreflection`` a narrow peak far from the direct correspondence, displaced by a fixed vector
@@ -85,9 +86,29 @@ class Band(_Model):
 Region = Annotated[Rectangle | Disk | Band, pydantic.Field(discriminator="kind")]
 
 
+class Absorber(_Model):
+    """A layer below the surface that absorbs light crossing it: a vein under the skin (§5.4.7).
+
+    Light that leaves a pixel having entered the surface a distance ρ away travelled down to a depth of about ρ/2
+    (diffuse reflectance's rule of thumb: the probing depth is about half the source–detector separation; stated,
+    not fitted). So the light that crossed a layer at depths [depth, depth + thickness] is the light that entered
+    at ρ in [2·depth, 2·(depth + thickness)], and ``absorption`` of it is lost. It acts on the vertical offset: in
+    the plane-to-ray geometry the lit row's distance from the pixel's row is ρ. Deeper paths are taken to pass the
+    layer by (a vein is narrow against the paths' spread)."""
+
+    depth: Annotated[Pixels, pydantic.Field(ge=0)] = pydantic.Field(description="depth of the layer's top, px")
+    thickness: Annotated[Pixels, pydantic.Field(gt=0)] = pydantic.Field(description="the layer's thickness, px")
+    absorption: Fraction = pydantic.Field(description="share of the light crossing the layer that it absorbs")
+
+    def absorbed_offsets(self) -> tuple[float, float, float]:
+        """(low, high, share): the entry distances [px] whose light crosses the layer, and the share it loses."""
+        return 2.0 * self.depth, 2.0 * (self.depth + self.thickness), self.absorption
+
+
 class Subsurface(_Model):
     width: Annotated[Pixels, pydantic.Field(gt=0)] = pydantic.Field(description="1/e width of the lobe, px")
     fraction: Fraction = pydantic.Field(description="share of the albedo that scatters below the surface")
+    absorber: Absorber | None = pydantic.Field(None, description="an absorbing layer below (a vein); None: none")
 
 
 class DiffuseInterreflection(_Model):

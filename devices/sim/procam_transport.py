@@ -55,26 +55,41 @@ class Lobe:
     width_v: np.ndarray
     shape_u: str  # "hat" | "gauss" | "exp"
     shape_v: str
+    #: (low, high, share): the share of the vertical kernel's mass at |dv − centre| in [low, high] that is absorbed
+    #: (an absorber below the surface, :class:`~devices.sim.procam_scene.Absorber`); None: nothing absorbed
+    absorbed_v: tuple[float, float, float] | None = None
 
 
-def cell_kernel(offsets: np.ndarray, centre: np.ndarray, width: np.ndarray, shape: str) -> np.ndarray:
+def _cdf(y: np.ndarray, width: np.ndarray, shape: str) -> np.ndarray:
+    """The distribution function of a unit lobe (``gauss``: standard deviation ``width``; ``exp``: Laplace scale)."""
+    if shape == "gauss":
+        return ndtr(y / width)
+    if shape == "exp":
+        return np.where(y < 0, 0.5 * np.exp(np.minimum(y, 0) / width), 1.0 - 0.5 * np.exp(-np.maximum(y, 0) / width))
+    raise ValueError(f"unknown lobe shape {shape!r}")
+
+
+def cell_kernel(offsets: np.ndarray, centre: np.ndarray, width: np.ndarray, shape: str,
+                absorbed: tuple[float, float, float] | None = None) -> np.ndarray:
     """Mass of a unit lobe in each unit offset cell [o − ½, o + ½); broadcasts ``offsets`` against centre/width.
 
     ``hat`` is the linear interpolation of a delta at ``centre`` (width ignored); ``gauss`` has standard
     deviation ``width``; ``exp`` is the Laplace density with scale ``width``. Each sums to 1 over all
-    integers.
+    integers. ``absorbed`` = (low, high, share) removes that share of the mass at distances |x| in [low, high] from
+    the centre (both sides), cell by cell: what an absorbing layer below the surface takes.
     """
     x = offsets - centre
     if shape == "hat":
+        if absorbed is not None:
+            raise ValueError("a hat (direct) lobe has no mass below the surface to absorb")
         return np.clip(1.0 - np.abs(x), 0.0, None)
-    if shape == "gauss":
-        return ndtr((x + 0.5) / width) - ndtr((x - 0.5) / width)
-    if shape == "exp":
-        def cdf(y):
-            return np.where(y < 0, 0.5 * np.exp(np.minimum(y, 0) / width),
-                            1.0 - 0.5 * np.exp(-np.maximum(y, 0) / width))
-        return cdf(x + 0.5) - cdf(x - 0.5)
-    raise ValueError(f"unknown lobe shape {shape!r}")
+    mass = _cdf(x + 0.5, width, shape) - _cdf(x - 0.5, width, shape)
+    if absorbed is not None:
+        low, high, share = absorbed
+        for a, b in ((low, high), (-high, -low)):  # the cell's overlap with each side of the band
+            top, bottom = np.minimum(x + 0.5, b), np.maximum(x - 0.5, a)
+            mass = mass - share * np.where(top > bottom, _cdf(top, width, shape) - _cdf(bottom, width, shape), 0.0)
+    return mass
 
 
 def _reach(width: np.ndarray, shape: str) -> int:
@@ -139,7 +154,8 @@ def direct_lobes(index, albedo, effects: Effects, tile: Tile, rig: ProcamRig) ->
 def subsurface_lobes(index, albedo, effects: Effects, tile: Tile, rig: ProcamRig) -> list[Lobe]:
     spec = effects.subsurface
     zero, width = _full(index, 0.0), _full(index, spec.width)
-    return [Lobe(index, _full(index, albedo * spec.fraction), zero, zero, width, width, "exp", "exp")]
+    absorbed = spec.absorber.absorbed_offsets() if spec.absorber is not None else None
+    return [Lobe(index, _full(index, albedo * spec.fraction), zero, zero, width, width, "exp", "exp", absorbed)]
 
 
 def diffuse_interreflection_lobes(index, albedo, effects: Effects, tile: Tile, rig: ProcamRig) -> list[Lobe]:
@@ -309,7 +325,7 @@ def render_tile(scene: ProcamScene, tile: Tile, delay: float, exposure: float,
             o = np.arange(o_low, o_high + 1)[None, :]
         else:  # sum over the lobe's window around its centre (the band cuts it by zero overlap)
             o = np.round(dv).astype(np.int64) + np.arange(-reach, reach + 1)[None, :]
-        k_v = cell_kernel(o, dv, width, lobe.shape_v)
+        k_v = cell_kernel(o, dv, width, lobe.shape_v, lobe.absorbed_v)
         v = rows + o
         light = exposure_overlap(rig, rows, v, delay, exposure, jitter, JITTER_FIRST, shutter)
         inside = (v >= 0) & (v < row_profile.size)
@@ -437,7 +453,8 @@ def truth_tile(scene: ProcamScene, tile: Tile, dv: np.ndarray, du: np.ndarray | 
     out = np.zeros((len(dv), n) if du is None else (len(du), len(dv), n))
     white = np.ones(rig.projector_cols)
     for lobe in lobes:
-        k_v = cell_kernel(np.asarray(dv)[None, :], lobe.dv[:, None], lobe.width_v[:, None], lobe.shape_v)
+        k_v = cell_kernel(np.asarray(dv)[None, :], lobe.dv[:, None], lobe.width_v[:, None], lobe.shape_v,
+                          lobe.absorbed_v)
         v = tile.rows[lobe.index][:, None] + np.asarray(dv)[None, :]
         k_v = k_v * ((v >= 0) & (v < rig.camera_rows))  # no light from rows the projector does not have
         if du is None:  # the white pattern's sum over the projector's columns

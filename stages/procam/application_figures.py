@@ -388,7 +388,7 @@ def material_figure(classification: xr.Dataset, classifier: xr.Dataset, /) -> xr
                "the brightness-only baseline's mean per-class accuracy in the title" if scored else
                "no confusion matrix: the capture was classified without labels")
     made = "delay sweep at one exposure" if source == "plane_to_ray_capture" else "demultiplexed transport"
-    caption = f"""Material recognition from delay profiles (thesis Figs. 51–52): (a) the regular image of the
+    caption = f"""Material recognition from delay profiles (thesis Fig. 51 and Fig. 52): (a) the regular image of the
         capture classified (the profiles' area, counts; the materials are all white); (b) each class's mean
         training profile over the sync delay t_d [µs], divided by its area so albedo cancels (from a {made});
         (c) every pixel classified by an RBF-kernel SVM on its profile (C = {classifier.attrs.get('svm_C', '?')},
@@ -406,3 +406,58 @@ def material_figure(classification: xr.Dataset, classifier: xr.Dataset, /) -> xr
                                None if brightness is None else np.asarray(brightness))
 
     return as_figure(render, *args, caption=caption, size=MATERIAL_SIZE)
+
+
+#: the vein figure's size [in]: three images and the contrast curve
+VEIN_SIZE = (12.0, 2.8)
+
+
+def _draw_vein(images, contrast_of, delays, contrast, chosen: float, free_from: float) -> np.ndarray:
+    fig, axes = panels(1, 4, size=VEIN_SIZE, width_ratios=[1.3, 1.3, 1.3, 1.1])
+    titles = ["(a) regular image", "(b) far-range indirect", f"(c) chosen delay t_d = {chosen:g} µs"]
+    for ax, image, title, c in zip(axes[:3], images, titles, contrast_of, strict=True):
+        ax.imshow(image, cmap="gray", vmin=0, vmax=display_top(image), interpolation="nearest")
+        ax.set_title(f"{title}\ncontrast {c:.3f}", fontsize=8)
+        pixel_axes(ax, ylabel="row [px]" if ax is axes[0] else None, fontsize=7)
+    axes[3].plot(delays, contrast, "k.-", ms=3, lw=1)
+    axes[3].axvline(chosen, color="C3", lw=1, label="chosen")
+    axes[3].axvspan(-free_from, free_from, color="0.85", label="direct light in the frame")
+    axes[3].set_xlim(min(delays.min(), -free_from) - 10, delays.max() + 10)
+    axes[3].set_xlabel("sync delay t_d [µs]", fontsize=7)
+    axes[3].set_ylabel("Weber contrast", fontsize=7)
+    axes[3].set_title("(d) contrast over the delay", fontsize=8)
+    axes[3].legend(fontsize=6)
+    axes[3].tick_params(labelsize=7)
+    return rgba(fig)
+
+
+@stage("vein_figure")
+def vein_figure(choice: xr.Dataset, /) -> xr.Dataset:
+    """Fig. 49: the regular image, the far-range indirect image and the chosen delay's, with the contrast curve.
+
+    Parameters
+    ----------
+    choice : xr.Dataset
+        A ``delay_choice`` store (``choose_delay``).
+    """
+    if not {"image", "contrast", "contrast_of"} <= set(choice.data_vars):
+        raise StageError(Problem("not a delay_choice store", where="choice", fix="wire in the output of choose_delay"))
+    a = choice.attrs
+    caption = f"""Seeing a structure below the surface (thesis Fig. 49), in counts, each image on its own scale, axes
+        in camera pixels: (a) the regular image (all the transport's light), where the surface's reflection hides
+        the {a.get('structure', 'structure')}; (b) the far-range indirect image (all light from beyond
+        {a.get('far_range_rows', 0):.1f} rows of the pixel's epipolar plane: the surface's reflection is gone, but
+        light from every depth dilutes the structure's);
+        (c) the frame at the delay chosen (t_e = {a.get('exposure_us', 0):g} µs), the one of the highest Weber
+        contrast |μ_surround − μ_structure| / μ_surround between the labelled {a.get('structure', 'structure')} and
+        {a.get('surround', 'surround')}; (d) that contrast over the candidate delays clear of direct light
+        (|t_d| ≥ (t_e + t_p)/2 = {a.get('direct_free_from_us', 0):g} µs; grey: frames holding direct light; gaps:
+        too dark to measure). Titles give each image's contrast."""
+    chosen, free_from = float(a.get("chosen_delay_us", np.nan)), float(a.get("direct_free_from_us", 0.0))
+
+    def render(images, contrast_of, contrast):
+        return _draw_vein(np.asarray(images), np.asarray(contrast_of), choice["delay"].values, np.asarray(contrast),
+                          chosen, free_from)
+
+    return as_figure(render, choice["image"].data, choice["contrast_of"].data, choice["contrast"].data,
+                     caption=caption, size=VEIN_SIZE)

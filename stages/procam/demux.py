@@ -200,11 +200,17 @@ def _template(capture: xr.Dataset, transport_dims: tuple[str, ...], transport_si
     return xr.Dataset(variables, coords={name: capture[name] for name in ("row", "col") if name in capture.coords})
 
 
-def _transport_attrs(kind: str, *, timing: dict, delays, exposures, keep, margin: float, full_scale: float,
-                     **settings) -> dict:
-    """The attrs every transport store records: its settings, the timing used and the frames dropped."""
+#: what a transport keeps of its capture's attrs: which rig and scene it saw (a simulated capture's scene is the truth
+#: later stages score against, e.g. the labels of ``choose_delay``)
+CAPTURE_ATTRS = ("rig", "scene", "effects", "simulated_scene")
+
+
+def _transport_attrs(kind: str, capture: xr.Dataset, *, timing: dict, delays, exposures, keep, margin: float,
+                     full_scale: float, **settings) -> dict:
+    """The attrs every transport store records: what it was captured of, its settings, the timing used and the
+    frames dropped."""
     dropped = [[float(d), float(e)] for d, e in zip(delays[~keep], exposures[~keep], strict=True)]
-    return {"selpath_kind": kind, **settings, "scan_speed_px_per_us": timing["scan_speed"],
+    return {"selpath_kind": kind, **{k: capture.attrs[k] for k in CAPTURE_ATTRS if k in capture.attrs}, **settings, "scan_speed_px_per_us": timing["scan_speed"],
             "line_time_us": timing["line_time"], "sync_offset_us": timing["sync_offset"],
             "full_scale_counts": full_scale, "frames_dropped": dropped, "boundary_margin_us": margin}
 
@@ -316,7 +322,7 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
     out["transport"].attrs = {"units": "counts", "long_name": "plane-to-ray transport T(v, s, t)"}
     out = _describe(out, int(keep.sum()), "plane_to_ray_transport")
     return out.assign_attrs(_transport_attrs(
-        "plane_to_ray_transport", timing=timing, delays=delays, exposures=exposures, keep=keep, margin=margin,
+        "plane_to_ray_transport", capture, timing=timing, delays=delays, exposures=exposures, keep=keep, margin=margin,
         full_scale=scale, alpha=alpha, beta=beta, tol=tol, gap_tol=gap_tol, finish_rounds=finish_rounds,
         max_iter=max_iter, polish_iter=polish_iter, dtype=dtype))
 
@@ -470,7 +476,7 @@ def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, 
     out["u_direct"].attrs = {"units": "px", "long_name": "direct correspondence u₀ (centre of the brightest cell)"}
     out = _describe(out, int(keep.sum()) * capture.sizes["line"], "full_transport")
     return out.assign_attrs(_transport_attrs(
-        "full_transport", timing=timing, delays=delays, exposures=exposures, keep=keep, margin=margin,
+        "full_transport", capture, timing=timing, delays=delays, exposures=exposures, keep=keep, margin=margin,
         full_scale=scale, alpha=alpha, beta=beta, tol=tol, gap_tol=gap_tol, max_iter=max_iter,
         polish_iter=polish_iter, dtype=dtype,
         line_width_px=width, cell_width_px=step, cells_px=cells.tolist(), lines=int(lines.size),

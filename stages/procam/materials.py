@@ -230,17 +230,19 @@ def training_sample(codes: np.ndarray, flags: np.ndarray, names: tuple[str, ...]
     return np.concatenate(chosen)
 
 
-def _label_precheck(settings) -> list[str]:
+def label_precheck(settings) -> list[str]:
+    """A stage's ``labels: image`` without a label image file, at validation time."""
     if settings.labels == "image" and not os.path.isfile(settings.label_image):
         return [f"labels: image needs label_image, an integer label image; {settings.label_image!r} is not a file"]
     return []
 
 
-def _label_identity(settings) -> dict:
+def label_identity(settings) -> dict:
+    """What a stage's labels are, for provenance: the label image by content, else where they come from."""
     return file_identity(settings.label_image) if settings.labels == "image" else {"labels": settings.labels}
 
 
-@stage("train_material_classifier", precheck=_label_precheck, identity=_label_identity)
+@stage("train_material_classifier", precheck=label_precheck, identity=label_identity)
 def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scene",
                               label_image: StorePath = "", classes: tuple[str, ...] | None = None, samples_per_class: Count = 1000,
                               folds: Annotated[int, pydantic.Field(ge=2, le=20)] = 5, seed: Index = 0,
@@ -379,7 +381,7 @@ def _scores(truth: xr.DataArray, predicted: xr.DataArray, n: int, prefix: str, n
                 units="1", long_name="share of labelled pixels classified right")}
 
 
-@stage("classify_materials", precheck=_label_precheck, identity=_label_identity)
+@stage("classify_materials", precheck=label_precheck, identity=label_identity)
 def classify_materials(profiles: xr.Dataset, classifier: xr.Dataset, /, *, labels: Labels | None = None,
                        label_image: StorePath = "", classes: tuple[str, ...] | None = None) -> xr.Dataset:
     """Classify every pixel of a capture by its delay profile, and by brightness alone (§5.4.9, Figs. 51c, 52).

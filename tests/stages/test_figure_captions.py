@@ -120,6 +120,29 @@ def relighting_snr(snr: float) -> xr.Dataset:
                              "exposures_us": [170.0], "captures": 352, "lit_fraction": 0.05})
 
 
+def material_stores(scored: bool) -> tuple[xr.Dataset, xr.Dataset]:
+    rng = np.random.default_rng(8)
+    names = ["soap", "milk"]
+    classifier = xr.Dataset({"mean_profile": (("material", "delay"), rng.random((2, 5)))},
+                            coords={"material": names, "delay": ("delay", np.arange(5) * 17.0, {"units": "us"})},
+                            attrs={"svm_C": 10.0, "svm_gamma": 1.0, "folds": 5, "source_kind": "plane_to_ray_capture"})
+    label = rng.integers(-1, 2, (6, 8))
+    result = {"label": (("row", "col"), label), "image": (("row", "col"), rng.random((6, 8)))}
+    if scored:
+        result |= {"true_label": (("row", "col"), label), "confusion": (("true_material", "material"), [[5, 1], [0, 9]]),
+                   "brightness_accuracy": ("material", [0.5, 0.4])}
+    return _lazy(xr.Dataset(result, coords={"material": names, "true_material": names})), classifier
+
+
+def delay_choice() -> xr.Dataset:
+    rng = np.random.default_rng(9)
+    return _lazy(xr.Dataset({"image": (("view", "row", "col"), rng.random((3, 6, 8))),
+                             "contrast": ("delay", [np.nan, 0.2, 0.5, 0.1]), "contrast_of": ("view", [0.1, 0.2, 0.5])},
+                            coords={"delay": ("delay", [0.0, 100.0, 200.0, 300.0], {"units": "us"})},
+                            attrs={"chosen_delay_us": 200.0, "direct_free_from_us": 93.5, "structure": "vein",
+                                   "surround": "skin", "exposure_us": 170.0, "far_range_rows": 5.5}))
+
+
 #: each figure stage with inputs of the kinds it expects; a new figure stage needs an entry here
 SIGMA = np.zeros((16, 16))
 SIGMA[10:13, 3:6] = 0.2
@@ -140,6 +163,8 @@ CALLS = {
     "line_relighting_figure": lambda: ((line_study(),), {}),
     "transport_matrix_figure": lambda: ((plane_transport(),), {"columns": {"wall": 0.2, "ball": 0.7}}),
     "multiplexed_relighting_figure": lambda: ((relighting_snr(3.0), relighting_snr(12.0)), {}),
+    "material_figure": lambda: (material_stores(scored=True), {}),
+    "vein_figure": lambda: ((delay_choice(),), {}),
 }
 
 
