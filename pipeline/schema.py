@@ -379,6 +379,16 @@ KINDS: dict[str, CubeKind] = {
             attrs={"chosen_delay_us": "the delay of the highest contrast, µs"},
         ),
         CubeKind(
+            name="material_atlas",
+            description="2-D transport profiles of named pixels scaled to their maximum, and extents (§5.4.10)",
+            variables={"profile": Variable(("site", "du", "dv"), units="1", long_name="T / its maximum"),
+                       "extent": Variable(("site",), units="px",
+                                          long_name="RMS distance from the direct correspondence"),
+                       "image": Variable(_FRAME, units="counts", long_name="white image Σ T")},
+            coord_units={"du": PX_UNITS, "dv": PX_UNITS},
+            attrs={"reach_px": "half-width of the profiles' window, px"},
+        ),
+        CubeKind(
             name="delay_profiles",
             description="per-pixel delay profiles normalised by their area, so albedo cancels (§5.4.9)",
             variables={"profile": Variable(("delay", *_FRAME), units="1", long_name="delay profile / its area"),

@@ -461,3 +461,66 @@ def vein_figure(choice: xr.Dataset, /) -> xr.Dataset:
 
     return as_figure(render, choice["image"].data, choice["contrast_of"].data, choice["contrast"].data,
                      caption=caption, size=VEIN_SIZE)
+
+
+#: the atlas figure's size [in]: the white image and a grid of profiles
+ATLAS_SIZE = (12.0, 5.0)
+
+
+def _draw_atlas(image, sites, rows, cols, du, dv, profiles, extents) -> np.ndarray:
+    from matplotlib.colors import LogNorm
+
+    n = len(sites)
+    grid = int(np.ceil(n / 3))
+    fig, axes = panels(3, grid + 2, size=ATLAS_SIZE, squeeze=False)
+    for ax in axes[:, :2].ravel():
+        ax.remove()
+    big = fig.add_subplot(1, grid + 2, (1, 2))
+    big.imshow(image, cmap="gray", vmin=0, vmax=display_top(image), interpolation="nearest")
+    for k, (r, c) in enumerate(zip(rows, cols, strict=True)):
+        big.plot(c, r, "o", ms=5, mfc="none", mew=1, color=f"C{k % 10}")
+        big.annotate(str(k + 1), (c, r), xytext=(2, -4), textcoords="offset points", fontsize=6, color=f"C{k % 10}")
+    big.set_title("(a) white image Σ T, sites numbered", fontsize=8)
+    pixel_axes(big, fontsize=7)
+    extent_box = [du[0] - 0.5, du[-1] + 0.5, dv[-1] + 0.5, dv[0] - 0.5]
+    cells = axes[:, 2:].ravel()
+    for k, ax in enumerate(cells):
+        if k >= n:
+            ax.set_axis_off()
+            continue
+        ax.imshow(np.clip(profiles[k].T, 1e-3, 1), cmap="magma", norm=LogNorm(1e-3, 1), extent=extent_box,
+                  interpolation="nearest")
+        ax.set_title(f"{k + 1}. {sites[k]}\nextent {extents[k]:.2f} px", fontsize=7)
+        ax.tick_params(labelsize=5)
+    return rgba(fig)
+
+
+@stage("atlas_figure")
+def atlas_figure(atlas: xr.Dataset, /) -> xr.Dataset:
+    """Fig. 53: the white image with the atlas's sites, and each site's 2-D transport profile with its extent.
+
+    Parameters
+    ----------
+    atlas : xr.Dataset
+        A ``material_atlas`` store (``material_atlas``).
+    """
+    if not {"profile", "extent", "image"} <= set(atlas.data_vars):
+        raise StageError(Problem("not a material_atlas store", where="atlas", fix="wire in the output of material_atlas"))
+    reach = atlas.attrs.get("reach_px", "?")
+    caption = f"""A material atlas from full transport (thesis Fig. 53): (a) the white image Σ T in counts, axes in
+        camera pixels, with the sites numbered; then each site's profile T(du, dv) over the projector column du
+        (horizontal) and row dv (vertical) relative to its direct correspondence, a window of ±{reach} px, scaled to
+        its own maximum (dimensionless, on a log scale from 10⁻³; this rig is monochrome, so no white balance;
+        blank: cells the sweep never lit), titled with its extent, the RMS distance from the direct correspondence
+        of its light above {atlas.attrs.get('extent_floor', 0):g} of its maximum [px]. A Lambertian surface gives a compact peak,
+        subsurface scattering a wider one (the more translucent, the wider); materials that differ only in albedo
+        (textured styrofoam, the sponge's pink and red) share a shape; inter-reflection stretches the profile
+        towards the surface the light comes from."""
+    sites = [str(s) for s in atlas["site"].values]
+
+    def render(image, profiles, extents):
+        return _draw_atlas(np.asarray(image), sites, atlas["site_row"].values, atlas["site_col"].values,
+                           atlas["du"].values, atlas["dv"].values, np.asarray(profiles), np.asarray(extents))
+
+    return as_figure(render, atlas["image"].data, atlas["profile"].data, atlas["extent"].data, caption=caption,
+                     size=ATLAS_SIZE)

@@ -29,7 +29,8 @@ Pixels = Annotated[dict[str, tuple[Fraction, Fraction]], pydantic.Field(min_leng
 PROFILES_SIZE, EPIPOLAR_SIZE, CHECKERBOARD_SIZE = (9.0, 3.2), (9.0, 3.0), (9.0, 2.6)
 
 
-def _pixel(ds: xr.Dataset, where: tuple[float, float]) -> tuple[int, int]:
+def pixel_at(ds: xr.Dataset, where: tuple[float, float]) -> tuple[int, int]:
+    """The (row, col) of the pixel at image fractions ``where`` = [x, y] of ``ds``'s frame."""
     x, y = where
     if not (0 <= x <= 1 and 0 <= y <= 1):
         raise StageError(Problem(f"pixel {where} is not in image fractions [0, 1]", fix="give [x, y] fractions"))
@@ -94,7 +95,7 @@ def delay_profile_figure(capture: xr.Dataset, transport: xr.Dataset, /, *,
     if exposure not in capture["exposure"].values:
         raise StageError(Problem(f"exposure {exposure} µs is not in the capture",
                                  fix=f"choose one of {capture['exposure'].values.tolist()}"))
-    at = {name: _pixel(capture, where) for name, where in pixels.items()}
+    at = {name: pixel_at(capture, where) for name, where in pixels.items()}
     measured = {name: capture["image"].sel(exposure=exposure).isel(row=r, col=c) for name, (r, c) in at.items()}
     recovered = {name: transport["transport"].isel(row=r, col=c) for name, (r, c) in at.items()}
     delays = capture["delay"].values
@@ -368,7 +369,7 @@ def profile_2d_figure(transport: xr.Dataset, /, *, pixels: Pixels) -> xr.Dataset
         name → [x, y] in image fractions (the scene files' units), each in [0, 1]; at least one pixel.
     """
     t = _full(transport)["transport"]
-    at = {name: _pixel(transport, where) for name, where in pixels.items()}
+    at = {name: pixel_at(transport, where) for name, where in pixels.items()}
     profiles = {name: t.isel(row=r, col=c).transpose("du", "dv").data for name, (r, c) in at.items()}
     overview = t.sum(("du", "dv"), skipna=True).data
     step = float(transport.attrs["cell_width_px"])

@@ -143,6 +143,17 @@ def delay_choice() -> xr.Dataset:
                                    "surround": "skin", "exposure_us": 170.0, "far_range_rows": 5.5}))
 
 
+def atlas() -> xr.Dataset:
+    rng = np.random.default_rng(10)
+    window = np.arange(-3, 4)
+    return _lazy(xr.Dataset({"profile": (("site", "du", "dv"), rng.random((2, 7, 7))), "extent": ("site", [0.7, 3.1]),
+                             "image": (("row", "col"), rng.random((6, 8)))},
+                            coords={"site": ["wood", "candle"], "site_row": ("site", [2, 3]),
+                                    "site_col": ("site", [1, 6]), "du": ("du", window, {"units": "px"}),
+                                    "dv": ("dv", window, {"units": "px"})},
+                            attrs={"reach_px": 3, "extent_floor": 0.02}))
+
+
 #: each figure stage with inputs of the kinds it expects; a new figure stage needs an entry here
 SIGMA = np.zeros((16, 16))
 SIGMA[10:13, 3:6] = 0.2
@@ -165,6 +176,7 @@ CALLS = {
     "multiplexed_relighting_figure": lambda: ((relighting_snr(3.0), relighting_snr(12.0)), {}),
     "material_figure": lambda: (material_stores(scored=True), {}),
     "vein_figure": lambda: ((delay_choice(),), {}),
+    "atlas_figure": lambda: ((atlas(),), {}),
 }
 
 
