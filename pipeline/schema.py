@@ -389,6 +389,21 @@ KINDS: dict[str, CubeKind] = {
             attrs={"reach_px": "half-width of the profiles' window, px"},
         ),
         CubeKind(
+            name="scattering_profile",
+            description="a material's fitted scattering profile R(d) = (1 − f)·δ + f·Laplace(w) (§5.4.8)",
+            variables={"profile": Variable(("distance",), units="1", long_name="scattering profile R(d)"),
+                       "measured": Variable(("delay",), units="counts", long_name="the material's mean delay profile")},
+            coord_units={"distance": PX_UNITS, "delay": TIME_UNITS},
+            attrs={"fraction": "the share f of the light that scatters below the surface",
+                   "width_px": "the Laplace lobe's width w, px"},
+        ),
+        CubeKind(
+            name="appearance_render",
+            description="a mesh rendered with and without a captured subsurface profile (§5.4.8, Fig. 50)",
+            variables={"image": Variable(("render", *_FRAME), units="1", long_name="rendered radiance")},
+            coord_units={},
+        ),
+        CubeKind(
             name="delay_profiles",
             description="per-pixel delay profiles normalised by their area, so albedo cancels (§5.4.9)",
             variables={"profile": Variable(("delay", *_FRAME), units="1", long_name="delay profile / its area"),

@@ -524,3 +524,64 @@ def atlas_figure(atlas: xr.Dataset, /) -> xr.Dataset:
 
     return as_figure(render, atlas["image"].data, atlas["profile"].data, atlas["extent"].data, caption=caption,
                      size=ATLAS_SIZE)
+
+
+#: the appearance figure's size [in]: the fit, R(d) and the two renders
+APPEARANCE_SIZE = (12.0, 3.0)
+
+
+def _draw_appearance(delays, measured, model, distance, profile, lambertian, subsurface, fit_text: str) -> np.ndarray:
+    fig, axes = panels(1, 4, size=APPEARANCE_SIZE, width_ratios=[1.0, 1.0, 1.3, 1.3])
+    axes[0].plot(delays, measured, "k.", ms=3, label="measured (mean)")
+    axes[0].plot(delays, model, "C3-", lw=1, label="fitted R, through the sweep")
+    axes[0].set_xlabel("sync delay t_d [µs]", fontsize=7)
+    axes[0].set_ylabel("counts", fontsize=7)
+    axes[0].set_title("(a) delay profile", fontsize=8)
+    axes[0].legend(fontsize=6)
+    axes[1].semilogy(distance, np.clip(profile, 1e-6, None), "C0.-", ms=3)
+    axes[1].set_xlabel("distance d [px]", fontsize=7)
+    axes[1].set_title(f"(b) R(d): {fit_text}", fontsize=8)
+    for ax in axes[:2]:
+        ax.tick_params(labelsize=7)
+    top = max(float(np.percentile(lambertian, 99.9)), 1e-12)
+    for ax, image, title in ((axes[2], lambertian, "(c) without subsurface (R = δ)"),
+                             (axes[3], subsurface, "(d) with the captured subsurface")):
+        ax.imshow(image, cmap="gray", vmin=0, vmax=top, interpolation="nearest")
+        ax.set_title(title, fontsize=8)
+        ax.set_axis_off()
+    return rgba(fig)
+
+
+@stage("appearance_figure")
+def appearance_figure(profile: xr.Dataset, render: xr.Dataset, /) -> xr.Dataset:
+    """Fig. 50: a material's fitted scattering profile and a mesh rendered without and with it.
+
+    Parameters
+    ----------
+    profile : xr.Dataset
+        A ``scattering_profile`` store (``fit_scattering_profile``).
+    render : xr.Dataset
+        An ``appearance_render`` store (``render_appearance``) of that profile.
+    """
+    if "profile" not in profile.data_vars or "image" not in render.data_vars:
+        raise StageError(Problem("needs a scattering_profile and an appearance_render",
+                                 fix="wire in fit_scattering_profile's and render_appearance's outputs"))
+    a = profile.attrs
+    fit_text = (f"f = {a.get('fraction', np.nan):.3f} ± {a.get('fraction_std', np.nan):.3f}, "
+                f"w = {a.get('width_px', np.nan):.2f} ± {a.get('width_std_px', np.nan):.2f} px")
+    caption = f"""Appearance capture (thesis Fig. 50): (a) the mean delay profile of the {a.get('material', '')}
+        pixels (counts over the sync delay, µs) and the fitted scattering profile's delay sweep, computed through
+        the sweep's own illumination matrix; (b) the fitted profile R(d) = (1 − f)·δ + f·Laplace(w) over the
+        distance below the surface [px], log scale ({fit_text}, standard errors of the fit); (c) a
+        {render.attrs.get('mesh', 'mesh')} under a directional light, Lambertian (R = δ), and (d) the same with
+        the captured subsurface scattering, the share f of the irradiance spread by R over the surface in screen
+        space (lobe {render.attrs.get('width_render_px', 0):.2f} render px wide); both with the same highlight and
+        on one scale. Regions the light misses brighten where light scatters in from lit ones."""
+
+    def render_figure(measured, model, profile_values, images):
+        images = np.asarray(images)
+        return _draw_appearance(profile["delay"].values, np.asarray(measured), np.asarray(model),
+                                profile["distance"].values, np.asarray(profile_values), images[0], images[1], fit_text)
+
+    return as_figure(render_figure, profile["measured"].data, profile["model"].data, profile["profile"].data,
+                     render["image"].data, caption=caption, size=APPEARANCE_SIZE)

@@ -53,7 +53,7 @@ Grid = Annotated[tuple[Positive, ...], pydantic.Field(min_length=1)]
 Labels = Literal["scene", "image"]
 
 
-def _frames(source: xr.Dataset, exposure: float | None) -> tuple[xr.DataArray, xr.DataArray, dict]:
+def profile_frames(source: xr.Dataset, exposure: float | None) -> tuple[xr.DataArray, xr.DataArray, dict]:
     """The source's frames over ``delay`` [counts above dark, µs], the pixels seen saturated, and what it was."""
     if "transport" in source.data_vars and "offset" in source["transport"].dims:
         speed = source.attrs.get("scan_speed_px_per_us")
@@ -103,7 +103,7 @@ def delay_profiles(source: xr.Dataset, /, *, exposure: Positive | None = None) -
     exposure : float or None
         The capture's exposure whose delay sweep is the profile [µs]; None: the capture's only one.
     """
-    frames, saturated, what = _frames(source, exposure)
+    frames, saturated, what = profile_frames(source, exposure)
     frames = frames.chunk({"delay": -1}) if frames.chunks else frames
     area = frames.sum("delay")
     nonfinite = (~np.isfinite(frames)).any("delay")

@@ -154,6 +154,19 @@ def atlas() -> xr.Dataset:
                             attrs={"reach_px": 3, "extent_floor": 0.02}))
 
 
+def appearance() -> tuple[xr.Dataset, xr.Dataset]:
+    rng = np.random.default_rng(11)
+    delay = ("delay", np.arange(-2, 3) * 17.0, {"units": "us"})
+    profile = xr.Dataset({"profile": ("distance", [0.2, 0.05, 0.02]), "measured": ("delay", rng.random(5)),
+                          "model": ("delay", rng.random(5))},
+                         coords={"distance": ("distance", [0, 1, 2], {"units": "px"}), "delay": delay},
+                         attrs={"material": "soap", "fraction": 0.85, "fraction_std": 0.01, "width_px": 9.0,
+                                "width_std_px": 0.1})
+    render = xr.Dataset({"image": (("render", "row", "col"), rng.random((2, 6, 8)))},
+                        coords={"render": ["lambertian", "subsurface"]}, attrs={"mesh": "teapot", "width_render_px": 9.0})
+    return _lazy(profile), _lazy(render)
+
+
 #: each figure stage with inputs of the kinds it expects; a new figure stage needs an entry here
 SIGMA = np.zeros((16, 16))
 SIGMA[10:13, 3:6] = 0.2
@@ -177,6 +190,7 @@ CALLS = {
     "material_figure": lambda: (material_stores(scored=True), {}),
     "vein_figure": lambda: ((delay_choice(),), {}),
     "atlas_figure": lambda: ((atlas(),), {}),
+    "appearance_figure": lambda: (appearance(), {}),
 }
 
 

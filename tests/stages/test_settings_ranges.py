@@ -303,6 +303,7 @@ def test_every_sweep_refuses_empty_huge_and_backwards(model):
 #: numeric settings that may legitimately be negative, each with the reason (``stage.setting`` or
 #: ``Model.field`` for nested setting models)
 SIGNED = {
+    "render_appearance.light": "a direction towards the light: each component has either sign",
     "demux_plane_to_ray.sync_offset_us": "t_o, true minus commanded delay: the trigger may lead or lag",
     "demux_full.sync_offset_us": "t_o, true minus commanded delay: the trigger may lead or lag",
     "AngleSweep.start": "a stage angle: a sweep may start below 0°",
