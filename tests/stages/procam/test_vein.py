@@ -56,6 +56,7 @@ def test_the_chosen_delay_follows_the_veins_depth_as_the_geometry_predicts():
     assert chosen == sorted(chosen) and len(set(chosen)) == len(chosen)
 
 
+@pytest.mark.slow  # 7–14 s: in the slow job, so the default job keeps its 8-minute budget
 def test_on_a_noisy_demultiplexed_capture_the_chosen_delay_meets_the_goals():
     """The shipped arm (read noise, shot noise, 12 bits) as a delay sweep, demultiplexed: the chosen delay's contrast
     is at least twice the regular image's and above the far-range indirect image's (the issue's goal), and the
