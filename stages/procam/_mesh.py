@@ -38,7 +38,7 @@ def tube(centre: np.ndarray, radius: np.ndarray, segments: int) -> tuple[np.ndar
     helper = np.where(np.abs(tangent[:, 2:3]) < 0.9, [[0.0, 0.0, 1.0]], [[1.0, 0.0, 0.0]])
     normal = np.cross(tangent, helper)
     normal /= np.linalg.norm(normal, axis=1, keepdims=True)
-    binormal = np.cross(tangent, normal)
+    binormal = np.cross(normal, tangent)  # the ring turns so that the faces' normals point away from the axis
     phi = np.linspace(0, 2 * np.pi, segments, endpoint=False)
     ring = np.cos(phi)[None, :, None] * normal[:, None] + np.sin(phi)[None, :, None] * binormal[:, None]
     return _grid(centre[:, None] + radius[:, None, None] * ring)

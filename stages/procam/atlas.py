@@ -43,8 +43,8 @@ def material_atlas(transport: xr.Dataset, /, *, pixels: Pixels,
 
     Returns ``profile`` over (site, du, dv) [1], ``extent`` over site and ``extent_map`` over (row, col) [px: RMS
     distance of the light from the direct correspondence], and the white image ``image`` (Σ T) [counts]. Refused:
-    a transport whose du or dv range does not reach ``reach``, cells wider than 1 px along du (the window would
-    not be in pixels).
+    a transport whose du or dv range does not reach ``reach``, cells wider than 1 px along du or dv (the window
+    would not be in pixels).
 
     Parameters
     ----------
@@ -69,6 +69,9 @@ def material_atlas(transport: xr.Dataset, /, *, pixels: Pixels,
         problems.append(Problem(f"the transport's u-cells are {cell:g} px wide; the atlas's window is in pixels",
                                 fix="sweep lines every projector column (the thesis's 1-px steps), or "
                                     "demux_full with cell_width_px: 1"))
+    if np.any(np.diff(t["dv"].values) != 1):
+        problems.append(Problem("the transport's dv grid is not every row; the atlas's window is in pixels",
+                                fix="demux_full with an offsets step of 1"))
     for dim in ("du", "dv"):
         values = t[dim].values
         if values.min() > -reach or values.max() < reach:

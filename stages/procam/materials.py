@@ -14,8 +14,9 @@ monochrome, so brightness is all its colour is) is trained beside it as the base
 
 The trained pair is stored in the classifier's store as a skops archive (``model``, bytes): skops rather than
 joblib because loading a pickle runs whatever code it names, while skops loads only the types it trusts
-(scikit-learn's), so a classifier store received from someone else is safe to open. The store's provenance
-(workflow, inputs, settings) is the model's.
+(scikit-learn's; skops ≥ 0.12, which closed a hole in that check), so a classifier store received from someone else
+is safe to open. The archive's sha256 is stored beside it: it catches corruption, not tampering (whoever edits the
+model can edit the hash). The store's provenance (workflow, inputs, settings) is the model's.
 """
 
 from __future__ import annotations
@@ -276,7 +277,7 @@ def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scen
         SVM regularisation C to try [1].
     gamma_grid : tuple of float
         RBF width γ to try, in units of 1/(number of delays) [1]: 1 is scikit-learn's ``gamma="scale"`` on
-        standardised profiles.
+        standardised profiles (when no delay is constant over the training pixels).
     """
     import skops.io
     import sklearn
@@ -286,16 +287,17 @@ def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scen
     flags = np.asarray(profiles["flags"].values)
     index = training_sample(codes, flags, names, samples_per_class, folds, seed)
     features, area = _pixels(profiles, index)
-    truth = codes.ravel()[index] - 1
+    # classes are indexed among those with training pixels (a label code no pixel carries is not a class): the
+    # stored ``material`` coordinate and the SVMs' outputs then agree
+    present, truth = np.unique(codes.ravel()[index] - 1, return_inverse=True)
     n_delay = features.shape[1]
     search = _fit(features, truth, {"svm__C": list(c_grid), "svm__gamma": [g / n_delay for g in gamma_grid]},
                   folds, seed)
     baseline = _fit(area[:, None], truth, {"svm__C": list(c_grid), "svm__gamma": list(gamma_grid)}, folds, seed)
     model = skops.io.dumps({"profile": search.best_estimator_, "brightness": baseline.best_estimator_})
-    present = np.unique(truth)
     kept = [names[k] for k in present]
-    mean = np.stack([features[truth == k].mean(0) for k in present])
-    spread = np.stack([features[truth == k].std(0) for k in present])
+    mean = np.stack([features[truth == k].mean(0) for k in range(present.size)])
+    spread = np.stack([features[truth == k].std(0) for k in range(present.size)])
     keep = {k: v for k, v in profiles.attrs.items() if k not in ("selpath_kind", "simulated_scene")}
     scene = profiles.attrs.get("simulated_scene", {})
     delay = profiles["delay"]
@@ -307,7 +309,7 @@ def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scen
          "mean_profile": (("material", "delay"), mean, {"units": "1", "long_name": "mean training profile"}),
          "profile_spread": (("material", "delay"), spread,
                             {"units": "1", "long_name": "standard deviation of the training profiles"}),
-         "training_pixels": ("material", np.bincount(truth, minlength=len(names))[present],
+         "training_pixels": ("material", np.bincount(truth, minlength=present.size),
                              {"units": "1", "long_name": "training pixels"}),
          "cv_accuracy": ((), search.best_score_, {"units": "1", "long_name": "cross-validated accuracy, profiles"}),
          "brightness_cv_accuracy": ((), baseline.best_score_,
@@ -354,14 +356,14 @@ def _predict(model, features: np.ndarray) -> np.ndarray:
 
 def wilson_interval(successes, trials, z: float = Z95):
     """Wilson score interval (low, high) of a binomial proportion (element-wise; NaN where trials is 0)."""
-    n = np.where(trials > 0, trials, np.nan)
+    n = trials.where(trials > 0) if isinstance(trials, xr.DataArray) else np.where(trials > 0, trials, np.nan)
     p = successes / n
     centre = (p + z * z / (2 * n)) / (1 + z * z / n)
     half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
     return centre - half, centre + half
 
 
-def _scores(truth: xr.DataArray, predicted: xr.DataArray, n: int, prefix: str, names) -> dict:
+def _scores(truth: xr.DataArray, predicted: xr.DataArray, n: int, prefix: str) -> dict:
     """Confusion matrix, per-class accuracy and its 95 % interval, and the overall accuracy (lazy)."""
     labelled = (truth >= 0) & (predicted >= 0)
     code = xr.where(labelled, truth.astype(np.int64) * n + predicted, n * n).data.reshape(-1)
@@ -434,15 +436,15 @@ def classify_materials(profiles: xr.Dataset, classifier: xr.Dataset, /, *, label
               "image": profiles["area"]}
     if labels is not None:
         codes, truth_names = label_map(profiles, labels, label_image, classes, "profiles")
-        unknown = sorted(set(truth_names) - set(names))
+        unknown = sorted({n for k, n in enumerate(truth_names, start=1) if (codes == k).any()} - set(names))
         if unknown:
             raise StageError(Problem(f"the labels name classes the classifier does not know: {unknown}",
                                      fix=f"label only its classes {names}"))
-        lookup = np.array([-1] + [names.index(n) for n in truth_names], np.int16)
+        lookup = np.array([-1] + [names.index(n) if n in names else -1 for n in truth_names], np.int16)
         truth = xr.DataArray(lookup[codes], dims=("row", "col"))
         result["true_label"] = truth.assign_attrs(units=None, long_name="true class index (−1: unlabelled)")
-        result |= _scores(truth, result["label"], len(names), "", names)
-        result |= _scores(truth, result["brightness_label"], len(names), "brightness_", names)
+        result |= _scores(truth, result["label"], len(names), "")
+        result |= _scores(truth, result["brightness_label"], len(names), "brightness_")
         result["classified_fraction"] = usable_share(
             ((truth >= 0) & (label >= 0)).sum() / max(int((truth >= 0).sum()), 1), floor=0.5,
             what="labelled pixels with a usable profile",

@@ -55,7 +55,8 @@ def choose_delay(transport: xr.Dataset, /, *, delays: TimeSweep = TimeSweep(star
     Returns ``image`` over (view, row, col) [counts]: the regular image (all the transport's light), the far-range
     indirect image (all light from beyond the direct band, |o| ≥ v_p·(t_e + t_p)/2) and the frame at the chosen
     delay; ``contrast`` over delay (NaN where a delay is not a candidate) and ``contrast_of`` over view; attrs
-    ``chosen_delay_us``. Refused: no candidate delay clear of direct light, a structure or surround with no pixel.
+    ``chosen_delay_us`` (the true delay: the transport's offsets are true ones) and ``commanded_delay_us`` (what to
+    set on this rig's controller: chosen minus the calibrated sync offset t_o). Refused: no candidate delay clear of direct light, a structure or surround with no pixel.
 
     Parameters
     ----------
@@ -127,5 +128,6 @@ def choose_delay(transport: xr.Dataset, /, *, delays: TimeSweep = TimeSweep(star
                            {"long_name": f"surround at least {min_signal:g} of its regular mean"})},
         coords=coords,
         attrs=keep | {"selpath_kind": "delay_choice", "chosen_delay_us": float(candidates[best]),
+                      "commanded_delay_us": float(candidates[best]) - float(transport.attrs.get("sync_offset_us", 0.0)),
                       "exposure_us": float(exposure), "structure": structure, "surround": surround,
                       "direct_free_from_us": (exposure + float(line_time)) / 2, "far_range_rows": reach})

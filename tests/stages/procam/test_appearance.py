@@ -59,6 +59,21 @@ def test_the_rasteriser_draws_a_sphere_as_the_analytic_one():
     assert np.abs(normal[inner] - truth[inner]).max() < 0.02
 
 
+def test_every_part_of_the_teapot_faces_outwards():
+    """Vertex normals point away from each part's axis or centreline: a tube wound the other way is lit from the
+    mirrored side (found in review)."""
+    from stages.procam._mesh import lathe, tube, vertex_normals
+
+    s = np.linspace(0, 1, 12)
+    centre = np.stack([s, s**2, 0 * s], -1)
+    vertices, faces = tube(centre, 0.2 - 0.1 * s, 10)
+    away = vertices.reshape(12, 10, 3) - centre[:, None]
+    assert (np.sum(vertex_normals(vertices, faces).reshape(12, 10, 3) * away, -1) > 0).all()
+    vertices, faces = lathe(np.array([0.5, 1.0, 0.7]), np.array([-1.0, 0.0, 1.0]), 16)
+    radial = vertices * [1, 0, 1]
+    assert (np.sum(vertex_normals(vertices, faces) * radial, -1) > 0).all()
+
+
 def test_with_r_a_delta_the_render_is_the_lambertian_one_and_scattering_lights_the_shadows():
     covered, normal = rasterise(*sphere(64), (120, 120))
     light = np.array([1.0, 0.0, 0.2])

@@ -118,6 +118,49 @@ def test_a_classifier_travels_in_its_store_and_a_tampered_one_is_refused(trained
         classify_materials(profiles, tampered)
 
 
+def test_a_model_naming_an_untrusted_type_is_refused_even_with_a_matching_hash(trained):
+    """skops refuses types it does not trust (here fractions.Fraction, harmless but not scikit-learn's) before any
+    is loaded; the sha256 only catches corruption, so the archive here carries a matching one."""
+    import fractions
+    import hashlib
+
+    import skops.io
+
+    profiles, classifier = trained
+    archive = skops.io.dumps({"profile": fractions.Fraction(1, 3)})
+    forged = classifier.drop_vars("model").assign(model=("byte", np.frombuffer(archive, np.uint8),
+                                                         {"sha256": hashlib.sha256(archive).hexdigest()}))
+    with pytest.raises(StageError, match="names types skops does not trust: \\['fractions.Fraction'\\]"):
+        classify_materials(profiles, forged)
+
+
+def test_classification_is_lazy_and_a_class_without_training_pixels_is_no_class(trained, tmp_path):
+    """Building the classification of dask-backed profiles computes nothing (the SVM runs once, when the result is
+    computed). A label image whose code 2 no pixel carries trains a classifier of the other two classes, and its
+    labels index them."""
+    import dask
+
+    from tests.conftest import ComputeCounter
+
+    profiles, classifier = trained
+    with dask.config.set(scheduler=ComputeCounter()):
+        scored = classify_materials(profiles.chunk({"row": 40}), classifier, labels="scene")
+    scored = scored.compute()
+    codes = np.zeros((120, 160), np.int16)
+    truth = scored["true_label"].values  # index into the scene's materials
+    names = [str(v) for v in classifier["material"].values]
+    codes[truth == names.index("hand soap")] = 1
+    codes[truth == names.index("toothpaste")] = 3
+    np.save(tmp_path / "gap.npy", codes)
+    two = train_material_classifier(profiles, labels="image", label_image=str(tmp_path / "gap.npy"),
+                                    classes=("hand soap", "unused", "toothpaste"), samples_per_class=200)
+    assert list(two["material"].values) == ["hand soap", "toothpaste"]
+    result = classify_materials(profiles, two, labels="image", label_image=str(tmp_path / "gap.npy"),
+                                classes=("hand soap", "unused", "toothpaste")).compute()
+    assert result["confusion"].shape == (2, 2) and result["accuracy"].min() > 0.95
+    assert set(np.unique(result["label"].values)) <= {-1, 0, 1}
+
+
 def test_wilson_interval_matches_scipy():
     for k, n in [(0, 10), (9, 10), (10, 10), (4880, 5000), (37, 41)]:
         low, high = wilson_interval(np.float64(k), np.float64(n))
