@@ -9,7 +9,8 @@ from pipeline.spec import load_workflow
 from stages.tomography.acquire import AngleSweep
 from stages.tomography.studies import light_angle_study
 
-WORKFLOWS = [workflows.path(name) for name in workflows.names()]
+#: those that read another's output (workflows.AFTER) validate only once it exists: test_cli covers them
+WORKFLOWS = [workflows.path(name) for name in workflows.names() if name not in workflows.AFTER]
 
 
 def test_light_angle_study_shows_the_thesis_trend():
