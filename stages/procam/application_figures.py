@@ -326,7 +326,7 @@ def transport_matrix_figure(transport: xr.Dataset, /, *,
 MATERIAL_SIZE = (12.0, 3.0)
 
 
-def _draw_materials(image, delays, mean, names, label, truth, confusion, brightness_accuracy) -> np.ndarray:
+def _draw_materials(image, delays, mean, names, label, hidden, confusion, brightness_accuracy) -> np.ndarray:
     from matplotlib.colors import ListedColormap
 
     fig, axes = panels(1, 4, size=MATERIAL_SIZE, width_ratios=[1.3, 1.1, 1.3, 1.0])
@@ -342,7 +342,7 @@ def _draw_materials(image, delays, mean, names, label, truth, confusion, brightn
     axes[1].tick_params(labelsize=7)
     axes[1].xaxis.label.set_size(7)
     axes[1].yaxis.label.set_size(7)
-    shown = np.ma.masked_where((label < 0) | (truth < 0), label)
+    shown = np.ma.masked_where((label < 0) | hidden, label)
     axes[2].imshow(shown, cmap=ListedColormap(colours), vmin=-0.5, vmax=len(names) - 0.5, interpolation="nearest")
     axes[2].set_facecolor("black")
     axes[2].set_title("(c) classified by delay profile", fontsize=8)
@@ -383,7 +383,7 @@ def material_figure(classification: xr.Dataset, classifier: xr.Dataset, /) -> xr
     names = [str(v) for v in classifier["material"].values]
     scored = "confusion" in classification.data_vars
     source = classifier.attrs.get("source_kind", "plane_to_ray_capture")
-    unlabelled = ", or unlabelled" if scored else ""
+    unlabelled = ", or unlabelled" if scored else ", or unlike every trained class"
     panel_d = ("the confusion matrix over the labelled pixels, each true class (row) in percent of its pixels, with "
                "the brightness-only baseline's mean per-class accuracy in the title" if scored else
                "no confusion matrix: the capture was classified without labels")
@@ -396,12 +396,14 @@ def material_figure(classification: xr.Dataset, classifier: xr.Dataset, /) -> xr
         cross-validation; black: no usable profile{unlabelled}); (d) {panel_d}."""
     args = [classification["image"].data, classifier["delay"].values, classifier["mean_profile"].values, names,
             classification["label"].data,
-            classification["true_label"].data if scored else np.zeros(classification["label"].shape, np.int16),
+            classification["true_label"].data < 0 if scored else (
+                classification["unlike_training"].data if "unlike_training" in classification.data_vars
+                else np.zeros(classification["label"].shape, bool)),
             classification["confusion"].data if scored else None,
             classification["brightness_accuracy"].data if scored else None]
 
-    def render(image, delays, mean, names, label, truth, confusion, brightness):
-        return _draw_materials(np.asarray(image), delays, mean, names, np.asarray(label), np.asarray(truth),
+    def render(image, delays, mean, names, label, hidden, confusion, brightness):
+        return _draw_materials(np.asarray(image), delays, mean, names, np.asarray(label), np.asarray(hidden),
                                None if confusion is None else np.asarray(confusion),
                                None if brightness is None else np.asarray(brightness))
 

@@ -247,7 +247,9 @@ def label_identity(settings) -> dict:
 def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scene",
                               label_image: StorePath = "", classes: tuple[str, ...] | None = None, samples_per_class: Count = 1000,
                               folds: Annotated[int, pydantic.Field(ge=2, le=20)] = 5, seed: Index = 0,
-                              c_grid: Grid = C_GRID, gamma_grid: Grid = GAMMA_GRID) -> xr.Dataset:
+                              c_grid: Grid = C_GRID, gamma_grid: Grid = GAMMA_GRID,
+                              novelty_quantile: Annotated[float, pydantic.Field(gt=0.5, le=1.0)] = 0.999
+                              ) -> xr.Dataset:
     """Train an RBF-kernel SVM on labelled pixels' delay profiles, and the brightness-only baseline (§5.4.9).
 
     Hyper-parameters by stratified cross-validation over ``folds`` folds on the training pixels. Returns the
@@ -278,6 +280,9 @@ def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scen
     gamma_grid : tuple of float
         RBF width γ to try, in units of 1/(number of delays) [1]: 1 is scikit-learn's ``gamma="scale"`` on
         standardised profiles (when no delay is constant over the training pixels).
+    novelty_quantile : float
+        A new pixel whose standardised profile lies farther from every class's mean than this quantile of the
+        training pixels' distances from their own class's mean is flagged unlike every trained class [1].
     """
     import skops.io
     import sklearn
@@ -296,6 +301,9 @@ def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scen
     baseline = _fit(area[:, None], truth, {"svm__C": list(c_grid), "svm__gamma": list(gamma_grid)}, folds, seed)
     model = skops.io.dumps({"profile": search.best_estimator_, "brightness": baseline.best_estimator_})
     kept = [names[k] for k in present]
+    standard = search.best_estimator_.named_steps["scale"].transform(features)
+    centre = np.stack([standard[truth == k].mean(0) for k in range(present.size)])
+    novelty = float(np.quantile(np.linalg.norm(standard - centre[truth], axis=1), novelty_quantile))
     mean = np.stack([features[truth == k].mean(0) for k in range(present.size)])
     spread = np.stack([features[truth == k].std(0) for k in range(present.size)])
     keep = {k: v for k, v in profiles.attrs.items() if k not in ("selpath_kind", "simulated_scene")}
@@ -311,6 +319,8 @@ def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scen
                             {"units": "1", "long_name": "standard deviation of the training profiles"}),
          "training_pixels": ("material", np.bincount(truth, minlength=present.size),
                              {"units": "1", "long_name": "training pixels"}),
+         "class_centre": (("material", "delay"), centre,
+                          {"units": "1", "long_name": "mean standardised training profile (the SVM's scaling)"}),
          "cv_accuracy": ((), search.best_score_, {"units": "1", "long_name": "cross-validated accuracy, profiles"}),
          "brightness_cv_accuracy": ((), baseline.best_score_,
                                     {"units": "1", "long_name": "cross-validated accuracy, brightness only"})},
@@ -321,6 +331,7 @@ def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scen
                       "brightness_C": float(baseline.best_params_["svm__C"]),
                       "brightness_gamma": float(baseline.best_params_["svm__gamma"]),
                       "folds": folds, "seed": seed, "samples_per_class": samples_per_class,
+                      "novelty_distance": novelty, "novelty_quantile": novelty_quantile,
                       "labels": label_image if labels == "image" else labels, "training_scene": scene.get("scene", ""),
                       "scikit_learn_version": sklearn.__version__, "skops_version": skops.__version__})
 
@@ -351,6 +362,18 @@ def _predict(model, features: np.ndarray) -> np.ndarray:
     out = np.full(flat.shape[0], -1, np.int16)
     if ok.any():
         out[ok] = model.predict(flat[ok])
+    return out.reshape(features.shape[:-1])
+
+
+def _nearest_centre(model, centre: np.ndarray, features: np.ndarray) -> np.ndarray:
+    """Distance of each pixel's standardised profile from the nearest class mean (NaN where a feature is NaN)."""
+    flat = features.reshape(-1, features.shape[-1])
+    ok = np.isfinite(flat).all(axis=1)
+    out = np.full(flat.shape[0], np.nan, np.float32)
+    if ok.any():
+        standard = model.named_steps["scale"].transform(flat[ok])
+        squared = (standard**2).sum(1)[:, None] - 2 * standard @ centre.T + (centre**2).sum(1)[None, :]
+        out[ok] = np.sqrt(np.maximum(squared.min(axis=1), 0.0))
     return out.reshape(features.shape[:-1])
 
 
@@ -388,8 +411,10 @@ def classify_materials(profiles: xr.Dataset, classifier: xr.Dataset, /, *, label
                        label_image: StorePath = "", classes: tuple[str, ...] | None = None) -> xr.Dataset:
     """Classify every pixel of a capture by its delay profile, and by brightness alone (§5.4.9, Figs. 51c, 52).
 
-    Returns ``label`` and ``brightness_label`` over (row, col) (index into ``material``; −1: no usable profile) and
-    the regular image ``image`` [counts]; with ``labels``, the truth ``true_label``, ``confusion`` over
+    Returns ``label`` and ``brightness_label`` over (row, col) (index into ``material``; −1: no usable profile), the
+    regular image ``image`` [counts], and ``unlike_training`` (a pixel farther from every class's mean than the
+    classifier's ``novelty_distance``: no trained material, e.g. the background; its label is still the nearest
+    class's) with the distance ``novelty_distance``; with ``labels``, the truth ``true_label``, ``confusion`` over
     (true_material, material), per-class ``accuracy`` with its 95 % Wilson interval and ``overall_accuracy``, and
     the same for the brightness baseline (``brightness_`` prefix). Refused: profiles over other delays, another
     source kind or exposure than the classifier's, a model store whose hash does not match.
@@ -431,7 +456,16 @@ def classify_materials(profiles: xr.Dataset, classifier: xr.Dataset, /, *, label
     label = xr.apply_ufunc(lambda x: _predict(models["profile"], x), profile, input_core_dims=[["delay"]], **out)
     bright = xr.apply_ufunc(lambda x: _predict(models["brightness"], x[..., None]), profiles["area"], **out)
     meaning = {"units": None, "long_name": "class index into material (−1: no usable profile)"}
-    result = {"label": label.assign_attrs(meaning),
+    result = {}
+    if "class_centre" in classifier.data_vars and "novelty_distance" in classifier.attrs:
+        centre = np.asarray(classifier["class_centre"].values, np.float64)
+        distance = xr.apply_ufunc(lambda x: _nearest_centre(models["profile"], centre, x), profile,
+                                  input_core_dims=[["delay"]], output_dtypes=[np.float32], dask="parallelized")
+        result["novelty_distance"] = distance.assign_attrs(
+            units="1", long_name="distance of the standardised profile from the nearest class mean")
+        result["unlike_training"] = (distance > float(classifier.attrs["novelty_distance"])).assign_attrs(
+            long_name="farther from every class than the training pixels' quantile novelty_quantile")
+    result |= {"label": label.assign_attrs(meaning),
               "brightness_label": bright.where(label >= 0, -1).astype(np.int16).assign_attrs(meaning),
               "image": profiles["area"]}
     if labels is not None:
@@ -445,6 +479,12 @@ def classify_materials(profiles: xr.Dataset, classifier: xr.Dataset, /, *, label
         result["true_label"] = truth.assign_attrs(units=None, long_name="true class index (−1: unlabelled)")
         result |= _scores(truth, result["label"], len(names), "")
         result |= _scores(truth, result["brightness_label"], len(names), "brightness_")
+        if "unlike_training" in result:
+            labelled = truth >= 0
+            result["unlike_training_fraction"] = (result["unlike_training"] & labelled).sum() / max(
+                int(labelled.sum()), 1)
+            result["unlike_training_fraction"].attrs = {
+                "units": "1", "long_name": "labelled pixels flagged unlike every trained class (scored all the same)"}
         result["classified_fraction"] = usable_share(
             ((truth >= 0) & (label >= 0)).sum() / max(int((truth >= 0).sum()), 1), floor=0.5,
             what="labelled pixels with a usable profile",

@@ -102,6 +102,20 @@ def test_the_svm_recognises_every_material_of_a_new_capture_and_brightness_does_
     assert int(scored["confusion"].sum()) == int((scored["true_label"] >= 0).sum())
 
 
+def test_pixels_of_no_trained_material_are_flagged_and_the_materials_are_not():
+    """The background (direct reflection only, albedo 0.1: a narrow, noisy profile) is none of the five materials:
+    ≥ 95 % of its pixels are flagged unlike training (measured 99.9 %), and ≤ 2 % of the materials' pixels of a new
+    capture (measured 0.95 %; the threshold is the 99.9th percentile of the training pixels' distances from their
+    class's mean)."""
+    profiles = delay_profiles(materials("white-materials", 0))
+    classifier = train_material_classifier(profiles, samples_per_class=300, seed=0)
+    scored = classify_materials(delay_profiles(materials("white-materials-shuffled", 10)), classifier,
+                                labels="scene").compute()
+    background = (scored["true_label"] < 0) & (scored["label"] >= 0)
+    assert float(scored["unlike_training"].where(background).mean()) >= 0.95
+    assert float(scored["unlike_training_fraction"]) <= 0.02
+
+
 def test_a_classifier_travels_in_its_store_and_a_tampered_one_is_refused(trained, tmp_path):
     profiles, classifier = trained
     path = tmp_path / "classifier.zarr"
