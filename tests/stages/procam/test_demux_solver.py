@@ -149,12 +149,13 @@ def test_capped_pixels_are_data_unless_throw():
     problem = DemuxProblem.build(matrix)
     converged = DemuxADMM(tol=1e-2, max_iter=400, throw=True).solve(problem, data)
     assert (converged.result == Result.converged).all() and converged.converged.all()
-    solution = DemuxADMM(tol=1e-9, max_iter=5).solve(problem, data)
+    # gap_tol 0: noise-free pixels are otherwise certified within 5 iterations by their KKT bound (≤ 1e-4)
+    solution = DemuxADMM(tol=1e-9, max_iter=5, gap_tol=0.0).solve(problem, data)
     assert solution.result.tolist() == [Result.max_steps] * 8
     assert not solution.converged.any() and (solution.stats["iterations"] == 5).all()
     with pytest.raises(SolverError, match=r"DemuxADMM: 8 of 8 pixels did not end converged: 8 max_steps "
                                           r"\(stopped at the iteration cap"):
-        DemuxADMM(tol=1e-9, max_iter=5, throw=True).solve(problem, data)
+        DemuxADMM(tol=1e-9, max_iter=5, gap_tol=0.0, throw=True).solve(problem, data)
 
 
 def test_illumination_is_the_time_overlap_of_line_and_exposure():
@@ -296,3 +297,34 @@ def test_the_bound_reads_a_weight_as_observed_or_not():
     np.testing.assert_array_equal(certified_gap(problem, wrong, data, half),
                                   certified_gap(problem, wrong, data, half > 0))
     assert np.all(certified_gap(problem, wrong, data, half) > 0.5)
+
+
+def test_the_kkt_bound_is_the_lagrangian_gap_and_far_tighter_than_the_first_order_one():
+    """kkt_gap's closed form λᵀT + ½δᵀ(2G)⁻¹δ is f(T) − g(λ) with g(λ) = min_T f(T) − λᵀT found by a dense solve
+    (to 1e-9 of f), for λ ≥ 0 of its rule at arbitrary T ≥ 0; the solver's bound is never below the true gap
+    (Clarabel's optimum), and on float32 default solves of the well-posed sweep its median is ≥ 10× below the
+    first-order bound's (measured on the catalogue: 5.8e-3 → 1.0e-4 at K = 64, 8.2e-3 → 3.5e-4 at K = 128)."""
+    from stages.procam._demux_problem import KKT_HELD, certified_gap, kkt_gap
+
+    delays, exposures, offsets = CASES["well-posed"]
+    problem = DemuxProblem.build(sweep_matrix(delays, exposures, offsets), alpha=0.01, beta=0.01)
+    assert problem.definite
+    rng = np.random.default_rng(4)
+    data = sparse_transport(rng, 24, offsets) @ problem.illumination.T + rng.normal(0, 0.01, (24, problem.frames))
+    a, g2 = problem.illumination, problem.gram2
+    t = np.maximum(rng.normal(0, 0.05, (24, problem.offsets)), 0.0)  # arbitrary, far from optimal
+    f = problem.objective(t, data)
+    gradient = t @ g2 - 2 * data @ a + problem.beta
+    bound = kkt_gap(np, t, gradient, lambda v: v @ problem.inverse, f, np.ones(24, bool))
+    dual = np.full(24, -np.inf)
+    for share in KKT_HELD:
+        lam = np.where(t <= share * t.max(axis=1, keepdims=True), np.maximum(gradient, 0), 0)
+        minimiser = np.linalg.solve(g2, (2 * data @ a - problem.beta + lam).T).T
+        dual = np.maximum(dual, problem.objective(minimiser, data) - (lam * minimiser).sum(1))  # g(λ), unconstrained
+    np.testing.assert_allclose(bound * f, np.minimum(f - dual, f), rtol=1e-9, atol=1e-12 * f.max())
+    solution = DemuxADMM().solve(problem, data)
+    _, optimum = cvxpy_optimum(problem, data)
+    value = problem.objective(solution.value, data)
+    assert np.all(solution.stats["gap_bound"] >= (value - optimum) / value - 1e-6)
+    first_order = certified_gap(replace(problem, definite=False), solution.value, data)
+    assert np.median(solution.stats["gap_bound"]) * 10 <= np.median(first_order)
