@@ -32,12 +32,15 @@ DESIGN §6), so this is a batched ADMM in plain JAX (kernels in
   from 6.4e-5 to 5.3e-5, for about 9 % more time per pixel, so it is not the default);
 * a certificate beside the answer: :func:`~stages.procam._demux_kernels.certified_gap` bounds each pixel's
   relative objective gap from weak duality (in the solver's dtype, at the end: about one iteration's cost; the
-  float64 reference is :func:`~stages.procam._demux_problem.certified_gap`). A bound, never an estimate, but a
-  first-order one, as tight as the solution's KKT conditions: on float32 solves stopped at ``tol`` it is
-  typically 10–200× above the true gap (``converged`` means the residual test or a bound ≤ ``gap_tol``);
+  float64 reference is :func:`~stages.procam._demux_problem.certified_gap`). A bound, never an estimate: the smaller
+  of a first-order one (every pixel) and, for a fully observed, unclipped pixel of a dense problem, the Lagrangian
+  one of :func:`~stages.procam._demux_problem.kkt_gap`, second order in the KKT residual: on float32 solves stopped
+  at ``tol`` it is typically 1–15× above the true gap at the median (the first-order one alone 10–200×), but far
+  above it where T's KKT conditions are off (p99 0.1–0.3) (``converged`` means the residual test or a bound ≤
+  ``gap_tol``);
 * optionally (``finish_rounds``) an exact finish: primal–dual active-set rounds with float64 solves on each
-  pixel's free offsets (:mod:`stages.procam._demux_finish`), which takes the bound to ~1e-6 median, ≤ ``gap_tol``
-  everywhere, where ADMM leaves ~1e-2, at 3–8× ADMM's time (``benchmarks/demux_catalogue.py``).
+  pixel's free offsets (:mod:`stages.procam._demux_finish`), which takes every pixel's bound to ≤ ``gap_tol`` at
+  2–8× ADMM's time (``benchmarks/demux_catalogue.py``).
 
 The full transport (§5.3.1) uses the same iteration with the Kronecker-factored operators of
 :class:`~stages.procam._demux_problem.SeparableDemuxProblem` (A = L_u ⊗ L, never formed): the kernels apply
