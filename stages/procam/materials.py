@@ -110,7 +110,7 @@ def delay_profiles(source: xr.Dataset, /, *, exposure: Positive | None = None) -
     nonfinite = (~np.isfinite(frames)).any("delay")
     flags = (saturated.astype(np.uint8) * SATURATED) | (nonfinite.astype(np.uint8) * NONFINITE) | (
         (~(area > 0) & ~nonfinite).astype(np.uint8) * NO_LIGHT)
-    profile = (frames / area).where(flags == 0)
+    profile = (frames / area.where(area > 0)).where(flags == 0)  # no 0/0 computed where there is no light
     delay = frames["delay"]
     spread = np.sqrt(np.maximum((profile * delay**2).sum("delay", skipna=False), 0.0))
     keep = {k: v for k, v in source.attrs.items() if k != "selpath_kind"}

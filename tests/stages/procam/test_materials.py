@@ -205,6 +205,8 @@ def test_bad_training_and_classification_input_is_refused(trained, tmp_path):
     two = np.zeros((120, 160), np.int16)
     two[10:20, 10:20], two[40:50, 40:50] = 1, 2
     np.save(tmp_path / "two.npy", two)
+    dark = delay_profiles(capture).compute()  # computed with warnings as errors: no 0/0 where there is no light
+    assert (dark["flags"].values[40:50, 40:50] == 4).all() and np.isnan(dark["profile"].values[:, 40:50, 40:50]).all()
     with pytest.raises(StageError, match="class 'dark' has 0 labelled pixels with a usable profile"):
         train_material_classifier(delay_profiles(capture), labels="image", label_image=str(tmp_path / "two.npy"),
                                   classes=("lit", "dark"))
