@@ -59,6 +59,7 @@ def test_all_zero_absorption_reconstructs_zero():
     assert np.abs(out["sigma"].values).max() == 0.0
 
 
+@pytest.mark.slow  # 8–11 s: in the slow job, so the default job keeps its 8-minute budget
 def test_extreme_tv_weights():
     """λ = 1e-12 and 1e3: finite, in the box, honest flags, and the TV falls as λ grows. (At λ = 1e3 the
     minimiser is flat, but ADMM with a fixed ρ approaches it slowly; the flag says whether it got there.)"""

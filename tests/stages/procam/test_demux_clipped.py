@@ -128,6 +128,7 @@ def test_clip_free_pixels_reach_their_own_optimum_beside_clipped_ones():
         DemuxADMM().solve(problem, data, clipped=clipped[:, :1])
 
 
+@pytest.mark.slow  # 8–11 s: in the slow job, so the default job keeps its 8-minute budget
 def test_the_full_transports_factored_problem_treats_clipped_frames_as_its_dense_equivalent():
     """A = L_u ⊗ L never formed: objective, certificate, censoring and solution match the dense problem's."""
     from stages.procam._demux_problem import SeparableDemuxProblem
