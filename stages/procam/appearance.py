@@ -37,7 +37,8 @@ from pipeline.registry import stage
 from pipeline.spec import StorePath
 from stages.procam._illumination import plane_to_ray_illumination
 from stages.procam._mesh import MESHES, rasterise, rotate
-from stages.procam.materials import Labels, label_identity, label_map, label_precheck, profile_frames
+from stages.procam._labels import Labels, label_identity, label_map, label_precheck
+from stages.procam.materials import profile_frames
 
 
 def laplace_cells(offsets: np.ndarray, width: float) -> np.ndarray:

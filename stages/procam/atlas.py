@@ -81,17 +81,17 @@ def material_atlas(transport: xr.Dataset, /, *, pixels: Pixels,
         raise StageError(problems)
     window = t.sel(du=slice(-reach, reach), dv=slice(-reach, reach))
     at = {name: pixel_at(transport, where) for name, where in pixels.items()}
-    sites = xr.concat([window.isel(row=r, col=c, drop=True) for r, c in at.values()], dim="site")
+    rows, cols = (xr.DataArray([rc[k] for rc in at.values()], dims="site") for k in (0, 1))
+    sites = window.isel(row=rows, col=cols, drop=True).transpose("site", "du", "dv")  # one vectorised read
+    extent_map = extent(window, floor).assign_attrs(units="px", long_name="RMS distance from the direct correspondence")
     peak = sites.max(("du", "dv"))
     profile = sites / peak.where(peak > 0)
     return xr.Dataset(
         {"profile": profile.drop_attrs(deep=False).assign_attrs(units="1", long_name="T / its maximum"),
-         "extent": extent(sites, floor).assign_attrs(units="px", long_name="RMS distance from the direct correspondence"),
-         "extent_map": extent(window, floor).assign_attrs(units="px",
-                                                  long_name="RMS distance from the direct correspondence"),
+         "extent": extent_map.isel(row=rows, col=cols, drop=True),  # the map's own numbers at the sites
+         "extent_map": extent_map,
          "image": t.sum(("du", "dv"), skipna=True).drop_attrs(deep=False).assign_attrs(
              units=t.attrs.get("units", "counts"), long_name="white image Σ T")},
-        coords={"site": ("site", list(at)), "site_row": ("site", [r for r, _ in at.values()]),
-                "site_col": ("site", [c for _, c in at.values()])},
+        coords={"site": ("site", list(at)), "site_row": rows, "site_col": cols},
         attrs={k: v for k, v in transport.attrs.items() if k not in ("selpath_kind", "simulated_scene")}
         | {"selpath_kind": "material_atlas", "reach_px": reach, "extent_floor": floor})

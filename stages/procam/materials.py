@@ -22,8 +22,7 @@ model can edit the hash). The store's provenance (workflow, inputs, settings) is
 from __future__ import annotations
 
 import hashlib
-import os
-from typing import Annotated, Literal
+from typing import Annotated
 
 import dask.array as da
 import numpy as np
@@ -35,7 +34,8 @@ from pipeline.errors import Problem, StageError
 from pipeline.quality import usable_share
 from pipeline.registry import stage
 from pipeline.spec import StorePath
-from stages._common import file_identity, require_variables
+from stages._common import require_variables
+from stages.procam._labels import Labels, label_identity, label_map, label_precheck
 
 #: bits of the profiles' ``flags``
 SATURATED, NONFINITE, NO_LIGHT = 1, 2, 4
@@ -50,8 +50,6 @@ Z95 = 1.959963984540054
 C_GRID, GAMMA_GRID = (1.0, 10.0, 100.0), (0.1, 0.3, 1.0)
 
 Grid = Annotated[tuple[Positive, ...], pydantic.Field(min_length=1)]
-#: where the truth comes from: the simulated scene's objects, or a label image file
-Labels = Literal["scene", "image"]
 
 
 def profile_frames(source: xr.Dataset, exposure: float | None) -> tuple[xr.DataArray, xr.DataArray, dict]:
@@ -131,56 +129,6 @@ def delay_profiles(source: xr.Dataset, /, *, exposure: Positive | None = None) -
         attrs=keep | what | {"selpath_kind": "delay_profiles"})
 
 
-# -- labels ----------------------------------------------------------------------------------------------------
-
-
-def label_map(profiles: xr.Dataset, labels: str, image: str, classes: tuple[str, ...] | None,
-              where: str) -> tuple[np.ndarray, tuple[str, ...]]:
-    """Integer codes over (row, col) (0: unlabelled, k: ``classes[k − 1]``) and the class names.
-
-    ``labels`` is ``scene`` (the objects of the simulated scene the capture was rendered from, named as in the
-    scene file; the background unlabelled) or ``image``: ``image`` is then the path of an integer image (.npy, or
-    PNG/TIFF) of the frame's size, whose codes 1 … n ``classes`` names.
-    """
-    shape = (profiles.sizes["row"], profiles.sizes["col"])
-    labels, image = (image, "") if labels == "image" else (labels, image)
-    if labels == "scene":
-        from devices.sim.procam_transport import Tile
-        from stages.procam.multiplexing import simulated_scene
-
-        scene = simulated_scene(profiles, where)
-        tile = Tile.of(scene, 0, scene.rig.camera_rows)
-        names = tuple(obj.name for obj in scene.objects)
-        codes = (tile.label + 1).reshape(tile.shape)
-        if codes.shape != shape:
-            raise StageError(Problem(f"the scene renders {codes.shape}, the profiles are {shape}", where=where))
-    else:
-        if not labels or not os.path.exists(labels):
-            raise StageError(Problem(f"no label image at {labels!r}", where=where,
-                                     fix="give an integer image (.npy, .png, .tif) of codes 1 … n, 0 unlabelled"))
-        if labels.endswith(".npy"):
-            codes = np.load(labels, allow_pickle=False)
-        else:
-            import imageio.v3 as iio
-
-            codes = iio.imread(labels)
-        if codes.shape != shape or not np.issubdtype(codes.dtype, np.integer):
-            raise StageError(Problem(f"the label image {labels} is {codes.dtype} {codes.shape}; the profiles are "
-                                     f"{shape}: labels must be integer codes of the same size", where=where))
-        if not classes:
-            raise StageError(Problem(f"the label image {labels} has codes but no class names", where=where,
-                                     fix="give classes: the names of codes 1, 2, …"))
-        names = tuple(classes)
-        if codes.min() < 0 or codes.max() > len(names):
-            raise StageError(Problem(f"the label image {labels} has codes {int(codes.min())} … {int(codes.max())}; "
-                                     f"classes names {len(names)} (codes 1 … {len(names)}, 0 unlabelled)",
-                                     where=where))
-    if not (codes > 0).any():
-        raise StageError(Problem("no pixel is labelled", where=where,
-                                 fix="label some pixels of each material with its code (0 is unlabelled)"))
-    return codes.astype(np.int16), names
-
-
 # -- training ----------------------------------------------------------------------------------------------------
 
 
@@ -229,18 +177,6 @@ def training_sample(codes: np.ndarray, flags: np.ndarray, names: tuple[str, ...]
     if problems:
         raise StageError(problems)
     return np.concatenate(chosen)
-
-
-def label_precheck(settings) -> list[str]:
-    """A stage's ``labels: image`` without a label image file, at validation time."""
-    if settings.labels == "image" and not os.path.isfile(settings.label_image):
-        return [f"labels: image needs label_image, an integer label image; {settings.label_image!r} is not a file"]
-    return []
-
-
-def label_identity(settings) -> dict:
-    """What a stage's labels are, for provenance: the label image by content, else where they come from."""
-    return file_identity(settings.label_image) if settings.labels == "image" else {"labels": settings.labels}
 
 
 @stage("train_material_classifier", precheck=label_precheck, identity=label_identity)
@@ -390,12 +326,10 @@ def _scores(truth: xr.DataArray, predicted: xr.DataArray, n: int, prefix: str) -
     """Confusion matrix, per-class accuracy and its 95 % interval, and the overall accuracy (lazy)."""
     labelled = (truth >= 0) & (predicted >= 0)
     code = xr.where(labelled, truth.astype(np.int64) * n + predicted, n * n).data.reshape(-1)
-    counts = (da.bincount(code, minlength=n * n + 1) if isinstance(code, da.Array)
-              else np.bincount(code, minlength=n * n + 1))[: n * n].reshape(n, n)
+    counts = np.bincount(code, minlength=n * n + 1)[: n * n].reshape(n, n)  # numpy or dask alike (array protocol)
     confusion = xr.DataArray(counts, dims=("true_material", "material"))
-    right, total = xr.DataArray(np.diagonal(counts) if not isinstance(counts, da.Array)
-                                else da.diagonal(counts), dims="material"), confusion.sum("material").rename(
-        true_material="material")
+    right = xr.DataArray(np.diagonal(counts), dims="material")
+    total = confusion.sum("material").rename(true_material="material")
     low, high = wilson_interval(right, total)
     return {f"{prefix}confusion": confusion.assign_attrs(units="1", long_name="pixels by true and predicted class"),
             f"{prefix}accuracy": (right / total.where(total > 0)).assign_attrs(

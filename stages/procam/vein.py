@@ -29,7 +29,7 @@ from pipeline.spec import StorePath
 from stages._common import require_variables
 from stages.procam._illumination import plane_to_ray_illumination
 from stages.procam.acquire import TimeSweep
-from stages.procam.materials import Labels, label_map, label_precheck, label_identity
+from stages.procam._labels import Labels, label_identity, label_map, label_precheck
 
 #: the three images of Fig. 49
 VIEWS = ("regular", "far-range indirect", "chosen delay")

@@ -1,0 +1,80 @@
+"""Which pixels are which: class labels for the stages that learn or measure by region (material recognition, the
+vein's contrast, a material's scattering profile).
+
+A capture of the simulated rig labels itself (``labels: scene``: the objects of the scene it records, by name, the
+background unlabelled); any other capture takes an integer label image (``labels: image``: .npy, PNG or TIFF of the
+frame's size, 0 unlabelled, codes 1 … n named by the stage's ``classes``).
+"""
+
+from __future__ import annotations
+
+import os
+from typing import Literal
+
+import numpy as np
+import xarray as xr
+
+from pipeline.errors import Problem, StageError
+from stages._common import file_identity
+
+#: where the truth comes from: the simulated scene's objects, or a label image file
+Labels = Literal["scene", "image"]
+
+
+def label_map(profiles: xr.Dataset, labels: str, image: str, classes: tuple[str, ...] | None,
+              where: str) -> tuple[np.ndarray, tuple[str, ...]]:
+    """Integer codes over (row, col) (0: unlabelled, k: ``classes[k − 1]``) and the class names.
+
+    ``labels`` is ``scene`` (the objects of the simulated scene the capture was rendered from, named as in the
+    scene file; the background unlabelled) or ``image``: ``image`` is then the path of an integer image (.npy, or
+    PNG/TIFF) of the frame's size, whose codes 1 … n ``classes`` names.
+    """
+    shape = (profiles.sizes["row"], profiles.sizes["col"])
+    labels, image = (image, "") if labels == "image" else (labels, image)
+    if labels == "scene":
+        from devices.sim.procam_transport import Tile
+        from stages.procam.multiplexing import simulated_scene
+
+        scene = simulated_scene(profiles, where)
+        tile = Tile.of(scene, 0, scene.rig.camera_rows)
+        names = tuple(obj.name for obj in scene.objects)
+        codes = (tile.label + 1).reshape(tile.shape)
+        if codes.shape != shape:
+            raise StageError(Problem(f"the scene renders {codes.shape}, the profiles are {shape}", where=where))
+    else:
+        if not labels or not os.path.exists(labels):
+            raise StageError(Problem(f"no label image at {labels!r}", where=where,
+                                     fix="give an integer image (.npy, .png, .tif) of codes 1 … n, 0 unlabelled"))
+        if labels.endswith(".npy"):
+            codes = np.load(labels, allow_pickle=False)
+        else:
+            import imageio.v3 as iio
+
+            codes = iio.imread(labels)
+        if codes.shape != shape or not np.issubdtype(codes.dtype, np.integer):
+            raise StageError(Problem(f"the label image {labels} is {codes.dtype} {codes.shape}; the profiles are "
+                                     f"{shape}: labels must be integer codes of the same size", where=where))
+        if not classes:
+            raise StageError(Problem(f"the label image {labels} has codes but no class names", where=where,
+                                     fix="give classes: the names of codes 1, 2, …"))
+        names = tuple(classes)
+        if codes.min() < 0 or codes.max() > len(names):
+            raise StageError(Problem(f"the label image {labels} has codes {int(codes.min())} … {int(codes.max())}; "
+                                     f"classes names {len(names)} (codes 1 … {len(names)}, 0 unlabelled)",
+                                     where=where))
+    if not (codes > 0).any():
+        raise StageError(Problem("no pixel is labelled", where=where,
+                                 fix="label some pixels of each material with its code (0 is unlabelled)"))
+    return codes.astype(np.int16), names
+
+
+def label_precheck(settings) -> list[str]:
+    """A stage's ``labels: image`` without a label image file, at validation time."""
+    if settings.labels == "image" and not os.path.isfile(settings.label_image):
+        return [f"labels: image needs label_image, an integer label image; {settings.label_image!r} is not a file"]
+    return []
+
+
+def label_identity(settings) -> dict:
+    """What a stage's labels are, for provenance: the label image by content, else where they come from."""
+    return file_identity(settings.label_image) if settings.labels == "image" else {"labels": settings.labels}
