@@ -15,7 +15,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from stages.procam._demux_problem import DenseOperators, best_dual_value, kkt_gap
+from stages.procam._demux_problem import DUAL_SEARCH_STEPS, KKT_HELD, DenseOperators, best_dual_value, kkt_gap
 
 
 class Limits(NamedTuple):
@@ -128,12 +128,14 @@ def start(ops, data, weight, clipped, *, masked: bool, chunk: int):
         # β is the same on every offset: M(β 1) = β (M 1), one row for all pixels instead of two products
         ones = jnp.ones((1, two_aty.shape[1]), two_aty.dtype)
         exact, damped = (jnp.maximum(least_squares - b_pixel * apply(ones), 0.0) for apply in (ops.inverse, ops.update))
-        objective = partial(_objective, ops, rows)
-        z0 = jnp.where((objective(exact) <= 2.0 * objective(damped))[:, None], exact, damped)
-        # never start worse than T = 0: in float32, (2G)⁺ along weak directions can be large enough (1.6e10 on
-        # a sweep of wide lines with fewer lines than u-cells) that both starts are rounding noise of size 1e5,
-        # from which ADMM settled at T = 0, flagged converged
-        z0 = jnp.where((objective(z0) <= objective(jnp.zeros_like(z0)))[:, None], z0, 0.0)
+        value_exact, value_damped = _objective(ops, rows, exact), _objective(ops, rows, damped)
+        chosen = value_exact <= 2.0 * value_damped
+        z0 = jnp.where(chosen[:, None], exact, damped)
+        # never start worse than T = 0 (objective Σ w ỹ(0)², no product): in float32, (2G)⁺ along weak directions
+        # can be large enough (1.6e10 on a sweep of wide lines with fewer lines than u-cells) that both starts are
+        # rounding noise of size 1e5, from which ADMM settled at T = 0, flagged converged
+        at_zero = _sq(rows.weight * _target(rows, jnp.zeros_like(rows.y)))
+        z0 = jnp.where((jnp.where(chosen, value_exact, value_damped) <= at_zero)[:, None], z0, 0.0)
         return rows, scale, z0
 
     return _in_chunks(rows_of, chunk, data, weight, clipped)
@@ -281,40 +283,54 @@ def finish(ops, pool: Rows, scale, z, *, polish_iter: int, polish_rounds: int, m
     return _in_chunks(rows_of, chunk, *pool, scale, z)
 
 
-@partial(jax.jit, static_argnames=("chunk",))
-def gaps(ops, pool: Rows, z, *, chunk: int):
-    """:func:`certified_gap` of every pixel of the pool at ``z`` (the warm start: a pixel certified there, such as
-    T = 0 under a β that outweighs its light, or an unconstrained minimiser that is already non-negative, needs
-    no iteration)."""
-    return _in_chunks(lambda *a: certified_gap(ops, Rows(*a[:-1]), a[-1]), chunk, *pool, z)
+#: the start's certificate: the KKT bound with one share (offsets at exactly 0 held) and the dual point of the
+#: gradients themselves (no search). Both are exact (0 up to rounding) at an optimum, which is all the start asks:
+#: whether a warm start (T = 0 under a β that outweighs the light; a non-negative unconstrained minimiser) is
+#: optimal already; at a third of the full bound's cost
+START_SEARCH_STEPS, START_SHARES = 0, (0.0,)
 
 
-def certified_gap(ops, rows: Rows, t):
+@partial(jax.jit, static_argnames=("chunk", "masked"))
+def gaps(ops, pool: Rows, z, *, chunk: int, masked: bool):
+    """:func:`certified_gap` of every pixel of the pool at its warm start ``z`` with :data:`START_SEARCH_STEPS` and
+    :data:`START_SHARES`: a pixel certified there needs no iteration."""
+    return _in_chunks(lambda *a: certified_gap(ops, Rows(*a[:-1]), a[-1], masked=masked, steps=START_SEARCH_STEPS,
+                                               shares=START_SHARES), chunk, *pool, z)
+
+
+def certified_gap(ops, rows: Rows, t, *, masked: bool, steps: int = DUAL_SEARCH_STEPS, shares=KKT_HELD):
     """:func:`stages.procam._demux_problem.certified_gap` (the methods and their proofs are there: the first-order
     bound, and for dense problems on fully observed, unclipped pixels the smaller KKT bound) on the scaled data,
-    in the solver's dtype: two adjoints and a short vectorised search per pixel, so it costs about one or two
-    iterations. In float32 it is a bound up to rounding (within 15 % or 1e-4 of the float64 reference on the
-    solver's tests, where the bound lies at 1e-5 to 3e-3: the most negative gradient entry decides it and carries
-    float32 rounding)."""
+    in the solver's dtype, with ``steps`` of the dual search and the KKT bound's ``shares``: about as much as two
+    to four iterations. Where no frame of the call is masked or clipped (``masked`` False) every frame is in the
+    dual's shift, whose Aᵀe is then one row for all pixels. In float32 it is a bound up to rounding (within 15 %
+    or 1e-4 of the float64 reference on the solver's tests, where the bound lies at 1e-5 to 3e-3: the most negative
+    gradient entry decides it and carries float32 rounding)."""
     prediction = ops.forward(t)
-    target = _target(rows, prediction)
-    residual = (prediction - target) * rows.weight
+    target = _target(rows, prediction) if masked else rows.y
+    residual = (prediction - target) * rows.weight if masked else prediction - target
     u = 2.0 * residual
     z = ops.adjoint(u) + 2.0 * ops.alpha * ops.smooth_gradient(t)
     a = jnp.sum(u * target, axis=-1)
     b = _sq(residual) + ops.alpha * ops.smoothness(t)
     beta = rows.beta[:, 0]
-    e = rows.weight * (1.0 - rows.clipped) * jnp.ones_like(u)  # observed unclipped frames (flags may broadcast)
-    dual = best_dual_value(jnp, a, b, z, ops.adjoint(e), jnp.sum(e * target, -1), jnp.sum(e * u, -1),
-                           jnp.sum(e, -1), beta)
+    if masked:
+        e = rows.weight * (1.0 - rows.clipped) * jnp.ones_like(u)  # observed unclipped frames (flags may broadcast)
+        shift = ops.adjoint(e), jnp.sum(e * target, -1), jnp.sum(e * u, -1), jnp.sum(e, -1)
+        applies = jnp.all(e > 0, axis=-1)
+    else:  # every frame observed and unclipped: e = 1
+        ones = jnp.ones((1, u.shape[1]), u.dtype)
+        shift = ops.adjoint(ones), jnp.sum(target, -1), jnp.sum(u, -1), jnp.full_like(a, u.shape[1])
+        applies = jnp.ones(a.shape, bool)
+    dual = best_dual_value(jnp, a, b, z, *shift, beta, steps=steps)
     tiny = jnp.finfo(t.dtype).tiny
     primal = b + beta * jnp.sum(t, axis=-1)
     gap = jnp.maximum(primal - dual, 0.0)
     first_order = jnp.where(primal > 0, jnp.minimum(gap / jnp.maximum(primal, tiny), 1.0), 0.0)
     if not isinstance(ops, DenseOperators):  # the separable problem keeps the first-order bound only
         return first_order
-    applies = jnp.all(e > 0, axis=-1) & (ops.definite > 0)
-    return jnp.minimum(first_order, kkt_gap(jnp, t, z + rows.beta, ops.inverse, primal, applies))
+    return jnp.minimum(first_order, kkt_gap(jnp, t, z + rows.beta, ops.inverse, primal, applies & (ops.definite > 0),
+                                            shares))
 
 
 def _gradient(ops, rows: Rows, t):
@@ -322,9 +338,9 @@ def _gradient(ops, rows: Rows, t):
     return ops.adjoint(2.0 * _residual(ops, rows, t)) + 2.0 * ops.alpha * ops.smooth_gradient(t) + rows.beta
 
 
-def _polish(ops, rows: Rows, z, free, *, polish_iter: int, masked: bool):
-    """Conjugate gradients on the KKT system of the offsets in ``free`` (the others held at 0), from z; the
-    result clipped at 0 and kept per pixel only where it lowers the objective."""
+def _polish(ops, rows: Rows, z, before, free, *, polish_iter: int, masked: bool):
+    """Conjugate gradients on the KKT system of the offsets in ``free`` (the others held at 0), from z (whose
+    objective is ``before``); the result clipped at 0 and kept per pixel only where it lowers the objective."""
     dtype = rows.y.dtype
     objective = partial(_objective, ops, rows)
     target = free * (0.5 * _rhs(ops, rows, z, masked) - rows.beta / 2)
@@ -345,7 +361,7 @@ def _polish(ops, rows: Rows, z, free, *, polish_iter: int, masked: bool):
 
     polished, *_ = jax.lax.fori_loop(0, polish_iter, cg, (z, r0, r0, jnp.sum(r0 * r0, -1, keepdims=True)))
     polished = jnp.maximum(jnp.where(jnp.all(jnp.isfinite(polished), -1, keepdims=True), polished, z), 0.0)
-    value, before = objective(polished), objective(z)
+    value = objective(polished)
     better = value < before
     return jnp.where(better[:, None], polished, z), jnp.where(better, value, before)
 
@@ -358,5 +374,5 @@ def _finish_rows(ops, rows: Rows, scale, z, *, polish_iter: int, polish_rounds: 
             free = z > 0
             if round_:  # an offset held at 0 whose gradient is negative would lower f: free it (an active-set step)
                 free = free | (_gradient(ops, rows, z) < 0)
-            z, value = _polish(ops, rows, z, free.astype(dtype), polish_iter=polish_iter, masked=masked)
-    return z * scale, value * scale[:, 0] ** 2, certified_gap(ops, rows, z)
+            z, value = _polish(ops, rows, z, value, free.astype(dtype), polish_iter=polish_iter, masked=masked)
+    return z * scale, value * scale[:, 0] ** 2, certified_gap(ops, rows, z, masked=masked)

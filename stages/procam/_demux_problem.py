@@ -89,9 +89,9 @@ class DemuxProblem:
         return DenseOperators(*map(cast, (self.illumination, self.gram2, self.update, self.inverse, self.alpha,
                                           self.beta, self.rho, float(self.definite))))
 
-    def forward(self, transport: np.ndarray) -> np.ndarray:
-        """(P, K) transport → (P, N) predicted observations, in float64."""
-        return np.asarray(transport, np.float64) @ self.illumination.T
+    def forward(self, transport: np.ndarray, dtype=np.float64) -> np.ndarray:
+        """(P, K) transport → (P, N) predicted observations, in ``dtype`` (the reference's float64 by default)."""
+        return np.asarray(transport, dtype) @ self.illumination.T.astype(dtype)
 
     def lit_by(self, frames: np.ndarray) -> np.ndarray:
         """(P, N) 0/1 frames → (P, K): how many of them light each offset (A_ik > 0)."""
@@ -161,10 +161,11 @@ class SeparableDemuxProblem:
         return KroneckerOperators(*map(cast, (self.line_matrix, self.frame_matrix, self.basis, self.update_blocks,
                                               self.inverse_blocks, self.smooth, self.alpha, self.beta, self.rho)))
 
-    def forward(self, transport: np.ndarray) -> np.ndarray:
-        """(P, K_u·K_v) transport → (P, N_u·N_v) predicted observations, in float64."""
-        t = np.asarray(transport, np.float64).reshape(-1, *self.cells)
-        out = np.einsum("ju,puv,nv->pjn", self.line_matrix, t, self.frame_matrix, optimize=True)
+    def forward(self, transport: np.ndarray, dtype=np.float64) -> np.ndarray:
+        """(P, K_u·K_v) transport → (P, N_u·N_v) predicted observations, in ``dtype`` (float64 by default)."""
+        t = np.asarray(transport, dtype).reshape(-1, *self.cells)
+        out = np.einsum("ju,puv,nv->pjn", self.line_matrix.astype(dtype), t, self.frame_matrix.astype(dtype),
+                        optimize=True)
         return out.reshape(t.shape[0], -1)
 
     def lit_by(self, frames: np.ndarray) -> np.ndarray:
@@ -267,7 +268,7 @@ def best_dual_value(xp, a, b, z, g, e_y, e_u, n_e, beta, steps=DUAL_SEARCH_STEPS
 KKT_HELD = (0.0, 1e-6, 1e-4, 1e-2)
 
 
-def kkt_gap(xp, t, gradient, inverse, primal, applies):
+def kkt_gap(xp, t, gradient, inverse, primal, applies, shares=KKT_HELD):
     """A second certified bound, from the Lagrangian dual of min f(T) s.t. T ≥ 0 when every frame of the pixel
     is an observed, unclipped one, so that f is the quadratic TᵀGT − 2yᵀAT + βᵀT + ‖y‖² with 2G = 2(AᵀA + αDᵀD)
     positive definite: for any multiplier λ ≥ 0, g(λ) = min_T f(T) − λᵀT ≤ f*, and with δ = ∇f(T) − λ,
@@ -275,7 +276,7 @@ def kkt_gap(xp, t, gradient, inverse, primal, applies):
         f(T) − g(λ) = λᵀT + ½ δᵀ(2G)⁻¹δ
 
     (f − λᵀT is quadratic with Hessian 2G, minimised at T − (2G)⁻¹δ). With λ = max(∇f(T), 0) on the offsets held
-    at 0 (at most a share :data:`KKT_HELD` of the peak; the smallest bound over the shares) and 0 elsewhere, both
+    at 0 (at most a share of the peak, for each of ``shares``; the smallest bound over them) and 0 elsewhere, both
     terms vanish at the optimum and the bound is
     second order in T's KKT residual (the first-order bound of :func:`certified_gap` is first order in it). No
     cancellation: both terms are non-negative. ``inverse`` applies (2G)⁻¹ to (P, K) rows; ``applies`` (P,) says
@@ -283,7 +284,7 @@ def kkt_gap(xp, t, gradient, inverse, primal, applies):
     ``primal`` = f(T)."""
     peak = xp.max(t, axis=-1, keepdims=True)
     gap = None
-    for share in KKT_HELD:
+    for share in shares:
         lam = xp.where(t <= share * peak, xp.maximum(gradient, 0.0), 0.0)
         delta = gradient - lam
         candidate = xp.sum(lam * t, axis=-1) + 0.5 * xp.sum(delta * inverse(delta), axis=-1)

@@ -254,7 +254,7 @@ class DemuxADMM:
         p = data.shape[0]
         slots = min(slots, p)
         pool, scale, z0 = kernels.start(ops, data, weight, clipped, masked=masked, chunk=slots)
-        start_gap = np.asarray(kernels.gaps(ops, pool, z0, chunk=slots))
+        start_gap = np.asarray(kernels.gaps(ops, pool, z0, chunk=slots, masked=masked))
         certified = start_gap <= self.gap_tol
         order = np.argsort(certified, kind="stable")  # the live pixels first, in their order
         live = int(p - certified.sum())
