@@ -9,8 +9,12 @@ M masks the observed rays, R is :mod:`stages.tomography._projector`, ∇ forward
 z₂ = K σ (box). Both splits are scaled to the projector: K = ‖M R‖ and D = (K/‖∇‖)·∇, so the three terms
 of the σ-update matrix RᵀMR + ρ(DᵀD + K²I) have the same norm and one penalty ρ (dimensionless, default
 :attr:`TVADMM.DEFAULT_RHO`) balances them whatever the units, grid or mask (DESIGN §6: worth ~3× in RMSE at
-equal cost). The σ-update is solved by a few warm-started conjugate-gradient steps (lineax ``CG``), the
-z-updates are exact (isotropic shrinkage, clipping). The reported iterate is z₂/K, which lies in the box at every
+equal cost). The σ-update is solved by a few warm-started conjugate-gradient steps (written here: lineax's
+``CG`` takes one inner product over its whole operand, so the slices of a batch would share step lengths), the
+z-updates are exact (isotropic shrinkage, clipping). Slices are solved in batches (:meth:`TVADMM.solve_batch`):
+each product is one for the batch, through the sparse system matrix where it fits in memory
+(:class:`~stages.tomography._projector.MatrixProjector`, 100× the matrix-free walk per slice in batches of 32 at
+256²/360, ``benchmarks/tomo_projector.py``), while every slice keeps its own scaling, stopping test and count. The reported iterate is z₂/K, which lies in the box at every
 iteration by construction. Stops when Boyd's relative primal and dual residuals fall below ``tol`` (the
 dual one relative to the larger of ρ‖Dᵀu₁ + Ku₂‖ and ‖RᵀMA‖: on clean data the former tends to 0), or
 at ``max_iter``; the result code (:class:`stages._solution.Result`) says which.
@@ -22,37 +26,64 @@ and ρ (relative to ‖MR‖²) are not the demultiplexing's α, β and ``rho_fa
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, replace
 from functools import lru_cache
 from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
-import lineax as lx
 import numpy as np
 
 from stages._solution import Solution, outcome, raise_if_failed
-from stages.tomography._projector import Geometry, adjoint, forward, operator_norm
+from pipeline.constraints import machine_memory
+from stages.tomography._projector import Geometry, MatrixProjector, WalkProjector, operator_norm
 
 _GRADIENT_NORM = np.sqrt(8.0)  # ‖∇‖₂ of 2D forward differences (Neumann boundary)
 
 
 def gradient(image: jnp.ndarray) -> jnp.ndarray:
-    """Forward differences (2, n, n), zero across the last row/column (Neumann)."""
-    dy = jnp.concatenate([image[1:] - image[:-1], jnp.zeros_like(image[:1])], axis=0)
-    dx = jnp.concatenate([image[:, 1:] - image[:, :-1], jnp.zeros_like(image[:, :1])], axis=1)
-    return jnp.stack([dy, dx])
+    """Forward differences (..., 2, n, n) of (..., n, n) images, zero across the last row/column (Neumann)."""
+    dy = jnp.concatenate([image[..., 1:, :] - image[..., :-1, :], jnp.zeros_like(image[..., :1, :])], axis=-2)
+    dx = jnp.concatenate([image[..., :, 1:] - image[..., :, :-1], jnp.zeros_like(image[..., :, :1])], axis=-1)
+    return jnp.stack([dy, dx], axis=-3)
 
 
 def gradient_adjoint(field: jnp.ndarray) -> jnp.ndarray:
     """∇ᵀ (minus the divergence), the exact transpose of :func:`gradient`."""
-    (out,) = jax.linear_transpose(gradient, jax.ShapeDtypeStruct(field.shape[1:], field.dtype))(field)
+    template = jax.ShapeDtypeStruct((*field.shape[:-3], *field.shape[-2:]), field.dtype)
+    (out,) = jax.linear_transpose(gradient, template)(field)
     return out
 
 
 def total_variation(image: jnp.ndarray) -> jnp.ndarray:
-    """Isotropic TV of Eq. 30: Σ √(∇₁σ² + ∇₂σ²)."""
-    return jnp.sqrt((gradient(image) ** 2).sum(axis=0)).sum()
+    """Isotropic TV of Eq. 30: Σ √(∇₁σ² + ∇₂σ²), per image of a (..., n, n) batch."""
+    return jnp.sqrt((gradient(image) ** 2).sum(axis=-3)).sum(axis=(-2, -1))
+
+
+def _per_slice(x: jnp.ndarray) -> jnp.ndarray:
+    """Σ over every axis but the first (the slice): (S, …) → (S,)."""
+    return jnp.sum(x, axis=tuple(range(1, x.ndim)))
+
+
+def _cg(normal, rhs: jnp.ndarray, start: jnp.ndarray, steps: int) -> jnp.ndarray:
+    """``steps`` conjugate-gradient steps on normal(x) = rhs from ``start``, for every slice of a batch at once (each
+    slice its own step lengths; a slice whose residual vanished stays put)."""
+    def dot(a, b):
+        return jnp.sum(a * b, axis=(-2, -1), keepdims=True)
+
+    def step(_, state):
+        x, r, p, rr = state
+        q = normal(p)
+        pq = dot(p, q)
+        alpha = jnp.where(pq > 0, rr / jnp.where(pq > 0, pq, 1.0), 0.0)
+        x, r = x + alpha * p, r - alpha * q
+        new = dot(r, r)
+        p = r + jnp.where(rr > 0, new / jnp.where(rr > 0, rr, 1.0), 0.0) * p
+        return x, r, p, new
+
+    r = rhs - normal(start)
+    return jax.lax.fori_loop(0, steps, step, (start, r, r, dot(r, r)))[0]
 
 
 @dataclass(frozen=True)
@@ -90,78 +121,124 @@ class TVADMM:
 
     def solve(self, sinogram: jnp.ndarray, observed: jnp.ndarray, sigma_max: jnp.ndarray,
               norm: float | None = None) -> Solution:
-        """Reconstruct one slice (pure, jit-able, never raises); ``norm`` is ‖M R‖ (estimated when None)."""
-        g, dtype = self.geometry, sinogram.dtype
+        """Reconstruct one slice (pure, jit-able, never raises) with the matrix-free projector; ``norm`` is ‖M R‖
+        (estimated when None)."""
+        norms = None if norm is None else jnp.reshape(jnp.asarray(norm, sinogram.dtype), (1,))
+        solution = self.solve_batch(WalkProjector(), sinogram[None], observed[None], sigma_max[None], norms)
+        return jax.tree.map(lambda a: a[0], solution)
+
+    def solve_batch(self, projector: WalkProjector | MatrixProjector, sinograms: jnp.ndarray, observed: jnp.ndarray,
+                    sigma_max: jnp.ndarray, norms: jnp.ndarray | None = None) -> Solution:
+        """Reconstruct S slices (S, T, X) at once (pure, jit-able, never raises): every product is one for the whole
+        batch (with a :class:`MatrixProjector`, one sparse–dense product), while each slice keeps its own scaling,
+        CG steps, stopping test and iteration count; a slice that has converged is held as it stopped while the
+        others go on. ``norms`` (S,) are ‖M R‖ per slice (estimated when None)."""
+        g, dtype = self.geometry, sinograms.dtype
         mask = observed.astype(dtype)
-        b = jnp.where(observed, jnp.nan_to_num(sinogram), 0.0).astype(dtype)
-        k = jnp.asarray(norm if norm is not None else operator_norm(g, mask, dtype=dtype), dtype)
-        k = jnp.maximum(k, jnp.finfo(dtype).tiny ** 0.25)  # all-unobserved slice: keep the scaling finite
-        scale = k / _GRADIENT_NORM
+        b = jnp.where(observed, jnp.nan_to_num(sinograms), 0.0).astype(dtype)
+        if norms is None:
+            norms = operator_norm(g, mask, dtype=dtype, projector=projector)
+        k = jnp.maximum(jnp.asarray(norms, dtype), jnp.finfo(dtype).tiny ** 0.25)  # all-unobserved: keep it finite
+        k, k_field = k[:, None, None], k[:, None, None, None]  # per slice, against images and gradient fields
+        scale, scale_field = k / _GRADIENT_NORM, k_field / _GRADIENT_NORM
         upper = jnp.maximum(jnp.nan_to_num(sigma_max.astype(dtype), nan=0.0, posinf=jnp.finfo(dtype).max), 0.0)
         rho, lam = jnp.asarray(self.rho, dtype), jnp.asarray(self.tv_weight, dtype)
 
-        def normal(x):  # (RᵀMR + ρ(DᵀD + K²I)) x
-            return adjoint(g, mask * forward(g, x)) + rho * (scale**2 * gradient_adjoint(gradient(x)) + k**2 * x)
+        def fwd(x):
+            return projector.forward(g, x)
 
-        structure = jax.ShapeDtypeStruct((g.n, g.n), dtype)
-        operator = lx.FunctionLinearOperator(normal, structure, tags=(lx.symmetric_tag, lx.positive_semidefinite_tag))
-        cg = lx.CG(rtol=1e-6, atol=1e-12, max_steps=self.cg_steps)
-        rhs0 = adjoint(g, mask * b)
-        rhs0_norm = jnp.linalg.norm(rhs0)  # the data term's gradient at σ = 0: the dual residual's floor scale
-        threshold = lam / (rho * scale)  # TV(σ) = ‖z₁‖/scale, so z₁ shrinks by λ/(ρ·scale)
+        def adj(y):
+            return projector.adjoint(g, y)
 
-        def objective(sigma):
-            residual = mask * (forward(g, sigma) - b)
-            return 0.5 * jnp.vdot(residual, residual) + lam * total_variation(sigma)
+        def normal(x):  # (RᵀMR + ρ(DᵀD + K²I)) x, per slice
+            return adj(mask * fwd(x)) + rho * (scale**2 * gradient_adjoint(gradient(x)) + k**2 * x)
+
+        rhs0 = adj(mask * b)
+        rhs0_norm = jnp.sqrt(_per_slice(rhs0**2))  # the data term's gradient at σ = 0: the dual residual's floor
+        threshold = lam / (rho * scale_field)  # TV(σ) = ‖z₁‖/scale, so z₁ shrinks by λ/(ρ·scale)
+        eps = jnp.finfo(dtype).eps
 
         def step(carry):
-            i, sigma, z1, z2, u1, u2, _, history = carry
+            i, iterations, state, done, history = carry
+            sigma, z1, z2, u1, u2 = state
             rhs = rhs0 + rho * (scale * gradient_adjoint(z1 - u1) + k * (z2 - u2))
-            sigma = lx.linear_solve(operator, rhs, cg, options={"y0": sigma}, throw=False).value
-            d = scale * gradient(sigma)
+            sigma = _cg(normal, rhs, sigma, self.cg_steps)
+            d = scale_field * gradient(sigma)
             v = d + u1
-            magnitude = jnp.sqrt((v**2).sum(axis=0, keepdims=True))
+            magnitude = jnp.sqrt((v**2).sum(axis=-3, keepdims=True))
             z1_new = v * jnp.maximum(1.0 - threshold / jnp.maximum(magnitude, jnp.finfo(dtype).tiny), 0.0)
             z2_new = jnp.clip(k * sigma + u2, 0.0, k * upper)
             u1, u2 = u1 + d - z1_new, u2 + k * sigma - z2_new
-            primal = jnp.sqrt(jnp.sum((d - z1_new) ** 2) + jnp.sum((k * sigma - z2_new) ** 2))
-            dual = rho * jnp.linalg.norm(scale * gradient_adjoint(z1_new - z1) + k * (z2_new - z2))
-            eps = jnp.finfo(dtype).eps
-            primal_scale = jnp.maximum(jnp.sqrt(jnp.sum(d**2) + jnp.sum((k * sigma) ** 2)),
-                                       jnp.sqrt(jnp.sum(z1_new**2) + jnp.sum(z2_new**2)))
-            dual_scale = jnp.maximum(rho * jnp.linalg.norm(scale * gradient_adjoint(u1) + k * u2), rhs0_norm)
+            primal = jnp.sqrt(_per_slice((d - z1_new) ** 2) + _per_slice((k * sigma - z2_new) ** 2))
+            dual = rho * jnp.sqrt(_per_slice((scale * gradient_adjoint(z1_new - z1) + k * (z2_new - z2)) ** 2))
+            primal_scale = jnp.maximum(jnp.sqrt(_per_slice(d**2) + _per_slice((k * sigma) ** 2)),
+                                       jnp.sqrt(_per_slice(z1_new**2) + _per_slice(z2_new**2)))
+            dual_scale = jnp.maximum(rho * jnp.sqrt(_per_slice((scale * gradient_adjoint(u1) + k * u2) ** 2)),
+                                     rhs0_norm)
             rel_primal = primal / jnp.maximum(primal_scale, eps)
             rel_dual = dual / jnp.maximum(dual_scale, eps)
-            done = (rel_primal <= self.tol) & (rel_dual <= self.tol)
-            objective_value = objective(z2_new / k)
-            history = (history[0].at[i].set(objective_value), history[1].at[i].set(rel_primal),
-                       history[2].at[i].set(rel_dual))
-            return i + 1, sigma, z1_new, z2_new, u1, u2, done, history
+            sigma_now = z2_new / k
+            residual = mask * (fwd(sigma_now) - b)
+            objective = 0.5 * _per_slice(residual**2) + lam * total_variation(sigma_now)
+            # a slice that had converged keeps its state, count and history (NaN after its stop)
+            running = ~done
+            state = jax.tree.map(lambda old, new: jnp.where(running.reshape(-1, *[1] * (new.ndim - 1)), new, old),
+                                 carry[2], (sigma, z1_new, z2_new, u1, u2))
+            history = tuple(h.at[:, i].set(jnp.where(running, value, h[:, i]))
+                            for h, value in zip(history, (objective, rel_primal, rel_dual), strict=True))
+            done = done | ((rel_primal <= self.tol) & (rel_dual <= self.tol))
+            return i + 1, iterations + running, state, done, history
 
         def keep_going(carry):
-            i, *_, done, _ = carry
-            return (i < self.max_iter) & ~done
+            i, _, _, done, _ = carry
+            return (i < self.max_iter) & ~jnp.all(done)
 
-        zeros = jnp.zeros((g.n, g.n), dtype)
-        nan = jnp.full((self.max_iter,), jnp.nan, dtype)
-        init = (jnp.asarray(0), zeros, jnp.zeros((2, g.n, g.n), dtype), zeros, jnp.zeros((2, g.n, g.n), dtype),
-                zeros, jnp.asarray(False), (nan, nan, nan))
-        i, _, _, z2, _, _, done, history = jax.lax.while_loop(keep_going, step, init)
-        sigma = z2 / k
-        stats = {"iterations": i, "objective": history[0], "primal_residual": history[1], "dual_residual": history[2]}
-        return Solution(sigma, outcome(done, jnp.all(jnp.isfinite(sigma)), jnp), stats)
+        count = sinograms.shape[0]
+        image, field = jnp.zeros((count, g.n, g.n), dtype), jnp.zeros((count, 2, g.n, g.n), dtype)
+        nan = jnp.full((count, self.max_iter), jnp.nan, dtype)
+        init = (jnp.asarray(0), jnp.zeros(count, jnp.int32), (image, field, image, field, image),
+                jnp.zeros(count, bool), (nan, nan, nan))
+        _, iterations, state, done, history = jax.lax.while_loop(keep_going, step, init)
+        sigma = state[2] / k
+        stats = {"iterations": iterations, "objective": history[0], "primal_residual": history[1],
+                 "dual_residual": history[2]}
+        return Solution(sigma, outcome(done, jnp.all(jnp.isfinite(sigma), axis=(-2, -1)), jnp), stats)
 
     def solve_slices(self, sinograms: jnp.ndarray, observed: jnp.ndarray, sigma_max: jnp.ndarray) -> Solution:
-        """Every slice of (S, θ, X) sinograms at once (jitted and vmapped once per solver and dtype), as numpy;
+        """Every slice of (S, θ, X) sinograms at once, as numpy: through the sparse system matrix
+        (:class:`MatrixProjector`, built once per geometry and dtype and kept for the next call) where it fits in
+        :data:`MATRIX_SHARE` of this machine's memory, else the matrix-free walk (the same iterates to rounding);
         raises :class:`stages._solution.SolverError` if ``throw`` is set and a slice did not converge."""
-        batched = _batched(replace(self, throw=False), jnp.dtype(sinograms.dtype).name)  # one compile for both
-        solution = jax.tree.map(np.asarray, batched(sinograms, observed, sigma_max))
+        dtype = jnp.dtype(sinograms.dtype).name
+        projector = projector_for(self.geometry, dtype)
+        solve = _batched(replace(self, throw=False))  # one compile per solver, dtype and batch shape
+        solution = jax.tree.map(np.asarray, solve(projector, sinograms, observed, sigma_max))
         if self.throw:
             raise_if_failed(solution, "TVADMM", items="slices",
                             fix="raise max_iter or loosen tol (or cg_steps); throw=False keeps them as data")
         return solution
 
 
+#: the system matrix is used where R and Rᵀ take at most this share of the machine's memory (else the walk)
+MATRIX_SHARE = 0.25
+_BUILD = threading.Lock()
+
+
+def projector_for(geometry: Geometry, dtype: str) -> WalkProjector | MatrixProjector:
+    """The projector :meth:`TVADMM.solve_slices` uses: the sparse system matrix where it fits (built once per
+    geometry and dtype, under a lock so that concurrent slice chunks build it once), else the walk."""
+    total = machine_memory()
+    if total is not None and MatrixProjector.nbytes(geometry) > MATRIX_SHARE * total:
+        return WalkProjector()
+    with _BUILD:
+        return _matrix(geometry, dtype)
+
+
+@lru_cache(maxsize=2)
+def _matrix(geometry: Geometry, dtype: str) -> MatrixProjector:
+    return MatrixProjector.build(geometry, np.dtype(dtype))
+
+
 @lru_cache(maxsize=16)
-def _batched(solver: TVADMM, dtype: str):
-    return jax.jit(jax.vmap(solver.solve))
+def _batched(solver: TVADMM):
+    return jax.jit(solver.solve_batch)
