@@ -90,9 +90,10 @@ def _cg(normal, rhs: jnp.ndarray, start: jnp.ndarray, steps: int) -> jnp.ndarray
 class TVADMM:
     """ADMM for Eq. 20 on one geometry: an immutable solver whose :meth:`solve` returns a :class:`Solution`.
 
-    :meth:`solve` (one slice) is pure, so ``jax.jit``/``jax.vmap`` it freely; nothing can raise inside a
-    jitted function, so ``throw`` acts in :meth:`solve_slices` (the batched, host-side entry point), which
-    raises :class:`stages._solution.SolverError` when ``throw`` is set and a slice did not converge.
+    :meth:`solve` (one slice, the matrix-free walk) and :meth:`solve_batch` (S slices through the projector it is
+    given) are pure, so ``jax.jit`` them freely; nothing can raise inside a jitted function, so ``throw`` acts in
+    :meth:`solve_slices` (the batched, host-side entry point, which picks the projector), which raises
+    :class:`stages._solution.SolverError` when ``throw`` is set and a slice did not converge.
 
     The :class:`Solution` of one slice: ``value`` σ (n, n) inside [0, σ_max]; ``result`` a scalar
     :class:`stages._solution.Result` code (``converged``, ``max_steps``, ``nonfinite``); ``stats``:
