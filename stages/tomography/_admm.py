@@ -14,7 +14,8 @@ equal cost). The σ-update is solved by a few warm-started conjugate-gradient st
 z-updates are exact (isotropic shrinkage, clipping). Slices are solved in batches (:meth:`TVADMM.solve_batch`):
 each product is one for the batch, through the sparse system matrix where it fits in memory
 (:class:`~stages.tomography._projector.MatrixProjector`, 100× the matrix-free walk per slice in batches of 32 at
-256²/360, ``benchmarks/tomo_projector.py``), while every slice keeps its own scaling, stopping test and count. The reported iterate is z₂/K, which lies in the box at every
+256²/360, ``benchmarks/tomo_projector.py``; :class:`~stages.tomography._projector.HostProjector`, scipy on host
+threads, for small batches: 14× the walk for one slice), while every slice keeps its own scaling, stopping test and count. The reported iterate is z₂/K, which lies in the box at every
 iteration by construction. Stops when Boyd's relative primal and dual residuals fall below ``tol`` (the
 dual one relative to the larger of ρ‖Dᵀu₁ + Ku₂‖ and ‖RᵀMA‖: on clean data the former tends to 0), or
 at ``max_iter``; the result code (:class:`stages._solution.Result`) says which.
@@ -37,7 +38,8 @@ import numpy as np
 
 from stages._solution import Solution, outcome, raise_if_failed
 from pipeline.constraints import machine_memory
-from stages.tomography._projector import Geometry, MatrixProjector, WalkProjector, operator_norm
+from stages.tomography._projector import (Geometry, HostProjector, MatrixProjector, WalkProjector,
+                                             operator_norm)
 
 _GRADIENT_NORM = np.sqrt(8.0)  # ‖∇‖₂ of 2D forward differences (Neumann boundary)
 
@@ -128,7 +130,7 @@ class TVADMM:
         solution = self.solve_batch(WalkProjector(), sinogram[None], observed[None], sigma_max[None], norms)
         return jax.tree.map(lambda a: a[0], solution)
 
-    def solve_batch(self, projector: WalkProjector | MatrixProjector, sinograms: jnp.ndarray, observed: jnp.ndarray,
+    def solve_batch(self, projector: WalkProjector | MatrixProjector | HostProjector, sinograms: jnp.ndarray, observed: jnp.ndarray,
                     sigma_max: jnp.ndarray, norms: jnp.ndarray | None = None) -> Solution:
         """Reconstruct S slices (S, T, X) at once (pure, jit-able, never raises): every product is one for the whole
         batch (with a :class:`MatrixProjector`, one sparse–dense product), while each slice keeps its own scaling,
@@ -207,11 +209,11 @@ class TVADMM:
 
     def solve_slices(self, sinograms: jnp.ndarray, observed: jnp.ndarray, sigma_max: jnp.ndarray) -> Solution:
         """Every slice of (S, θ, X) sinograms at once, as numpy: through the sparse system matrix
-        (:class:`MatrixProjector`, built once per geometry and dtype and kept for the next call) where it fits in
+        (:func:`projector_for`: built once per geometry and dtype and kept for the next call) where it fits in
         :data:`MATRIX_SHARE` of this machine's memory, else the matrix-free walk (the same iterates to rounding);
         raises :class:`stages._solution.SolverError` if ``throw`` is set and a slice did not converge."""
         dtype = jnp.dtype(sinograms.dtype).name
-        projector = projector_for(self.geometry, dtype)
+        projector = projector_for(self.geometry, dtype, sinograms.shape[0])
         solve = _batched(replace(self, throw=False))  # one compile per solver, dtype and batch shape
         solution = jax.tree.map(np.asarray, solve(projector, sinograms, observed, sigma_max))
         if self.throw:
@@ -222,22 +224,27 @@ class TVADMM:
 
 #: the system matrix is used where R and Rᵀ take at most this share of the machine's memory (else the walk)
 MATRIX_SHARE = 0.25
+#: batches of at least this many slices take the matrix in JAX (BCSR: 4 ms a slice's forward–adjoint pair at 32
+#: slices, 256²/360), smaller ones scipy's on host threads (26 ms for one slice, where BCSR takes 365)
+DEVICE_BATCH = 16
 _BUILD = threading.Lock()
 
 
-def projector_for(geometry: Geometry, dtype: str) -> WalkProjector | MatrixProjector:
-    """The projector :meth:`TVADMM.solve_slices` uses: the sparse system matrix where it fits (built once per
-    geometry and dtype, under a lock so that concurrent slice chunks build it once), else the walk."""
+def projector_for(geometry: Geometry, dtype: str, slices: int) -> WalkProjector | MatrixProjector | HostProjector:
+    """The projector :meth:`TVADMM.solve_slices` uses for a batch of ``slices``: the sparse system matrix where it
+    fits (as :class:`MatrixProjector` from :data:`DEVICE_BATCH` slices on, else :class:`HostProjector`; each built
+    once per geometry and dtype, under a lock so that concurrent slice chunks build it once), else the walk."""
     total = machine_memory()
     if total is not None and MatrixProjector.nbytes(geometry) > MATRIX_SHARE * total:
         return WalkProjector()
     with _BUILD:
-        return _matrix(geometry, dtype)
+        return _matrix(geometry, dtype, slices >= DEVICE_BATCH)
 
 
 @lru_cache(maxsize=2)
-def _matrix(geometry: Geometry, dtype: str) -> MatrixProjector:
-    return MatrixProjector.build(geometry, np.dtype(dtype))
+def _matrix(geometry: Geometry, dtype: str, device: bool) -> MatrixProjector | HostProjector:
+    with jax.enable_x64(dtype == "float64"):  # else JAX would keep a float64 matrix as float32
+        return (MatrixProjector if device else HostProjector).build(geometry, np.dtype(dtype))
 
 
 @lru_cache(maxsize=16)

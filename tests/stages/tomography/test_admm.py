@@ -109,16 +109,23 @@ def test_capped_solve_is_data_unless_throw():
         TVADMM(geometry, max_iter=5, throw=True).solve_slices(*args)
 
 
-def test_a_batch_of_slices_is_each_slice_solved_alone():
-    """solve_slices (one batch, the sparse system matrix) gives each slice what TVADMM.solve gives it alone (the
-    matrix-free walk): σ to 1e-9 of its peak in float64, the same iterations and result, although the slices stop at
-    different iterations (a converged slice is held while the others go on) and one sees no ray at all."""
+@pytest.mark.parametrize("device", [False, True])
+def test_a_batch_of_slices_is_each_slice_solved_alone(device, monkeypatch):
+    """solve_slices (one batch, the sparse system matrix on host threads or as JAX's BCSR) gives each slice what
+    TVADMM.solve gives it alone (the matrix-free walk): σ to 1e-9 of its peak in float64, the same iterations and
+    result, although the slices stop at different iterations (a converged slice is held while the others go on) and
+    one sees no ray at all."""
+    from stages.tomography import _admm
+    from stages.tomography._projector import HostProjector, MatrixProjector
+
+    monkeypatch.setattr(_admm, "DEVICE_BATCH", 1 if device else 10**6)
     geometry, first, observed, upper = problem("joseph", 2)
     _, second, _, _ = problem("joseph", 3)
     sinograms = np.stack([first, 0.5 * second, first])
     masks = np.stack([observed, observed, np.zeros_like(observed)])
     uppers = np.stack([upper, upper, upper])
     solver = TVADMM(geometry, tv_weight=3e-3, tol=1e-5, max_iter=400)
+    assert isinstance(_admm.projector_for(geometry, "float64", 3), MatrixProjector if device else HostProjector)
     with jax.enable_x64(True):
         batch = solver.solve_slices(jnp.asarray(sinograms), jnp.asarray(masks), jnp.asarray(uppers))
         alone = [jax.jit(solver.solve)(jnp.asarray(s), jnp.asarray(m), jnp.asarray(u))
