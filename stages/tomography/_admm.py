@@ -15,10 +15,10 @@ z-updates are exact (isotropic shrinkage, clipping). Slices are solved in batche
 each product is one for the batch, through the sparse system matrix where it fits in memory
 (:class:`~stages.tomography._projector.MatrixProjector`, 100× the matrix-free walk per slice in batches of 32 at
 256²/360, ``benchmarks/tomo_projector.py``; :class:`~stages.tomography._projector.HostProjector`, scipy on host
-threads, for small batches: 14× the walk for one slice), while every slice keeps its own scaling, stopping test and count. The reported iterate is z₂/K, which lies in the box at every
-iteration by construction. Stops when Boyd's relative primal and dual residuals fall below ``tol`` (the
-dual one relative to the larger of ρ‖Dᵀu₁ + Ku₂‖ and ‖RᵀMA‖: on clean data the former tends to 0), or
-at ``max_iter``; the result code (:class:`stages._solution.Result`) says which.
+threads, for small batches: 14× the walk for one slice), while every slice keeps its own scaling, stopping test
+and count. The reported iterate is z₂/K, which lies in the box at every iteration by construction. Stops when
+Boyd's relative primal and dual residuals fall below ``tol`` (the dual one relative to the larger of ρ‖Dᵀu₁ + Ku₂‖
+and ‖RᵀMA‖: on clean data the former tends to 0), or at ``max_iter``; the result code (:class:`stages._solution.Result`) says which.
 
 ``TVADMM`` is the only home of the reconstruction's defaults (λ, ρ, tol, the caps): ``reconstruct_tv`` and
 ``light_angle_study`` take theirs from its ``DEFAULT_*`` constants. λ here (``tv_weight``, TV weight of Eq. 20)
@@ -130,8 +130,8 @@ class TVADMM:
         solution = self.solve_batch(WalkProjector(), sinogram[None], observed[None], sigma_max[None], norms)
         return jax.tree.map(lambda a: a[0], solution)
 
-    def solve_batch(self, projector: WalkProjector | MatrixProjector | HostProjector, sinograms: jnp.ndarray, observed: jnp.ndarray,
-                    sigma_max: jnp.ndarray, norms: jnp.ndarray | None = None) -> Solution:
+    def solve_batch(self, projector: WalkProjector | MatrixProjector | HostProjector, sinograms: jnp.ndarray,
+                    observed: jnp.ndarray, sigma_max: jnp.ndarray, norms: jnp.ndarray | None = None) -> Solution:
         """Reconstruct S slices (S, T, X) at once (pure, jit-able, never raises): every product is one for the whole
         batch (with a :class:`MatrixProjector`, one sparse–dense product), while each slice keeps its own scaling,
         CG steps, stopping test and iteration count; a slice that has converged is held as it stopped while the

@@ -192,8 +192,8 @@ class WalkProjector(NamedTuple):
 class MatrixProjector(NamedTuple):
     """R and Rᵀ as JAX sparse matrices (:func:`system_matrix`): a batch of S slices (S, n, n) is one sparse–dense
     product, ~4 ms a forward–adjoint pair per slice at 256²/360 in batches of 32 (100× the walk), no faster than the
-    walk for one slice (:class:`HostProjector` is); 2 × 8 bytes a nonzero. A pytree: pass it to jitted functions as an argument (closed over, XLA
-    constant-folds its indices for minutes)."""
+    walk for one slice (:class:`HostProjector` is); 2 × 8 bytes a nonzero. A pytree: pass it to jitted functions as
+    an argument (closed over, XLA constant-folds its indices for minutes)."""
 
     rays: sparse.BCSR  # R, (T·X, n²)
     cells: sparse.BCSR  # Rᵀ, (n², T·X)
