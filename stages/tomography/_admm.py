@@ -18,7 +18,8 @@ each product is one for the batch, through the sparse system matrix where it fit
 threads, for small batches: 14× the walk for one slice), while every slice keeps its own scaling, stopping test
 and count. The reported iterate is z₂/K, which lies in the box at every iteration by construction. Stops when
 Boyd's relative primal and dual residuals fall below ``tol`` (the dual one relative to the larger of ρ‖Dᵀu₁ + Ku₂‖
-and ‖RᵀMA‖: on clean data the former tends to 0), or at ``max_iter``; the result code (:class:`stages._solution.Result`) says which.
+and ‖RᵀMA‖: on clean data the former tends to 0), or at ``max_iter``; the result code
+(:class:`stages._solution.Result`) says which.
 
 ``TVADMM`` is the only home of the reconstruction's defaults (λ, ρ, tol, the caps): ``reconstruct_tv`` and
 ``light_angle_study`` take theirs from its ``DEFAULT_*`` constants. λ here (``tv_weight``, TV weight of Eq. 20)
