@@ -215,7 +215,7 @@ class TVADMM:
         raises :class:`stages._solution.SolverError` if ``throw`` is set and a slice did not converge."""
         dtype = jnp.dtype(sinograms.dtype).name
         projector = projector_for(self.geometry, dtype, sinograms.shape[0])
-        solve = _batched(replace(self, throw=False))  # one compile per solver, dtype and batch shape
+        solve = _batched(replace(self, throw=False))  # one compile per solver, projector, dtype and batch shape
         solution = jax.tree.map(np.asarray, solve(projector, sinograms, observed, sigma_max))
         if self.throw:
             raise_if_failed(solution, "TVADMM", items="slices",
@@ -223,29 +223,35 @@ class TVADMM:
         return solution
 
 
-#: the system matrix is used where R and Rᵀ take at most this share of the machine's memory (else the walk)
+#: the system matrix is used where building it (its peak, :data:`BUILD_PEAK` times what R and Rᵀ keep) takes at
+#: most this share of the machine's memory (else the walk)
 MATRIX_SHARE = 0.25
-#: batches of at least this many slices take the matrix in JAX (BCSR: 4 ms a slice's forward–adjoint pair at 32
-#: slices, 256²/360), smaller ones scipy's on host threads (26 ms for one slice, where BCSR takes 365)
+#: the build's peak memory over what R and Rᵀ keep: measured 4× at 192² and 270 angles (the taps, COO lists, the
+#: transpose)
+BUILD_PEAK = 5
+#: batches of at least this many slices take the matrix in JAX (BCSR: 15 ms a slice's forward–adjoint pair at 8
+#: slices and 4 at 32, 256²/360), smaller ones scipy's on host threads (26 ms for one slice, where BCSR takes 365;
+#: both ~15 ms at 8 slices)
 DEVICE_BATCH = 16
 _BUILD = threading.Lock()
+_MATRICES: dict = {}
 
 
 def projector_for(geometry: Geometry, dtype: str, slices: int) -> WalkProjector | MatrixProjector | HostProjector:
-    """The projector :meth:`TVADMM.solve_slices` uses for a batch of ``slices``: the sparse system matrix where it
-    fits (as :class:`MatrixProjector` from :data:`DEVICE_BATCH` slices on, else :class:`HostProjector`; each built
-    once per geometry and dtype, under a lock so that concurrent slice chunks build it once), else the walk."""
+    """The projector :meth:`TVADMM.solve_slices` uses for a batch of ``slices``: the sparse system matrix where its
+    build fits (as :class:`MatrixProjector` from :data:`DEVICE_BATCH` slices on, else :class:`HostProjector`), else
+    the walk. Each is built once per (geometry, dtype, kind), under a lock so that concurrent slice chunks build it
+    once, and kept for the process's life: the compiled solves hold it anyway (a rebuilt one would compile again),
+    and a process meets few geometries (0.65 GB each at 256²/360)."""
     total = machine_memory()
-    if total is not None and MatrixProjector.nbytes(geometry) > MATRIX_SHARE * total:
+    if total is not None and BUILD_PEAK * MatrixProjector.nbytes(geometry, dtype) > MATRIX_SHARE * total:
         return WalkProjector()
+    key = (geometry, dtype, slices >= DEVICE_BATCH)
     with _BUILD:
-        return _matrix(geometry, dtype, slices >= DEVICE_BATCH)
-
-
-@lru_cache(maxsize=2)
-def _matrix(geometry: Geometry, dtype: str, device: bool) -> MatrixProjector | HostProjector:
-    with jax.enable_x64(dtype == "float64"):  # else JAX would keep a float64 matrix as float32
-        return (MatrixProjector if device else HostProjector).build(geometry, np.dtype(dtype))
+        if key not in _MATRICES:
+            with jax.enable_x64(dtype == "float64"):  # else JAX would keep a float64 matrix as float32
+                _MATRICES[key] = (MatrixProjector if key[2] else HostProjector).build(geometry, np.dtype(dtype))
+        return _MATRICES[key]
 
 
 @lru_cache(maxsize=16)

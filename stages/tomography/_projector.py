@@ -1,4 +1,5 @@
-"""The parallel-beam system operator R of Eq. 21–23 on the binned (θ, X) grid, matrix-free in JAX.
+"""The parallel-beam system operator R of Eq. 21–23 on the binned (θ, X) grid: a matrix-free walk in JAX, and the
+same weights as a sparse system matrix (:func:`system_matrix`) for batches of slices.
 
 After alignment and binning every observed ray is a parallel-beam ray (DESIGN §6), so one operator serves
 FBP and the optimisation. Conventions (DESIGN §8): the image covers ``[−L, L]²`` on an ``n × n`` grid of
@@ -18,7 +19,8 @@ holds to rounding by construction. FBP uses the pixel-driven back-projector :fun
 (the textbook one, linear interpolation in X), which is what scikit-image's ``iradon`` does.
 
 Written by hand because no library in our stack offers a differentiable, batched, masked parallel-beam
-projector on an arbitrary (θ, X) grid on CPU (ASTRA needs its own data layout and has no JAX transpose).
+projector on an arbitrary (θ, X) grid on CPU (ASTRA needs its own data layout and has no JAX transpose). Only the
+walk and :class:`MatrixProjector` are differentiable; :class:`HostProjector` runs through ``jax.pure_callback``.
 """
 
 from __future__ import annotations
@@ -204,9 +206,10 @@ class MatrixProjector(NamedTuple):
         return cls(sparse.BCSR.from_scipy_sparse(matrix), sparse.BCSR.from_scipy_sparse(matrix.T.tocsr()))
 
     @staticmethod
-    def nbytes(geometry: Geometry) -> int:
-        """An upper bound on R and Rᵀ's memory: two taps per step of every ray, 8 bytes each (value, index), twice."""
-        return 2 * 2 * geometry.n * len(geometry.theta_deg) * len(geometry.x) * 8
+    def nbytes(geometry: Geometry, dtype=np.float32) -> int:
+        """An upper bound on R and Rᵀ's memory: two taps per step of every ray, each a value and an int32 index,
+        twice. Building them takes about four times this at its peak (the taps, COO lists, the transpose)."""
+        return 2 * 2 * geometry.n * len(geometry.theta_deg) * len(geometry.x) * (np.dtype(dtype).itemsize + 4)
 
     def forward(self, geometry: Geometry, images: jnp.ndarray) -> jnp.ndarray:
         columns = images.reshape(-1, geometry.n * geometry.n).T
@@ -230,7 +233,7 @@ class HostProjector:
         import os
         from concurrent.futures import ThreadPoolExecutor
 
-        threads = threads or os.cpu_count() or 1
+        threads = threads or len(os.sched_getaffinity(0)) or 1  # the cores this process may use
         self._pool = ThreadPoolExecutor(threads, thread_name_prefix="selpath-projector")
 
         def blocks(m):
