@@ -11,8 +11,8 @@ from __future__ import annotations
 import numpy as np
 import xarray as xr
 
-from pipeline.errors import Problem, StageError
 from pipeline.registry import stage
+from stages._common import require_variables
 from stages._figures import as_figure, panels, pixel_axes, rgba
 from stages.procam.figures import display_top
 
@@ -70,11 +70,8 @@ def material_figure(classification: xr.Dataset, classifier: xr.Dataset, /) -> xr
     classifier : xr.Dataset
         The ``material_classifier`` store that classified it (its mean training profiles are drawn).
     """
-    for name, ds, needed in (("classification", classification, ("label", "image")),
-                             ("classifier", classifier, ("mean_profile",))):
-        if not set(needed) <= set(ds.data_vars):
-            raise StageError(Problem(f"{name} lacks {needed}", where=name,
-                                     fix="wire in classify_materials' and train_material_classifier's outputs"))
+    require_variables(classification, ("label", "image"), "material_figure")
+    require_variables(classifier, ("mean_profile",), "material_figure")
     names = [str(v) for v in classifier["material"].values]
     scored = "confusion" in classification.data_vars
     source = classifier.attrs.get("source_kind", "plane_to_ray_capture")
@@ -137,8 +134,7 @@ def vein_figure(choice: xr.Dataset, /) -> xr.Dataset:
     choice : xr.Dataset
         A ``delay_choice`` store (``choose_delay``).
     """
-    if not {"image", "contrast", "contrast_of"} <= set(choice.data_vars):
-        raise StageError(Problem("not a delay_choice store", where="choice", fix="wire in the output of choose_delay"))
+    require_variables(choice, ("image", "contrast", "contrast_of"), "vein_figure")
     a = choice.attrs
     caption = f"""Seeing a structure below the surface (thesis Fig. 49), in counts, each image on its own scale, axes
         in camera pixels: (a) the regular image (all the transport's light), where the surface's reflection hides
@@ -201,8 +197,7 @@ def atlas_figure(atlas: xr.Dataset, /) -> xr.Dataset:
     atlas : xr.Dataset
         A ``material_atlas`` store (``material_atlas``).
     """
-    if not {"profile", "extent", "image"} <= set(atlas.data_vars):
-        raise StageError(Problem("not a material_atlas store", where="atlas", fix="wire in the output of material_atlas"))
+    require_variables(atlas, ("profile", "extent", "image"), "atlas_figure")
     reach = atlas.attrs.get("reach_px", "?")
     caption = f"""A material atlas from full transport (thesis Fig. 53): (a) the white image Σ T in counts, axes in
         camera pixels, with the sites numbered; then each site's profile T(du, dv) over the projector column du
@@ -260,9 +255,8 @@ def appearance_figure(profile: xr.Dataset, render: xr.Dataset, /) -> xr.Dataset:
     render : xr.Dataset
         An ``appearance_render`` store (``render_appearance``) of that profile.
     """
-    if "profile" not in profile.data_vars or "image" not in render.data_vars:
-        raise StageError(Problem("needs a scattering_profile and an appearance_render",
-                                 fix="wire in fit_scattering_profile's and render_appearance's outputs"))
+    require_variables(profile, ("profile",), "appearance_figure")
+    require_variables(render, ("image",), "appearance_figure")
     a = profile.attrs
     fit_text = (f"f = {a.get('fraction', np.nan):.3f} ± {a.get('fraction_std', np.nan):.3f}, "
                 f"w = {a.get('width_px', np.nan):.2f} ± {a.get('width_std_px', np.nan):.2f} px")
