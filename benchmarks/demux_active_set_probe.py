@@ -58,7 +58,8 @@ def main() -> None:
     import jax.numpy as jnp
 
     from benchmarks.demux_throughput import _matrix, _pixels
-    from stages.procam._demux_problem import DemuxProblem, certified_gap
+    from stages.procam._demux_certificate import certified_gap
+    from stages.procam._demux_problem import DemuxProblem
     from stages.procam._demux_solver import DemuxADMM
 
     k, p = 128, args.pixels

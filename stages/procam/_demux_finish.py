@@ -1,7 +1,7 @@
 """An exact finish for the demultiplexing ADMM: primal–dual active-set rounds with float64 free-set solves (#25).
 
 ADMM's answer is accurate in the objective (~1e-4) but not in its KKT conditions, so its certified bound (weak
-duality from T's own gradients, :func:`stages.procam._demux_problem.certified_gap`) stays ~1e-2. Where the
+duality from T's own gradients, :func:`stages.procam._demux_certificate.certified_gap`) stays ~1e-2. Where the
 active set is right, the free offsets' KKT system G_FF T_F = (Aᵀy − β/2)_F solved exactly gives the optimum,
 and the bound falls to rounding. This finish (Hintermüller, Ito & Kunisch's primal–dual active-set method) starts
 from ADMM's support and, each round, frees the offsets where λ_i − κT_i ≤ 0 (λ = ∇f, κ = :data:`KAPPA`), holds
@@ -24,7 +24,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from stages.procam._demux_problem import DemuxProblem, certified_gap
+from stages.procam._demux_certificate import certified_gap
+from stages.procam._demux_problem import DemuxProblem
 from stages.procam._illumination import difference_operator
 
 #: the active-set rule's weight on T against λ: large, so an offset with light stays free whatever its gradient

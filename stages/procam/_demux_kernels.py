@@ -15,7 +15,8 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from stages.procam._demux_problem import DUAL_SEARCH_STEPS, KKT_HELD, DenseOperators, best_dual_value, kkt_gap
+from stages.procam._demux_certificate import DUAL_SEARCH_STEPS, KKT_HELD, best_dual_value, kkt_gap
+from stages.procam._demux_problem import DenseOperators
 
 
 class Limits(NamedTuple):
@@ -299,7 +300,7 @@ def gaps(ops, pool: Rows, z, *, chunk: int, masked: bool):
 
 
 def certified_gap(ops, rows: Rows, t, *, masked: bool, steps: int = DUAL_SEARCH_STEPS, shares=KKT_HELD):
-    """:func:`stages.procam._demux_problem.certified_gap` (the methods and their proofs are there: the first-order
+    """:func:`stages.procam._demux_certificate.certified_gap` (the methods and their proofs are there: the first-order
     bound, and for dense problems on fully observed, unclipped pixels the smaller KKT bound) on the scaled data,
     in the solver's dtype, with ``steps`` of the dual search and the KKT bound's ``shares``: about as much as two
     to four iterations. Where no frame of the call is masked or clipped (``masked`` False) every frame is in the

@@ -33,9 +33,9 @@ DESIGN §6), so this is a batched ADMM in plain JAX (kernels in
 * a certificate beside the answer: :func:`~stages.procam._demux_kernels.certified_gap` bounds each pixel's
   relative objective gap from weak duality (in the solver's dtype, at the end: about four iterations' cost, 0.8
   µs/px at K = 128; at the warm start a cheaper form that is exact at an optimum, 0.5 µs/px; the float64
-  reference is :func:`~stages.procam._demux_problem.certified_gap`). A bound, never an estimate: the smaller
+  reference is :func:`~stages.procam._demux_certificate.certified_gap`). A bound, never an estimate: the smaller
   of a first-order one (every pixel) and, for a fully observed, unclipped pixel of a dense problem, the Lagrangian
-  one of :func:`~stages.procam._demux_problem.kkt_gap`, second order in the KKT residual: on float32 solves stopped
+  one of :func:`~stages.procam._demux_certificate.kkt_gap`, second order in the KKT residual: on float32 solves stopped
   at ``tol`` it is typically 1–15× above the true gap at the median (the first-order one alone 10–200×), but far
   above it where T's KKT conditions are off (p99 0.1–0.3) (``converged`` means the residual test or a bound ≤
   ``gap_tol``);

@@ -186,7 +186,7 @@ def test_exactly_optimal_pixels_stop_at_once_and_are_converged():
     assert np.all(result.value == 0) and np.all(result.stats["gap_bound"] == 0)
     # and a tight residual tolerance no longer leaves near-exact optima flagged unconverged: converged is the
     # residual test or a certified bound ≤ gap_tol, checked here against the float64 reference certificate
-    from stages.procam._demux_problem import certified_gap
+    from stages.procam._demux_certificate import certified_gap
 
     _, clean = pixels(a, np.random.default_rng(8), n=32)
     tight = DemuxADMM(tol=1e-9, max_iter=300, polish_iter=20).solve(DemuxProblem.build(a, beta=0.01), clean)

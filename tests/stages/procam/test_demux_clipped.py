@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from stages._solution import Result
-from stages.procam._demux_problem import DemuxProblem, certified_gap
+from stages.procam._demux_certificate import certified_gap
+from stages.procam._demux_problem import DemuxProblem
 from stages.procam._demux_solver import DemuxADMM, censored_offsets
 from tests.stages.procam.test_demux_solver import sparse_transport, sweep_matrix
 

@@ -6,7 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from stages.procam._demux_problem import DemuxProblem, certified_gap
+from stages.procam._demux_certificate import certified_gap
+from stages.procam._demux_problem import DemuxProblem
 from stages.procam._demux_solver import DemuxADMM
 from tests.stages.procam.test_demux_solver import CASES, cvxpy_optimum, sparse_transport, sweep_matrix
 

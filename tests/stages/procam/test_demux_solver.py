@@ -218,7 +218,7 @@ def test_float32_does_not_settle_at_zero_where_the_pseudo_inverse_start_is_round
     # certifies T = 0
     f32, f64 = problem.objective(single.value, data), problem.objective(double.value, data)
     assert np.all(single.stats["gap_bound"] >= (f32 - f64) / f32 - 1e-6)
-    from stages.procam._demux_problem import certified_gap
+    from stages.procam._demux_certificate import certified_gap
 
     assert np.all(certified_gap(problem, np.zeros_like(single.value), data) > 0.99)
 
@@ -233,7 +233,7 @@ def test_the_certified_gap_bounds_the_true_gap_and_is_tight_at_an_optimum(case):
     rng = np.random.default_rng(1)
     data = sparse_transport(rng, 12, offsets) @ problem.illumination.T + rng.normal(0, 0.01, (12, problem.frames))
     _, optimum = cvxpy_optimum(problem, data)
-    from stages.procam._demux_problem import certified_gap
+    from stages.procam._demux_certificate import certified_gap
 
     for solver in (DemuxADMM(), DemuxADMM(max_iter=5)):
         solution = solver.solve(problem, data)
@@ -257,7 +257,7 @@ def test_the_certified_gap_bounds_the_true_gap_and_is_tight_at_an_optimum(case):
 def test_an_exact_answer_is_certified_at_once_and_a_wrong_zero_is_not():
     """All-zero data: T = 0 is optimal and certified (bound 0). T = 0 for data with light, the float32 failure
     this certificate exists for, has a bound of 1: nothing certifies it."""
-    from stages.procam._demux_problem import certified_gap
+    from stages.procam._demux_certificate import certified_gap
 
     delays, exposures, offsets = CASES["well-posed"]
     problem = DemuxProblem.build(sweep_matrix(delays, exposures, offsets), alpha=0.01, beta=0.01)
@@ -286,7 +286,7 @@ def test_an_active_set_polish_round_lowers_the_worst_gap():
 def test_the_bound_reads_a_weight_as_observed_or_not():
     """Review finding: a fractional weight (0.5) made the public certified_gap bound another objective than the
     QP's and read 0 where f ≫ f*. A weight says only whether a frame is observed, as in the solver."""
-    from stages.procam._demux_problem import certified_gap
+    from stages.procam._demux_certificate import certified_gap
 
     delays, exposures, offsets = CASES["well-posed"]
     a = sweep_matrix(delays, exposures, offsets)
@@ -304,7 +304,7 @@ def test_the_kkt_bound_is_the_lagrangian_gap_and_far_tighter_than_the_first_orde
     (to 1e-9 of f), for λ ≥ 0 of its rule at arbitrary T ≥ 0; the solver's bound is never below the true gap
     (Clarabel's optimum), and on float32 default solves of the well-posed sweep its median is ≥ 10× below the
     first-order bound's (measured on the catalogue: 5.8e-3 → 1.0e-4 at K = 64, 8.2e-3 → 3.5e-4 at K = 128)."""
-    from stages.procam._demux_problem import KKT_HELD, certified_gap, kkt_gap
+    from stages.procam._demux_certificate import KKT_HELD, certified_gap, kkt_gap
 
     delays, exposures, offsets = CASES["well-posed"]
     problem = DemuxProblem.build(sweep_matrix(delays, exposures, offsets), alpha=0.01, beta=0.01)

@@ -1,0 +1,160 @@
+"""The certificate of a demultiplexed pixel (#25): certified bounds on its relative objective gap, from weak duality.
+
+:func:`certified_gap` is the float64 reference (the first-order bound from T's own gradients with a dual search,
+:func:`best_dual_value`, and for fully observed, unclipped pixels of a dense problem the second-order
+:func:`kkt_gap`); :mod:`stages.procam._demux_kernels` evaluates the same bounds in the solver's dtype with these
+functions (written for numpy or ``jax.numpy`` through ``xp``). The problems themselves are in
+:mod:`stages.procam._demux_problem`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from stages.procam._demux_problem import DemuxProblem, SeparableDemuxProblem, _dtd_np, _residual, _smoothness
+
+
+#: golden-section steps of the dual search in :func:`best_dual_value` (the interval shrinks 0.618× per step)
+DUAL_SEARCH_STEPS = 16
+_GOLDEN = (5**0.5 - 1) / 2
+
+def best_dual_value(xp, a, b, z, g, e_y, e_u, n_e, beta, steps=DUAL_SEARCH_STEPS):
+    """The largest dual value D(θu + s·e, θv) found over θ ≥ 0 and real s, feasible (see certified_gap).
+
+    Per pixel: a = Σ u ỹ, b = Σ r² + α‖DT‖² (D(θ, 0) = −θa − θ²b), z = Aᵀu + Dᵀv (K,), g = Aᵀe (K,) with e the
+    unclipped observed frames, e_y = Σ e ỹ, e_u = Σ e u, n_e = Σ e; beta (P,) or scalar.
+    D(θ, s) = −θa − θ²b − s e_y − θ s e_u / 2 − s² n_e / 4, feasible where θ z_k + s g_k ≥ −β for every k.
+    """
+    beta = xp.asarray(beta) * xp.ones_like(a)
+    tiny = xp.finfo(a.dtype).tiny
+    blind = g <= 0
+    # offsets no unclipped frame sees: only θ can keep them feasible
+    worst_blind = xp.max(xp.where(blind, xp.maximum(-z, 0.0), 0.0), axis=-1)
+    cap = xp.where(worst_blind > 0, beta / xp.maximum(worst_blind, tiny), xp.inf)
+    theta_free = xp.where(b > 0, -a / xp.maximum(2.0 * b, tiny), 1.0)
+    safe_g = xp.where(blind, 1.0, g)
+    # offset k needs s ≥ lift_k + θ·slope_k (never, where blind)
+    lift = xp.where(blind, -xp.inf, -beta[:, None] / safe_g)
+    slope = xp.where(blind, 0.0, -z / safe_g)
+
+    def value(theta):
+        s_min = xp.max(lift + theta[:, None] * slope, axis=-1)  # −∞ where every offset is blind
+        s_free = xp.where(n_e > 0, -(2.0 * e_y + theta * e_u) / xp.maximum(n_e, tiny), 0.0)
+        s = xp.maximum(s_min, s_free)
+        return -theta * a - theta**2 * b - s * e_y - theta * s * e_u / 2.0 - s**2 * n_e / 4.0
+
+    # the scaling-only point of the first-order bound: s = 0, θ clipped to keep every offset feasible
+    worst = xp.maximum(-xp.min(z, axis=-1), 0.0)
+    theta_scaled = xp.clip(theta_free, 0.0, xp.where(worst > 0, beta / xp.maximum(worst, tiny), xp.inf))
+    best = xp.maximum(-theta_scaled * a - theta_scaled**2 * b, value(xp.zeros_like(a)))
+    best = xp.maximum(best, value(xp.minimum(cap, 1.0)))  # the gradients' own point, lifted: exact at an optimum
+
+    def step(_, bracket):  # golden-section search of the concave value(θ) on [lo, hi]
+        lo, hi = bracket
+        left, right = hi - _GOLDEN * (hi - lo), lo + _GOLDEN * (hi - lo)
+        keep_left = value(left) > value(right)
+        return xp.where(keep_left, lo, left), xp.where(keep_left, right, hi)
+
+    bracket = (xp.zeros_like(a), xp.minimum(cap, 2.0 * xp.maximum(theta_free, 1.0)))
+    if xp is np:
+        for i in range(steps):
+            bracket = step(i, bracket)
+    else:  # one traced step, not `steps` unrolled copies (compile time)
+        import jax
+
+        bracket = jax.lax.fori_loop(0, steps, step, bracket)
+    return xp.maximum(best, value((bracket[0] + bracket[1]) / 2.0))
+
+
+#: the KKT bound's multipliers: offsets at most each of these shares of a pixel's peak count as held at 0 (any choice
+#: is a valid bound, and the smallest is kept: a solver leaves ~1e-6 of the peak where the optimum is 0, and
+#: which offsets count as held decides the bound, by orders of magnitude where one is missed)
+KKT_HELD = (0.0, 1e-6, 1e-4, 1e-2)
+
+
+def kkt_gap(xp, t, gradient, inverse, primal, applies, shares=KKT_HELD):
+    """A second certified bound, from the Lagrangian dual of min f(T) s.t. T ≥ 0 when every frame of the pixel
+    is an observed, unclipped one, so that f is the quadratic TᵀGT − 2yᵀAT + βᵀT + ‖y‖² with 2G = 2(AᵀA + αDᵀD)
+    positive definite: for any multiplier λ ≥ 0, g(λ) = min_T f(T) − λᵀT ≤ f*, and with δ = ∇f(T) − λ,
+
+        f(T) − g(λ) = λᵀT + ½ δᵀ(2G)⁻¹δ
+
+    (f − λᵀT is quadratic with Hessian 2G, minimised at T − (2G)⁻¹δ). With λ = max(∇f(T), 0) on the offsets held
+    at 0 (at most a share of the peak, for each of ``shares``; the smallest bound over them) and 0 elsewhere, both
+    terms vanish at the optimum and the bound is
+    second order in T's KKT residual (the first-order bound of :func:`certified_gap` is first order in it). No
+    cancellation: both terms are non-negative. ``inverse`` applies (2G)⁻¹ to (P, K) rows; ``applies`` (P,) says
+    where the pixel's objective is that quadratic; elsewhere the bound is 1 (no information). Relative to
+    ``primal`` = f(T)."""
+    peak = xp.max(t, axis=-1, keepdims=True)
+    gap = None
+    for share in shares:
+        lam = xp.where(t <= share * peak, xp.maximum(gradient, 0.0), 0.0)
+        delta = gradient - lam
+        candidate = xp.sum(lam * t, axis=-1) + 0.5 * xp.sum(delta * inverse(delta), axis=-1)
+        gap = candidate if gap is None else xp.minimum(gap, candidate)
+    tiny = xp.finfo(t.dtype).tiny
+    relative = xp.where(primal > 0, xp.minimum(xp.maximum(gap, 0.0) / xp.maximum(primal, tiny), 1.0), 0.0)
+    return xp.where(applies, relative, 1.0)
+
+
+def certified_gap(problem: DemuxProblem | SeparableDemuxProblem, transport: np.ndarray, data: np.ndarray,
+                  weight: np.ndarray | None = None, clipped: np.ndarray | None = None, *,
+                  search_steps: int = DUAL_SEARCH_STEPS) -> np.ndarray:
+    """A certified bound on each pixel's relative objective gap (f(T) − f*)/f(T), from weak duality, in float64.
+
+    f(T) = g(AT) + h(DT) + β1ᵀT with T ≥ 0, g(r) = Σ w(r − y)², h(s) = α‖s‖². Its Fenchel dual is
+    D(u, v) = −Σ (u y + u²/4) − ‖v‖²/(4α) subject to Aᵀu + Dᵀv ≥ −β (u = 0 on masked frames), and every
+    feasible (u, v) gives D ≤ f* (weak duality). The dual points tried are those T's own gradients give,
+    u = 2w(AT − y), v = 2αDT (at the optimum they are the dual optimum), scaled by θ ≥ 0 and shifted by s
+    on every observed unclipped frame (u + s·e: Aᵀe ≥ 0 since the illumination is non-negative, so the shift
+    lifts every offset's constraint where scaling alone must shrink the whole point): (θ, s) maximises D subject
+    to feasibility (:func:`best_dual_value`: a closed form in s, a golden-section search in θ, never below the
+    scaling-only point θ = min(θ_free, β / max(0, −min(Aᵀu + Dᵀv))), s = 0). Then f(T) − f* ≤ f(T) − D: a bound,
+    not an estimate. Scale-invariant (both sides scale with the data squared), and with the shift it stays
+    useful where β is negligible against the data (at 1e8 scale with β not rescaled the scaling-only point
+    gave 1 everywhere); 0 where f(T) = 0 (an all-zero pixel at T = 0 is certified at once). Its tightness is
+    T's own KKT accuracy: where an offset held at 0 has a negative gradient δ, the bound is about δ·ΣT / f(T)
+    (first order in δ while the true gap is second order: an ADMM answer with true gap 1e-5 reads ~5e-3).
+
+    A clipped frame's term max(0, y − r)² has the conjugate u y + u²/4 for u ≤ 0 (+∞ above): the same with the
+    constraint u ≤ 0, which its gradient u = 2 min(0, AT − y), every θ ≥ 0 and a shift on unclipped frames keep.
+
+    Where every frame of a pixel is observed and unclipped and 2G is positive definite, the smaller of this bound
+    and :func:`kkt_gap`'s (second order in the KKT residual) is returned: both are bounds.
+    """
+    t = np.asarray(transport, np.float64)
+    if weight is not None:  # a frame is observed or not (the solver's rule): a fractional weight is not this QP's
+        weight = (np.asarray(weight) > 0).astype(np.float64)
+    residual, target = _residual(problem, t, data, weight, clipped)
+    w = np.ones_like(target) if weight is None else weight
+    e = w if clipped is None else w * ~np.asarray(clipped, bool)
+    u = 2.0 * residual
+    if isinstance(problem, SeparableDemuxProblem):
+        cells = t.reshape(-1, *problem.cells)
+        n_u = problem.line_matrix.shape[0]
+
+        def adjoint(r):
+            return np.einsum("ju,pjn,nv->puv", problem.line_matrix, r.reshape(r.shape[0], n_u, -1),
+                             problem.frame_matrix, optimize=True).reshape(t.shape)
+
+        smooth_gradient = _dtd_np(cells).reshape(t.shape)
+    else:
+        def adjoint(r):
+            return r @ problem.illumination
+
+        smooth_gradient = _dtd_np(t)
+    z = adjoint(u) + 2.0 * problem.alpha * smooth_gradient
+    a = (u * target * w).sum(-1)
+    b = (residual**2).sum(-1) + problem.alpha * _smoothness(problem, t)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        dual = best_dual_value(np, a, b, z, adjoint(e), (e * target).sum(-1), (e * u).sum(-1), e.sum(-1),
+                               problem.beta, steps=search_steps)
+        primal = b + problem.beta * t.sum(-1)
+        gap = np.maximum(primal - dual, 0.0)
+        relative = np.where(primal > 0, np.minimum(gap / primal, 1.0), 0.0)
+        if isinstance(problem, DemuxProblem) and problem.definite:
+            applies = np.all(e * np.isfinite(np.asarray(data, np.float64)) > 0, axis=-1)
+            relative = np.minimum(relative, kkt_gap(np, t, z + problem.beta, lambda v: v @ problem.inverse,
+                                                    primal, applies))
+    return np.where(np.isfinite(relative), relative, 1.0)
