@@ -130,6 +130,13 @@ class Camera(ABC):
         origins, directions = self._rays(np.full_like(col, self.centre_px[1]), col)
         return origins[:, :2], directions[:, :2]
 
+    def axis_height(self, row) -> np.ndarray:
+        """Height z [length unit] at which sub-pixel ``row`` sees the rotation axis: where the ray through the row
+        and the principal column crosses the plane y = 0 (the object's slice height that row is read as)."""
+        row = np.asarray(row, float).ravel()
+        origins, directions = self._rays(row, np.full_like(row, self.centre_px[0]))
+        return origins[:, 2] - origins[:, 1] * directions[:, 2] / directions[:, 1]
+
     def pixel_index(self, row, col) -> tuple[np.ndarray, np.ndarray]:
         """Row-major index of the pixel holding each sub-pixel (row, col), and whether it is on the sensor."""
         r, c = np.rint(row).astype(np.int64), np.rint(col).astype(np.int64)

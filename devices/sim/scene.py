@@ -27,7 +27,7 @@ import numpy as np
 import pydantic
 
 from devices.geometry import OrthographicCamera, PerspectiveCamera, RigGeometry
-from devices.sim.shapes import Ellipse, Polygon, Prism, convex_polygon
+from devices.sim.shapes import Ellipse, Ellipsoid, Polygon, Prism, Solid, convex_polygon
 from pipeline.yaml_source import load_yaml_model
 
 _TO_MM = {"m": 1000.0, "cm": 10.0, "mm": 1.0, "um": 1e-3}
@@ -93,18 +93,15 @@ class Cylinder(_Model):
         return Ellipse(self.centre, (self.radius, self.radius))
 
 
+#: a semi-axis of an ellipse or ellipsoid
+SemiAxis = Annotated[Length, pydantic.Field(gt=0)]
+
+
 class EllipseSpec(_Model):
     kind: Literal["ellipse"]
-    semi_axes: tuple[Length, Length]
+    semi_axes: tuple[SemiAxis, SemiAxis]
     angle: Angle = 0.0
     centre: tuple[Length, Length] = (0.0, 0.0)
-
-    @pydantic.field_validator("semi_axes")
-    @classmethod
-    def _positive(cls, value):
-        if min(value) <= 0:
-            raise ValueError("semi-axes must be positive")
-        return value
 
     def build(self) -> Ellipse:
         return Ellipse(self.centre, self.semi_axes, np.deg2rad(self.angle))
@@ -124,7 +121,27 @@ class PolygonSpec(_Model):
         return convex_polygon(self.vertices)
 
 
-ShapeSpec = Annotated[Cylinder | EllipseSpec | PolygonSpec, pydantic.Field(discriminator="kind")]
+class EllipsoidSpec(_Model):
+    """A solid ellipsoid (a grape): its own height, so an object of this shape takes no ``height`` and an inclusion
+    no ``z_range``."""
+
+    kind: Literal["ellipsoid"]
+    semi_axes: tuple[SemiAxis, SemiAxis, SemiAxis] = pydantic.Field(description="along x, y and z before the turn")
+    centre: tuple[Length, Length, Length] = (0.0, 0.0, 0.0)
+    angle: Angle = pydantic.Field(0.0, description="turn about z, counter-clockwise seen from +z")
+
+    def build(self) -> Ellipsoid:
+        return Ellipsoid(self.centre, self.semi_axes, np.deg2rad(self.angle))
+
+
+ShapeSpec = Annotated[Cylinder | EllipseSpec | PolygonSpec | EllipsoidSpec, pydantic.Field(discriminator="kind")]
+
+
+def solid(shape, z_range: tuple[float, float] | None) -> Solid:
+    """The solid a shape spec makes: an ellipsoid as it is, a cross-section extruded over ``z_range``."""
+    if isinstance(shape, EllipsoidSpec):
+        return shape.build()
+    return Prism(shape.build(), z_range if z_range is not None else (-np.inf, np.inf))
 
 
 class Inclusion(_Model):
@@ -143,6 +160,12 @@ class Inclusion(_Model):
             raise ValueError(f"z_range [{value[0]:g}, {value[1]:g}] mm is empty: the low end must be below the high")
         return value
 
+    @pydantic.model_validator(mode="after")
+    def _one_height(self):
+        if isinstance(self.shape, EllipsoidSpec) and self.z_range is not None:
+            raise ValueError("an ellipsoid inclusion has its own height: leave out z_range")
+        return self
+
 
 class Skin(_Model):
     transmittance: float = pydantic.Field(0.8, gt=0, le=1, description="thin diffusing skin, crossed twice")
@@ -154,27 +177,58 @@ class Medium(_Model):
 
 class SceneObject(_Model):
     shape: ShapeSpec
-    height: Annotated[Length, pydantic.Field(gt=0)]
+    height: Annotated[Length, pydantic.Field(gt=0)] | None = pydantic.Field(
+        None, description="of the prism a cross-section makes, centred on z = 0; none for an ellipsoid")
     skin: Skin = Skin()
     medium: Medium = Medium()
     inclusions: list[Inclusion] = []
 
     @pydantic.model_validator(mode="after")
+    def _height_given_once(self):
+        if isinstance(self.shape, EllipsoidSpec) and self.height is not None:
+            raise ValueError("an ellipsoid has its own height (2 × its z semi-axis): leave out object.height")
+        if not isinstance(self.shape, EllipsoidSpec) and self.height is None:
+            raise ValueError(f"a {self.shape.kind} is a cross-section: give object.height, the prism's height")
+        return self
+
+    def solid(self) -> Solid:
+        """The object as a solid (object frame: z up along the rotation axis)."""
+        half = None if self.height is None else (-self.height / 2.0, self.height / 2.0)
+        return solid(self.shape, half)
+
+    def inclusion_solids(self) -> tuple[tuple[Solid, float], ...]:
+        """Each inclusion's solid (a cross-section spans ``z_range``, by default the object's height) and σ."""
+        body_z = self.solid().z_range
+        return tuple((solid(i.shape, i.z_range or body_z), i.sigma) for i in self.inclusions)
+
+    @pydantic.model_validator(mode="after")
     def _inclusions_inside(self):
-        body = self.shape.build()
-        for i, inc in enumerate(self.inclusions):
-            if not body.contains(inc.shape.build().outline(64)).all():
-                raise ValueError(f"inclusions[{i}] ({inc.name or inc.shape.kind}) reaches outside the object")
-        if self.inclusions:  # the absorption field must be physical: sum of medium and inclusions >= 0
-            reach = body.reach()
-            grid = np.stack(np.meshgrid(*[np.linspace(-reach, reach, 201)] * 2), axis=-1).reshape(-1, 2)
-            grid = grid[body.contains(grid)]
-            total = np.full(len(grid), self.medium.sigma)
-            for inc in self.inclusions:
-                total += inc.sigma * inc.shape.build().contains(grid)
+        body = self.solid()
+        solids = self.inclusion_solids()
+        for i, ((inc, _), spec) in enumerate(zip(solids, self.inclusions, strict=True)):
+            if not body.contains(inc.surface(64)).all():
+                raise ValueError(f"inclusions[{i}] ({spec.name or spec.shape.kind}) reaches outside the object")
+        if solids:  # the absorption field must be physical: sum of medium and inclusions >= 0
+            total, _ = absorption_field(self.medium.sigma, body, solids)
             if total.min() < -1e-12:
                 raise ValueError(f"medium + inclusions give a negative absorption ({total.min():.3g} /mm)")
         return self
+
+
+def absorption_field(medium: float, body: Solid, solids) -> tuple[np.ndarray, np.ndarray]:
+    """σ of the medium plus the inclusions at sample points inside ``body`` (201² in x–y at the mid-height of
+    every z band between the solids' ends, and at every ellipsoid's centre), and the points (N, 3)."""
+    reach = body.reach()
+    ends = sorted({float(z) for s in (body, *(s for s, _ in solids)) for z in s.z_range if np.isfinite(z)})
+    heights = [(a + b) / 2 for a, b in zip(ends, ends[1:], strict=False)] or [0.0]
+    heights += [s.centre[2] for s, _ in solids if isinstance(s, Ellipsoid)]
+    xy = np.stack(np.meshgrid(*[np.linspace(-reach, reach, 201)] * 2), axis=-1).reshape(-1, 2)
+    points = np.vstack([np.column_stack([xy, np.full(len(xy), z)]) for z in heights])
+    points = points[body.contains(points)]
+    total = np.full(len(points), medium)
+    for inc, sigma in solids:
+        total += sigma * inc.contains(points)
+    return total, points
 
 
 class Light(_Model):
@@ -316,13 +370,11 @@ class Scene(_Model):
         angle = self.stated.light_angle if self.stated.light_angle is not None else geometry.light_angle_deg
         return dataclasses.replace(geometry, camera=camera, light_angle_deg=angle)
 
-    def body(self) -> Prism:
-        half = self.object.height / 2.0
-        return Prism(self.object.shape.build(), (-half, half))
+    def body(self) -> Solid:
+        return self.object.solid()
 
-    def inclusions(self) -> tuple[tuple[Prism, float], ...]:
-        half = self.object.height / 2.0
-        return tuple((Prism(i.shape.build(), i.z_range or (-half, half)), i.sigma) for i in self.object.inclusions)
+    def inclusions(self) -> tuple[tuple[Solid, float], ...]:
+        return self.object.inclusion_solids()
 
 
 def load_scene(path: str | os.PathLike) -> Scene:

@@ -1,4 +1,4 @@
-"""Convex shapes and prisms, and where lines cross them: the geometry of the tomography simulator.
+"""Convex shapes and solids (prisms, ellipsoids), and where lines cross them: the tomography simulator's geometry.
 
 Every shape answers one vectorised question: for lines ``origin + t·direction`` (arrays of N lines),
 the parameter interval ``[t_in, t_out]`` inside the shape and the outward normals at both ends. Chords,
@@ -34,6 +34,35 @@ def _miss(n: int, dim: int) -> Interval:
     return Interval(np.full(n, _NO_HIT), np.full(n, -_NO_HIT), np.zeros((n, dim)), np.zeros((n, dim)))
 
 
+def _quadric_interval(m: np.ndarray, centre, origin: np.ndarray, direction: np.ndarray, normals: bool) -> Interval:
+    """Where lines cross the ellipse or ellipsoid {p : |M (p − centre)| ≤ 1} (any dimension), with outward normals."""
+    o = (np.asarray(origin, float) - centre) @ m.T
+    d = np.asarray(direction, float) @ m.T
+    a = np.einsum("ij,ij->i", d, d)
+    b = np.einsum("ij,ij->i", o, d)
+    c = np.einsum("ij,ij->i", o, o) - 1.0
+    disc = b * b - a * c
+    with np.errstate(invalid="ignore", divide="ignore"):
+        root = np.sqrt(np.where(disc > 0, disc, 0.0))
+        t_in = np.where(disc > 0, (-b - root) / a, _NO_HIT)
+        t_out = np.where(disc > 0, (-b + root) / a, -_NO_HIT)
+    still = a <= 1e-300  # a direction the quadric does not see (zero): inside for every t, or never
+    if still.any():
+        inside = c[still] <= 0
+        t_in[still] = np.where(inside, -np.inf, _NO_HIT)
+        t_out[still] = np.where(inside, np.inf, -_NO_HIT)
+    if not normals:
+        return Interval(t_in, t_out, None, None)
+
+    def normal(t: np.ndarray) -> np.ndarray:
+        tt = np.where(np.isfinite(t), t, 0.0)[:, None]
+        g = ((np.asarray(origin, float) + tt * np.asarray(direction, float) - centre) @ m.T) @ m  # ∇ |M p|² / 2
+        norm = np.linalg.norm(g, axis=1, keepdims=True)
+        return np.divide(g, norm, out=np.zeros_like(g), where=norm > 0)
+
+    return Interval(t_in, t_out, normal(t_in), normal(t_out))
+
+
 @dataclass(frozen=True)
 class Ellipse:
     """An ellipse (a disk when both semi-axes are equal), rotated by ``angle_rad`` counter-clockwise."""
@@ -47,33 +76,7 @@ class Ellipse:
         return np.diag(1.0 / np.asarray(self.semi_axes)) @ np.array([[c, s], [-s, c]])
 
     def interval(self, origin: np.ndarray, direction: np.ndarray, normals: bool = True) -> Interval:
-        m = self._to_unit()
-        o = (np.asarray(origin, float) - self.centre) @ m.T
-        d = np.asarray(direction, float) @ m.T
-        a = np.einsum("ij,ij->i", d, d)
-        b = np.einsum("ij,ij->i", o, d)
-        c = np.einsum("ij,ij->i", o, o) - 1.0
-        disc = b * b - a * c
-        with np.errstate(invalid="ignore", divide="ignore"):
-            root = np.sqrt(np.where(disc > 0, disc, 0.0))
-            t_in = np.where(disc > 0, (-b - root) / a, _NO_HIT)
-            t_out = np.where(disc > 0, (-b + root) / a, -_NO_HIT)
-        still = a <= 1e-300  # direction without an in-plane component: inside for every t, or never
-        if still.any():
-            inside = c[still] <= 0
-            t_in[still] = np.where(inside, -np.inf, _NO_HIT)
-            t_out[still] = np.where(inside, np.inf, -_NO_HIT)
-        if not normals:
-            return Interval(t_in, t_out, None, None)
-        return Interval(t_in, t_out, self._normal(origin, direction, t_in), self._normal(origin, direction, t_out))
-
-    def _normal(self, origin: np.ndarray, direction: np.ndarray, t: np.ndarray) -> np.ndarray:
-        m = self._to_unit()
-        tt = np.where(np.isfinite(t), t, 0.0)[:, None]
-        p = np.asarray(origin, float) + tt * np.asarray(direction, float) - self.centre
-        g = (p @ m.T) @ m  # gradient of |M p|² / 2
-        norm = np.linalg.norm(g, axis=1, keepdims=True)
-        return np.divide(g, norm, out=np.zeros_like(g), where=norm > 0)
+        return _quadric_interval(self._to_unit(), self.centre, origin, direction, normals)
 
     def contains(self, points: np.ndarray) -> np.ndarray:
         q = (np.asarray(points, float) - self.centre) @ self._to_unit().T
@@ -212,16 +215,87 @@ class Prism:
         p = np.asarray(points, float)
         return self.shape.contains(p[:, :2]) & (p[:, 2] >= self.z_range[0]) & (p[:, 2] <= self.z_range[1])
 
+    def bounding_circle(self) -> tuple[np.ndarray, float]:
+        """The circle about the solid's x–y projection."""
+        return self.shape.bounding_circle()
 
-def segment_length_inside(prism: Prism, start: np.ndarray, end: np.ndarray) -> np.ndarray:
-    """Length of each segment ``start[i] → end[i]`` that lies inside ``prism``.
+    def reach(self) -> float:
+        """Largest distance of a point of the solid from the axis (the z axis)."""
+        return self.shape.reach()
+
+    def surface(self, n: int = 64) -> np.ndarray:
+        """Points (N, 3) on the solid's surface: the outline at both caps (and at z = 0 if it is unbounded)."""
+        outline = self.shape.outline(n)
+        heights = [z for z in self.z_range if np.isfinite(z)] or [0.0]
+        return np.vstack([np.column_stack([outline, np.full(len(outline), z)]) for z in heights])
+
+
+@dataclass(frozen=True)
+class Ellipsoid:
+    """A solid ellipsoid, semi-axes (a, b, c) along x, y, z before it is turned by ``angle_rad`` about z: a grape.
+
+    Its horizontal sections are ellipses, so it is the simplest convex solid whose slices differ in height.
+    """
+
+    centre: tuple[float, float, float]
+    semi_axes: tuple[float, float, float]
+    angle_rad: float = 0.0
+
+    def _to_unit(self) -> np.ndarray:
+        c, s = np.cos(self.angle_rad), np.sin(self.angle_rad)
+        turn = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])
+        return np.diag(1.0 / np.asarray(self.semi_axes, float)) @ turn
+
+    def interval(self, origin: np.ndarray, direction: np.ndarray, normals: bool = True) -> Interval:
+        """Intervals of 3-D lines inside the ellipsoid, with 3-D outward normals."""
+        return _quadric_interval(self._to_unit(), np.asarray(self.centre, float), origin, direction, normals)
+
+    def contains(self, points: np.ndarray) -> np.ndarray:
+        q = (np.asarray(points, float) - self.centre) @ self._to_unit().T
+        return np.einsum("ij,ij->i", q, q) <= 1.0
+
+    @property
+    def z_range(self) -> tuple[float, float]:
+        return (self.centre[2] - self.semi_axes[2], self.centre[2] + self.semi_axes[2])
+
+    def section(self, z: float) -> Ellipse | None:
+        """The horizontal section at height ``z`` (an ellipse), or None where the plane misses the solid."""
+        share = 1.0 - ((z - self.centre[2]) / self.semi_axes[2]) ** 2
+        if share <= 0:
+            return None
+        scale = np.sqrt(share)
+        return Ellipse(self.centre[:2], (self.semi_axes[0] * scale, self.semi_axes[1] * scale), self.angle_rad)
+
+    def bounding_circle(self) -> tuple[np.ndarray, float]:
+        """The circle about the solid's x–y projection."""
+        return np.asarray(self.centre[:2], float), float(max(self.semi_axes[:2]))
+
+    def reach(self) -> float:
+        """Largest distance of a point of the solid from the axis (the z axis)."""
+        return float(np.hypot(*self.centre[:2]) + max(self.semi_axes[:2]))
+
+    def surface(self, n: int = 64) -> np.ndarray:
+        """Points (about n²/2, 3) on the surface: a latitude–longitude net, poles included."""
+        lat = np.linspace(-np.pi / 2, np.pi / 2, max(n // 2, 3))
+        lon = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
+        la, lo = np.meshgrid(lat, lon, indexing="ij")
+        unit = np.stack([np.cos(la) * np.cos(lo), np.cos(la) * np.sin(lo), np.sin(la)], axis=-1).reshape(-1, 3)
+        return unit @ np.linalg.inv(self._to_unit()).T + np.asarray(self.centre, float)
+
+
+#: a solid the simulator traces: a prism (a cross-section extruded in z) or an ellipsoid
+Solid = Prism | Ellipsoid
+
+
+def segment_length_inside(solid: Solid, start: np.ndarray, end: np.ndarray) -> np.ndarray:
+    """Length of each segment ``start[i] → end[i]`` that lies inside ``solid``.
 
     Segments whose x–y projection passes farther than the shape's bounding circle are skipped before
     the exact clipping (small inclusions are missed by most rays of a frame).
     """
     start, end = np.asarray(start, float), np.asarray(end, float)
     span = end - start
-    centre, radius = prism.shape.bounding_circle()
+    centre, radius = solid.bounding_circle()
     flat = span[:, :2]
     to_centre = centre - start[:, :2]
     t = np.clip(np.einsum("ij,ij->i", to_centre, flat) / np.maximum(np.einsum("ij,ij->i", flat, flat), 1e-300),
@@ -230,7 +304,7 @@ def segment_length_inside(prism: Prism, start: np.ndarray, end: np.ndarray) -> n
     near = np.flatnonzero(np.einsum("ij,ij->i", gap, gap) <= radius * radius * (1 + 1e-9) + 1e-12)
     out = np.zeros(len(start))
     if len(near):
-        iv = prism.interval(start[near], span[near], normals=False)
+        iv = solid.interval(start[near], span[near], normals=False)
         inside = np.clip(np.minimum(iv.t_out, 1.0) - np.maximum(iv.t_in, 0.0), 0.0, None)
         out[near] = inside * np.linalg.norm(span[near], axis=1)
     return out

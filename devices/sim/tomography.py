@@ -4,7 +4,8 @@ Light model, in the object frame at stage angle φ (conventions in :mod:`devices
 
 * The light's central ray enters the object at ``p_l`` (first crossing of the object's surface), where
   the thin skin diffuses it (Lambertian, transmittance T). A **beam** enters at one point; a **sheet**
-  enters on a vertical line, and each slice is lit at its own height (the beam scanned in z).
+  lights each slice at its own height (the beam scanned in z): the light of height z enters where the beam's
+  ray moved to z meets the object (a vertical line on a prism, a curve on an ellipsoid).
 * Without scattering, light runs straight from ``p_l`` to every surface point ``p_c``, losing
   ``exp(-∫σ)`` on the way (medium plus inclusions), and leaves through the skin again (Lambertian).
   A camera pixel seeing ``p_c`` records the exit radiance::
@@ -56,14 +57,24 @@ def exit_points(scene: Scene, angle_deg: float, geometry: RigGeometry | None = N
     return ExitPoints(iv.hit, o + t[:, None] * d, iv.normal_in)
 
 
+def entry_points(scene: Scene, angle_deg: float, heights: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where the light's ray at each height z enters the object (the beam's ray moved to that height, as a sheet
+    lights every slice): points and outward normals (N, 3) in the object frame, and whether it enters at all."""
+    origin, direction = scene.geometry().beam()
+    heights = np.asarray(heights, float).ravel()
+    origins = np.tile(origin, (len(heights), 1))
+    origins[:, 2] = heights  # the stage turns about z: a height is the same in the lab and the object frame
+    o = to_object(origins, angle_deg)
+    d = np.tile(to_object(direction[None], angle_deg), (len(heights), 1))
+    iv = scene.body().interval(o, d)
+    t = np.where(iv.hit, iv.t_in, 0.0)
+    return o + t[:, None] * d, iv.normal_in, iv.hit
+
+
 def entry_point(scene: Scene, angle_deg: float) -> tuple[np.ndarray, np.ndarray] | None:
     """Where the light's central ray enters the object (object frame) and the outward normal there."""
-    origin, direction = scene.geometry().beam()
-    o, d = to_object(origin[None], angle_deg), to_object(direction[None], angle_deg)
-    iv = scene.body().interval(o, d)
-    if not iv.hit[0]:
-        return None
-    return o[0] + iv.t_in[0] * d[0], iv.normal_in[0]
+    points, normals, hit = entry_points(scene, angle_deg, [scene.geometry().beam_height])
+    return (points[0], normals[0]) if hit[0] else None
 
 
 def _diameter(scene: Scene) -> float:
@@ -74,8 +85,8 @@ def path_absorption(scene: Scene, start: np.ndarray, end: np.ndarray, *, referen
     """∫σ along segments inside the object: medium everywhere, inclusions unless ``reference``."""
     total = scene.object.medium.sigma * np.linalg.norm(end - start, axis=1)
     if not reference:
-        for prism, sigma in scene.inclusions():
-            total = total + sigma * segment_length_inside(prism, start, end)
+        for solid, sigma in scene.inclusions():
+            total = total + sigma * segment_length_inside(solid, start, end)
     return total
 
 
@@ -88,21 +99,21 @@ def straight_path(scene: Scene, angle_deg: float, *, reference: bool, seen: Exit
     camera = geometry.camera
     seen = seen or exit_points(scene, angle_deg, geometry)
     image = np.zeros(camera.rows * camera.cols)
-    entry = entry_point(scene, angle_deg)
-    if entry is None:
-        return image.reshape(camera.rows, camera.cols)
-    p_l, n_l = entry
     p_c, n_c = seen.points[seen.hit], seen.normals[seen.hit]
-    start = np.tile(p_l, (len(p_c), 1))
-    power = 2
     if scene.light.kind == "sheet":  # each slice lit at its own height: horizontal paths
-        start[:, 2] = p_c[:, 2]
+        start, n_l, lit = entry_points(scene, angle_deg, p_c[:, 2])
         power = 1
+    else:
+        entry = entry_point(scene, angle_deg)
+        if entry is None:
+            return image.reshape(camera.rows, camera.cols)
+        start, n_l, lit = np.tile(entry[0], (len(p_c), 1)), np.tile(entry[1], (len(p_c), 1)), True
+        power = 2
     span = p_c - start
     length = np.linalg.norm(span, axis=1)
     safe = np.maximum(length, 1e-12)
     u = span / safe[:, None]
-    cos_i = np.clip(-(u @ n_l), 0.0, None)
+    cos_i = np.clip(-np.einsum("ij,ij->i", u, n_l), 0.0, None) * lit
     cos_o = np.clip(np.einsum("ij,ij->i", u, n_c), 0.0, None)
     scale = scene.light.intensity * scene.object.skin.transmittance**2
     absorbed = path_absorption(scene, start, p_c, reference=reference)

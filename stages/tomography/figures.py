@@ -12,6 +12,7 @@ from matplotlib import colormaps
 from matplotlib.patches import Rectangle
 
 from pipeline.constraints import Index
+from pipeline.errors import Problem, StageError
 from pipeline.registry import stage
 from pipeline.schema import in_length
 from stages._common import require_variables
@@ -357,3 +358,94 @@ def convergence_figure(optimised: xr.Dataset, /) -> xr.Dataset:
     stats = [optimised[v].data if v in optimised else None for v in ("iterations", "converged")]
     return as_figure(_draw_convergence, optimised["objective"].data, optimised["primal_residual"].data,
                      optimised["dual_residual"].data, *stats, names, tol, tv, caption=caption)
+
+
+#: size [in] of the volume figure with and without a truth row
+VOLUME_SIZE, VOLUME_SIZE_NO_TRUTH = (9.0, 4.5), (9.0, 2.5)
+
+
+def _volume_views(sigma: xr.DataArray, point: tuple[float, float, float]) -> list:
+    """The three sections through ``point`` (x, y, z) and the maximum along z, each a (lazy) 2-D array."""
+    x, y, z = point
+    at_z = int(np.abs(sigma["z"].values - z).argmin())
+    return [sigma.isel(slice=at_z).data, sigma.sel(y=y, method="nearest").data,
+            sigma.sel(x=x, method="nearest").data, sigma.max("slice").data]
+
+
+def _draw_volume(views: list, titles: list[str], rows: list[str], x: np.ndarray, y: np.ndarray, z: np.ndarray,
+                 unit: str, sigma_unit: str, size: tuple[float, float]) -> np.ndarray:
+    fig, axes = panels(len(rows), 4, size=size, squeeze=False)
+    dx, dy, dz = (x[1] - x[0]) / 2, (y[1] - y[0]) / 2, abs(z[0] - z[-1]) / max(len(z) - 1, 1) / 2
+    top, bottom = max(z[0], z[-1]) + dz, min(z[0], z[-1]) - dz
+    extents = [(x[0] - dx, x[-1] + dx, y[0] - dy, y[-1] + dy), (x[0] - dx, x[-1] + dx, bottom, top),
+               (y[0] - dy, y[-1] + dy, bottom, top), (x[0] - dx, x[-1] + dx, y[0] - dy, y[-1] + dy)]
+    labels = [("x", "y"), ("x", "z"), ("y", "z"), ("x", "y")]
+    vmax = max(float(np.nanmax(v)) for v in views) or 1.0
+    for r, name in enumerate(rows):
+        for c in range(4):
+            ax, image = axes[r, c], np.asarray(views[r * 4 + c])
+            if c in (1, 2) and z[0] < z[-1]:  # rows of a section are slices: put the highest on top
+                image = image[::-1]
+            origin = "lower" if c in (0, 3) else "upper"
+            shown = ax.imshow(image, extent=extents[c], origin=origin, cmap="magma", vmin=0, vmax=vmax,
+                              interpolation="nearest", aspect="equal")
+            pixel_axes(ax, f"{labels[c][0]} [{unit}]", f"{labels[c][1]} [{unit}]", 7)
+            ax.set_title(f"({'abcdefgh'[r * 4 + c]}) {name}: {titles[c]}", fontsize=8)
+    shared_colorbar(fig, axes, shown, f"σ [{sigma_unit}]")
+    return rgba(fig)
+
+
+@stage("volume_figure")
+def volume_figure(reconstruction: xr.Dataset, truth: xr.Dataset | None = None, /, *,
+                  at: tuple[float, float, float] | None = None) -> xr.Dataset:
+    """A reconstructed volume at a glance: three orthogonal sections and the maximum-intensity projection along z.
+
+    Lazy and bounded in memory: the figure's task reads the three sections and reduces the volume along z slice
+    chunk by slice chunk, never the whole volume at once.
+
+    Parameters
+    ----------
+    reconstruction : xr.Dataset
+        A ``reconstruction`` store (``fbp`` or ``reconstruct_tv``) of at least 2 slices: ``sigma`` over (slice, y, x)
+        with the slices' heights ``z`` [the x coordinate's length unit] (``bin_sinogram`` gives them).
+    truth : xr.Dataset or None
+        The same grid's truth (``phantom_truth``), drawn as a second row on the same colour scale; None: none.
+    at : (float, float, float) or None
+        (x, y, z) [length unit] where the sections cross; the nearest slice, row and column are drawn. None: the
+        rotation axis (x = y = 0) at the middle slice's height.
+    """
+    volumes = {"reconstruction": reconstruction} | ({"truth": truth} if truth is not None else {})
+    for name, volume in volumes.items():
+        require_variables(volume, ("sigma",), f"volume_figure: {name}")
+        if "slice" not in volume["sigma"].dims or volume.sizes["slice"] < 2:
+            count = volume.sizes.get("slice", 1)
+            raise StageError(Problem(
+                f"volume_figure: the {name} has {count} slice{'s' if count != 1 else ''}; a volume needs the "
+                "object's height covered by at least 2", fix="capture with a light sheet (light kind 'sheet'), which "
+                "lights every camera row's slice; a beam lights one"))
+        if "z" not in volume.coords:
+            raise StageError(Problem(f"volume_figure: the {name}'s slices have no height z", fix="reconstruct it "
+                                     "from a sinogram binned by this version's bin_sinogram, which carries z"))
+    sigma = reconstruction["sigma"]
+    if truth is not None and (truth.sizes["slice"], truth.sizes["y"]) != (sigma.sizes["slice"], sigma.sizes["y"]):
+        raise StageError(Problem("volume_figure: the truth's grid differs from the reconstruction's",
+                                 fix="make the truth with phantom_truth from the reconstruction's sinogram"))
+    z = sigma["z"].values
+    point = tuple(at) if at is not None else (0.0, 0.0, float(z[len(z) // 2]))
+    views = [v for volume in volumes.values() for v in _volume_views(volume["sigma"], point)]
+    unit = sigma["x"].attrs.get("units", "px")
+    sigma_unit = sigma.attrs.get("units", in_length("1/{length}", unit))
+    near = (float(sigma["x"].sel(x=point[0], method="nearest")), float(sigma["y"].sel(y=point[1], method="nearest")),
+            float(z[np.abs(z - point[2]).argmin()]))
+    titles = [f"z = {near[2]:.3g}", f"y = {near[1]:.3g}", f"x = {near[0]:.3g}", "maximum along z"]
+    rows = [{"reconstruction": reconstruction.attrs.get("method", "reconstruction"), "truth": "truth"}[n]
+            for n in volumes]
+    caption = f"""Absorption coefficient σ [{sigma_unit}] of a reconstructed volume of {sigma.sizes['slice']} slices
+        ({rows[0]}{' above, the truth below' if truth is not None else ''}), axes in {unit}: (a) the horizontal
+        section at height z, (b) the vertical section x–z at y and (c) y–z at x, through ({near[0]:.3g}, {near[1]:.3g},
+        {near[2]:.3g}) {unit}, and (d) the maximum-intensity projection along z, all on one colour scale from 0;
+        z is each slice's height at the rotation axis, up on the page. The thesis shows single slices (Fig. 18, 21);
+        this figure shows the volumes a light sheet (a beam scanned in height) gives."""
+    size = VOLUME_SIZE if truth is not None else VOLUME_SIZE_NO_TRUTH
+    return as_figure(_draw_volume, views, titles, rows, sigma["x"].values, sigma["y"].values, z, unit, sigma_unit,
+                     size, caption=caption, size=size)

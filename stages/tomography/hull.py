@@ -242,7 +242,16 @@ def visual_hull(silhouettes: xr.Dataset, /) -> xr.Dataset:
                        "border_views": views(border, "whose silhouette touches the border"),
                        "gapped_views": views(gapped, "whose silhouette has gaps")},
                       attrs=attrs | {"xy": "x, y in the object frame"})
+    # each slice's height (assigned after the chunked kernel, so it stays a numpy coordinate)
+    hull = hull.assign_coords(z=slice_heights(camera, np.arange(rows), silhouettes.attrs["length_unit"]))
     return with_metadata(hull, "hull")
+
+
+def slice_heights(camera: Camera, rows: np.ndarray, unit: str) -> tuple[str, np.ndarray, dict]:
+    """The ``z`` coordinate of slices seen in camera ``rows``: the height [``unit``, the rig's length unit] where
+    each row sees the rotation axis (:meth:`~devices.geometry.Camera.axis_height`); z grows upward, so it falls
+    as the row grows."""
+    return ("slice", camera.axis_height(rows), {"units": unit, "long_name": "slice height z at the rotation axis"})
 
 
 def hull_polygons(hull: xr.Dataset) -> list[np.ndarray | None]:
@@ -265,4 +274,6 @@ def contours(hull: xr.Dataset, slices: xr.DataArray, stage_name: str) -> xr.Data
     if missing:
         raise StageError(Problem(f"{stage_name}: slices {missing[:5]} are not in the hull ({hull.sizes['slice']} "
                                  "slices)", fix="compute both from the same capture"))
-    return hull[["vertices", "n_vertices"]].sel(slice=slices)
+    # z is the caller's to carry: the hull's and the indexer's would be compared (a compute where either is chunked)
+    return hull[["vertices", "n_vertices"]].drop_vars("z", errors="ignore").sel(
+        slice=slices.drop_vars("z", errors="ignore") if isinstance(slices, xr.DataArray) else slices)

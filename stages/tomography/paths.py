@@ -23,7 +23,7 @@ from pipeline.errors import Problem, StageError
 from pipeline.quality import usable_share
 from pipeline.registry import stage
 from stages._common import require_variables
-from stages.tomography.hull import contours
+from stages.tomography.hull import contours, slice_heights
 
 #: why a pixel gave no ray (``reason`` variable; 0: a ray)
 REASONS = {
@@ -131,9 +131,11 @@ def align_paths(absorption: xr.Dataset, hull: xr.Dataset, /, *, min_exit_cos: Fr
     if not len(rows):
         raise StageError(Problem("no camera row sees the beam's height", fix="check beam_height and the camera"))
     flags = absorption["flags"] if "flags" in absorption else xr.zeros_like(absorption["absorption"], dtype=np.int8)
-    data = absorption["absorption"].isel(row=rows).assign_coords(row=("row", rows))
-    flags = flags.isel(row=rows).assign_coords(row=("row", rows))
-    shell = contours(hull, data["row"], "align_paths").drop_vars("slice")  # the slice each camera row sees
+    height = slice_heights(geometry.camera, rows, hull.attrs["length_unit"])
+    data = absorption["absorption"].isel(row=rows).assign_coords(row=("row", rows), z=("row", *height[1:]))
+    flags = flags.isel(row=rows).assign_coords(row=("row", rows), z=("row", *height[1:]))
+    # the slice each camera row sees
+    shell = contours(hull, data["row"], "align_paths").drop_vars("slice")
     angle = data["angle"]
     row = data["row"]
     col = xr.DataArray(np.arange(data.sizes["col"]), dims="col")

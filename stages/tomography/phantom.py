@@ -15,6 +15,8 @@ from __future__ import annotations
 
 from typing import Annotated
 
+import dask
+import dask.array as da
 import numpy as np
 import pydantic
 import xarray as xr
@@ -30,6 +32,7 @@ from pipeline.spec import StorePath
 from stages._common import read_file
 from stages.tomography.acquire import AngleSweep
 from stages.tomography.paths import sinogram_coordinates
+from stages.tomography.reconstruct import ome_attrs
 from stages.tomography.sinogram import Bins, bin_index
 
 #: θ_l, the light's angle to the camera axis [degree]
@@ -152,20 +155,21 @@ def simulate_sinogram(*, scene: StorePath, light_angle_deg: LightAngle | None = 
     return xr.Dataset(
         {"absorption": (dims, absorption[None]), "observed": (dims, observed[None]),
          "count": (dims, observed[None].astype(np.int64))},
-        coords={"slice": ("slice", [0]), "theta": ("theta", theta, {"units": "degree"}),
+        coords={"slice": ("slice", [0]), "z": ("slice", [0.0], {"units": "mm", "long_name": "slice height z"}),
+                "theta": ("theta", theta, {"units": "degree"}),
                 "x": ("x", x, {"units": "mm"})},
         attrs=geometry | {"selpath_kind": "sinogram", "x_extent": extent, "theta_step_deg": 180.0 / n_theta,
                           "x_step": 2 * extent / (n_x - 1), "scene": spec.scene, "noise_std": noise_std})
 
 
-def truth_raster(scene: Scene, n: int, extent: float, supersample: int = 4) -> np.ndarray:
-    """Cell averages (n, n) [(y, x)] of the inclusions' σ over [−extent, extent]², slice z = 0."""
+def truth_raster(scene: Scene, n: int, extent: float, supersample: int = 4, z: float = 0.0) -> np.ndarray:
+    """Cell averages (n, n) [(y, x)] of the inclusions' σ over [−extent, extent]², in the slice at height ``z``."""
     cell = 2 * extent / n
     centres = -extent + (np.arange(n) + 0.5) * cell
     offsets = ((np.arange(supersample) + 0.5) / supersample - 0.5) * cell
     fine = (centres[:, None] + offsets[None, :]).reshape(-1)
     yy, xx = np.meshgrid(fine, fine, indexing="ij")
-    points = np.column_stack([xx.ravel(), yy.ravel(), np.zeros(xx.size)])
+    points = np.column_stack([xx.ravel(), yy.ravel(), np.full(xx.size, float(z))])
     total = np.zeros(len(points))
     for prism, sigma in scene.inclusions():
         total += sigma * prism.contains(points)
@@ -181,7 +185,8 @@ def phantom_truth(sinogram: xr.Dataset, /, *, scene: StorePath, n_pixels: Count 
     ----------
     sinogram : xr.Dataset
         A ``sinogram`` store (``simulate_sinogram`` of the same scene); only its grid is read: the ``x`` coordinate
-        (whose units must be the scene's length unit), attr ``x_extent`` and the ``slice`` coordinate.
+        (whose units must be the scene's length unit), attr ``x_extent``, the ``slice`` coordinate and, where present,
+        ``z`` (each slice's height, in x's unit; absent: every slice is z = 0). Lazy: one task per slice height.
     scene : str
         Scene file.
     n_pixels : int or None
@@ -196,10 +201,16 @@ def phantom_truth(sinogram: xr.Dataset, /, *, scene: StorePath, n_pixels: Count 
     cell = 2 * extent / n
     centres = -extent + (np.arange(n) + 0.5) * cell
     unit = sinogram["x"].attrs.get("units", "mm")
-    image = truth_raster(spec, n, extent, supersample)
     slices = sinogram["slice"].values
+    heights = sinogram["z"].values if "z" in sinogram.coords else np.zeros(len(slices))
+    if "z" in sinogram.coords and sinogram["z"].attrs.get("units", unit) != unit:
+        raise StageError(Problem(f"the sinogram's z is in {sinogram['z'].attrs['units']!r}, its x in {unit!r}",
+                                 fix="bin it with bin_sinogram from one capture"))
+    rasters = {z: dask.delayed(truth_raster)(spec, n, extent, supersample, z) for z in dict.fromkeys(heights.tolist())}
+    volume = da.stack([da.from_delayed(rasters[z], (n, n), np.float64) for z in heights.tolist()])  # a slice a task
     return xr.Dataset(
-        {"sigma": (("slice", "y", "x"), np.broadcast_to(image, (len(slices), n, n)).copy(), {"units": in_length("1/{length}", unit)})},
-        coords={"slice": ("slice", slices), "y": ("y", centres, {"units": unit}),
-                "x": ("x", centres, {"units": unit})},
-        attrs={"selpath_kind": "reconstruction", "method": "truth", "scene": spec.scene, "cell_size": cell})
+        {"sigma": (("slice", "y", "x"), volume, {"units": in_length("1/{length}", unit)})},
+        coords={"slice": ("slice", slices), "z": ("slice", heights, {"units": unit, "long_name": "slice height z"}),
+                "y": ("y", centres, {"units": unit}), "x": ("x", centres, {"units": unit})},
+        attrs={"selpath_kind": "reconstruction", "method": "truth", "scene": spec.scene, "cell_size": cell}
+        | ome_attrs(heights, centres, centres, unit))

@@ -163,16 +163,42 @@ def _check(sinogram: xr.Dataset, hull: xr.Dataset | None, name: str) -> None:
         contours(hull, sinogram["slice"], name)  # raises naming the sinogram's slices the hull lacks
 
 
+#: NGFF names of the length units a rig may use (OME-Zarr axes take these or none)
+_NGFF_UNITS = {"m": "meter", "cm": "centimeter", "mm": "millimeter", "um": "micrometer"}
+
+
+def ome_attrs(z: np.ndarray, y: np.ndarray, x: np.ndarray, unit: str) -> dict:
+    """The ``ome`` attr (OME-Zarr 0.5 multiscales, one level) that lets 3-D viewers open a reconstruction store's
+    ``sigma`` (slice, y, x) as a volume in the rig's length unit; empty where the grid is not one: fewer than 2
+    slices, or spacings that are not uniform.
+
+    The axes keep the array's dim names (NGFF requires them to match its ``dimension_names``): ``slice`` is the
+    height axis, with a negative scale, because z falls as the slice (camera row) grows."""
+    steps = [np.diff(np.asarray(v, float)) for v in (z, y, x)]
+    if len(z) < 2 or not all(np.allclose(d, d[0], rtol=1e-6, atol=0) and d[0] != 0 for d in steps):
+        return {}
+    ngff = {"unit": _NGFF_UNITS[unit]} if unit in _NGFF_UNITS else {}
+    axes = [{"name": name, "type": "space"} | ngff for name in ("slice", "y", "x")]
+    transforms = [{"type": "scale", "scale": [float(d[0]) for d in steps]},
+                  {"type": "translation", "translation": [float(z[0]), float(y[0]), float(x[0])]}]
+    return {"ome": {"version": "0.5", "multiscales": [{"name": "sigma", "axes": axes, "datasets": [
+        {"path": "sigma", "coordinateTransformations": transforms}]}]}}
+
+
 def _output(sinogram: xr.Dataset, geometry: Geometry, variables: dict, attrs: dict) -> xr.Dataset:
     unit = sinogram["x"].attrs.get("units", sinogram.attrs.get("length_unit", "px"))
     centres = geometry.centres
     coords = {"y": ("y", centres, {"units": unit}), "x": ("x", centres, {"units": unit}),
               "slice": sinogram["slice"]}
+    volume = {}
+    if "z" in sinogram.coords:  # each slice's height (bin_sinogram, simulate_sinogram)
+        coords["z"] = sinogram["z"]
+        volume = ome_attrs(sinogram["z"].values, centres, centres, unit)
     out = xr.Dataset(variables, coords=coords)
     out["sigma"].attrs.update(units=in_length("1/{length}", unit), long_name="absorption coefficient σ")
     out["observed_fraction"] = observed_share(sinogram["observed"])
     return out.assign_attrs(geometry_attrs(sinogram.attrs) | {"selpath_kind": "reconstruction",
-                                                              "cell_size": geometry.cell} | attrs)
+                                                              "cell_size": geometry.cell} | volume | attrs)
 
 
 def fbp_slice(absorption: np.ndarray, known: np.ndarray, support: np.ndarray, geometry: Geometry, *,

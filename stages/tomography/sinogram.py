@@ -125,7 +125,7 @@ def bin_sinogram(rays: xr.Dataset, /, *, n_theta: Bins | None = None, n_x: Bins 
     _warn_finer_than_views(n_theta, step)
     _warn_finer_than_pixels(n_x, extent, pitch, supported[1])
     whole = {"angle": -1, "col": -1, "row": 1}
-    parts = [rays[v].chunk(whole) for v in ("theta", "x", "absorption")]
+    parts = [rays[v].drop_vars("z", errors="ignore").chunk(whole) for v in ("theta", "x", "absorption")]
     both = xr.apply_ufunc(  # one stacked output (see stages.tomography.paths on dask and multi-output graphs)
         _bin_kernel, *parts, input_core_dims=[["angle", "col"]] * 3, output_core_dims=[["theta", "x", "field"]],
         dask="parallelized", output_dtypes=[np.float64],
@@ -140,6 +140,8 @@ def bin_sinogram(rays: xr.Dataset, /, *, n_theta: Bins | None = None, n_x: Bins 
     out = xr.Dataset({"absorption": mean, "observed": count > 0, "count": count}, coords=coords)
     out["observed_fraction"] = observed_share(out["observed"])
     out["filled_fraction"] = filled_share(out["observed"], supported)
+    if "z" in rays.coords:  # each slice's height, as align_paths gave it (not chunked: a coordinate to compare)
+        out = out.assign_coords(z=rays["z"].variable)
     out = out.rename({"row": "slice"})
     if tuple(out["absorption"].dims) != ("slice", "theta", "x"):
         out = out.transpose("slice", "theta", "x")

@@ -142,3 +142,17 @@ def test_an_unknown_light_kind_is_refused_not_taken_for_a_beam():
     attrs = RigGeometry(OrthographicCamera(rows=4, cols=4, pixel_size=0.1), 30.0).attrs() | {"light_kind": "Sheet"}
     with pytest.raises(StageError, match="light_kind is 'Sheet'; expected 'beam' or 'sheet'"):
         RigGeometry.from_attrs(attrs, 4, 4)
+
+
+@pytest.mark.parametrize("model", CAMERA_CASES)
+def test_a_row_is_read_as_the_height_where_it_sees_the_axis(model):
+    """axis_height inverts projection on the axis: the axis point at that height projects into the row; closed
+    forms (cy − r)·D_c/f and (cy − r)·pixel_size."""
+    camera = CAMERA_CASES[model]
+    rows = np.array([-0.5, 0.0, 2.25, 3.7, 6.5])
+    z = camera.axis_height(rows)
+    got_row, got_col = camera.project(np.column_stack([np.zeros(5), np.zeros(5), z]))
+    np.testing.assert_allclose(got_row, rows, atol=1e-12)
+    np.testing.assert_allclose(got_col, camera.centre_px[0], atol=1e-12)
+    pitch = 80.0 / 40.0 if model == "perspective" else 0.3
+    np.testing.assert_allclose(z, (camera.centre_px[1] - rows) * pitch, rtol=1e-14)

@@ -31,7 +31,7 @@ TARGET_SCENES = {"stereo-target"}
 
 def test_the_shipped_scenes_of_chapter_4_load():
     names = {load_scene(p).scene for p in SCENES if p.stem not in PROCAM_SCENES | TARGET_SCENES}
-    assert {"phantom-cylinder", "gelatin-bin", "triangle-prism"} <= names
+    assert {"phantom-cylinder", "gelatin-bin", "triangle-prism", "grape-ellipsoid"} <= names
     assert {f"cylinder-in-cylinder-s{s}" for s in (1, 2, 3, 5)} <= names
     sigma_s = {load_scene(p).effects.scattering.sigma_s for p in SCENES if "cylinder-in-cylinder" in p.name}
     assert sigma_s == {1.0, 2.0, 3.0, 5.0}
@@ -92,3 +92,25 @@ def test_the_shipped_projector_camera_scenes_of_chapter_5_load():
     assert set(scenes["disco-glass-marble"].effect_names()) == {"subsurface", "specular_interreflection",
                                                                "refraction"}
     assert scenes["book-candle-mirrorball"].rig.camera_rows == 1200  # the default rig: 1600 × 1200 camera
+
+
+@pytest.mark.parametrize(("old", "new", "message"), [
+    ("shape: {kind: cylinder, radius: 20 mm}\n  height: 60 mm",
+     "shape: {kind: ellipsoid, semi_axes: [20 mm, 20 mm, 30 mm]}\n  height: 60 mm",
+     r"an ellipsoid has its own height .*: leave out object.height"),
+    ("  height: 60 mm\n", "", r"a cylinder is a cross-section: give object.height"),
+    ("sigma: 0.1 /mm}", "sigma: 0.1 /mm, z_range: [0 mm, 1 mm]}\n    - {shape: {kind: ellipsoid, "
+     "semi_axes: [1 mm, 1 mm, 1 mm]}, sigma: 0.1 /mm, z_range: [0 mm, 1 mm]}",
+     r"an ellipsoid inclusion has its own height: leave out z_range"),
+    ("sigma: 0.1 /mm}", "sigma: 0.1 /mm}\n    - {shape: {kind: ellipsoid, semi_axes: [1 mm, 1 mm, 1 mm], "
+     "centre: [0 mm, 0 mm, 29.5 mm]}, sigma: 0.1 /mm}",
+     r"inclusions\[1\] \(ellipsoid\) reaches outside the object"),
+    ("sigma: 0.1 /mm}", "sigma: 0.1 /mm}\n    - {shape: {kind: ellipsoid, semi_axes: [1 mm, 1 mm, 1 mm], "
+     "centre: [10 mm, 0 mm, 5 mm]}, sigma: -0.2 /mm}", r"negative absorption"),
+])
+def test_solids_are_checked_in_three_dimensions(old, new, message):
+    """An ellipsoid has its own height; an inclusion must lie inside the object and keep σ ≥ 0 in 3-D (a seed poking
+    out of the top cap, a negative inclusion above the medium's zero)."""
+    assert old in GOOD
+    with pytest.raises(ConfigError, match=message):
+        load_scene(GOOD.replace(old, new))

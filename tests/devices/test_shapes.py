@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial import ConvexHull
 
-from devices.sim.shapes import Ellipse, Prism, convex_polygon, segment_length_inside
+from devices.sim.shapes import Ellipse, Ellipsoid, Prism, convex_polygon, segment_length_inside
 
 coords = st.floats(-5, 5, allow_nan=False)
 
@@ -73,3 +73,46 @@ def test_prism_caps_bound_oblique_rays():
 def test_non_convex_polygon_is_refused_naming_the_vertex():
     with pytest.raises(ValueError, match=r"not convex: .* at vertex 2 \[1.0, 1.0\]"):
         convex_polygon([(0, 0), (4, 0), (1, 1), (0, 4)])
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.tuples(*[st.floats(0.3, 4)] * 3), st.floats(0, np.pi), st.tuples(coords, coords, coords),
+       st.tuples(st.floats(-1, 1), st.floats(-1, 1), st.floats(-1, 1)))
+def test_ellipsoid_chords_match_point_sampling_and_normals_the_gradient(semi, angle, origin, heading):
+    """The chord inside an ellipsoid equals the share of 200 001 points along the line that it contains; the
+    normals are unit, outward and along the gradient of the quadric at each end."""
+    solid = Ellipsoid((0.4, -0.2, 0.7), semi, angle)
+    d = np.array([heading], float)
+    if np.linalg.norm(d) < 1e-3:
+        return
+    d /= np.linalg.norm(d)
+    o = np.array([origin], float)
+    iv = solid.interval(o, d)
+    t = np.linspace(-30, 30, 200_001)
+    inside = solid.contains(o + t[:, None] * d)
+    chord = max(float(iv.t_out[0] - iv.t_in[0]), 0.0) if iv.hit[0] else 0.0
+    assert chord == pytest.approx(inside.mean() * 60.0, abs=2 * 60.0 / 200_000)
+    got = segment_length_inside(solid, o - 30 * d, o + 30 * d)[0]
+    assert got == pytest.approx(chord, abs=1e-9)
+    if iv.hit[0] and chord > 1e-6:
+        for t_end, n, sign in ((iv.t_in, iv.normal_in, -1), (iv.t_out, iv.normal_out, 1)):
+            point = o + t_end[:, None] * d
+            m = solid._to_unit()
+            q = (point - solid.centre) @ m.T
+            assert np.sum(q**2) == pytest.approx(1.0, abs=1e-9)
+            gradient = q @ m
+            np.testing.assert_allclose(n, gradient / np.linalg.norm(gradient), atol=1e-9)
+            assert sign * float(n[0] @ d[0]) >= -1e-12  # entering against the normal, leaving along it
+
+
+def test_ellipsoid_sections_are_the_ellipses_its_points_fill():
+    solid = Ellipsoid((0.5, -0.5, 1.0), (3.0, 2.0, 4.0), 0.4)
+    for z in (-2.9, 0.0, 1.0, 4.5):
+        section = solid.section(z)
+        grid = np.stack(np.meshgrid(np.linspace(-4, 5, 181), np.linspace(-4, 3, 141)), axis=-1).reshape(-1, 2)
+        want = solid.contains(np.column_stack([grid, np.full(len(grid), z)]))
+        np.testing.assert_array_equal(section.contains(grid), want)
+    assert solid.section(5.01) is None and solid.section(-3.01) is None
+    assert solid.z_range == (-3.0, 5.0)
+    q = (solid.surface(32) - solid.centre) @ solid._to_unit().T
+    np.testing.assert_allclose(np.sum(q**2, axis=1), 1.0, rtol=1e-12)  # on the surface

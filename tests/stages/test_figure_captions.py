@@ -60,6 +60,18 @@ def optimised(sigma: np.ndarray) -> xr.Dataset:
                           dual_residual=(hist, history), iterations=("slice", [10]), converged=("slice", [True]))
 
 
+def volume() -> xr.Dataset:
+    """A reconstruction of 6 slices (camera rows 10–15, z from 2.5 mm down by 1 mm), a block of σ in slices 2–3."""
+    n = SIGMA.shape[-1]
+    grid = np.arange(n) - (n - 1) / 2
+    sigma = np.zeros((6, n, n))
+    sigma[2:4] = SIGMA
+    volume = _lazy(xr.Dataset({"sigma": (("slice", "y", "x"), sigma, {"units": "1/mm"})},
+                              coords={"slice": np.arange(10, 16), "y": ("y", grid, MM), "x": ("x", grid, MM)},
+                              attrs={"method": "fbp"}))
+    return volume.assign_coords(z=("slice", 2.5 - np.arange(6.0), MM))  # in memory, as a store's coordinates
+
+
 def plane_capture() -> xr.Dataset:
     dims = ("delay", "exposure", "row", "col")
     return _lazy(xr.Dataset({"image": (dims, np.random.default_rng(2).uniform(0, 100, (5, 2, 6, 8)),
@@ -177,6 +189,7 @@ CALLS = {
     "coverage_figure": lambda: ((coverage(),), {}),
     "reconstruction_figure": lambda: ((reconstruction(SIGMA), optimised(SIGMA), reconstruction(SIGMA)), {}),
     "convergence_figure": lambda: ((optimised(SIGMA),), {}),
+    "volume_figure": lambda: ((volume(), volume()), {"at": (2.0, -1.0, 0.4)}),
     "delay_profile_figure": lambda: ((plane_capture(), plane_transport()), {"pixels": PIXELS}),
     "relighting_figure": lambda: ((plane_transport(),), {"lines": (0.2, 0.6)}),
     "epipolar_figure": lambda: ((plane_capture(), plane_transport()), {"half_width": 1}),
@@ -223,7 +236,7 @@ def test_each_figure_stage_describes_every_input_and_setting(name):
 
 
 @pytest.mark.parametrize("name", ["capture_figure", "relighting_figure", "relighting_full_figure",
-                                  "profile_2d_figure", "delay_profile_figure", "epipolar_figure"])
+                                  "profile_2d_figure", "delay_profile_figure", "epipolar_figure", "volume_figure"])
 def test_figures_of_other_sizes_draw_the_shape_they_declare(name):
     args, settings = CALLS[name]()
     figure = default_registry()[name](*args, **settings)

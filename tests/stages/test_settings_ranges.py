@@ -315,6 +315,7 @@ SIGNED = {
     "OffsetGrid.start": "an offset, projector row − camera row, has either sign",
     "OffsetGrid.stop": "an offset, projector row − camera row, has either sign",
     "RodSpec.x": "a rod's centre in the object frame: either side of the rotation axis",
+    "volume_figure.at": "a point (x, y, z) in the object frame: either side of the axis, above or below z = 0",
     "RodSpec.y": "a rod's centre in the object frame: either side of the rotation axis",
 }
 
