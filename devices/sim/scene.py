@@ -370,6 +370,13 @@ class Scene(_Model):
         angle = self.stated.light_angle if self.stated.light_angle is not None else geometry.light_angle_deg
         return dataclasses.replace(geometry, camera=camera, light_angle_deg=angle)
 
+    def rows(self, first: int, count: int) -> Scene:
+        """This scene seen by rows ``first`` … ``first + count − 1`` of its camera only (the principal point moved
+        with them, so every pixel keeps its ray): a band of the sensor, rendered on its own."""
+        cx, cy = self.camera.build().centre_px
+        camera = self.camera.model_copy(update={"rows": int(count), "principal_point": (cx, cy - first)})
+        return self.model_copy(update={"camera": camera})
+
     def body(self) -> Solid:
         return self.object.solid()
 

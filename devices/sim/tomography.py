@@ -228,3 +228,36 @@ def lit_frame(scene: Scene, angle_deg: float, sample: str, seen: ExitPoints | No
     if scene.effects.scattering is not None:
         return monte_carlo(scene, angle_deg, reference=reference, seen=seen).image
     return straight_path(scene, angle_deg, reference=reference, seen=seen)
+
+
+#: the frames :func:`render_rows` stacks, in its first axis
+FRAME_KINDS = ("target", "reference", "backlit")
+
+
+def render_rows(scene: Scene, angles_deg: np.ndarray, first: int, count: int) -> np.ndarray:
+    """Rows ``first`` … ``first + count − 1`` of the target, reference and backlit frames at each angle, as the
+    simulated rig's camera records them (dark level, saturation, noise), float32 (3, angles, count, cols).
+
+    Straight paths only (a Monte Carlo frame traces photons over the whole object: render it with the rig). Noise
+    is seeded per (seed, angle, frame, row), so any banding of the rows gives the same frames; they are not the
+    rig's, which seeds a whole frame at once.
+    """
+    if scene.effects.scattering is not None:
+        raise ValueError("render_rows renders straight paths; a scene with scattering is rendered by the rig")
+    band, sensor, noise = scene.rows(first, count), scene.sensor, scene.effects.noise
+    out = np.empty((3, len(angles_deg), count, scene.camera.cols), np.float32)
+    for a, angle in enumerate(np.asarray(angles_deg, float)):
+        seen = exit_points(band, angle)
+        signals = [straight_path(band, angle, reference=False, seen=seen),
+                   straight_path(band, angle, reference=True, seen=seen),
+                   sensor.backlight * ~silhouette(band, angle, seen)]
+        for k, signal in enumerate(signals):
+            if noise is not None:
+                signal = signal.copy()
+                for r in range(count):
+                    rng = np.random.default_rng([noise.seed, int(round(angle * 1000)) % 360_000, k, first + r])
+                    if noise.gain is not None:
+                        signal[r] = rng.poisson(np.clip(signal[r], 0, None) / noise.gain) * noise.gain
+                    signal[r] = signal[r] + rng.normal(0.0, noise.read_std, signal.shape[1])
+            out[k, a] = np.clip(sensor.dark_level + signal, 0.0, sensor.saturation_level)
+    return out

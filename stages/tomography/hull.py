@@ -198,12 +198,21 @@ def _hull_kernel(masks: np.ndarray, *, angles: np.ndarray, camera: Camera, max_v
     return np.concatenate([vertices, extra], axis=1)
 
 
+#: bytes of silhouette rows (all angles, all columns) one hull task reads: a volume's capture is never one task
+HULL_CHUNK_BYTES = 64 * 2**20
+
+
+def hull_rows_per_chunk(n_angles: int, cols: int) -> int:
+    """Camera rows per hull task: as many as fit in :data:`HULL_CHUNK_BYTES` of boolean silhouettes, at least one."""
+    return max(1, HULL_CHUNK_BYTES // max(n_angles * cols, 1))
+
+
 @stage("visual_hull")
 def visual_hull(silhouettes: xr.Dataset, /) -> xr.Dataset:
     """The convex contour of every slice from the silhouettes of all angles: dim ``slice``, whose coordinate is
     the camera row the slice is seen in.
 
-    Lazy, one task per block of rows; each needs every angle of its rows (a reduction over angles).
+    Lazy, one task per block of rows (at most 64 MiB of silhouettes); each needs every angle of its rows.
     Rows where the object is absent or not bounded by the views get ``n_vertices = 0``; the variables
     ``empty_views``, ``border_views`` and ``gapped_views`` count, per slice, the views that constrained
     nothing (no object in the row; the object touching the image border, per side) or were not one run
@@ -224,7 +233,7 @@ def visual_hull(silhouettes: xr.Dataset, /) -> xr.Dataset:
     max_vertices = 2 * len(angles)
     slices = mask.rename(row="slice").assign_coords(slice=("slice", np.arange(rows)))  # a camera row sees a slice
     packed = xr.apply_ufunc(
-        _hull_kernel, slices.chunk({"angle": -1, "col": -1}),
+        _hull_kernel, slices.chunk({"angle": -1, "col": -1, "slice": hull_rows_per_chunk(len(angles), cols)}),
         input_core_dims=[["angle", "col"]], output_core_dims=[["vertex", "xy"]],
         dask="parallelized", output_dtypes=[np.float64],
         dask_gufunc_kwargs={"output_sizes": {"vertex": max_vertices + 2, "xy": 2}},

@@ -134,8 +134,10 @@ def align_paths(absorption: xr.Dataset, hull: xr.Dataset, /, *, min_exit_cos: Fr
     height = slice_heights(geometry.camera, rows, hull.attrs["length_unit"])
     data = absorption["absorption"].isel(row=rows).assign_coords(row=("row", rows), z=("row", *height[1:]))
     flags = flags.isel(row=rows).assign_coords(row=("row", rows), z=("row", *height[1:]))
-    # the slice each camera row sees
+    # the slice each camera row sees; one chunk (small: the contours), not the hull's blocks of rows, which would
+    # split every chunk of the absorption that spans them
     shell = contours(hull, data["row"], "align_paths").drop_vars("slice")
+    shell = shell.chunk({"row": -1}) if shell.chunks else shell
     angle = data["angle"]
     row = data["row"]
     col = xr.DataArray(np.arange(data.sizes["col"]), dims="col")

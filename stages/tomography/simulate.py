@@ -11,9 +11,14 @@ import xarray as xr
 from dask.base import tokenize
 
 from devices.geometry import OrthographicCamera
+from devices.sim import tomography as tomo
 from devices.sim.parallel_light import Rod, render
+from devices.sim.scene import load_scene, scene_identity
 from pipeline.constraints import Count, Index, NonNegative, Positive, memory_problems
+from pipeline.errors import Problem, StageError
 from pipeline.registry import stage
+from pipeline.spec import StorePath
+from stages._common import read_file
 from stages.tomography.acquire import AngleSweep
 
 _FRAME_BYTES_PER_CHUNK = 64 * 2**20
@@ -148,3 +153,75 @@ def simulate_parallel_capture(
         },
     )
 
+
+
+#: peak bytes of working arrays per pixel and angle that :func:`devices.sim.tomography.render_rows` holds beside
+#: its float32 output (3 frames): the pixels' rays, exit points and normals in float64, about 20 float64 values
+RENDER_BYTES_PER_PIXEL = 160
+
+
+def _scene_capture_precheck(settings) -> list[str]:
+    spec, problems = read_file(load_scene, settings.scene, "scene")
+    if problems:
+        return problems
+    if spec.effects.scattering is not None:
+        return ["the scene has scattering (Monte Carlo over whole frames): capture it with acquire_tomography, rig sim"]
+    rows = min(settings.rows_per_chunk or spec.camera.rows, spec.camera.rows)
+    return memory_problems(rows * spec.camera.cols * RENDER_BYTES_PER_PIXEL,
+                           f"one render task's working arrays ({rows:,} rows × {spec.camera.cols:,} px)",
+                           fix="lower rows_per_chunk")
+
+
+@stage("simulate_capture", precheck=_scene_capture_precheck,
+       identity=lambda settings: scene_identity(settings.scene) if settings.scene else {})
+def simulate_capture(*, scene: StorePath, angles: AngleSweep = AngleSweep(),  # noqa: B008 (frozen model)
+                     rows_per_chunk: Count | None = None) -> xr.Dataset:
+    """A tomography capture of a scene file rendered lazily, chunk by chunk: any sensor size, never held whole.
+
+    The frames the simulated rig would record (straight paths, dark level, saturation, the scene's noise), as
+    dask arrays chunked in (angles, ``rows_per_chunk`` rows, all columns): a task renders its band of rows at its
+    angles only, so a 1600 × 1200 × 360 capture (8.3 GB as float32) costs what the tasks a computation needs cost.
+    The same capture as ``acquire_tomography`` with ``rig: sim`` except for the noise, which is seeded per
+    (angle, frame, row) so that any chunking gives the same frames. Scenes with scattering are refused.
+
+    Parameters
+    ----------
+    scene : str
+        Scene file (``workflows/scenes/*.yaml``), without ``effects.scattering``.
+    angles : AngleSweep
+        Stage angles {start, stop, step} [degree]; stop > start, at most 100 000 angles.
+    rows_per_chunk : int or None
+        Sensor rows per chunk; None: whole frames, as an acquisition stores them (silhouettes need whole frames).
+        Angles per chunk follow, so that a chunk of one frame kind holds about 64 MiB.
+    """
+    spec = load_scene(scene)
+    if spec.effects.scattering is not None:
+        raise StageError(Problem("simulate_capture renders straight paths; the scene has scattering",
+                                 fix="capture it with acquire_tomography, rig sim"))
+    rows, cols = spec.camera.rows, spec.camera.cols
+    band = min(rows_per_chunk or rows, rows)
+    angle_values = angles.values()
+    per_chunk = angles_per_chunk(len(angle_values), band * cols * 4)
+    row_chunks = tuple(min(band, rows - first) for first in range(0, rows, band))
+    firsts = np.cumsum((0,) + row_chunks[:-1])
+    lazy_angles = da.from_array(angle_values, chunks=per_chunk)
+    lazy_rows = da.from_array(firsts, chunks=1)
+
+    def block(a: np.ndarray, first: np.ndarray) -> np.ndarray:
+        start = int(first[0])
+        return tomo.render_rows(spec, a, start, row_chunks[list(firsts).index(start)])
+
+    frames = da.blockwise(block, "karc", lazy_angles, "a", lazy_rows, "r", new_axes={"k": 3, "c": cols},
+                          adjust_chunks={"r": row_chunks}, dtype=np.float32, concatenate=False,
+                          name=f"simulate-capture-{tokenize(spec.model_dump_json(), angle_values, band)}")
+    frames = frames.rechunk({0: 1})  # one kind per chunk: blockwise gave all three in one
+    dims = ("angle", "row", "col")
+    geometry = spec.stated_geometry().attrs()
+    dark = np.full((rows, cols), spec.sensor.dark_level, np.float32)
+    return xr.Dataset(
+        {name: (dims, frames[k], {"units": "counts"}) for k, name in enumerate(tomo.FRAME_KINDS)}
+        | {"dark": (("row", "col"), dark, {"units": "counts"})},
+        coords={"angle": ("angle", angle_values, {"units": "degree", "long_name": "stage angle φ"})},
+        attrs={"selpath_kind": "tomography_capture", **geometry, "saturation_counts": spec.sensor.saturation_level,
+               "rig": "simulated", "scene": spec.scene, "effects": list(spec.effects.names()),
+               "simulator": "devices.sim.tomography.render_rows"})

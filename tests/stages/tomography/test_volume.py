@@ -14,6 +14,7 @@ import xarray as xr
 import workflows
 from devices.sim.scene import Scene, load_scene
 from pipeline import StageError
+from stages.tomography.acquire import AngleSweep
 from stages.tomography.calibrate import absorption
 from stages.tomography.evaluate import reconstruction_error
 from stages.tomography.figures import volume_figure
@@ -21,6 +22,7 @@ from stages.tomography.hull import silhouettes, visual_hull
 from stages.tomography.paths import align_paths
 from stages.tomography.phantom import phantom_truth
 from stages.tomography.reconstruct import fbp, ome_attrs, reconstruct_tv
+from stages.tomography.simulate import simulate_capture
 from stages.tomography.sinogram import bin_sinogram
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -115,6 +117,76 @@ def test_ome_metadata_is_written_only_for_a_regular_grid():
     assert ome_attrs(z[:1], yx, yx, "mm") == {}  # one slice: no volume
     assert ome_attrs(np.array([1.0, 0.5, 0.1]), yx, yx, "mm") == {}  # uneven heights
     assert "unit" not in ome_attrs(z, yx, yx, "px")["ome"]["multiscales"][0]["axes"][0]  # pixels: no NGFF unit
+
+
+def test_a_lazily_simulated_capture_is_the_rigs_under_any_chunking():
+    """simulate_capture renders what the rig's camera records (the in-memory capture of these tests, to float32
+    rounding), in bands of rows or whole frames alike; with noise, two bandings give identical frames."""
+    angles = AngleSweep(start=0, stop=360, step=30)
+    banded = simulate_capture(scene=str(SCENE), angles=angles, rows_per_chunk=7)
+    assert banded["target"].chunks[1] == (7, 7, 7, 7, 7, 5)
+    banded = banded.compute()
+    whole = simulate_capture(scene=str(SCENE), angles=angles).compute()
+    with xr.set_options(keep_attrs=True):
+        rig = capture(load_scene(SCENE), angles.values()).compute()
+    for kind in ("target", "reference", "backlit"):
+        np.testing.assert_array_equal(banded[kind].values, whole[kind].values)
+        np.testing.assert_allclose(banded[kind].values, np.clip(rig[kind].values, 0, 4095), atol=1e-3)
+    noisy = SCENE.parent.parent.parent / "noisy.yaml"
+    try:
+        noisy.write_text(SCENE.read_text() + "effects: {noise: {read_std: 2, gain: 1.0, seed: 3}}\n")
+        a = simulate_capture(scene=str(noisy), angles=angles, rows_per_chunk=5)["target"].values
+        b = simulate_capture(scene=str(noisy), angles=angles, rows_per_chunk=16)["target"].values
+    finally:
+        noisy.unlink()
+    np.testing.assert_array_equal(a, b)
+    assert 1.0 < float(np.std(a - whole["target"].values)) < 60.0  # the noise is there
+    with pytest.raises(StageError, match="scattering"):
+        simulate_capture(scene=str(SCENE.parent / "cylinder-in-cylinder-s1.yaml"))
+
+
+def test_no_task_of_the_volume_chain_holds_a_whole_capture(monkeypatch):
+    """Memory bounded by tile: with 4-frame render chunks, 1-KiB hull blocks and dask's rechunk intermediates at
+    most 16 KiB (``array.chunk-size``, 128 MiB by default: the same proportions as a full capture's), no task's
+    result holds more than 8 render chunks' bytes (the paths' 4 float64 fields of a chunk: 8×) or the hull's
+    contours of every slice (which each path task reads), and either is under a quarter of one frame kind."""
+    import dask
+    from dask.callbacks import Callback
+
+    import stages.tomography.hull as hull_module
+    import stages.tomography.simulate as simulate_module
+
+    scene = small_grape(cols=96)
+    path = SCENE.parent.parent.parent / "small-grape.yaml"
+    chunk = 4 * 24 * 96 * 4  # 4 frames
+    monkeypatch.setattr(simulate_module, "_FRAME_BYTES_PER_CHUNK", chunk)
+    monkeypatch.setattr(hull_module, "HULL_CHUNK_BYTES", 1024)
+    largest = [0, ""]
+
+    def size(value) -> int:
+        if isinstance(value, np.ndarray | xr.DataArray | xr.Dataset):
+            return int(value.nbytes)
+        if isinstance(value, tuple | list):
+            return sum(size(v) for v in value)
+        return 0
+
+    def record(key, result, dsk, state, worker_id):
+        if size(result) > largest[0] and "finalize" not in str(key):  # finalize: the volume handed back
+            largest[:] = [size(result), str(key)]
+
+    try:
+        path.write_text(scene.model_dump_json())
+        with dask.config.set({"array.chunk-size": "16KiB"}):  # rechunks are planned as the graph is built
+            cap = simulate_capture(scene=str(path), angles=AngleSweep(start=0, stop=360, step=2))
+            hull = visual_hull(silhouettes(cap))
+            volume = fbp(bin_sinogram(align_paths(absorption(cap, min_signal=1.0), hull)), hull)
+            with Callback(posttask=record):
+                volume["sigma"].compute(scheduler="threads")
+    finally:
+        path.unlink()
+    one_kind, contours = cap["target"].nbytes, hull["vertices"].nbytes
+    assert cap["target"].data.chunksize[0] == 4
+    assert 0 < largest[0] <= max(8 * chunk, contours) < one_kind / 4, (largest, contours, one_kind)
 
 
 @pytest.mark.slow
