@@ -3,10 +3,10 @@
 
 The grape (``workflows/scenes/grape-ellipsoid.yaml``: an ellipsoid with two seeds and a bruise at three heights) on
 a 1600 × 1200 telecentric camera of 0.02 mm pixels, a light sheet, 360 views: target, reference and backlit frames
-of 2.76 GB each as float32, 8.3 GB in all, never held. ``simulate_capture`` renders each chunk (whole frames, 8
-angles) inside the task that needs it. The whole chain is one lazy graph over all 1200 slices: absorption,
+of 2.76 GB each as float32, 8.3 GB in all, never held. ``simulate_capture`` renders each chunk (one whole frame)
+inside the task that needs it. The whole chain is one lazy graph over all 1200 slices: absorption,
 silhouettes, visual hull, paths, the sinogram at the capture's bins (180 × 1601), FBP on ``--n-pixels``² cells
-(default 400, 0.08 mm; the capture's 1601² costs about 3 s a slice, an hour for the volume on 2 cores). The volume
+(default 400, 0.08 mm; the capture's 1601² costs about 3 s a slice). The volume
 is written to a zarr store on a ``LocalCluster`` of single-threaded worker processes (one XLA thread each,
 ``pipeline.compute.WORKER_ENV``) with ``--memory-limit`` each, first with 1 worker, then with 2, each a fresh
 cluster. Printed: wall time, slices per second, each worker's peak RSS (``getrusage``), the 1 → 2 speed-up, and
@@ -20,6 +20,8 @@ the network: 3 × 4.4 GB at full size) dominates; workers need the project insta
     python benchmarks/tomo_volume.py [--rows 1200 --cols 1600 --angles 360 --n-pixels 400 --memory-limit 4GB]
 
 Last line: ``volume: slices_per_s=<2 workers> peak_rss_gb=<largest worker peak, either run> speedup_2w=<t1 / t2>``.
+Measured (docs/results.md): at 800 × 600 × 180, 938.7 s on 1 worker, 518.0 s on 2 (1.81×), peak 2.88 GB; the full size
+stalled a single 4 GB worker (paused at 80 % in unmanaged memory), which is still open.
 """
 
 from __future__ import annotations

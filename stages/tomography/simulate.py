@@ -43,9 +43,9 @@ _DEFAULT_RODS = (RodSpec(x=6.0, y=3.0, radius=2.0, sigma=0.15),)
 RENDER_FRAMES = {False: 5.3, True: 13.1}
 
 
-def angles_per_chunk(n_angles: int, frame_bytes: int) -> int:
-    """Angles rendered per dask task: as many frames as fit in 64 MiB, at least one."""
-    return max(1, min(n_angles, _FRAME_BYTES_PER_CHUNK // max(frame_bytes, 1)))
+def angles_per_chunk(n_angles: int, frame_bytes: int, chunk_bytes: int | None = None) -> int:
+    """Angles rendered per dask task: as many frames as fit in ``chunk_bytes`` (default 64 MiB), at least one."""
+    return max(1, min(n_angles, (chunk_bytes or _FRAME_BYTES_PER_CHUNK) // max(frame_bytes, 1)))
 
 
 def _capture_precheck(settings) -> list[str]:
@@ -155,6 +155,11 @@ def simulate_parallel_capture(
 
 
 
+#: bytes of one frame kind per chunk of a scene capture: 8 MiB, one 1600 × 1200 float32 frame, as acquisitions store
+#: them; the per-pixel stages downstream (absorption, paths) hold about 40× a chunk in float64 temporaries, and 8
+#: such frames (64 MiB) took a worker past a 4 GB limit (benchmarks/tomo_volume.py)
+SCENE_CHUNK_BYTES = 8 * 2**20
+
 #: peak bytes of working arrays per pixel and angle that :func:`devices.sim.tomography.render_rows` holds beside
 #: its float32 output (3 frames): the pixels' rays, exit points and normals in float64, about 20 float64 values
 RENDER_BYTES_PER_PIXEL = 160
@@ -192,7 +197,7 @@ def simulate_capture(*, scene: StorePath, angles: AngleSweep = AngleSweep(),  # 
         Stage angles {start, stop, step} [degree]; stop > start, at most 100 000 angles.
     rows_per_chunk : int or None
         Sensor rows per chunk; None: whole frames, as an acquisition stores them (silhouettes need whole frames).
-        Angles per chunk follow, so that a chunk of one frame kind holds about 64 MiB.
+        Angles per chunk follow, so that a chunk of one frame kind holds about 8 MiB (at least one angle).
     """
     spec = load_scene(scene)
     if spec.effects.scattering is not None:
@@ -201,7 +206,7 @@ def simulate_capture(*, scene: StorePath, angles: AngleSweep = AngleSweep(),  # 
     rows, cols = spec.camera.rows, spec.camera.cols
     band = min(rows_per_chunk or rows, rows)
     angle_values = angles.values()
-    per_chunk = angles_per_chunk(len(angle_values), band * cols * 4)
+    per_chunk = angles_per_chunk(len(angle_values), band * cols * 4, SCENE_CHUNK_BYTES)
     row_chunks = tuple(min(band, rows - first) for first in range(0, rows, band))
     firsts = np.cumsum((0,) + row_chunks[:-1])
     lazy_angles = da.from_array(angle_values, chunks=per_chunk)

@@ -159,7 +159,7 @@ def test_no_task_of_the_volume_chain_holds_a_whole_capture(monkeypatch):
     scene = small_grape(cols=96)
     path = SCENE.parent.parent.parent / "small-grape.yaml"
     chunk = 4 * 24 * 96 * 4  # 4 frames
-    monkeypatch.setattr(simulate_module, "_FRAME_BYTES_PER_CHUNK", chunk)
+    monkeypatch.setattr(simulate_module, "SCENE_CHUNK_BYTES", chunk)
     monkeypatch.setattr(hull_module, "HULL_CHUNK_BYTES", 1024)
     largest = [0, ""]
 
