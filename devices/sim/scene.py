@@ -207,7 +207,10 @@ class SceneObject(_Model):
         solids = self.inclusion_solids()
         for i, ((inc, _), spec) in enumerate(zip(solids, self.inclusions, strict=True)):
             if not body.contains(inc.surface(64)).all():
-                raise ValueError(f"inclusions[{i}] ({spec.name or spec.shape.kind}) reaches outside the object")
+                hint = ("; a cross-section spans the object's height unless given a z_range"
+                        if isinstance(self.shape, EllipsoidSpec) and not isinstance(spec.shape, EllipsoidSpec)
+                        and spec.z_range is None else "")
+                raise ValueError(f"inclusions[{i}] ({spec.name or spec.shape.kind}) reaches outside the object{hint}")
         if solids:  # the absorption field must be physical: sum of medium and inclusions >= 0
             total, _ = absorption_field(self.medium.sigma, body, solids)
             if total.min() < -1e-12:
@@ -375,7 +378,11 @@ class Scene(_Model):
         with them, so every pixel keeps its ray): a band of the sensor, rendered on its own."""
         cx, cy = self.camera.build().centre_px
         camera = self.camera.model_copy(update={"rows": int(count), "principal_point": (cx, cy - first)})
-        return self.model_copy(update={"camera": camera})
+        update = {"camera": camera}
+        if self.stated is not None and self.stated.principal_point is not None:  # the records' point moves alike
+            col, row = self.stated.principal_point
+            update["stated"] = self.stated.model_copy(update={"principal_point": (col, row - first)})
+        return self.model_copy(update=update)
 
     def body(self) -> Solid:
         return self.object.solid()

@@ -372,6 +372,11 @@ def _volume_views(sigma: xr.DataArray, point: tuple[float, float, float]) -> lis
             sigma.sel(x=x, method="nearest").data, sigma.max("slice").data]
 
 
+def upright(section: np.ndarray, z: np.ndarray) -> np.ndarray:
+    """A vertical section (slice, …) with its rows ordered from the highest z to the lowest, as drawn (origin upper)."""
+    return section if z[0] >= z[-1] else section[::-1]
+
+
 def _draw_volume(views: list, titles: list[str], rows: list[str], x: np.ndarray, y: np.ndarray, z: np.ndarray,
                  unit: str, sigma_unit: str, size: tuple[float, float]) -> np.ndarray:
     fig, axes = panels(len(rows), 4, size=size, squeeze=False)
@@ -384,8 +389,7 @@ def _draw_volume(views: list, titles: list[str], rows: list[str], x: np.ndarray,
     for r, name in enumerate(rows):
         for c in range(4):
             ax, image = axes[r, c], np.asarray(views[r * 4 + c])
-            if c in (1, 2) and z[0] < z[-1]:  # rows of a section are slices: put the highest on top
-                image = image[::-1]
+            image = upright(image, z) if c in (1, 2) else image
             origin = "lower" if c in (0, 3) else "upper"
             shown = ax.imshow(image, extent=extents[c], origin=origin, cmap="magma", vmin=0, vmax=vmax,
                               interpolation="nearest", aspect="equal")

@@ -197,7 +197,8 @@ def simulate_capture(*, scene: StorePath, angles: AngleSweep = AngleSweep(),  # 
         Stage angles {start, stop, step} [degree]; stop > start, at most 100 000 angles.
     rows_per_chunk : int or None
         Sensor rows per chunk; None: whole frames, as an acquisition stores them (silhouettes need whole frames).
-        Angles per chunk follow, so that a chunk of one frame kind holds about 8 MiB (at least one angle).
+        Angles per chunk follow from whole frames (about 8 MiB of one frame kind, at least one angle), banded or not:
+        silhouettes join the bands back into whole frames.
     """
     spec = load_scene(scene)
     if spec.effects.scattering is not None:
@@ -206,7 +207,8 @@ def simulate_capture(*, scene: StorePath, angles: AngleSweep = AngleSweep(),  # 
     rows, cols = spec.camera.rows, spec.camera.cols
     band = min(rows_per_chunk or rows, rows)
     angle_values = angles.values()
-    per_chunk = angles_per_chunk(len(angle_values), band * cols * 4, SCENE_CHUNK_BYTES)
+    # angles per chunk from the whole frame, not the band: silhouettes join the bands back into whole frames
+    per_chunk = angles_per_chunk(len(angle_values), rows * cols * 4, SCENE_CHUNK_BYTES)
     row_chunks = tuple(min(band, rows - first) for first in range(0, rows, band))
     firsts = np.cumsum((0,) + row_chunks[:-1])
     lazy_angles = da.from_array(angle_values, chunks=per_chunk)
@@ -218,7 +220,7 @@ def simulate_capture(*, scene: StorePath, angles: AngleSweep = AngleSweep(),  # 
 
     frames = da.blockwise(block, "karc", lazy_angles, "a", lazy_rows, "r", new_axes={"k": 3, "c": cols},
                           adjust_chunks={"r": row_chunks}, dtype=np.float32, concatenate=False,
-                          name=f"simulate-capture-{tokenize(spec.model_dump_json(), angle_values, band)}")
+                          name=f"simulate-capture-{tokenize(spec.model_dump_json(), angle_values, band, per_chunk)}")
     frames = frames.rechunk({0: 1})  # one kind per chunk: blockwise gave all three in one
     dims = ("angle", "row", "col")
     geometry = spec.stated_geometry().attrs()

@@ -114,3 +114,18 @@ def test_solids_are_checked_in_three_dimensions(old, new, message):
     assert old in GOOD
     with pytest.raises(ConfigError, match=message):
         load_scene(GOOD.replace(old, new))
+
+
+def test_a_band_of_rows_keeps_every_pixels_ray_and_the_records_move_with_it():
+    """Scene.rows(first, count): pixel (r, c) of the band sees what pixel (first + r, c) of the sensor sees, in the
+    true geometry and in the one the records state."""
+    import numpy as np
+
+    scene = load_scene(GOOD.replace("effects:", "stated: {principal_point: [4.0 px, 6.5 px]}\neffects:"))
+    band = scene.rows(3, 4)
+    for geometry in ("geometry", "stated_geometry"):
+        full, part = getattr(scene, geometry)().camera, getattr(band, geometry)().camera
+        want = full.back_project(np.repeat(np.arange(3.0, 7.0), 10), np.tile(np.arange(10.0), 4))
+        np.testing.assert_allclose(part.pixel_rays()[0], want[0], atol=1e-12)
+        np.testing.assert_allclose(part.pixel_rays()[1], want[1], atol=1e-12)
+    assert band.camera.rows == 4 and band.stated.principal_point == (4.0, 3.5)

@@ -17,7 +17,7 @@ from pipeline import StageError
 from stages.tomography.acquire import AngleSweep
 from stages.tomography.calibrate import absorption
 from stages.tomography.evaluate import reconstruction_error
-from stages.tomography.figures import volume_figure
+from stages.tomography.figures import upright, volume_figure
 from stages.tomography.hull import silhouettes, visual_hull
 from stages.tomography.paths import align_paths
 from stages.tomography.phantom import phantom_truth
@@ -69,11 +69,13 @@ def test_the_truth_volume_holds_each_inclusions_integral():
 
 
 def test_slices_carry_their_height_and_a_volume_is_recovered_at_the_right_heights():
-    """Every stage carries z (the camera's axis height of each row, in mm); the FBP volume puts each inclusion at
+    """Every stage carries z (the camera's axis height of each row, in mm; the formula is pinned in
+    tests/devices/test_geometry.py, and here row 0 at the top: +10.35 mm); the FBP volume puts each inclusion at
     the height the truth volume does, within half a slice (0.45 mm), and its RMSE is within 2.5 % of the σ peak."""
     scene = small_grape()
     _, hull, sinogram = volume_chain(scene)
     heights = scene.geometry().camera.axis_height(np.arange(24))
+    assert heights[0] == pytest.approx(11.5 * 0.9)  # (c_y − 0) · pixel size, c_y = 11.5
     np.testing.assert_allclose(hull["z"].values, heights, rtol=1e-12)
     np.testing.assert_allclose(sinogram["z"].values, heights, rtol=1e-12)
     assert sinogram["z"].attrs["units"] == "mm"
@@ -109,6 +111,15 @@ def test_a_volume_needs_heights_and_more_than_one_slice():
         volume_figure(fbp(sinogram, hull))
 
 
+@pytest.mark.parametrize("order", [1, -1], ids=["z falling", "z rising"])
+def test_vertical_sections_are_drawn_with_the_highest_slice_on_top(order):
+    z = np.array([2.0, 1.0, 0.0])[::order]
+    section = np.zeros((3, 4))
+    section[int(np.argmax(z))] = 1.0  # the highest slice is marked
+    np.testing.assert_array_equal(upright(section, z)[0], 1.0)
+    np.testing.assert_array_equal(upright(section, z)[1:], 0.0)
+
+
 def test_ome_metadata_is_written_only_for_a_regular_grid():
     z, yx = np.array([1.0, 0.5, 0.0]), np.linspace(-1, 1, 5)
     ome = ome_attrs(z, yx, yx, "mm")["ome"]["multiscales"][0]
@@ -119,7 +130,7 @@ def test_ome_metadata_is_written_only_for_a_regular_grid():
     assert "unit" not in ome_attrs(z, yx, yx, "px")["ome"]["multiscales"][0]["axes"][0]  # pixels: no NGFF unit
 
 
-def test_a_lazily_simulated_capture_is_the_rigs_under_any_chunking():
+def test_a_lazily_simulated_capture_is_the_rigs_under_any_chunking(tmp_path):
     """simulate_capture renders what the rig's camera records (the in-memory capture of these tests, to float32
     rounding), in bands of rows or whole frames alike; with noise, two bandings give identical frames."""
     angles = AngleSweep(start=0, stop=360, step=30)
@@ -132,20 +143,18 @@ def test_a_lazily_simulated_capture_is_the_rigs_under_any_chunking():
     for kind in ("target", "reference", "backlit"):
         np.testing.assert_array_equal(banded[kind].values, whole[kind].values)
         np.testing.assert_allclose(banded[kind].values, np.clip(rig[kind].values, 0, 4095), atol=1e-3)
-    noisy = SCENE.parent.parent.parent / "noisy.yaml"
-    try:
-        noisy.write_text(SCENE.read_text() + "effects: {noise: {read_std: 2, gain: 1.0, seed: 3}}\n")
-        a = simulate_capture(scene=str(noisy), angles=angles, rows_per_chunk=5)["target"].values
-        b = simulate_capture(scene=str(noisy), angles=angles, rows_per_chunk=16)["target"].values
-    finally:
-        noisy.unlink()
+    noisy = tmp_path / "noisy.yaml"
+    noisy.write_text(SCENE.read_text() + "effects: {noise: {read_std: 2, gain: 1.0, seed: 3}}\n")
+    a = simulate_capture(scene=str(noisy), angles=angles, rows_per_chunk=5)["target"].values
+    b = simulate_capture(scene=str(noisy), angles=angles, rows_per_chunk=16)["target"].values
     np.testing.assert_array_equal(a, b)
     assert 1.0 < float(np.std(a - whole["target"].values)) < 60.0  # the noise is there
     with pytest.raises(StageError, match="scattering"):
         simulate_capture(scene=str(SCENE.parent / "cylinder-in-cylinder-s1.yaml"))
 
 
-def test_no_task_of_the_volume_chain_holds_a_whole_capture(monkeypatch):
+@pytest.mark.parametrize("rows_per_chunk", [None, 5], ids=["frames", "bands"])
+def test_no_task_of_the_volume_chain_holds_a_whole_capture(monkeypatch, tmp_path, rows_per_chunk):
     """Memory bounded by tile: with 4-frame render chunks, 1-KiB hull blocks and dask's rechunk intermediates at
     most 16 KiB (``array.chunk-size``, 128 MiB by default: the same proportions as a full capture's), no task's
     result holds more than 8 render chunks' bytes (the paths' 4 float64 fields of a chunk: 8×) or the hull's
@@ -157,7 +166,7 @@ def test_no_task_of_the_volume_chain_holds_a_whole_capture(monkeypatch):
     import stages.tomography.simulate as simulate_module
 
     scene = small_grape(cols=96)
-    path = SCENE.parent.parent.parent / "small-grape.yaml"
+    path = tmp_path / "small-grape.yaml"
     chunk = 4 * 24 * 96 * 4  # 4 frames
     monkeypatch.setattr(simulate_module, "SCENE_CHUNK_BYTES", chunk)
     monkeypatch.setattr(hull_module, "HULL_CHUNK_BYTES", 1024)
@@ -174,16 +183,14 @@ def test_no_task_of_the_volume_chain_holds_a_whole_capture(monkeypatch):
         if size(result) > largest[0] and "finalize" not in str(key):  # finalize: the volume handed back
             largest[:] = [size(result), str(key)]
 
-    try:
-        path.write_text(scene.model_dump_json())
-        with dask.config.set({"array.chunk-size": "16KiB"}):  # rechunks are planned as the graph is built
-            cap = simulate_capture(scene=str(path), angles=AngleSweep(start=0, stop=360, step=2))
-            hull = visual_hull(silhouettes(cap))
-            volume = fbp(bin_sinogram(align_paths(absorption(cap, min_signal=1.0), hull)), hull)
-            with Callback(posttask=record):
-                volume["sigma"].compute(scheduler="threads")
-    finally:
-        path.unlink()
+    path.write_text(scene.model_dump_json())
+    with dask.config.set({"array.chunk-size": "16KiB"}):  # rechunks are planned as the graph is built
+        cap = simulate_capture(scene=str(path), angles=AngleSweep(start=0, stop=360, step=2),
+                               rows_per_chunk=rows_per_chunk)
+        hull = visual_hull(silhouettes(cap))
+        volume = fbp(bin_sinogram(align_paths(absorption(cap, min_signal=1.0), hull)), hull)
+        with Callback(posttask=record):
+            volume["sigma"].compute(scheduler="threads")
     one_kind, contours = cap["target"].nbytes, hull["vertices"].nbytes
     assert cap["target"].data.chunksize[0] == 4
     assert 0 < largest[0] <= max(8 * chunk, contours) < one_kind / 4, (largest, contours, one_kind)
