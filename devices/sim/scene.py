@@ -212,15 +212,15 @@ class SceneObject(_Model):
                         and spec.z_range is None else "")
                 raise ValueError(f"inclusions[{i}] ({spec.name or spec.shape.kind}) reaches outside the object{hint}")
         if solids:  # the absorption field must be physical: sum of medium and inclusions >= 0
-            total, _ = absorption_field(self.medium.sigma, body, solids)
+            total = absorption_field(self.medium.sigma, body, solids)
             if total.min() < -1e-12:
                 raise ValueError(f"medium + inclusions give a negative absorption ({total.min():.3g} /mm)")
         return self
 
 
-def absorption_field(medium: float, body: Solid, solids) -> tuple[np.ndarray, np.ndarray]:
-    """σ of the medium plus the inclusions at sample points inside ``body`` (201² in x–y at the mid-height of
-    every z band between the solids' ends, and at every ellipsoid's centre), and the points (N, 3)."""
+def absorption_field(medium: float, body: Solid, solids) -> np.ndarray:
+    """σ of the medium plus the inclusions at sample points inside ``body``: 201² in x–y at the mid-height of
+    every z band between the solids' ends, and at every ellipsoid's centre."""
     reach = body.reach()
     ends = sorted({float(z) for s in (body, *(s for s, _ in solids)) for z in s.z_range if np.isfinite(z)})
     heights = [(a + b) / 2 for a, b in zip(ends, ends[1:], strict=False)] or [0.0]
@@ -231,7 +231,7 @@ def absorption_field(medium: float, body: Solid, solids) -> tuple[np.ndarray, np
     total = np.full(len(points), medium)
     for inc, sigma in solids:
         total += sigma * inc.contains(points)
-    return total, points
+    return total
 
 
 class Light(_Model):

@@ -364,11 +364,10 @@ def convergence_figure(optimised: xr.Dataset, /) -> xr.Dataset:
 VOLUME_SIZE, VOLUME_SIZE_NO_TRUTH = (9.0, 4.5), (9.0, 2.5)
 
 
-def _volume_views(sigma: xr.DataArray, point: tuple[float, float, float]) -> list:
-    """The three sections through ``point`` (x, y, z) and the maximum along z, each a (lazy) 2-D array."""
-    x, y, z = point
-    at_z = int(np.abs(sigma["z"].values - z).argmin())
-    return [sigma.isel(slice=at_z).data, sigma.sel(y=y, method="nearest").data,
+def _volume_views(sigma: xr.DataArray, at_slice: int, y: float, x: float) -> list:
+    """The three sections through slice ``at_slice`` and the grid row and column nearest ``y`` and ``x``, and the
+    maximum along z, each a (lazy) 2-D array."""
+    return [sigma.isel(slice=at_slice).data, sigma.sel(y=y, method="nearest").data,
             sigma.sel(x=x, method="nearest").data, sigma.max("slice").data]
 
 
@@ -436,11 +435,12 @@ def volume_figure(reconstruction: xr.Dataset, truth: xr.Dataset | None = None, /
                                  fix="make the truth with phantom_truth from the reconstruction's sinogram"))
     z = sigma["z"].values
     point = tuple(at) if at is not None else (0.0, 0.0, float(z[len(z) // 2]))
-    views = [v for volume in volumes.values() for v in _volume_views(volume["sigma"], point)]
+    at_slice = int(np.abs(z - point[2]).argmin())
+    near = (float(sigma["x"].sel(x=point[0], method="nearest")), float(sigma["y"].sel(y=point[1], method="nearest")),
+            float(z[at_slice]))
+    views = [v for volume in volumes.values() for v in _volume_views(volume["sigma"], at_slice, near[1], near[0])]
     unit = sigma["x"].attrs.get("units", "px")
     sigma_unit = sigma.attrs.get("units", in_length("1/{length}", unit))
-    near = (float(sigma["x"].sel(x=point[0], method="nearest")), float(sigma["y"].sel(y=point[1], method="nearest")),
-            float(z[np.abs(z - point[2]).argmin()]))
     titles = [f"z = {near[2]:.3g}", f"y = {near[1]:.3g}", f"x = {near[0]:.3g}", "maximum along z"]
     rows = [{"reconstruction": reconstruction.attrs.get("method", "reconstruction"), "truth": "truth"}[n]
             for n in volumes]

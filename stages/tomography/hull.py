@@ -256,11 +256,11 @@ def visual_hull(silhouettes: xr.Dataset, /) -> xr.Dataset:
     return with_metadata(hull, "hull")
 
 
-def slice_heights(camera: Camera, rows: np.ndarray, unit: str) -> tuple[str, np.ndarray, dict]:
-    """The ``z`` coordinate of slices seen in camera ``rows``: the height [``unit``, the rig's length unit] where
-    each row sees the rotation axis (:meth:`~devices.geometry.Camera.axis_height`); z grows upward, so it falls
-    as the row grows."""
-    return ("slice", camera.axis_height(rows), {"units": unit, "long_name": "slice height z at the rotation axis"})
+def slice_heights(camera: Camera, rows: np.ndarray, unit: str, dim: str = "slice") -> tuple[str, np.ndarray, dict]:
+    """The ``z`` coordinate (along ``dim``) of slices seen in camera ``rows``: the height [``unit``, the rig's
+    length unit] where each row sees the rotation axis (:meth:`~devices.geometry.Camera.axis_height`); z grows
+    upward, so it falls as the row grows."""
+    return (dim, camera.axis_height(rows), {"units": unit, "long_name": "slice height z at the rotation axis"})
 
 
 def hull_polygons(hull: xr.Dataset) -> list[np.ndarray | None]:

@@ -131,9 +131,9 @@ def align_paths(absorption: xr.Dataset, hull: xr.Dataset, /, *, min_exit_cos: Fr
     if not len(rows):
         raise StageError(Problem("no camera row sees the beam's height", fix="check beam_height and the camera"))
     flags = absorption["flags"] if "flags" in absorption else xr.zeros_like(absorption["absorption"], dtype=np.int8)
-    height = slice_heights(geometry.camera, rows, hull.attrs["length_unit"])
-    data = absorption["absorption"].isel(row=rows).assign_coords(row=("row", rows), z=("row", *height[1:]))
-    flags = flags.isel(row=rows).assign_coords(row=("row", rows), z=("row", *height[1:]))
+    lit = {"row": ("row", rows), "z": slice_heights(geometry.camera, rows, hull.attrs["length_unit"], "row")}
+    data = absorption["absorption"].isel(row=rows).assign_coords(lit)
+    flags = flags.isel(row=rows).assign_coords(lit)
     # the slice each camera row sees; one chunk (small: the contours), not the hull's blocks of rows, which would
     # split every chunk of the absorption that spans them
     shell = contours(hull, data["row"], "align_paths").drop_vars("slice")

@@ -209,19 +209,18 @@ def simulate_capture(*, scene: StorePath, angles: AngleSweep = AngleSweep(),  # 
     angle_values = angles.values()
     # angles per chunk from the whole frame, not the band: silhouettes join the bands back into whole frames
     per_chunk = angles_per_chunk(len(angle_values), rows * cols * 4, SCENE_CHUNK_BYTES)
-    row_chunks = tuple(min(band, rows - first) for first in range(0, rows, band))
-    firsts = np.cumsum((0,) + row_chunks[:-1])
+    firsts = np.arange(0, rows, band)
+    row_chunks = tuple(min(band, rows - first) for first in firsts)
     lazy_angles = da.from_array(angle_values, chunks=per_chunk)
     lazy_rows = da.from_array(firsts, chunks=1)
 
     def block(a: np.ndarray, first: np.ndarray) -> np.ndarray:
         start = int(first[0])
-        return tomo.render_rows(spec, a, start, row_chunks[list(firsts).index(start)])
+        return tomo.render_rows(spec, a, start, min(band, rows - start))
 
     frames = da.blockwise(block, "karc", lazy_angles, "a", lazy_rows, "r", new_axes={"k": 3, "c": cols},
                           adjust_chunks={"r": row_chunks}, dtype=np.float32, concatenate=False,
                           name=f"simulate-capture-{tokenize(spec.model_dump_json(), angle_values, band, per_chunk)}")
-    frames = frames.rechunk({0: 1})  # one kind per chunk: blockwise gave all three in one
     dims = ("angle", "row", "col")
     geometry = spec.stated_geometry().attrs()
     dark = np.full((rows, cols), spec.sensor.dark_level, np.float32)
