@@ -26,6 +26,7 @@ walk and :class:`MatrixProjector` are differentiable; :class:`HostProjector` run
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 from typing import Literal, NamedTuple
 
 import jax
@@ -156,28 +157,62 @@ def system_matrix(geometry: Geometry, dtype=np.float32):
 
 
 def backproject(geometry: Geometry, sinogram: jnp.ndarray) -> jnp.ndarray:
-    """Pixel-driven back-projection Σ_θ q(θ, x cos θ + y sin θ)·Δθ (linear in X; zero off the grid)."""
-    t = np.deg2rad(np.asarray(geometry.theta_deg))
-    dtype = sinogram.dtype
+    """Pixel-driven back-projection Σ_θ q(θ, x cos θ + y sin θ)·Δθ (linear in X; zero off the grid) of one (θ, X)
+    sinogram, (n, n), or of a (S, θ, X) batch, (S, n, n): one compiled loop per geometry, shape and dtype."""
+    if sinogram.ndim == 2:
+        return _backproject(geometry, sinogram[None])[0]
+    return _backproject(geometry, sinogram)
+
+
+def _bin_position(geometry: Geometry, angle, dtype):
+    """Each cell centre's fractional X bin index at θ = ``angle`` [rad], (n, n) [(y, x) indexing]."""
     centres = jnp.asarray(geometry.centres, dtype)
-    yy, xx = jnp.meshgrid(centres, centres, indexing="ij")
     xs = np.asarray(geometry.x)
     step = (xs[-1] - xs[0]) / (len(xs) - 1)
+    return (centres[None, :] * jnp.cos(angle) + centres[:, None] * jnp.sin(angle) - xs[0]) / step
 
-    def one(q, angle):
-        proj = xx * jnp.cos(angle) + yy * jnp.sin(angle)
-        s = (proj - xs[0]) / step
+
+@partial(jax.jit, static_argnums=0)
+def _backproject(geometry: Geometry, sinogram: jnp.ndarray) -> jnp.ndarray:
+    dtype, count = sinogram.dtype, sinogram.shape[-1]
+    angles = jnp.asarray(np.deg2rad(np.asarray(geometry.theta_deg)), dtype)
+
+    def add(i, total):
+        s = _bin_position(geometry, angles[i], dtype)
         i0 = jnp.floor(s).astype(jnp.int32)
         w1 = s - i0
-        n = q.shape[0]
-        v0 = jnp.where((i0 >= 0) & (i0 < n), q[jnp.clip(i0, 0, n - 1)], 0.0)
-        v1 = jnp.where((i0 + 1 >= 0) & (i0 + 1 < n), q[jnp.clip(i0 + 1, 0, n - 1)], 0.0)
-        return (1 - w1) * v0 + w1 * v1
+        q = sinogram[:, i]  # (S, X)
+        v0 = jnp.where((i0 >= 0) & (i0 < count), jnp.take(q, jnp.clip(i0, 0, count - 1), axis=1), 0.0)
+        v1 = jnp.where((i0 >= -1) & (i0 < count - 1), jnp.take(q, jnp.clip(i0 + 1, 0, count - 1), axis=1), 0.0)
+        return total + (1 - w1) * v0 + w1 * v1
 
-    angles = jnp.asarray(t, dtype)
-    total = jax.lax.fori_loop(0, len(t), lambda i, acc: acc + one(sinogram[i], angles[i]),
-                              jnp.zeros((geometry.n, geometry.n), dtype))
-    return total * (np.pi / len(t))
+    total = jax.lax.fori_loop(0, len(geometry.theta_deg), add,
+                              jnp.zeros((sinogram.shape[0], geometry.n, geometry.n), dtype))
+    return total * (np.pi / len(geometry.theta_deg))
+
+
+def any_nearest(geometry: Geometry, flagged: np.ndarray) -> np.ndarray:
+    """Per cell, whether at some θ its nearest X bin is ``flagged`` (or off the grid): (n, n) from one (θ, X) mask,
+    (S, n, n) from a (S, θ, X) batch. Bin positions are computed in float64 whatever the data's dtype, so ties
+    round as ``np.rint`` does."""
+    flagged = np.asarray(flagged, bool)
+    with jax.enable_x64(True):
+        out = np.asarray(_any_nearest(geometry, jnp.asarray(flagged.reshape(-1, *flagged.shape[-2:]))))
+    return out.reshape(*flagged.shape[:-2], geometry.n, geometry.n)
+
+
+@partial(jax.jit, static_argnums=0)
+def _any_nearest(geometry: Geometry, flagged: jnp.ndarray) -> jnp.ndarray:
+    count = flagged.shape[-1]
+    angles = jnp.asarray(np.deg2rad(np.asarray(geometry.theta_deg)), jnp.float64)
+
+    def step(i, seen):
+        j = jnp.rint(_bin_position(geometry, angles[i], jnp.float64)).astype(jnp.int32)
+        off = (j < 0) | (j >= count)
+        return seen | off | jnp.take(flagged[:, i], jnp.clip(j, 0, count - 1), axis=1)
+
+    return jax.lax.fori_loop(0, len(geometry.theta_deg), step,
+                             jnp.zeros((flagged.shape[0], geometry.n, geometry.n), bool))
 
 
 class WalkProjector(NamedTuple):

@@ -56,47 +56,51 @@ def sinogram_coordinates(entry: np.ndarray, exit_: np.ndarray) -> tuple[np.ndarr
 
 def _align_kernel(absorption, flags, angle, row, col, vertices, n_vertices, *, geometry: RigGeometry,
                   min_exit_cos: float):
-    shape = np.broadcast_shapes(absorption.shape, angle.shape, row.shape, col.shape)
-    absorption = np.broadcast_to(absorption, shape)
-    angle, row, col = (np.broadcast_to(a, shape) for a in (angle, row, col))
-    flags = np.broadcast_to(flags, shape)
-    vertices = np.broadcast_to(vertices, (*shape, *vertices.shape[-2:]))
-    n_vertices = np.broadcast_to(n_vertices, shape)
-    theta, x = np.full(shape, np.nan), np.full(shape, np.nan)
-    reason = np.zeros(shape, dtype=np.int8)
+    # apply_ufunc hands every input broadcastable over (angle, row, col), in that order (leading axes left out); the
+    # camera's rays depend on (angle, col) only and the light's on the angle only, so each is traced once per row
+    shape = np.broadcast_shapes(absorption.shape, flags.shape, angle.shape, row.shape, col.shape)
+    vertices = np.broadcast_to(vertices, (*shape, *vertices.shape[-2:]))  # views, nothing copied
+    absorption, flags = np.broadcast_to(absorption, shape), np.broadcast_to(flags, shape)
+    phi = np.deg2rad(np.broadcast_to(angle, shape)[:, 0, 0])[:, None]
+    cam_o, cam_d = geometry.camera.slice_rays(np.broadcast_to(col, shape)[0, 0, :])
+    cam_d = cam_d / np.linalg.norm(cam_d, axis=1, keepdims=True)
+    o, d = to_object_xy(cam_o[None], phi), to_object_xy(cam_d[None], phi)  # (angle, col, 2)
     beam_origin, beam_direction = geometry.beam()
-    for r in np.unique(row):
-        sel = row == r
-        count = int(n_vertices[sel].flat[0])
+    light_o, light_d = to_object_xy(beam_origin[:2], phi[:, 0]), to_object_xy(beam_direction[:2], phi[:, 0])
+    out = np.full((*shape, 4), np.nan)
+    reason = out[..., 3]
+    reason[:] = 1  # the camera ray misses the contour, unless found otherwise below
+    for j, count in enumerate(np.broadcast_to(n_vertices, shape)[0, :, 0]):
         if count < 3:
-            reason[sel] = 6
+            reason[:, j] = 6
             continue
-        polygon = convex_polygon(vertices[sel][0][:count])
-        phi = np.deg2rad(angle[sel])
-        pixel = col[sel].astype(float)
-        cam_o, cam_d = geometry.camera.slice_rays(pixel)
-        cam_d /= np.linalg.norm(cam_d, axis=1, keepdims=True)
-        o, d = to_object_xy(cam_o, phi), to_object_xy(cam_d, phi)
-        seen = polygon.interval(o, d)
-        p_c = o + np.where(seen.hit, seen.t_in, 0.0)[:, None] * d
-        cos_exit = np.abs(np.einsum("ij,ij->i", d, seen.normal_in))
-        light_o = to_object_xy(np.tile(beam_origin[:2], (len(pixel), 1)), phi)
-        light_d = to_object_xy(np.tile(beam_direction[:2], (len(pixel), 1)), phi)
+        polygon = convex_polygon(vertices[0, j, 0, :int(count)])
         light = polygon.interval(light_o, light_d)
-        p_l = light_o + np.where(light.hit, light.t_in, 0.0)[:, None] * light_d
-        length = np.linalg.norm(p_c - p_l, axis=1)
-        why = np.zeros(len(pixel), dtype=np.int8)
-        why[~np.isfinite(absorption[sel]) | (flags[sel] != 0)] = 5
+        p_l = light_o + np.where(light.hit, light.t_in, 0.0)[:, None] * light_d  # (angle, 2)
+        # only rays that meet the contour's bounding circle can meet the contour
+        centre, radius = polygon.bounding_circle()
+        rel = centre - o
+        gap = np.abs(rel[..., 0] * d[..., 1] - rel[..., 1] * d[..., 0])
+        near = np.nonzero(gap <= radius * (1 + 1e-9) + 1e-12)
+        on, dn = o[near], d[near]
+        seen = polygon.interval(on, dn)
+        p_c = on + np.where(seen.hit, seen.t_in, 0.0)[:, None] * dn
+        cos_exit = np.abs(np.einsum("ij,ij->i", dn, seen.normal_in))
+        entry = p_l[near[0]]
+        length = np.linalg.norm(p_c - entry, axis=1)
+        a = absorption[near[0], j, near[1]]
+        why = np.zeros(len(a))
+        why[~np.isfinite(a) | (flags[near[0], j, near[1]] != 0)] = 5
         why[length <= 1e-9 * max(polygon.reach(), 1.0)] = 4
-        why[~light.hit] = 3
+        why[~light.hit[near[0]]] = 3
         why[seen.hit & (cos_exit < min_exit_cos)] = 2
         why[~seen.hit] = 1
-        t, xx = sinogram_coordinates(p_l, p_c)
         ok = why == 0
-        theta[sel] = np.where(ok, t, np.nan)
-        x[sel] = np.where(ok, xx, np.nan)
-        reason[sel] = why
-    return np.stack([theta, x, np.where(reason == 0, absorption, np.nan), reason], axis=-1)
+        t, xx = sinogram_coordinates(entry[ok], p_c[ok])
+        hit = (near[0][ok], j, near[1][ok])
+        out[hit + (0,)], out[hit + (1,)], out[hit + (2,)] = t, xx, a[ok]
+        reason[near[0], j, near[1]] = why
+    return out
 
 
 #: floor of ``ray_fraction`` (the demo keeps 82 % of its lit-row pixels)
@@ -149,6 +153,7 @@ def align_paths(absorption: xr.Dataset, hull: xr.Dataset, /, *, min_exit_cos: Fr
         dask="parallelized", output_dtypes=[np.float64], dask_gufunc_kwargs={"output_sizes": {"field": 4}},
         kwargs={"geometry": geometry, "min_exit_cos": min_exit_cos})
     theta, x, total = (fields.isel(field=i, drop=True) for i in range(3))
+    total = total.astype(data.dtype)  # the kernel's stack is float64; the absorption keeps its own precision
     reason = fields.isel(field=3, drop=True).astype(np.int8)
     unit = hull.attrs["length_unit"]
     half_width = geometry.camera.view_half_width

@@ -31,7 +31,7 @@ from pipeline.schema import in_length
 from stages._common import Dtype, MaxIter, require_variables
 from stages.tomography._admm import TVADMM
 from stages.tomography._filters import ramp_filter
-from stages.tomography._projector import Geometry, backproject
+from stages.tomography._projector import Geometry, any_nearest, backproject
 from stages.tomography.hull import contours
 from stages.tomography.sinogram import observed_share, support_function
 
@@ -57,15 +57,25 @@ def grid_geometry(sinogram: xr.Dataset, n_pixels: int | None, method: str = "jos
 
 def support_mask(vertices: np.ndarray | None, geometry: Geometry) -> np.ndarray:
     """True on cells whose centre lies inside the convex polygon (counter-clockwise vertices); all True
-    when there is no contour."""
+    when there is no contour.
+
+    Row by row: a cell at height y is inside where every edge a → b has (b − a) × (p − a) ≥ −1e-12, which for
+    fixed y bounds x from one side (edges running down bound it below, up above; level edges keep or drop the
+    row), so a row is one interval [lo, hi]: O(n·edges + n²), not O(n²·edges)."""
     centres = geometry.centres
-    yy, xx = np.meshgrid(centres, centres, indexing="ij")
     if vertices is None or len(vertices) < 3:
         return np.ones((geometry.n, geometry.n), dtype=bool)
-    inside = np.ones_like(xx, dtype=bool)
-    for a, b in zip(vertices, np.roll(vertices, -1, axis=0), strict=True):
-        inside &= (b[0] - a[0]) * (yy - a[1]) - (b[1] - a[1]) * (xx - a[0]) >= -1e-12
-    return inside
+    a = np.asarray(vertices, float)
+    b = np.roll(a, -1, axis=0)
+    dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
+    # per (row y, edge): the cross product is g − dy·x ≥ 0 with g = dx·(y − a_y) + dy·a_x + 1e-12
+    g = dx[None, :] * (centres[:, None] - a[None, :, 1]) + (dy * a[:, 0])[None, :] + 1e-12
+    with np.errstate(divide="ignore", invalid="ignore"):
+        bound = g / dy[None, :]
+    lo = np.max(np.where(dy < 0, bound, -np.inf), axis=1)
+    hi = np.min(np.where(dy > 0, bound, np.inf), axis=1)
+    level = np.all(np.where(dy == 0, g >= 0, True), axis=1)
+    return level[:, None] & (centres[None, :] >= lo[:, None]) & (centres[None, :] <= hi[:, None])
 
 
 def known_zero(vertices: np.ndarray | None, geometry: Geometry) -> np.ndarray:
@@ -77,24 +87,10 @@ def known_zero(vertices: np.ndarray | None, geometry: Geometry) -> np.ndarray:
     return (x[None, :] > plus[:, None]) | (x[None, :] < -minus[:, None])
 
 
-def _nearest_bins(geometry: Geometry):
-    """Per θ: the nearest X bin of every cell centre, and whether it falls on the grid."""
-    t = np.deg2rad(np.asarray(geometry.theta_deg))
-    c = geometry.centres
-    x = np.asarray(geometry.x)
-    step = (x[-1] - x[0]) / (len(x) - 1)
-    for i, angle in enumerate(t):
-        proj = c[None, :] * np.cos(angle) + c[:, None] * np.sin(angle)  # (y, x)
-        j = np.rint((proj - x[0]) / step).astype(np.int64)
-        yield i, j, (j >= 0) & (j < len(x))
-
-
 def reliable_cells(known: np.ndarray, geometry: Geometry) -> np.ndarray:
-    """Cells whose nearest bin is known (observed or known zero) at every θ."""
-    out = np.ones((geometry.n, geometry.n), dtype=bool)
-    for i, j, on_grid in _nearest_bins(geometry):
-        out &= on_grid & known[i, np.clip(j, 0, known.shape[1] - 1)]
-    return out
+    """Cells whose nearest bin is known (observed or known zero) at every θ: (n, n) from one (θ, X) mask, (S, n, n)
+    from a batch."""
+    return ~any_nearest(geometry, ~np.asarray(known, bool))
 
 
 def upper_bound(absorption: np.ndarray, observed: np.ndarray, geometry: Geometry, slack: float = 0.0) -> np.ndarray:
@@ -130,15 +126,20 @@ def upper_bound(absorption: np.ndarray, observed: np.ndarray, geometry: Geometry
 
 
 def _fill_missing(absorption: np.ndarray, known: np.ndarray, fill: str) -> np.ndarray:
+    """Unknown bins of (…, θ, X) sinograms: 0 (``zero``), or (``linear``) interpolated along X between the nearest
+    known bins on either side, 0 beyond the outermost known bin (``np.interp(…, left=0, right=0)``, row by row)."""
     values = np.where(known, np.nan_to_num(absorption), 0.0)
     if fill == "zero":
         return values
-    x = np.arange(values.shape[1])
-    for i in range(values.shape[0]):  # linear in X between known bins; zero beyond the outermost ones
-        have = known[i]
-        if have.any() and not have.all():
-            values[i, ~have] = np.interp(x[~have], x[have], values[i, have], left=0.0, right=0.0)
-    return values
+    count = values.shape[-1]
+    index = np.arange(count)
+    before = np.maximum.accumulate(np.where(known, index, -1), axis=-1)  # nearest known bin at or below
+    after = np.flip(np.minimum.accumulate(np.flip(np.where(known, index, count), axis=-1), axis=-1), axis=-1)
+    between = ~known & (before >= 0) & (after < count)
+    low = np.take_along_axis(values, np.clip(before, 0, count - 1), axis=-1)
+    high = np.take_along_axis(values, np.clip(after, 0, count - 1), axis=-1)
+    weight = (index - before) / np.maximum(after - before, 1)
+    return np.where(between, low + weight * (high - low), values)
 
 
 def _slice_inputs(sinogram: xr.Dataset, hull: xr.Dataset | None, geometry: Geometry):
@@ -203,8 +204,8 @@ def _output(sinogram: xr.Dataset, geometry: Geometry, variables: dict, attrs: di
 
 def fbp_slice(absorption: np.ndarray, known: np.ndarray, support: np.ndarray, geometry: Geometry, *,
               filter_name: str = "ram-lak", fill: str = "zero", dtype: str = "float32") -> np.ndarray:
-    """FBP of one slice's (θ, X) sinogram: unknown bins filled (``fill``), ramp-filtered, back-projected,
-    and zero outside ``support``."""
+    """FBP of (θ, X) sinograms, one or a (S, θ, X) batch: unknown bins filled (``fill``), ramp-filtered,
+    back-projected, and zero outside ``support`` ((n, n) or (S, n, n))."""
     values = _fill_missing(absorption, known, fill)
     filtered = ramp_filter(values, float(geometry.x[1] - geometry.x[0]), filter_name)
     return np.where(support, np.asarray(backproject(geometry, jnp.asarray(filtered, dtype))), 0.0)
@@ -212,16 +213,15 @@ def fbp_slice(absorption: np.ndarray, known: np.ndarray, support: np.ndarray, ge
 
 def _fbp_block(block: xr.Dataset, *, geometry: Geometry, filter_name: str, fill: str, dtype: str) -> xr.Dataset:
     hull = block if "vertices" in block else None
-    sigma, reliable = [], []
+    absorption, observed, polygons = zip(*_slice_inputs(block, hull, geometry), strict=True)
+    known = np.array([o | known_zero(p, geometry) for o, p in zip(observed, polygons, strict=True)])
+    support = np.array([support_mask(p, geometry) for p in polygons])
     with jax.enable_x64(dtype == "float64"):
-        for absorption, observed, polygon in _slice_inputs(block, hull, geometry):
-            known = observed | known_zero(polygon, geometry)
-            support = support_mask(polygon, geometry)
-            sigma.append(fbp_slice(absorption, known, support, geometry, filter_name=filter_name, fill=fill,
-                                   dtype=dtype))
-            reliable.append(reliable_cells(known, geometry) & support)
+        sigma = fbp_slice(np.array(absorption), known, support, geometry, filter_name=filter_name, fill=fill,
+                          dtype=dtype)
     dims = ("slice", "y", "x")
-    return xr.Dataset({"sigma": (dims, np.array(sigma, dtype=dtype)), "reliable": (dims, np.array(reliable))},
+    reliable = reliable_cells(known, geometry) & support
+    return xr.Dataset({"sigma": (dims, sigma.astype(dtype)), "reliable": (dims, reliable)},
                       coords={"slice": block["slice"]})
 
 
@@ -236,13 +236,18 @@ def _template(inputs: xr.Dataset, geometry: Geometry, variables: dict[str, tuple
     return xr.Dataset(data, coords={"slice": inputs["slice"]})
 
 
+#: slices per reconstruction task, at least (larger slice chunks of the input are kept): FBP back-projects a batch in
+#: one compiled loop, the optimisation solves it as one batch (with the system matrix from
+#: :data:`stages.tomography._admm.DEVICE_BATCH` slices on)
+SLICE_BATCH = 16
+
+
 def _blocks(sinogram: xr.Dataset, hull: xr.Dataset | None) -> xr.Dataset:
-    """The sinogram (and the hull's contours) chunked whole in θ and X, in slice chunks; eager (numpy) input
-    is chunked one slice per block."""
+    """The sinogram (and the hull's contours) chunked whole in θ and X, in slice chunks of at least
+    :data:`SLICE_BATCH` slices."""
     inputs = sinogram[["absorption", "observed"]]
-    if not inputs.chunks:
-        inputs = inputs.chunk({"slice": 1})
-    inputs = inputs.chunk({"theta": -1, "x": -1, "slice": inputs.chunksizes["slice"]})
+    batch = max([SLICE_BATCH, *inputs.chunksizes.get("slice", ())])
+    inputs = inputs.chunk({"theta": -1, "x": -1, "slice": batch})
     if hull is not None:
         shell = contours(hull, sinogram["slice"], "reconstruction")
         inputs = xr.merge([inputs, shell.chunk({"slice": inputs.chunksizes["slice"]})], join="exact",
@@ -288,7 +293,7 @@ def fbp(sinogram: xr.Dataset, hull: xr.Dataset | None = None, /, *, n_pixels: Co
 def _tv_block(block: xr.Dataset, *, solver: TVADMM, slack: float, bound: str, dtype: str) -> xr.Dataset:
     geometry = solver.geometry
     hull = block if "vertices" in block else None
-    sinograms, masks, uppers, reliable = [], [], [], []
+    sinograms, masks, uppers, known, supports = [], [], [], [], []
     with jax.enable_x64(dtype == "float64"):
         for absorption, observed, polygon in _slice_inputs(block, hull, geometry):
             support = support_mask(polygon, geometry)
@@ -296,14 +301,15 @@ def _tv_block(block: xr.Dataset, *, solver: TVADMM, slack: float, bound: str, dt
             uppers.append(np.where(support, np.minimum(limit, np.finfo(dtype).max), 0.0))
             sinograms.append(np.where(observed, absorption, 0.0))
             masks.append(observed)
-            known = observed | known_zero(polygon, geometry)
-            reliable.append(reliable_cells(known, geometry) & support)
+            known.append(observed | known_zero(polygon, geometry))
+            supports.append(support)
         solution = solver.solve_slices(jnp.asarray(np.array(sinograms), dtype), jnp.asarray(np.array(masks)),
                                        jnp.asarray(np.array(uppers), dtype))
     dims, hist, stats = ("slice", "y", "x"), ("slice", "iteration"), solution.stats
     return xr.Dataset(
         {"sigma": (dims, solution.value.astype(dtype)), "sigma_max": (dims, np.array(uppers, dtype=dtype)),
-         "reliable": (dims, np.array(reliable)), "iterations": ("slice", stats["iterations"].astype(np.int64)),
+         "reliable": (dims, reliable_cells(np.array(known), geometry) & np.array(supports)),
+         "iterations": ("slice", stats["iterations"].astype(np.int64)),
          "converged": ("slice", solution.converged.astype(bool)),
          **{name: (hist, stats[name].astype(dtype)) for name in ("objective", "primal_residual", "dual_residual")}},
         coords={"slice": block["slice"]})

@@ -51,21 +51,40 @@ def bin_index(theta, x, *, n_theta: int, n_x: int, extent: float) -> tuple[np.nd
     return i, j, finite & (j >= 0) & (j < n_x)
 
 
-def _bin_kernel(theta, x, absorption, *, n_theta: int, n_x: int, extent: float):
-    # (slice block, angle, col) -> (slice block, n_theta, n_x) sums and counts
+def _flat_bin(theta, x, absorption, *, n_theta: int, n_x: int, extent: float):
+    # each ray's flat bin i·n_x + j, −1 off the grid or without a finite absorption
     i, j, on_grid = bin_index(theta, x, n_theta=n_theta, n_x=n_x, extent=extent)
-    ok = on_grid & np.isfinite(absorption)
-    sums = np.zeros((theta.shape[0], n_theta * n_x))
-    counts = np.zeros((theta.shape[0], n_theta * n_x), dtype=np.int64)
-    for k in range(theta.shape[0]):
-        m = ok[k]
-        index = i[k][m] * n_x + j[k][m]
-        sums[k] = np.bincount(index, absorption[k][m], minlength=n_theta * n_x)
-        counts[k] = np.bincount(index, minlength=n_theta * n_x)
-    shape = (theta.shape[0], n_theta, n_x)
+    return np.where(on_grid & np.isfinite(absorption), i * n_x + j, -1).astype(_index_dtype(n_theta * n_x))
+
+
+def _index_dtype(bins: int) -> np.dtype:
+    return np.dtype(np.int32 if bins < 2**31 else np.int64)
+
+
+def _bin_kernel(index, absorption, *, n_theta: int, n_x: int):
+    # (slice block, angle, col) flat bins and absorption -> (slice block, n_theta, n_x) means and counts
+    slices, size = index.shape[0], n_theta * n_x
+    ok = index >= 0
+    where = (index + np.arange(slices).reshape(-1, 1, 1) * size)[ok]  # slice k's bins at k·size
+    sums = np.bincount(where, absorption[ok].astype(np.float64), minlength=slices * size)
+    counts = np.bincount(where, minlength=slices * size)
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = np.where(counts > 0, sums / np.maximum(counts, 1), np.nan)
+    shape = (slices, n_theta, n_x)
     return np.stack([mean.reshape(shape), counts.reshape(shape)], axis=-1)
+
+
+#: rays (flat bin and absorption) per binning task, at most: the rays move from the capture's angle chunks to chunks
+#: of whole slices (every angle and column of a few rows), the one all-to-all step of the volume's graph; larger
+#: tasks make fewer pieces (one per angle chunk and row chunk), each task's sums add one slice's bins per row
+BIN_CHUNK_BYTES = 64 * 2**20
+
+
+def rows_per_bin_task(rays: xr.Dataset, bins: int) -> int:
+    """Slices (camera rows) per binning task: as many as keep a task's rays within :data:`BIN_CHUNK_BYTES`."""
+    per_ray = _index_dtype(bins).itemsize + rays["absorption"].dtype.itemsize
+    per_row = rays.sizes["angle"] * rays.sizes["col"] * per_ray
+    return int(np.clip(BIN_CHUNK_BYTES // max(per_row, 1), 1, rays.sizes["row"]))
 
 
 def _bin_precheck(settings) -> list[str]:
@@ -124,13 +143,16 @@ def bin_sinogram(rays: xr.Dataset, /, *, n_theta: Bins | None = None, n_x: Bins 
         raise StageError([Problem(p) for p in problems])
     _warn_finer_than_views(n_theta, step)
     _warn_finer_than_pixels(n_x, extent, pitch, supported[1])
-    whole = {"angle": -1, "col": -1, "row": 1}
-    parts = [rays[v].drop_vars("z", errors="ignore").chunk(whole) for v in ("theta", "x", "absorption")]
+    # the flat bin of each ray where the rays are (their angle chunks), so that only it and the absorption move
+    grid = {"n_theta": n_theta, "n_x": n_x}
+    parts = rays[["theta", "x", "absorption"]].drop_vars("z", errors="ignore")
+    index = xr.apply_ufunc(_flat_bin, parts["theta"], parts["x"], parts["absorption"], dask="parallelized",
+                           output_dtypes=[_index_dtype(n_theta * n_x)], kwargs=grid | {"extent": extent})
+    whole = {"angle": -1, "col": -1, "row": rows_per_bin_task(parts, n_theta * n_x)}
     both = xr.apply_ufunc(  # one stacked output (see stages.tomography.paths on dask and multi-output graphs)
-        _bin_kernel, *parts, input_core_dims=[["angle", "col"]] * 3, output_core_dims=[["theta", "x", "field"]],
-        dask="parallelized", output_dtypes=[np.float64],
-        dask_gufunc_kwargs={"output_sizes": {"theta": n_theta, "x": n_x, "field": 2}},
-        kwargs={"n_theta": n_theta, "n_x": n_x, "extent": extent})
+        _bin_kernel, index.chunk(whole), parts["absorption"].chunk(whole), input_core_dims=[["angle", "col"]] * 2,
+        output_core_dims=[["theta", "x", "field"]], dask="parallelized", output_dtypes=[np.float64],
+        dask_gufunc_kwargs={"output_sizes": {"theta": n_theta, "x": n_x, "field": 2}}, kwargs=grid)
     # (apply_ufunc gives its outputs the first input's attrs, θ's: dropped, the kind's metadata set below)
     mean = both.isel(field=0, drop=True).drop_attrs(deep=False)
     count = both.isel(field=1, drop=True).astype(np.int64).drop_attrs(deep=False)

@@ -155,21 +155,25 @@ def test_a_lazily_simulated_capture_is_the_rigs_under_any_chunking(tmp_path):
 
 @pytest.mark.parametrize("rows_per_chunk", [None, 5], ids=["frames", "bands"])
 def test_no_task_of_the_volume_chain_holds_a_whole_capture(monkeypatch, tmp_path, rows_per_chunk):
-    """Memory bounded by tile: with 4-frame render chunks, 1-KiB hull blocks and dask's rechunk intermediates at
-    most 16 KiB (``array.chunk-size``, 128 MiB by default: the same proportions as a full capture's), no task's
+    """Memory bounded by tile: with 4-frame render chunks, 1-KiB hull blocks and binning tasks, one-slice
+    reconstruction batches and dask's rechunk intermediates at most 16 KiB (``array.chunk-size``, 128 MiB by default: the same proportions as a full capture's), no task's
     result holds more than 8 render chunks' bytes (the paths' 4 float64 fields of a chunk: 8×) or the hull's
     contours of every slice (which each path task reads), and either is under a quarter of one frame kind."""
     import dask
     from dask.callbacks import Callback
 
     import stages.tomography.hull as hull_module
+    import stages.tomography.reconstruct as reconstruct_module
     import stages.tomography.simulate as simulate_module
+    import stages.tomography.sinogram as sinogram_module
 
     scene = small_grape(cols=96)
     path = tmp_path / "small-grape.yaml"
     chunk = 4 * 24 * 96 * 4  # 4 frames
     monkeypatch.setattr(simulate_module, "SCENE_CHUNK_BYTES", chunk)
     monkeypatch.setattr(hull_module, "HULL_CHUNK_BYTES", 1024)
+    monkeypatch.setattr(sinogram_module, "BIN_CHUNK_BYTES", 1024)
+    monkeypatch.setattr(reconstruct_module, "SLICE_BATCH", 1)
     largest = [0, ""]
 
     def size(value) -> int:
