@@ -28,13 +28,15 @@ Only the effects a scene names run: a scene without ``scattering`` never enters 
 
 from __future__ import annotations
 
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 
 from devices.geometry import Camera, RigGeometry, to_lab, to_object
 from devices.sim.scene import Scene
-from devices.sim.shapes import segment_length_inside
+from devices.sim.shapes import Solid, segment_length_inside
 
 SAMPLES = ("target", "reference")
 
@@ -156,11 +158,14 @@ class MonteCarloFrame:
     mean_events: float
 
 
-def monte_carlo(scene: Scene, angle_deg: float, *, reference: bool, batch: int = 1 << 17,
-                seen: ExitPoints | None = None) -> MonteCarloFrame:
+def monte_carlo(scene: Scene, angle_deg: float, *, reference: bool, batch: int = 1 << 15,
+                seen: ExitPoints | None = None, workers: int | None = None) -> MonteCarloFrame:
     """Trace ``effects.scattering.photons`` photons in 3-D from the entry point; estimate the exit radiance.
 
-    Seeded by (scattering seed, angle), not by the sample: target and reference share their paths.
+    Photons go in batches of at most ``batch``, each with its own random stream seeded by (scattering seed, angle,
+    batch index), not by the sample: target and reference share their paths, and the frame is the same whatever
+    ``workers`` traces the batches (threads; None: one per core). Threads suffice: a batch's time is in numpy
+    kernels over its photons, which release the GIL.
     """
     settings = scene.effects.scattering
     if settings is None:
@@ -168,35 +173,23 @@ def monte_carlo(scene: Scene, angle_deg: float, *, reference: bool, batch: int =
     geometry = scene.geometry()
     camera = geometry.camera
     n_pixels = camera.rows * camera.cols
-    sums, squares = np.zeros(n_pixels), np.zeros(n_pixels)
     entry = entry_point(scene, angle_deg)
     if entry is None:
         zero = np.zeros((camera.rows, camera.cols))
         return MonteCarloFrame(zero, zero, settings.photons, 0.0)
-    p_l, n_l = entry
+    sizes = [min(batch, settings.photons - first) for first in range(0, settings.photons, batch)]
+    streams = np.random.SeedSequence([settings.seed, int(round(angle_deg * 1000)) % 360_000]).spawn(len(sizes))
+
     body = scene.body()
-    rng = np.random.default_rng([settings.seed, int(round(angle_deg * 1000)) % 360_000])
-    events = 0
-    for first in range(0, settings.photons, batch):
-        n = min(batch, settings.photons - first)
-        pos = np.tile(p_l - 1e-9 * n_l, (n, 1))
-        direction = _cosine_hemisphere(-n_l, n, rng)
-        weight = np.ones(n)
-        for _ in range(settings.max_events):
-            if not len(pos):
-                break
-            iv = body.interval(pos, direction)  # normals: where photons leave
-            t_exit = np.maximum(iv.t_out, 0.0)
-            free = rng.exponential(1.0 / settings.sigma_s, len(pos))
-            leaving = free >= t_exit
-            step = np.where(leaving, t_exit, free)
-            end = pos + step[:, None] * direction
-            weight = weight * np.exp(-path_absorption(scene, pos, end, reference=reference))
-            _bin_exits(camera, angle_deg, end[leaving], iv.normal_out[leaving], weight[leaving], sums, squares)
-            stay = ~leaving
-            events += int(stay.sum())
-            pos, weight = end[stay], weight[stay]
-            direction = _isotropic(len(pos), rng)
+
+    def trace(n: int, stream: np.random.SeedSequence) -> tuple[np.ndarray, np.ndarray, int]:
+        return _trace_batch(scene, body, camera, angle_deg, entry, n, np.random.default_rng(stream),
+                            reference=reference)
+
+    with ThreadPoolExecutor(max_workers=workers or os.cpu_count() or 1) as pool:
+        parts = list(pool.map(trace, sizes, streams))
+    sums, squares = (np.sum([part[k] for part in parts], axis=0) for k in (0, 1))
+    events = sum(part[2] for part in parts)
     seen = seen or exit_points(scene, angle_deg, geometry)
     footprint = np.full(n_pixels, np.inf)
     footprint[seen.hit] = camera.pixel_footprint(to_lab(seen.points[seen.hit], angle_deg),
@@ -206,6 +199,35 @@ def monte_carlo(scene: Scene, angle_deg: float, *, reference: bool, batch: int =
     shape = (camera.rows, camera.cols)
     return MonteCarloFrame((sums * per_photon).reshape(shape), (np.sqrt(squares) * per_photon).reshape(shape),
                            settings.photons, events / settings.photons)
+
+
+def _trace_batch(scene: Scene, body: Solid, camera: Camera, angle_deg: float, entry: tuple[np.ndarray, np.ndarray],
+                 n: int, rng: np.random.Generator, *, reference: bool) -> tuple[np.ndarray, np.ndarray, int]:
+    """``n`` photons from the entry point until they leave (or ``max_events``): per pixel the sum of their exit
+    weights and of the weights squared, and the number of scattering events."""
+    settings = scene.effects.scattering
+    sums, squares = np.zeros(camera.rows * camera.cols), np.zeros(camera.rows * camera.cols)
+    p_l, n_l = entry
+    pos = np.tile(p_l - 1e-9 * n_l, (n, 1))
+    direction = _cosine_hemisphere(-n_l, n, rng)
+    weight = np.ones(n)
+    events = 0
+    for _ in range(settings.max_events):
+        if not len(pos):
+            break
+        iv = body.interval(pos, direction)  # normals: where photons leave
+        t_exit = np.maximum(iv.t_out, 0.0)
+        free = rng.exponential(1.0 / settings.sigma_s, len(pos))
+        leaving = free >= t_exit
+        step = np.where(leaving, t_exit, free)
+        end = pos + step[:, None] * direction
+        weight = weight * np.exp(-path_absorption(scene, pos, end, reference=reference))
+        _bin_exits(camera, angle_deg, end[leaving], iv.normal_out[leaving], weight[leaving], sums, squares)
+        stay = ~leaving
+        events += int(stay.sum())
+        pos, weight = end[stay], weight[stay]
+        direction = _isotropic(len(pos), rng)
+    return sums, squares, events
 
 
 def _bin_exits(camera: Camera, angle_deg: float, points: np.ndarray, normals: np.ndarray,

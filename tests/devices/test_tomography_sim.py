@@ -203,3 +203,13 @@ def test_a_scene_without_scattering_never_runs_monte_carlo(monkeypatch):
     assert tomo.lit_frame(s, 0.0, "target").max() > 0
     with pytest.raises(AssertionError, match="Monte Carlo ran"):
         tomo.lit_frame(mc_scene(1.0, 10), 0.0, "target")
+
+
+def test_monte_carlo_frames_do_not_depend_on_the_threads():
+    """Each photon batch has its own random stream, seeded by its index: one thread and two trace the same frame,
+    bit for bit."""
+    s = mc_scene(2.0, 100_000)
+    one, two = (tomo.monte_carlo(s, 30.0, reference=False, workers=w) for w in (1, 2))
+    np.testing.assert_array_equal(one.image, two.image)
+    np.testing.assert_array_equal(one.std_error, two.std_error)
+    assert one.mean_events == two.mean_events > 0.5

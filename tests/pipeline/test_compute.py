@@ -1,4 +1,5 @@
-"""The command line's compile cache: compiled kernels land in the chosen folder, and ``off`` turns it off."""
+"""Computing: the command line's compile cache (compiled kernels land in the chosen folder, `off` turns it off), and
+the worker processes of a local cluster."""
 
 from __future__ import annotations
 
@@ -28,3 +29,26 @@ def test_compile_cache_writes_to_its_folder_or_nowhere(tmp_path, setting):
     else:
         assert out.stdout.strip() == "None" and not folder.exists()
     assert not (tmp_path / "xdg").exists()  # never the default folder when one is named or it is off
+
+
+def test_cluster_workers_start_with_the_malloc_settings_and_p2p_buffer():
+    """The malloc settings reach the worker processes before they start (glibc reads them at start, so they must go
+    through distributed's pre-spawn environment, not ``env``), beside distributed's own trim threshold, and the
+    workers see the smaller p2p buffer and their memory limit."""
+    from pipeline.compute import P2P_BUFFER, WORKER_MALLOC, local_cluster
+
+    def settings():
+        import dask
+
+        return ({k: v for k, v in os.environ.items() if k.startswith("MALLOC_")},
+                dask.config.get("distributed.p2p.comm.buffer"))
+
+    def limit(dask_worker):
+        return dask_worker.memory_manager.memory_limit
+
+    with local_cluster(1, memory_limit="1GB") as client:
+        ((environ, buffer),) = client.run(settings).values()
+        (memory,) = client.run(limit).values()
+    assert environ["MALLOC_MMAP_THRESHOLD_"] == str(WORKER_MALLOC["MALLOC_MMAP_THRESHOLD_"])
+    assert "MALLOC_TRIM_THRESHOLD_" in environ
+    assert buffer == P2P_BUFFER and memory == 10**9
