@@ -112,9 +112,10 @@ def local_cluster(n_workers: int, *, memory_limit: str | None = None) -> Iterato
     from distributed import Client, LocalCluster
 
     limit = {} if memory_limit is None else {"memory_limit": memory_limit}
-    spawn = {f"distributed.nanny.pre-spawn-environ.{k}": v for k, v in WORKER_MALLOC.items()}
-    with dask.config.set(spawn | {"distributed.p2p.comm.buffer": P2P_BUFFER}), LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
-                                               dashboard_address=None, env=WORKER_ENV, **limit) as cluster, \
+    settings = {f"distributed.nanny.pre-spawn-environ.{k}": v for k, v in WORKER_MALLOC.items()}
+    settings["distributed.p2p.comm.buffer"] = P2P_BUFFER
+    with dask.config.set(settings), LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
+                                                 dashboard_address=None, env=WORKER_ENV, **limit) as cluster, \
             Client(cluster) as client:
         yield client
 

@@ -61,7 +61,9 @@ def support_mask(vertices: np.ndarray | None, geometry: Geometry) -> np.ndarray:
 
     Row by row: a cell at height y is inside where every edge a → b has (b − a) × (p − a) ≥ −1e-12, which for
     fixed y bounds x from one side (edges running down bound it below, up above; level edges keep or drop the
-    row), so a row is one interval [lo, hi]: O(n·edges + n²), not O(n²·edges)."""
+    row), so a row is one interval [lo, hi]: O(n·edges + n²), not O(n²·edges). (Not the simulator's Cyrus–Beck
+    clipping, :meth:`~devices.sim.shapes.Polygon.interval`: it has no tolerance, and a hull's vertices lie on the
+    pixel grid, so cells on its edges are common; clipped, 4 such cells a slice dropped out of the support.)"""
     centres = geometry.centres
     if vertices is None or len(vertices) < 3:
         return np.ones((geometry.n, geometry.n), dtype=bool)
