@@ -16,8 +16,8 @@ the volume's RMSE against the scene's truth on a sample of slices (a check that 
 A larger cluster (``tcp://`` scheduler, ``DASK_SCHEDULER_ADDRESS``): the graph is the same; tasks are independent per
 angle chunk up to the silhouettes and per row after the sinogram's rechunk, so throughput grows with workers until
 the rechunk between them dominates: every angle chunk to every row chunk, each ray's flat bin (int32) and absorption
-(float32), 5.5 GB at full size, moved once over the network (dask's p2p rechunk, which spills to disk); workers need
-the project installed and the scene file readable.
+(float32), 5.5 GB at full size, moved once over the network (the stage's task-based rechunk, whose pieces a worker
+spills to disk); workers need the project installed and the scene file readable.
 
     python benchmarks/tomo_volume.py [--rows 1200 --cols 1600 --angles 360 --n-pixels 400 --memory-limit 4GB]
 
@@ -35,7 +35,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import dask
 import numpy as np
 import xarray as xr
 import yaml
@@ -59,12 +58,6 @@ def scene_file(folder: Path, rows: int, cols: int) -> Path:
     path = folder / "grape-large.yaml"
     path.write_text(yaml.safe_dump(spec))
     return path
-
-
-#: how the rays move from angle chunks to slice chunks: dask's task-based rechunk, whose pieces are managed memory
-#: that a worker spills to disk; the p2p rechunk (distributed's default) stalled a 4 GB worker at full size, paused
-#: at 80 % in unmanaged memory
-RECHUNK = "tasks"
 
 
 def capture_of(scene: Path, angles: int) -> xr.Dataset:
@@ -92,8 +85,7 @@ def run(workers: int, scene: Path, angles: int, n_pixels: int, memory_limit: str
         # two passes over the frames: the hull (small: the contours) first, then the volume, so that no worker
         # holds every angle's absorption until the last silhouette is in (2.8 GB at full size)
         hull = visual_hull(silhouettes(capture)).compute()
-        with dask.config.set({"array.rechunk.method": RECHUNK}):  # read as the graph is built
-            volume = volume_graph(capture, hull, n_pixels)
+        volume = volume_graph(capture, hull, n_pixels)
         volume[["sigma"]].drop_attrs().to_zarr(store, mode="w", consolidated=False)
         seconds = time.perf_counter() - start
         peaks = client.run(peak_rss)

@@ -12,6 +12,7 @@ import warnings
 
 from typing import Annotated
 
+import dask
 import dask.array as da
 import numpy as np
 import pydantic
@@ -79,6 +80,12 @@ def _bin_kernel(index, absorption, *, n_theta: int, n_x: int):
 #: column of a few rows), the one all-to-all step of the volume's graph: larger tasks make fewer pieces (one per
 #: angle chunk and row chunk; one row per task made 1.3 M at 1600 × 1200 × 360)
 BIN_CHUNK_BYTES = 64 * 2**20
+
+#: how the rays move from angle chunks to slice chunks, on any scheduler: dask's task-based rechunk, whose pieces
+#: are managed memory that a worker spills to disk. Distributed's default (p2p) holds its shards outside that
+#: accounting: at 1600 × 1200 × 360 (5.5 GB of rays) it stalled a 4 GB worker twice, paused at 80 % in unmanaged
+#: memory, where the task-based rechunk finished (benchmarks/tomo_volume.py, 2026-11-26)
+RAYS_RECHUNK = "tasks"
 
 
 def rows_per_bin_task(rays: xr.Dataset, bins: int) -> int:
@@ -150,8 +157,10 @@ def bin_sinogram(rays: xr.Dataset, /, *, n_theta: Bins | None = None, n_x: Bins 
     index = xr.apply_ufunc(_flat_bin, parts["theta"], parts["x"], parts["absorption"], dask="parallelized",
                            output_dtypes=[_index_dtype(n_theta * n_x)], kwargs=grid | {"extent": extent})
     whole = {"angle": -1, "col": -1, "row": rows_per_bin_task(parts, n_theta * n_x)}
+    with dask.config.set({"array.rechunk.method": RAYS_RECHUNK}):  # read as the graph is built
+        moved = index.chunk(whole), parts["absorption"].chunk(whole)
     both = xr.apply_ufunc(  # one stacked output (see stages.tomography.paths on dask and multi-output graphs)
-        _bin_kernel, index.chunk(whole), parts["absorption"].chunk(whole), input_core_dims=[["angle", "col"]] * 2,
+        _bin_kernel, *moved, input_core_dims=[["angle", "col"]] * 2,
         output_core_dims=[["theta", "x", "field"]], dask="parallelized", output_dtypes=[np.float64],
         dask_gufunc_kwargs={"output_sizes": {"theta": n_theta, "x": n_x, "field": 2}}, kwargs=grid)
     # (apply_ufunc gives its outputs the first input's attrs, θ's: dropped, the kind's metadata set below)
