@@ -129,7 +129,7 @@ def silhouette(scene: Scene, angle_deg: float, seen: ExitPoints | None = None) -
     return (seen or exit_points(scene, angle_deg, geometry)).hit.reshape(geometry.camera.rows, geometry.camera.cols)
 
 
-def _cosine_hemisphere(normal: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
+def cosine_hemisphere(normal: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
     """Lambertian directions about the unit ``normal`` (N, 3)."""
     u1, u2 = rng.random(n), rng.random(n)
     r, phi = np.sqrt(u1), 2 * np.pi * u2
@@ -141,7 +141,7 @@ def _cosine_hemisphere(normal: np.ndarray, n: int, rng: np.random.Generator) -> 
     return local @ np.stack([e1, e2, normal])
 
 
-def _isotropic(n: int, rng: np.random.Generator) -> np.ndarray:
+def isotropic(n: int, rng: np.random.Generator) -> np.ndarray:
     z = 2 * rng.random(n) - 1
     phi = 2 * np.pi * rng.random(n)
     r = np.sqrt(1 - z * z)
@@ -211,7 +211,7 @@ def _trace_batch(scene: Scene, body: Solid, camera: Camera, angle_deg: float, en
     sums, squares = np.zeros(camera.rows * camera.cols), np.zeros(camera.rows * camera.cols)
     p_l, n_l = entry
     pos = np.tile(p_l - 1e-9 * n_l, (n, 1))
-    direction = _cosine_hemisphere(-n_l, n, rng)
+    direction = cosine_hemisphere(-n_l, n, rng)
     weight = np.ones(n)
     events = 0
     for _ in range(settings.max_events):
@@ -228,7 +228,7 @@ def _trace_batch(scene: Scene, body: Solid, camera: Camera, angle_deg: float, en
         stay = ~leaving
         events += int(stay.sum())
         pos, weight = end[stay], weight[stay]
-        direction = _isotropic(len(pos), rng)
+        direction = isotropic(len(pos), rng)
     return sums, squares, events
 
 
