@@ -156,6 +156,11 @@ _RECONSTRUCTION_EXTRAS = {
                                 long_name="relative primal residual per ADMM iteration (NaN after the stop)"),
     "dual_residual": Variable(("iteration",), required=False, units="1",
                               long_name="relative dual residual per ADMM iteration (NaN after the stop)"),
+    # reconstruct_scattering's (stages.tomography.scattering): L-BFGS-B's end and the bundles' sizes
+    "final_objective": Variable((), required=False, units="1", long_name="objective at the stop"),
+    "paths_per_bin": Variable((), required=False, units="1", long_name="median walks per observed bin"),
+    "bins_without_paths": Variable((), required=False, units="1",
+                                   long_name="observed bins no walk reached (left out of the fit)"),
 }
 KINDS: dict[str, CubeKind] = {
     k.name: k

@@ -276,15 +276,16 @@ def _fit_one_slice(theta, x, absorption, data, observed, vertices, count, *, geo
     counts[: len(bundles.counts)] = bundles.counts
     bundles = Bundles(bundles.points, bundles.lengths, bundles.path, bundles.group, counts)
     used = observed.ravel() & (counts > 0)
+    if not used.any():  # no walk reached an observed bin: no data, not a confident σ = 0
+        return nan, _stats(False, 0, np.nan, 0.0, int(observed.sum()))
     values = data.ravel()
-    scale = float(np.nanmax(np.where(used, values, np.nan), initial=0.0)) / (2 * grid.extent) if used.any() else 1.0
+    scale = float(np.nanmax(np.where(used, values, np.nan), initial=0.0)) / (2 * grid.extent)
     upper = np.where(support_mask(polygon, grid), settings["sigma_max"], 0.0)
     fit = fit_slice(bundles, values, used.astype(float), upper, grid, tv_weight=settings["tv_weight"],
                     eps=TV_SMOOTHING * max(scale, np.finfo(float).tiny), max_iter=settings["max_iter"],
                     tol=settings["tol"])
-    paths = float(np.median(counts[used])) if used.any() else 0.0
     return fit.value, _stats(int(fit.result) == Result.converged, fit.stats["iterations"], fit.stats["objective"],
-                             paths, int((observed.ravel() & (counts == 0)).sum()))
+                             float(np.median(counts[used])), int((observed.ravel() & (counts == 0)).sum()))
 
 
 def _stats(*values) -> tuple[np.ndarray, ...]:
@@ -341,6 +342,11 @@ def reconstruct_scattering(rays: xr.Dataset, sinogram: xr.Dataset, hull: xr.Data
         Stop when an iteration lowers the objective by less than this share of it [1].
     seed : int
         Seed of the walks (with the slice's row).
+
+    Returns a ``reconstruction`` store: ``sigma`` over (slice, y, x), NaN for a slice without a contour or where no
+    walk reached an observed bin (no data: never a confident 0); per slice ``converged`` (L-BFGS-B met ``tol``),
+    ``iterations``, ``final_objective``, ``paths_per_bin`` (median over the observed bins) and ``bins_without_paths``
+    (observed bins no walk reached: left out of the fit; raise ``photons`` or ``row_band`` if many).
     """
     if sigma_s == 0:
         return reconstruct_tv(sinogram, hull, tv_weight=tv_weight, n_pixels=n_pixels)
@@ -380,5 +386,5 @@ def reconstruct_scattering(rays: xr.Dataset, sinogram: xr.Dataset, hull: xr.Data
 
 
 #: per-slice statistics of :func:`reconstruct_scattering` and their dtypes
-_STATS = {"converged": np.dtype(bool), "iterations": np.dtype(np.int64), "objective": np.dtype(np.float64),
+_STATS = {"converged": np.dtype(bool), "iterations": np.dtype(np.int64), "final_objective": np.dtype(np.float64),
           "paths_per_bin": np.dtype(np.float64), "bins_without_paths": np.dtype(np.int64)}

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from devices.sim.shapes import Ellipse, Prism, convex_polygon
+from pipeline.schema import check_dataset, with_metadata
 from stages._solution import Result
 from stages.tomography._projector import Geometry
 from stages.tomography.scattering import (
@@ -245,6 +246,17 @@ def test_building_the_reconstruction_computes_nothing_and_bad_rays_are_named(see
     assert out["sigma"].dims == ("slice", "y", "x") and out.attrs["sigma_s"] == 1.0
     with pytest.raises(StageError, match="not rows of the rays"):
         reconstruct_scattering(rays.assign_coords(row=rays["row"] + 1), sinogram, hull, sigma_s=1.0)
+
+
+def test_a_slice_with_no_observed_bin_is_nan_and_unconverged_not_zero(seed0):
+    from stages.tomography.scattering import reconstruct_scattering
+
+    rays, sinogram, hull, _ = seed0
+    empty = sinogram.assign(observed=sinogram["observed"] & False)
+    out = reconstruct_scattering(rays, empty, hull, sigma_s=1.0, photons=500).compute()
+    assert check_dataset(with_metadata(out, "reconstruction"), "reconstruction") == []  # a store the engine writes
+    assert np.isnan(out["sigma"].values).all()
+    assert not bool(out["converged"][0]) and int(out["bins_without_paths"][0]) == 0
 
 
 @pytest.mark.slow
