@@ -240,13 +240,16 @@ _MATRICES: dict = {}
 def projector_for(geometry: Geometry, dtype: str, slices: int) -> WalkProjector | MatrixProjector | HostProjector:
     """The projector :meth:`TVADMM.solve_slices` uses for a batch of ``slices``: the sparse system matrix where its
     build fits (as :class:`MatrixProjector` from :data:`DEVICE_BATCH` slices on, else :class:`HostProjector`), else
-    the walk. Each is built once per (geometry, dtype, kind), under a lock so that concurrent slice chunks build it
+    the walk; float64 always in JAX. Each is built once per (geometry, dtype, kind), under a lock so that concurrent slice chunks build it
     once, and kept for the process's life: the compiled solves hold it anyway (a rebuilt one would compile again),
     and a process meets few geometries (0.65 GB each at 256²/360)."""
     total = machine_memory()
     if total is not None and BUILD_PEAK * MatrixProjector.nbytes(geometry, dtype) > MATRIX_SHARE * total:
         return WalkProjector()
-    key = (geometry, dtype, slices >= DEVICE_BATCH)
+    # float64 never takes the host product: jax.pure_callback moves its operands to the host under the calling
+    # thread's x64 setting, and ``jax.enable_x64`` is thread-local, so a callback run on one of XLA's threads got
+    # float32 operands for a float64 solve (an intermittent "Incorrect output dtype" in CI, 2026-11-26)
+    key = (geometry, dtype, slices >= DEVICE_BATCH or np.dtype(dtype) == np.float64)
     with _BUILD:
         if key not in _MATRICES:
             with jax.enable_x64(dtype == "float64"):  # else JAX would keep a float64 matrix as float32

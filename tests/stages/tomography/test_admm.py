@@ -111,7 +111,7 @@ def test_capped_solve_is_data_unless_throw():
 
 @pytest.mark.parametrize("device", [False, True])
 def test_a_batch_of_slices_is_each_slice_solved_alone(device, monkeypatch):
-    """solve_slices (one batch, the sparse system matrix on host threads or as JAX's BCSR) gives each slice what
+    """solve_slices (one batch, the sparse system matrix as JAX's BCSR, which float64 always takes) gives each slice what
     TVADMM.solve gives it alone (the matrix-free walk): σ to 1e-9 of its peak in float64, the same iterations and
     result, although the slices stop at different iterations (a converged slice is held while the others go on) and
     one sees no ray at all."""
@@ -125,7 +125,9 @@ def test_a_batch_of_slices_is_each_slice_solved_alone(device, monkeypatch):
     masks = np.stack([observed, observed, np.zeros_like(observed)])
     uppers = np.stack([upper, upper, upper])
     solver = TVADMM(geometry, tv_weight=3e-3, tol=1e-5, max_iter=400)
-    assert isinstance(_admm.projector_for(geometry, "float64", 3), MatrixProjector if device else HostProjector)
+    assert isinstance(_admm.projector_for(geometry, "float32", 3), MatrixProjector if device else HostProjector)
+    # float64 always in JAX: the host callback's operands would follow the calling thread's x64 setting
+    assert isinstance(_admm.projector_for(geometry, "float64", 3), MatrixProjector)
     with jax.enable_x64(True):
         batch = solver.solve_slices(jnp.asarray(sinograms), jnp.asarray(masks), jnp.asarray(uppers))
         alone = [jax.jit(solver.solve)(jnp.asarray(s), jnp.asarray(m), jnp.asarray(u))
