@@ -3,23 +3,24 @@
 The shortest-path model reads each lit pixel as one straight chord from the light's entry point ``p_l`` to the exit
 point ``p_c`` it sees. In a scattering medium the light that reaches ``p_c`` took many paths, and an absorber that
 blocks the chord is partly walked around, so the straight model under-reads it (about half of σ = 10 at σ_s = 1 in
-docs/results.md). Here each ray is a **bundle of paths**:
+docs/results.md). Here each sinogram bin is a **bundle of paths**:
 
 * Photon random walks are traced from ``p_l`` in the homogeneous object (the hull's contour extruded in z, the
   scattering coefficient σ_s, isotropic phase function, Lambertian launch through the skin), exactly as in the
   reference object, which has the same σ_s and no absorber: its frames are the sum over these paths' exits.
-* A walk belongs to the ray of the camera pixel that sees its exit point, where that pixel is on the slice's row
-  (within ``row_band`` rows: the walks that leave just above or below the slice, for statistics) and holds a ray.
+* A walk belongs to the sinogram bin of the ray of the camera pixel that sees its exit point, where that pixel is
+  on the slice's row (within ``row_band`` rows: the walks that leave just above or below the slice, for statistics)
+  and holds a ray; each bin keeps up to ``paths_per_bin`` walks.
 * The target's frame weighs each path by exp(−∫σ) along it, so the absorption the pipeline measures,
   A = log I_reference − log I_target, is modelled as ``A(σ) = −log( mean over the bundle of exp(−∫_path σ) )``:
-  nonlinear in σ, smooth, and differentiable in JAX. ∫σ along a path is a sum over its samples (spacing half a
-  cell) of σ interpolated bilinearly on the image grid, times the 3-D length each stands for (σ does not vary with
+  nonlinear in σ, smooth, and differentiable in JAX. ∫σ along a path is a sum over its samples (``spacing`` cells
+  apart) of σ interpolated bilinearly on the image grid, times the 3-D length each stands for (σ does not vary with
   height within a slice: a prism).
 
-The reconstruction minimises ½ Σ w_r (A_r(σ) − a_r)² + λ TV_ε(σ) over 0 ≤ σ ≤ σ_max (0 outside the hull) by
-L-BFGS-B (scipy, with JAX's gradient): w_r = 1 / (rays in r's sinogram bin), so that λ means what it means for the
-linear reconstruction of the binned sinogram (``reconstruct_tv``), and TV_ε = Σ (√(|∇σ|² + ε²) − ε), a smooth TV.
-With σ_s = 0 there is nothing to walk around: the stage is ``reconstruct_tv``, at its cost.
+The reconstruction minimises ½ Σ (A_b(σ) − a_b)² over the observed bins + λ TV_ε(σ) over 0 ≤ σ ≤ σ_max (0 outside
+the hull) by L-BFGS-B (scipy, with JAX's gradient): the data term of ``reconstruct_tv`` on the same binned sinogram,
+so λ means what it means there; TV_ε = Σ (√(|∇σ|² + ε²) − ε), a smooth TV. With σ_s = 0 there is nothing to walk
+around: the stage is ``reconstruct_tv``, at its cost.
 """
 
 from __future__ import annotations
@@ -201,24 +202,14 @@ def trace_bundles(geometry: RigGeometry, polygon: np.ndarray, row: int, angles: 
                    np.concatenate(owners), taken)
 
 
-def ray_weights(theta: np.ndarray, x: np.ndarray, observed: np.ndarray, *, n_theta: int, n_x: int,
-                extent: float) -> np.ndarray:
-    """w_r = 1 / (observed rays in r's sinogram bin) for observed rays, else 0: Σ_r w_r (·)² over a bin's rays
-    weighs each bin once, as the binned sinogram of the linear reconstruction does."""
-    i, j, on_grid = bin_index(theta, x, n_theta=n_theta, n_x=n_x, extent=extent)
-    used = observed & on_grid
-    flat = np.where(used, i * n_x + j, 0)
-    counts = np.bincount(flat[used], minlength=n_theta * n_x)
-    return np.where(used, 1.0 / np.maximum(counts[flat], 1), 0.0)
-
-
 def fit_slice(bundles: Bundles, absorption: np.ndarray, weights: np.ndarray, upper: np.ndarray, geometry: Geometry,
               *, tv_weight: float, eps: float, start: np.ndarray | None = None, max_iter: int = 300,
               tol: float = 1e-9) -> Solution:
-    """σ (n, n) minimising ½ Σ w_r (A_r(σ) − a_r)² + λ TV_ε(σ) over 0 ≤ σ ≤ ``upper`` (per cell; 0 outside the
-    support), by L-BFGS-B (scipy) with the exact gradient of :func:`forward` (JAX, float64) from ``start`` (None:
-    zero). ``result`` is ``converged`` where L-BFGS-B met its own test (relative reduction of the objective below
-    ``tol``, or a projected gradient of zero), ``max_steps`` at the cap; ``stats``: iterations, objective."""
+    """σ (n, n) minimising ½ Σ_g w_g (A_g(σ) − a_g)² + λ TV_ε(σ) over the bundles' groups g (rays or bins;
+    w_g = 0 leaves one out), 0 ≤ σ ≤ ``upper`` (per cell; 0 outside the support), by L-BFGS-B (scipy) with the exact gradient of
+    :func:`forward` (JAX, float64) from ``start`` (None: zero). ``result`` is ``converged`` where L-BFGS-B met its own
+    test (relative reduction of the objective below ``tol``, or a projected gradient of zero), ``max_steps`` at the
+    cap; ``stats``: iterations, objective."""
     with jax.enable_x64(True):
         data = jnp.asarray(np.nan_to_num(absorption, nan=0.0), jnp.float64)
         w = jnp.asarray(weights, jnp.float64)

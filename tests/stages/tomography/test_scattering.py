@@ -18,7 +18,6 @@ from stages.tomography.scattering import (
     line_integrals,
     path_samples,
     random_walks,
-    ray_weights,
     smooth_total_variation,
 )
 
@@ -136,15 +135,6 @@ def test_random_walks_leave_through_the_surface_with_exponential_free_paths():
     straight = random_walks(body, entry, normal, 1e-9, 200, np.random.default_rng(2))
     assert straight.vertices.shape[1] == 2
     np.testing.assert_allclose(straight.vertices[:, 0], np.tile(entry, (200, 1)), atol=1e-8)
-
-
-def test_ray_weights_count_each_bin_once():
-    """Σ w over each bin's observed rays is 1; unobserved or off-grid rays weigh 0."""
-    theta = np.array([10.0, 11.0, 12.0, 100.0, 50.0, np.nan])
-    x = np.array([0.02, 0.05, -0.04, -0.5, 0.0, 0.0])
-    observed = np.array([True, True, True, True, False, True])
-    w = ray_weights(theta, x, observed, n_theta=18, n_x=11, extent=1.0)
-    np.testing.assert_allclose(w, [1 / 3, 1 / 3, 1 / 3, 1.0, 0.0, 0.0])
 
 
 def test_fitting_the_models_own_data_recovers_the_absorber():
