@@ -206,10 +206,10 @@ def fit_slice(bundles: Bundles, absorption: np.ndarray, weights: np.ndarray, upp
               *, tv_weight: float, eps: float, start: np.ndarray | None = None, max_iter: int = 300,
               tol: float = 1e-9) -> Solution:
     """σ (n, n) minimising ½ Σ_g w_g (A_g(σ) − a_g)² + λ TV_ε(σ) over the bundles' groups g (rays or bins;
-    w_g = 0 leaves one out), 0 ≤ σ ≤ ``upper`` (per cell; 0 outside the support), by L-BFGS-B (scipy) with the exact gradient of
-    :func:`forward` (JAX, float64) from ``start`` (None: zero). ``result`` is ``converged`` where L-BFGS-B met its own
-    test (relative reduction of the objective below ``tol``, or a projected gradient of zero), ``max_steps`` at the
-    cap; ``stats``: iterations, objective."""
+    w_g = 0 leaves one out), 0 ≤ σ ≤ ``upper`` (per cell; 0 outside the support), by L-BFGS-B (scipy) with the
+    exact gradient of :func:`forward` (JAX, float64) from ``start`` (None: zero). ``result`` is ``converged`` where
+    L-BFGS-B met its own test (relative reduction of the objective below ``tol``, or a projected gradient of zero),
+    ``max_steps`` at the cap; ``stats``: iterations, objective."""
     with jax.enable_x64(True):
         data = jnp.asarray(np.nan_to_num(absorption, nan=0.0), jnp.float64)
         w = jnp.asarray(weights, jnp.float64)
