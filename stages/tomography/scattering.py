@@ -154,18 +154,17 @@ def smooth_total_variation(image: jnp.ndarray, eps: float) -> jnp.ndarray:
     return (jnp.sqrt((gradient(image) ** 2).sum(axis=-3) + eps**2) - eps).sum()
 
 
-def trace_bundles(geometry: RigGeometry, polygon: np.ndarray, row: int, angles: np.ndarray, group: np.ndarray, *,
-                  sigma_s: float, photons: int, paths_per_group: int, row_band: int, spacing: float,
+def trace_bundles(geometry: RigGeometry, polygon: np.ndarray, row: int, angles: np.ndarray, group: np.ndarray,
+                  n_groups: int, *, sigma_s: float, photons: int, paths_per_group: int, row_band: int, spacing: float,
                   rng: np.random.Generator, max_events: int = 200) -> Bundles:
     """The bundles of one slice, per group of its rays: ``group`` (angle, col) names each ray's group (its own index,
-    or its sinogram bin), −1 for no ray. Per angle, ``photons`` walks from where the light's ray enters the contour;
-    a walk that leaves toward the camera onto a pixel within ``row_band`` rows of ``row`` belongs to the group of
-    that pixel's column, until the group holds ``paths_per_group`` paths."""
+    or its sinogram bin, below ``n_groups``), −1 for no ray. Per angle, ``photons`` walks from where the light's
+    ray enters the contour; a walk that leaves toward the camera onto a pixel within ``row_band`` rows of ``row``
+    belongs to the group of that pixel's column, until the group holds ``paths_per_group`` paths."""
     body = Prism(convex_polygon(polygon))
     camera = geometry.camera
     origin, direction = geometry.beam()
     height = float(camera.axis_height(row)[0]) if geometry.light_kind == "sheet" else geometry.beam_height
-    n_groups = int(group.max()) + 1 if group.size else 0
     taken = np.zeros(n_groups, np.int64)
     chosen, owners = [], []
     for a, angle in enumerate(np.asarray(angles, float)):
@@ -245,27 +244,25 @@ SAMPLE_BYTES = 64
 
 
 def _fit_one_slice(theta, x, absorption, data, observed, vertices, count, *, geometry: RigGeometry, row: int,
-                   angles: np.ndarray, grid: Geometry, n_x: int, extent: float, settings: dict, seed: int):
+                   angles: np.ndarray, grid: Geometry, settings: dict, seed: int):
     """σ (n, n) of one slice by the bundle model, and (converged, iterations, objective, median paths, bins
     without paths)."""
-    n_theta = data.shape[0]
+    n_theta, n_x = data.shape
     nan = np.full((grid.n, grid.n), np.nan)
     if count < 3:
         return nan, _stats(False, 0, np.nan, 0.0, int(observed.sum()))
     polygon = vertices[:count]
-    i, j, on_grid = bin_index(theta, x, n_theta=n_theta, n_x=n_x, extent=extent)
+    i, j, on_grid = bin_index(theta, x, n_theta=n_theta, n_x=n_x, extent=grid.extent)
     flat = np.where(on_grid & np.isfinite(absorption), i * n_x + j, -1)
     group = np.where((flat >= 0) & observed.ravel()[np.maximum(flat, 0)], flat, -1)
-    bundles = trace_bundles(geometry, polygon, row, angles, group, sigma_s=settings["sigma_s"],
+    bundles = trace_bundles(geometry, polygon, row, angles, group, n_theta * n_x, sigma_s=settings["sigma_s"],
                             photons=settings["photons"], paths_per_group=settings["paths_per_bin"],
                             row_band=settings["row_band"], spacing=grid.cell * settings["spacing"],
                             rng=np.random.default_rng([seed, row]), max_events=settings["max_events"])
     if problems := memory_problems(len(bundles.points) * SAMPLE_BYTES, f"slice {row}'s path samples",
                                    fix="lower paths_per_bin or raise spacing"):
         raise StageError([Problem(p) for p in problems])
-    counts = np.zeros(n_theta * n_x, np.int64)
-    counts[: len(bundles.counts)] = bundles.counts
-    bundles = Bundles(bundles.points, bundles.lengths, bundles.path, bundles.group, counts)
+    counts = bundles.counts
     used = observed.ravel() & (counts > 0)
     if not used.any():  # no walk reached an observed bin: no data, not a confident σ = 0
         return nan, _stats(False, 0, np.nan, 0.0, int(observed.sum()))
@@ -363,8 +360,7 @@ def reconstruct_scattering(rays: xr.Dataset, sinogram: xr.Dataset, hull: xr.Data
         image, numbers = fit(ray["theta"].data, ray["x"].data, ray["absorption"].data,
                              sinogram["absorption"].isel(slice=k).data, sinogram["observed"].isel(slice=k).data,
                              shell["vertices"].isel(slice=k).data, shell["n_vertices"].isel(slice=k).data,
-                             geometry=geometry, row=int(row), angles=angles, grid=grid, n_x=sinogram.sizes["x"],
-                             extent=grid.extent, settings=settings, seed=seed)
+                             geometry=geometry, row=int(row), angles=angles, grid=grid, settings=settings, seed=seed)
         images.append(da.from_delayed(image, (grid.n, grid.n), np.float64).astype(np.float32))
         stats.append([da.from_delayed(numbers[m], (), dtype) for m, dtype in enumerate(_STATS.values())])
     image = ("slice", "y", "x")
