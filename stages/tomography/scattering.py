@@ -35,9 +35,7 @@ import numpy as np
 import scipy.optimize
 import xarray as xr
 
-from devices.geometry import RigGeometry, to_lab, to_object_xy
-from devices.sim.shapes import Prism, convex_polygon
-from devices.sim.tomography import cosine_hemisphere, isotropic
+from devices.geometry import RigGeometry, to_lab
 from pipeline.constraints import Count, Index, NonNegative, Positive, memory_problems
 from pipeline.errors import Problem, StageError
 from pipeline.registry import stage
@@ -45,54 +43,10 @@ from stages._common import MaxIter, require_variables
 from stages._solution import Result, Solution, outcome
 from stages.tomography._admm import TVADMM, gradient
 from stages.tomography._projector import Geometry
+from stages.tomography._walks import beam_entry, random_walks, walk_body
 from stages.tomography.hull import contours
 from stages.tomography.reconstruct import _check, _output, grid_geometry, reconstruct_tv, support_mask
 from stages.tomography.sinogram import bin_index
-
-
-@dataclass(frozen=True)
-class Walks:
-    """Photon random walks that left the object: vertices (N, V, 3) in the object frame (NaN after the exit, which
-    is the last finite vertex), and the outward normal (N, 3) where each left."""
-
-    vertices: np.ndarray
-    exit_normal: np.ndarray
-
-    @property
-    def exit_point(self) -> np.ndarray:
-        last = np.isfinite(self.vertices[..., 0]).sum(axis=1) - 1
-        return self.vertices[np.arange(len(last)), last]
-
-
-def random_walks(body: Prism, entry: np.ndarray, normal: np.ndarray, sigma_s: float, n: int,
-                 rng: np.random.Generator, *, max_events: int = 200) -> Walks:
-    """``n`` photons launched through the skin at ``entry`` (Lambertian about the inward normal, −``normal``) and
-    scattered isotropically with free paths of mean 1/σ_s until they leave ``body``; photons still inside after
-    ``max_events`` scatterings are dropped. No absorption: the walks of the reference object."""
-    exit_normal = np.zeros((n, 3))
-    left = np.zeros(n, bool)
-    alive = np.arange(n)
-    pos = np.tile(np.asarray(entry, float) - 1e-9 * np.asarray(normal, float), (n, 1))
-    steps = [(alive, pos)]  # who moved, and where to, at each event: only the walks still inside take memory
-    direction = cosine_hemisphere(-np.asarray(normal, float), n, rng)
-    for _ in range(max_events + 1):
-        if not len(alive):
-            break
-        iv = body.interval(pos, direction)
-        t_exit = np.maximum(iv.t_out, 0.0)
-        free = rng.exponential(1.0 / sigma_s, len(alive))
-        leaving = free >= t_exit
-        pos = pos + np.where(leaving, t_exit, free)[:, None] * direction
-        steps.append((alive, pos))
-        exit_normal[alive[leaving]] = iv.normal_out[leaving]
-        left[alive[leaving]] = True
-        stay = ~leaving
-        alive, pos = alive[stay], pos[stay]
-        direction = isotropic(len(alive), rng)
-    vertices = np.full((n, len(steps), 3), np.nan)
-    for k, (who, where) in enumerate(steps):
-        vertices[who, k] = where
-    return Walks(vertices[left], exit_normal[left])
 
 
 @dataclass(frozen=True)
@@ -161,23 +115,15 @@ def trace_bundles(geometry: RigGeometry, polygon: np.ndarray, row: int, angles: 
     or its sinogram bin, below ``n_groups``), −1 for no ray. Per angle, ``photons`` walks from where the light's
     ray enters the contour; a walk that leaves toward the camera onto a pixel within ``row_band`` rows of ``row``
     belongs to the group of that pixel's column, until the group holds ``paths_per_group`` paths."""
-    body = Prism(convex_polygon(polygon))
+    body = walk_body(polygon, geometry)
     camera = geometry.camera
-    origin, direction = geometry.beam()
     height = float(camera.axis_height(row)[0]) if geometry.light_kind == "sheet" else geometry.beam_height
     taken = np.zeros(n_groups, np.int64)
     chosen, owners = [], []
     for a, angle in enumerate(np.asarray(angles, float)):
-        if not (group[a] >= 0).any():
+        if not (group[a] >= 0).any() or (light := beam_entry(body, geometry, angle, height)) is None:
             continue
-        phi = np.deg2rad(angle)
-        o, d = to_object_xy(origin[:2], phi), to_object_xy(direction[:2], phi)
-        iv = body.shape.interval(o[None], d[None])
-        if not iv.hit[0]:
-            continue
-        entry = np.array([*(o + iv.t_in[0] * d), height])
-        walks = random_walks(body, entry, np.array([*iv.normal_in[0], 0.0]), sigma_s, photons, rng,
-                             max_events=max_events)
+        walks = random_walks(body, *light, sigma_s, photons, rng, max_events=max_events)
         q, n = to_lab(walks.exit_point, angle), to_lab(walks.exit_normal, angle)
         r, c = (np.rint(v).astype(np.int64) for v in camera.project(q))
         seen = camera.facing(q, n) & (np.abs(r - row) <= row_band) & (c >= 0) & (c < camera.cols)

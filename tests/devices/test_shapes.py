@@ -116,3 +116,25 @@ def test_ellipsoid_sections_are_the_ellipses_its_points_fill():
     assert solid.z_range == (-3.0, 5.0)
     q = (solid.surface(32) - solid.centre) @ solid._to_unit().T
     np.testing.assert_allclose(np.sum(q**2, axis=1), 1.0, rtol=1e-12)  # on the surface
+
+
+def test_a_polygon_clips_many_lines_in_blocks_with_each_lines_own_result():
+    """More lines than :data:`CLIP_BLOCK` go in blocks; every line's interval equals that of the line clipped alone
+    (to 1e-12: the matrix products round differently by size) and its normals are the same edges', including misses
+    and lines that start inside."""
+    from devices.sim.shapes import CLIP_BLOCK
+
+    rng = np.random.default_rng(3)
+    angle = np.sort(rng.uniform(0, 2 * np.pi, 40))
+    polygon = convex_polygon(np.c_[np.cos(angle), np.sin(angle)])
+    n = 2 * CLIP_BLOCK + 17
+    origin, direction = rng.uniform(-2, 2, (n, 2)), rng.normal(size=(n, 2))
+    many = polygon.interval(origin, direction)
+    assert many.hit.any() and not many.hit.all()
+    for k in rng.choice(n, 50, replace=False).tolist() + [0, CLIP_BLOCK - 1, CLIP_BLOCK, n - 1]:
+        one = polygon.interval(origin[k:k + 1], direction[k:k + 1])
+        for field in ("t_in", "t_out"):
+            np.testing.assert_allclose(getattr(many, field)[k], getattr(one, field)[0], rtol=1e-12)
+        for field in ("normal_in", "normal_out"):
+            np.testing.assert_array_equal(getattr(many, field)[k], getattr(one, field)[0])
+    assert polygon.interval(origin, direction, normals=False).normal_in is None

@@ -11,13 +11,13 @@ from devices.sim.shapes import Ellipse, Prism, convex_polygon
 from pipeline.schema import check_dataset, with_metadata
 from stages._solution import Result
 from stages.tomography._projector import Geometry
+from stages.tomography._walks import random_walks
 from stages.tomography.scattering import (
     Bundles,
     fit_slice,
     forward,
     line_integrals,
     path_samples,
-    random_walks,
     smooth_total_variation,
 )
 
@@ -114,27 +114,6 @@ def test_the_objectives_gradient_matches_finite_differences():
             step = jnp.asarray(step.reshape(image.shape))
             numeric = (float(objective(image + step)) - float(objective(image - step))) / 2e-6
             assert grad.ravel()[k] == pytest.approx(numeric, rel=1e-6, abs=1e-9)
-
-
-def test_random_walks_leave_through_the_surface_with_exponential_free_paths():
-    """Walks in a prism (circle, radius 1): every exit lies on the side wall (|r| = 1 within 1e-9) with the outward
-    normal there; scatterings per length travelled estimate σ_s within 4 standard errors (free paths exponential,
-    the last one cut by the exit: the censored estimate); σ_s → 0 gives one straight step from the entry to the exit."""
-    body = Prism(Ellipse((0.0, 0.0), (1.0, 1.0), 0.0))
-    entry, normal = np.array([-1.0, 0.0, 0.0]), np.array([-1.0, 0.0, 0.0])
-    walks = random_walks(body, entry, normal, 2.0, 4000, np.random.default_rng(1))
-    exits = walks.exit_point
-    assert len(exits) == 4000
-    np.testing.assert_allclose(np.hypot(exits[:, 0], exits[:, 1]), 1.0, atol=1e-9)
-    np.testing.assert_allclose(walks.exit_normal[:, :2], exits[:, :2], atol=1e-9)
-    steps = np.linalg.norm(np.diff(walks.vertices, axis=1), axis=2)
-    scatterings = np.isfinite(walks.vertices[..., 0]).sum() - 2 * len(exits)  # vertices less entries and exits
-    assert scatterings > 4000
-    rate = scatterings / np.nansum(steps)  # events per length travelled: the censored exponential's estimate
-    assert abs(rate - 2.0) < 4 * 2.0 / np.sqrt(scatterings)
-    straight = random_walks(body, entry, normal, 1e-9, 200, np.random.default_rng(2))
-    assert straight.vertices.shape[1] == 2
-    np.testing.assert_allclose(straight.vertices[:, 0], np.tile(entry, (200, 1)), atol=1e-8)
 
 
 def test_fitting_the_models_own_data_recovers_the_absorber():
