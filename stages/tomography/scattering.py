@@ -26,24 +26,28 @@ around: the stage is ``reconstruct_tv``, at its cost.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Annotated
 
 import dask
 import dask.array as da
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pydantic
 import scipy.optimize
 import xarray as xr
 
-from devices.geometry import RigGeometry, to_lab
+from devices.geometry import RigGeometry, geometry_attrs, saturation_counts, to_lab, to_object
+from devices.sim.shapes import Prism
 from pipeline.constraints import Count, Index, NonNegative, Positive, memory_problems
 from pipeline.errors import Problem, StageError
 from pipeline.registry import stage
+from pipeline.schema import with_metadata
 from stages._common import MaxIter, require_variables
 from stages._solution import Result, Solution, outcome
 from stages.tomography._admm import TVADMM, gradient
 from stages.tomography._projector import Geometry
-from stages.tomography._walks import beam_entry, random_walks, walk_body
+from stages.tomography._walks import Walks, beam_entry, random_walks, walk_body, walk_weights
 from stages.tomography.hull import contours
 from stages.tomography.reconstruct import _check, _output, grid_geometry, reconstruct_tv, support_mask
 from stages.tomography.sinogram import bin_index
@@ -227,7 +231,8 @@ def _stats(*values) -> tuple[np.ndarray, ...]:
 
 
 @stage("reconstruct_scattering")
-def reconstruct_scattering(rays: xr.Dataset, sinogram: xr.Dataset, hull: xr.Dataset, /, *, sigma_s: NonNegative,
+def reconstruct_scattering(rays: xr.Dataset, sinogram: xr.Dataset, hull: xr.Dataset,
+                           scattering: xr.Dataset | None = None, /, *, sigma_s: NonNegative | None = None,
                            tv_weight: NonNegative = TVADMM.DEFAULT_TV_WEIGHT, n_pixels: Count | None = None,
                            photons: Count = 40_000, paths_per_bin: Count = 64, row_band: Index = 16,
                            spacing: Positive = 1.0, sigma_max: Positive | None = None, max_events: Count = 1000,
@@ -250,8 +255,12 @@ def reconstruct_scattering(rays: xr.Dataset, sinogram: xr.Dataset, hull: xr.Data
     hull : xr.Dataset
         The ``hull`` store (``visual_hull``): the contour each slice's walks stay inside, and the rig geometry (the
         camera and the light) in its attrs.
-    sigma_s : float
-        Scattering coefficient of the medium [1/length unit]; 0: the shortest-path model (``reconstruct_tv``).
+    scattering : xr.Dataset or None
+        A ``scattering_estimate`` store (:func:`estimate_scattering`) whose ``sigma_s`` to use (read when the graph
+        is built), in place of ``sigma_s``.
+    sigma_s : float or None
+        Scattering coefficient of the medium [1/length unit]; 0: the shortest-path model (``reconstruct_tv``). Give
+        it or ``scattering``, not both.
     tv_weight : float
         λ, as for ``reconstruct_tv`` [absorption² per (1/length)·cell].
     n_pixels : int or None
@@ -282,6 +291,7 @@ def reconstruct_scattering(rays: xr.Dataset, sinogram: xr.Dataset, hull: xr.Data
     ``iterations``, ``final_objective``, ``paths_per_bin`` (median over the observed bins) and ``bins_without_paths``
     (observed bins no walk reached: left out of the fit; raise ``photons`` or ``row_band`` if many).
     """
+    sigma_s = _scattering_coefficient(scattering, sigma_s)
     if sigma_s == 0:
         return reconstruct_tv(sinogram, hull, tv_weight=tv_weight, n_pixels=n_pixels)
     require_variables(rays, ("theta", "x", "absorption"), "reconstruct_scattering")
@@ -313,11 +323,335 @@ def reconstruct_scattering(rays: xr.Dataset, sinogram: xr.Dataset, hull: xr.Data
     variables = {"sigma": (image, da.stack(images))}
     for m, name in enumerate(_STATS):
         variables[name] = (("slice",), da.stack([s[m] for s in stats]))
-    return _output(sinogram, grid, variables, {"method": "bundle_lbfgsb_tv", "sigma_s": sigma_s,
+    estimated = {} if scattering is None else {"sigma_s_estimated": True}
+    return _output(sinogram, grid, variables, estimated | {"method": "bundle_lbfgsb_tv", "sigma_s": sigma_s,
                                                "tv_weight": tv_weight, "photons": photons,
                                                "paths_per_bin": paths_per_bin, "row_band": row_band, "seed": seed})
+
+
+def _scattering_coefficient(scattering: xr.Dataset | None, sigma_s: float | None) -> float:
+    """σ_s from the setting or from an estimate's store: exactly one of them, and a finite, non-negative value."""
+    if (scattering is None) == (sigma_s is None):
+        raise StageError(Problem("reconstruct_scattering needs σ_s: give the sigma_s setting or a scattering "
+                                 "estimate, one of them" + ("" if scattering is None else ", not both"),
+                                 fix="estimate it with estimate_scattering, or set sigma_s [1/length unit]"))
+    if scattering is None:
+        return float(sigma_s)
+    require_variables(scattering, ("sigma_s",), "reconstruct_scattering")
+    value = float(scattering["sigma_s"].values)
+    if not np.isfinite(value) or value < 0:
+        raise StageError(Problem(f"the scattering estimate's sigma_s is {value}: it could not be estimated",
+                                 where="reconstruct_scattering: scattering",
+                                 fix="look at its measured_profile (no light in some distance bin?) or set sigma_s"))
+    return value
 
 
 #: per-slice statistics of :func:`reconstruct_scattering` and their dtypes
 _STATS = {"converged": np.dtype(bool), "iterations": np.dtype(np.int64), "final_objective": np.dtype(np.float64),
           "paths_per_bin": np.dtype(np.float64), "bins_without_paths": np.dtype(np.int64)}
+
+
+# ---- σ_s from the reference frames ------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class ExitProfile:
+    """What the reference frames show of the light leaving the object, per view: the distance bin (from the light's
+    entry point, on the slice's prism) of each used pixel of the band of rows about the slice (−1: not used), and
+    the measured light per bin (counts above dark × the surface area the pixel sees: proportional to the photons
+    that left through it). Views the light misses are left out."""
+
+    views: np.ndarray  # (V,) indices into the views given
+    entries: list[tuple[np.ndarray, np.ndarray]]  # per view: entry point and outward normal, object frame
+    pixel_bin: np.ndarray  # (V, pixels of the band) distance bin of each pixel, −1 where not used
+    measured: np.ndarray  # (V, B)
+    edges: np.ndarray  # (B + 1,) the bins' distance edges [length unit]
+
+
+def exit_profile(reference: np.ndarray, usable: np.ndarray, angles: np.ndarray, rows: np.ndarray, body: Prism,
+                 geometry: RigGeometry, height: float, n_bins: int) -> ExitProfile:
+    """The :class:`ExitProfile` of reference frames (views, rows of the band, cols; counts above dark) where
+    ``usable`` (same shape) marks pixels inside the sensor's range: a pixel is used where it is usable, sees the
+    prism at a view angle under 72° from its normal (grazing pixels' areas are the hull's least certain) and the
+    light enters the prism; ``n_bins`` bins of equal pixel counts over the used pixels' distances."""
+    camera = geometry.camera
+    r, c = np.meshgrid(rows, np.arange(camera.cols), indexing="ij")
+    origins, directions = camera.back_project(r, c)
+    kept, entries, distance, light = [], [], [], []
+    for v, angle in enumerate(np.asarray(angles, float)):
+        if (entry := beam_entry(body, geometry, angle, height)) is None:
+            continue
+        o, d = to_object(origins, angle), to_object(directions, angle)
+        iv = body.interval(o, d)
+        point = o + np.where(iv.hit, iv.t_in, 0.0)[:, None] * d
+        facing = np.einsum("ij,ij->i", iv.normal_in, -d) > np.cos(np.deg2rad(72.0))
+        used = iv.hit & facing & usable[v].ravel()
+        area = np.zeros(len(point))
+        area[used] = camera.pixel_footprint(to_lab(point[used], angle), to_lab(iv.normal_in[used], angle))
+        kept.append(v)
+        entries.append(entry)
+        distance.append(np.where(used, np.linalg.norm(point - entry[0], axis=1), np.nan))
+        light.append(np.where(used, reference[v].ravel() * area, 0.0))
+    distance, light = np.array(distance).reshape(len(kept), -1), np.array(light).reshape(len(kept), -1)
+    finite = distance[np.isfinite(distance)]
+    if finite.size < n_bins:
+        edges = np.zeros(n_bins + 1)
+        pixel_bin = np.full(distance.shape, -1)
+    else:
+        edges = np.quantile(finite, np.linspace(0.0, 1.0, n_bins + 1))
+        pixel_bin = np.where(np.isfinite(distance),
+                             np.clip(np.searchsorted(edges, np.nan_to_num(distance), side="right") - 1, 0, n_bins - 1),
+                             -1)
+    measured = np.array([np.bincount(b[b >= 0], w[b >= 0], minlength=n_bins) for b, w in zip(pixel_bin, light,
+                                                                                             strict=True)])
+    return ExitProfile(np.asarray(kept, np.int64), entries, pixel_bin, measured.reshape(len(kept), n_bins), edges)
+
+
+def walk_bins(profile: ExitProfile, v: int, walks: Walks, angle: float, rows: np.ndarray,
+              geometry: RigGeometry) -> np.ndarray:
+    """The distance bin of the pixel that sees each walk's exit at view ``v`` of ``profile`` (−1: no used pixel)."""
+    camera = geometry.camera
+    q, n = to_lab(walks.exit_point, angle), to_lab(walks.exit_normal, angle)
+    r, c = (np.rint(x).astype(np.int64) for x in camera.project(q))
+    seen = camera.facing(q, n) & (r >= rows[0]) & (r <= rows[-1]) & (c >= 0) & (c < camera.cols)
+    out = np.full(len(r), -1)
+    out[seen] = profile.pixel_bin[v][(r[seen] - rows[0]) * camera.cols + c[seen]]
+    return out
+
+
+def profile_misfit(measured: np.ndarray, modelled: np.ndarray, variance: np.ndarray) -> np.ndarray:
+    """The misfit of log exit profiles with a free scale, per candidate: Σ_b r_b² − (1 − 1/B) Σ_b var_b with
+    r = log measured − log modelled less its mean over the B bins (the scale: the light's power and the skin's
+    transmittance are unknown), and var_b the Monte Carlo variance of log modelled_b, whose share of Σ r² it takes
+    away: the misfit of a candidate traced with few walks is not inflated by their noise. ``modelled`` and
+    ``variance`` (candidates, B); +inf where a bin is empty."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        residual = np.log(measured)[None] - np.log(modelled)
+        residual = residual - residual.mean(axis=-1, keepdims=True)
+        misfit = (residual**2).sum(axis=-1) - (1 - 1 / measured.shape[-1]) * variance.sum(axis=-1)
+    return np.where(np.isfinite(misfit), misfit, np.inf)
+
+
+def curve_minimum(misfit: np.ndarray, grid: np.ndarray) -> float:
+    """The minimiser of a misfit sampled on a log-uniform ``grid`` of σ_s: the parabola through the smallest sample
+    and its neighbours, in log σ_s; the grid's end where the smallest is there."""
+    k = int(np.argmin(misfit))
+    if not np.isfinite(misfit[k]):
+        return float("nan")
+    if 0 < k < len(grid) - 1 and np.all(np.isfinite(misfit[k - 1:k + 2])):
+        low, mid, high = misfit[k - 1:k + 2]
+        curvature = low - 2 * mid + high
+        if curvature > 0:
+            step = np.log(grid[k + 1] / grid[k])
+            return float(grid[k] * np.exp(0.5 * step * (low - high) / curvature))
+    return float(grid[k])
+
+
+#: candidates per round of :func:`estimate_scattering`: σ_0 · 2^u for u in [−REACH, REACH] octaves; farther, the
+#: weights of walks traced at σ_0 grow heavy-tailed and the misfit turns down again at the ends (one octave: the
+#: σ_s = 1 capture's misfit fell again at 2 σ_0, and bootstrap draws ended there)
+CANDIDATES = 41
+REACH_OCTAVES = 0.5
+#: candidates whose walks keep less than this share of their number as effective walks are not compared
+MIN_EFFECTIVE_SHARE = 0.5
+
+
+def _estimate_sigma_s(raw, dark, vertices, count, *, geometry: RigGeometry, angles: np.ndarray, rows: np.ndarray,
+                      row: int, settings: dict, seed: int) -> tuple[np.ndarray, ...]:
+    """σ_s of the reference frames ``raw`` (views, band rows, cols; raw counts) and what :func:`estimate_scattering`
+    stores beside it, in the order of :data:`_ESTIMATE`."""
+    bins, n = settings["distance_bins"], CANDIDATES
+    nothing = _estimate_out(np.nan, np.nan, np.nan, 0.0, 0, False, np.full(n, np.inf), np.full(n, np.nan),
+                            np.zeros(bins), np.zeros(bins), np.full(bins, np.nan))
+    if count < 3:
+        return nothing
+    body = walk_body(vertices[:count], geometry)
+    above = raw - dark
+    usable = np.isfinite(above)  # dark and dim pixels are measurements too: leaving them out would bias the profile
+    if settings["saturation"] is not None:
+        usable &= raw < settings["saturation"]
+    profile = exit_profile(np.where(usable, above, 0.0), usable, angles, rows, body, geometry,
+                           geometry.beam_height, bins)
+    if len(profile.views) < 2 or not np.all(profile.measured.sum(axis=0) > 0):
+        return nothing
+    everyone = np.ones(len(profile.views))
+    contour = vertices[:count]
+    traced_at = settings["initial"] or 1.0 / float(np.mean(np.hypot(*(contour - contour.mean(axis=0)).T)))
+    for round_ in range(1, settings["max_rounds"] + 1):
+        grid = traced_at * 2.0 ** np.linspace(-REACH_OCTAVES, REACH_OCTAVES, n)
+        counts = _candidate_counts(profile, body, geometry, angles, rows, grid, traced_at, settings,
+                                   np.random.SeedSequence([seed, round_]))
+        trusted = _trusted(*counts)
+        estimate, misfit = _fit_profile(everyone, profile.measured, *counts, grid, trusted)
+        span = grid[trusted]
+        settled = bool(np.isfinite(estimate) and span.min() < estimate < span.max())
+        if settled or not np.isfinite(estimate):
+            break
+        traced_at = estimate
+    if not np.isfinite(estimate):
+        return nothing
+    rng = np.random.default_rng([seed, 0])
+    shares = rng.multinomial(len(profile.views), np.full(len(profile.views), 1 / len(profile.views)),
+                             size=settings["bootstrap"]).astype(float)
+    spread = np.array([_fit_profile(share, profile.measured, *counts, grid, trusted)[0] for share in shares])
+    # a draw whose minimum is at an end of the trusted candidates lies somewhere beyond it: 0 or ∞, not the end
+    spread = np.where(spread <= span.min(), 0.0, np.where(spread >= span.max(), np.inf, spread))
+    low, high = np.percentile(spread, 16.0, method="lower"), np.percentile(spread, 84.0, method="higher")
+    # the walks' weights at the candidate nearest the estimate: their effective number, and the profile
+    at = int(np.argmin(np.abs(np.log(grid / estimate))))
+    total, square = counts[0][at].sum(axis=0), counts[1][at].sum(axis=0)
+    effective = float(total.sum() ** 2 / square.sum()) if square.sum() > 0 else 0.0
+    measured = profile.measured.sum(axis=0)
+    scale = np.exp(np.mean(np.log(measured) - np.log(np.maximum(total, np.finfo(float).tiny))))
+    centres = 0.5 * (profile.edges[1:] + profile.edges[:-1])
+    return _estimate_out(estimate, low, high, effective, round_, settled, misfit, grid, measured, scale * total,
+                         centres)
+
+
+def _candidate_counts(profile: ExitProfile, body: Prism, geometry: RigGeometry, angles: np.ndarray, rows: np.ndarray,
+                      grid: np.ndarray, traced_at: float, settings: dict, seeds: np.random.SeedSequence
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Walks traced at ``traced_at`` from each view's entry point, binned by the pixel that sees their exit and
+    weighted to every candidate of ``grid``: the weighted counts and the sums of squared weights, (candidates,
+    views, bins)."""
+    shape = (len(grid), len(profile.views), profile.measured.shape[1])
+    counts, squares = np.zeros(shape), np.zeros(shape)
+    for k, (v, stream) in enumerate(zip(profile.views, seeds.spawn(len(profile.views)), strict=True)):
+        walks = random_walks(body, *profile.entries[k], traced_at, settings["photons"], np.random.default_rng(stream),
+                             max_events=settings["max_events"], record=False)
+        where = walk_bins(profile, k, walks, angles[v], rows, geometry)
+        reached = where >= 0
+        walks = Walks(*(f[reached] for f in (walks.exit_point, walks.exit_normal, walks.events, walks.length)))
+        for g, candidate in enumerate(grid):
+            weight = walk_weights(walks, candidate, traced_at)
+            counts[g, k] = np.bincount(where[reached], weight, minlength=shape[2])
+            squares[g, k] = np.bincount(where[reached], weight**2, minlength=shape[2])
+    return counts, squares
+
+
+def _trusted(counts: np.ndarray, squares: np.ndarray) -> np.ndarray:
+    """The candidates whose reweighted walks keep at least :data:`MIN_EFFECTIVE_SHARE` of their number as
+    effective walks ((Σw)² / Σw²): beyond, the weights are heavy-tailed and the misfit turns down spuriously."""
+    total, square = counts.sum(axis=(1, 2)), squares.sum(axis=(1, 2))
+    walks = counts[len(counts) // 2].sum()  # the middle candidate is σ_0 itself: every weight 1
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.nan_to_num(total**2 / square) >= MIN_EFFECTIVE_SHARE * walks
+
+
+def _fit_profile(share: np.ndarray, measured: np.ndarray, counts: np.ndarray, squares: np.ndarray, grid: np.ndarray,
+                 trusted: np.ndarray) -> tuple[float, np.ndarray]:
+    """The estimate and the misfit per candidate (+inf where not ``trusted``), with each view counted ``share``
+    times (1: all once; a bootstrap draw: its multiplicities)."""
+    total = np.einsum("v,gvb->gb", share, counts)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        variance = np.einsum("v,gvb->gb", share**2, squares) / total**2
+    misfit = np.where(trusted, profile_misfit(share @ measured, total, variance), np.inf)
+    return curve_minimum(misfit, grid), misfit
+
+
+def _estimate_out(*values) -> tuple[np.ndarray, ...]:
+    return tuple(np.asarray(v, dtype) for v, dtype in zip(values, (d for _, d in _ESTIMATE.values()), strict=True))
+
+
+#: the variables of an ``estimate_scattering`` store: dims and dtype, in :func:`_estimate_sigma_s`'s order
+_ESTIMATE = {"sigma_s": ((), np.float64), "sigma_s_low": ((), np.float64), "sigma_s_high": ((), np.float64),
+             "effective_walks": ((), np.float64), "rounds": ((), np.int64), "settled": ((), bool),
+             "objective": (("candidate",), np.float64), "candidate_sigma_s": (("candidate",), np.float64),
+             "measured_profile": (("distance_bin",), np.float64), "modelled_profile": (("distance_bin",), np.float64),
+             "bin_distance": (("distance_bin",), np.float64)}
+
+
+@stage("estimate_scattering")
+def estimate_scattering(capture: xr.Dataset, hull: xr.Dataset, /, *, views: Count = 36, photons: Count = 50_000,
+                        row_band: Index = 32, distance_bins: Annotated[int, pydantic.Field(ge=3)] = 12,
+                        initial: Positive | None = None, bootstrap: Count = 200,
+                        max_rounds: Annotated[int, pydantic.Field(ge=1, le=20)] = 6, max_events: Count = 1000,
+                        seed: Index = 0) -> xr.Dataset:
+    """σ_s of the medium, with its uncertainty, from how the reference object's frames spread the beam's light
+    (lazy: one task).
+
+    The reference object (the target's medium without the inclusions) shows, around the beam's slice, the light
+    that left its surface after scattering: the farther from the entry point, the less, and how much less is set by
+    σ_s. Its frames are binned by each pixel's distance from the entry point (over ``views`` views and the rows
+    within ``row_band`` of the slice), and compared on a log scale, with a free scale, to photon walks in the hull's
+    slice traced at σ_0 and reweighted to 41 candidates over half an octave each side (a walk's probability at σ_s is
+    σ_s^k e^{−σ_s L}: one set of walks serves every candidate, with common random numbers, so the misfit is smooth
+    in σ_s); the Monte Carlo share of the misfit is taken away (:func:`profile_misfit`). Only candidates whose
+    walks keep half their number as effective walks are compared; where the minimum is at their end, the walks are
+    traced again there, up to ``max_rounds`` rounds. The uncertainty is a bootstrap over the views (each its own
+    frame and its own walks): ``sigma_s_low`` and ``sigma_s_high`` are the 16th and 84th percentiles, about ±1
+    standard deviation; a draw whose minimum is at an end of the compared candidates counts as beyond it (0 or ∞),
+    so a profile that no longer tells σ_s apart gives an open interval.
+
+    **Where it stops telling.** Without absorption, the deeper into the diffusive regime, the less the profile's
+    shape changes: on the §4.4.4 cylinders (radius 1) the misfit is within its noise for every σ_s from 4 to 11 at
+    the σ_s = 5 capture. There ``sigma_s_high`` is ∞: read ``sigma_s_low`` as a lower bound.
+
+    Assumes what the walks of ``reconstruct_scattering`` assume: isotropic scattering, no absorption in the medium,
+    refractive index 1, the slice's contour extruded in z; and a beam (a light sheet lights every height at once).
+
+    Parameters
+    ----------
+    capture : xr.Dataset
+        A ``tomography_capture``: ``reference`` (angle, row, col) [counts], ``dark`` (row, col) [counts; 0 if
+        absent], the rig geometry and ``saturation_counts`` in its attrs. Every pixel that sees the hull counts, dim
+        and dark ones too (a bin's sum is unbiased only so); pixels at or above saturation or not finite are left out.
+    hull : xr.Dataset
+        The ``hull`` store of the same capture: the beam's slice's contour.
+    views : int
+        Views used, evenly spaced over the capture's angles [1].
+    photons : int
+        Walks traced per view and round [1]; the Monte Carlo noise falls as 1/√photons.
+    row_band : int
+        Rows each side of the beam's row whose pixels are compared [rows]: more rows, more of the walks traced are
+        compared (at 16 instead of 32 the σ_s = 3 capture's interval was 1.7× wider), as far as the contour
+        extruded in z stays the object's.
+    distance_bins : int
+        Bins of the distance from the entry point, of equal numbers of pixels [1].
+    initial : float or None
+        σ_0 of the first round [1/length unit]; None: one over the contour's mean radius. The rounds climb (or
+        descend) from it half an octave at most each, and stop at the first minimum: where the profile stops
+        changing with σ_s (below), that is the smallest σ_s it allows.
+    bootstrap : int
+        Resamplings of the views for the uncertainty [1].
+    max_rounds : int
+        Rounds of walks at most [1]; ``settled`` is False where the last one's estimate still moved.
+    max_events : int
+        Scatterings before a walk is dropped [1].
+    seed : int
+        Seed of the walks and of the bootstrap.
+
+    Returns a ``scattering_estimate`` store: ``sigma_s`` (NaN where no view gave light in every distance bin),
+    ``sigma_s_low``/``sigma_s_high``, ``settled``, ``rounds``, ``effective_walks`` (the walks' effective number at
+    the estimate: low means the reweighting is stretched), and the last round's ``objective`` over its candidates
+    ``candidate_sigma_s``, and the ``measured_profile``/``modelled_profile`` over ``bin_distance`` [length unit].
+    """
+    require_variables(capture, ("reference",), "estimate_scattering")
+    geometry = RigGeometry.from_attrs(capture.attrs, capture.sizes["row"], capture.sizes["col"],
+                                      where="estimate_scattering: capture")
+    if geometry.light_kind != "beam":
+        raise StageError(Problem("estimate_scattering reads how a beam's light spreads from its entry point; this "
+                                 "capture's light is a sheet, which lights every height at once",
+                                 fix="capture the reference object with the beam (light_kind: beam)"))
+    row = int(geometry.lit_rows()[0])
+    shell = contours(hull, [row], "estimate_scattering")
+    rows = np.arange(max(row - row_band, 0), min(row + row_band + 1, geometry.camera.rows))
+    pick = np.unique(np.linspace(0, capture.sizes["angle"] - 1, min(views, capture.sizes["angle"])).round()
+                     .astype(int))
+    raw = capture["reference"].isel(angle=pick, row=rows).data
+    dark = capture["dark"].isel(row=rows).data if "dark" in capture else np.zeros((len(rows), capture.sizes["col"]))
+    settings = {"distance_bins": distance_bins, "initial": initial, "photons": photons,
+                "bootstrap": bootstrap, "max_rounds": max_rounds, "max_events": max_events,
+                "saturation": saturation_counts(capture.attrs)}
+    parts = dask.delayed(_estimate_sigma_s, nout=len(_ESTIMATE), pure=True)(
+        raw, dark, shell["vertices"].isel(slice=0).data, shell["n_vertices"].isel(slice=0).data, geometry=geometry,
+        angles=capture["angle"].values[pick], rows=rows, row=row, settings=settings, seed=seed)
+    sizes = {"candidate": CANDIDATES, "distance_bin": distance_bins}
+    variables = {name: (dims, da.from_delayed(part, tuple(sizes[d] for d in dims), dtype))
+                 for (name, (dims, dtype)), part in zip(_ESTIMATE.items(), parts, strict=True)}
+    unit = geometry.length_unit
+    out = xr.Dataset(variables)
+    attrs = {"selpath_kind": "scattering_estimate", "row": row, "views": len(pick), "photons": photons,
+             "row_band": row_band, "seed": seed}
+    return with_metadata(out.assign_attrs(geometry_attrs(capture.attrs) | attrs | {"length_unit": unit}),
+                         "scattering_estimate")
