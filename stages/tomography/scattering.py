@@ -21,6 +21,10 @@ The reconstruction minimises ½ Σ (A_b(σ) − a_b)² over the observed bins + 
 the hull) by L-BFGS-B (scipy, with JAX's gradient): the data term of ``reconstruct_tv`` on the same binned sinogram,
 so λ means what it means there; TV_ε = Σ (√(|∇σ|² + ε²) − ε), a smooth TV. With σ_s = 0 there is nothing to walk
 around: the stage is ``reconstruct_tv``, at its cost.
+
+σ_s need not be known: :func:`estimate_scattering` fits it, with a bootstrap interval, to how the reference frames
+spread the beam's light with the distance from its entry point, on the same walks (:mod:`stages.tomography._walks`),
+and ``reconstruct_scattering`` takes its store in place of the setting.
 """
 
 from __future__ import annotations
@@ -457,7 +461,7 @@ MIN_EFFECTIVE_SHARE = 0.5
 
 
 def _estimate_sigma_s(raw, dark, vertices, count, *, geometry: RigGeometry, angles: np.ndarray, rows: np.ndarray,
-                      row: int, settings: dict, seed: int) -> tuple[np.ndarray, ...]:
+                      settings: dict, seed: int) -> tuple[np.ndarray, ...]:
     """σ_s of the reference frames ``raw`` (views, band rows, cols; raw counts) and what :func:`estimate_scattering`
     stores beside it, in the order of :data:`_ESTIMATE`."""
     bins, n = settings["distance_bins"], CANDIDATES
@@ -645,7 +649,7 @@ def estimate_scattering(capture: xr.Dataset, hull: xr.Dataset, /, *, views: Coun
                 "saturation": saturation_counts(capture.attrs)}
     parts = dask.delayed(_estimate_sigma_s, nout=len(_ESTIMATE), pure=True)(
         raw, dark, shell["vertices"].isel(slice=0).data, shell["n_vertices"].isel(slice=0).data, geometry=geometry,
-        angles=capture["angle"].values[pick], rows=rows, row=row, settings=settings, seed=seed)
+        angles=capture["angle"].values[pick], rows=rows, settings=settings, seed=seed)
     sizes = {"candidate": CANDIDATES, "distance_bin": distance_bins}
     variables = {name: (dims, da.from_delayed(part, tuple(sizes[d] for d in dims), dtype))
                  for (name, (dims, dtype)), part in zip(_ESTIMATE.items(), parts, strict=True)}
