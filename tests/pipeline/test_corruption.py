@@ -26,7 +26,8 @@ runner = CliRunner()
 SIZES = {"angle": 3, "row": 4, "col": 5, "vertex": 3, "xy": 2, "slice": 2, "delay": 3, "exposure": 2, "line": 2,
          "offset": 3, "du": 2, "dv": 3, "theta": 4, "x": 5, "y": 5, "rgba": 4, "light_angle": 2, "method": 2,
          "iteration": 3, "shift": 2, "max_delay": 2, "signal": 2, "code": 2, "pattern": 2,
-         "light_angle_trial": 3, "pose": 2, "i": 3, "j": 3, "k": 5, "byte": 64, "material": 3, "view": 3, "site": 2, "distance": 4, "render": 2}
+         "light_angle_trial": 3, "pose": 2, "i": 3, "j": 3, "k": 5, "byte": 64, "material": 3, "view": 3, "site": 2, "distance": 4, "render": 2,
+         "candidate": 3, "distance_bin": 4}
 
 
 def minimal(kind: str) -> xr.Dataset:
