@@ -272,7 +272,7 @@ def test_the_profile_misfit_takes_away_the_monte_carlo_share_of_the_residual():
     """Modelled bin counts drawn as Poisson(λ_b) against a measured profile c·λ_b (the right shape): Σ r² alone
     averages (1 − 1/B) Σ 1/λ_b, the noise of the log counts; the misfit, with the walks' variance 1/n_b taken away,
     averages 0 (within 4 standard errors over 4000 draws); a wrong shape stays above it."""
-    from stages.tomography.scattering import profile_misfit
+    from stages.tomography._exit_profile import profile_misfit
 
     rng = np.random.default_rng(7)
     lam = np.geomspace(30.0, 400.0, 10)
@@ -290,7 +290,7 @@ def test_the_profile_misfit_takes_away_the_monte_carlo_share_of_the_residual():
 def test_the_curves_minimum_is_the_parabolas_in_log_sigma():
     """A misfit that is a parabola in log σ_s, sampled on a log grid, gives its vertex exactly (1e-9); a minimum at
     the grid's end gives the end; no finite value gives NaN."""
-    from stages.tomography.scattering import curve_minimum
+    from stages.tomography._exit_profile import curve_minimum
 
     grid = 2.0 * 2.0 ** np.linspace(-0.5, 0.5, 41)
     assert curve_minimum(3.0 * np.log(grid / 2.3) ** 2 + 1.0, grid) == pytest.approx(2.3, rel=1e-9)
