@@ -18,7 +18,8 @@ docs/results.md). Here each sinogram bin is a **bundle of paths**:
   height within a slice: a prism).
 
 The reconstruction minimises ½ Σ (A_b(σ) − a_b)² over the observed bins + λ TV_ε(σ) over 0 ≤ σ ≤ σ_max (0 outside
-the hull) by L-BFGS-B (scipy, with JAX's gradient): the data term of ``reconstruct_tv`` on the same binned sinogram,
+the hull) by L-BFGS-B (scipy; the paths' integrals through a sparse path matrix built once per slice, the bundles'
+absorption and TV with JAX's exact gradients): the data term of ``reconstruct_tv`` on the same binned sinogram,
 so λ means what it means there; TV_ε = Σ (√(|∇σ|² + ε²) − ε), a smooth TV. With σ_s = 0 there is nothing to walk
 around: the stage is ``reconstruct_tv``, at its cost.
 
@@ -39,6 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 import pydantic
 import scipy.optimize
+import scipy.sparse
 import xarray as xr
 
 from devices.geometry import RigGeometry, geometry_attrs, saturation_counts, to_lab
@@ -104,17 +106,47 @@ def line_integrals(image: jnp.ndarray, bundles: Bundles, geometry: Geometry) -> 
                                num_segments=len(bundles.group))
 
 
-def forward(image: jnp.ndarray, bundles: Bundles, geometry: Geometry) -> jnp.ndarray:
-    """The modelled absorption of every group (its count of groups): −log of the mean of exp(−∫σ) over its bundle
-    (a stable log-mean-exp); NaN for a group without paths."""
-    integrals = line_integrals(image, bundles, geometry)
+def path_matrix(bundles: Bundles, geometry: Geometry) -> scipy.sparse.csr_array:
+    """:func:`line_integrals` as a sparse (paths × n²) matrix W, so that ∫σ along the paths is W @ σ.ravel(): each
+    sample's four bilinear weights times its length, on the cells inside the grid (a neighbour outside adds 0, as
+    ``map_coordinates``' constant mode does), summed where a path's samples share a cell (float64).
+
+    The fit multiplies by W and Wᵀ hundreds of times; a path's samples are about a cell apart, so W holds about two
+    entries per sample where ``map_coordinates`` gathers, and its gradient scatters, four."""
+    n = geometry.n
+    coords = (bundles.points[:, ::-1] + geometry.extent) / geometry.cell - 0.5  # (row, col) per sample
+    low = np.floor(coords).astype(np.int64)
+    frac = coords - low
+    rows, cols, values = [], [], []
+    for dr in (0, 1):
+        for dc in (0, 1):
+            r, c = low[:, 0] + dr, low[:, 1] + dc
+            weight = (frac[:, 0] if dr else 1 - frac[:, 0]) * (frac[:, 1] if dc else 1 - frac[:, 1])
+            inside = (r >= 0) & (r < n) & (c >= 0) & (c < n)
+            rows.append(bundles.path[inside])
+            cols.append(r[inside] * n + c[inside])
+            values.append((weight * bundles.lengths)[inside])
+    matrix = scipy.sparse.coo_array((np.concatenate(values), (np.concatenate(rows), np.concatenate(cols))),
+                                    shape=(len(bundles.group), n * n))
+    return matrix.tocsr()  # sums the duplicates
+
+
+def bundle_absorption(integrals: jnp.ndarray, bundles: Bundles) -> jnp.ndarray:
+    """The modelled absorption of every group from its paths' ``integrals`` (∫σ): −log of the mean of exp(−∫σ) over
+    its bundle (a stable log-mean-exp); NaN for a group without paths."""
     group = jnp.asarray(bundles.group)
     n_groups = len(bundles.counts)
     least = jax.ops.segment_min(integrals, group, num_segments=n_groups)
     least = jnp.where(jnp.isfinite(least), least, 0.0)
     total = jax.ops.segment_sum(jnp.exp(-(integrals - least[group])), group, num_segments=n_groups)
-    counts = jnp.asarray(bundles.counts, image.dtype)
+    counts = jnp.asarray(bundles.counts, integrals.dtype)
     return jnp.where(counts > 0, least - jnp.log(total / jnp.maximum(counts, 1)), jnp.nan)
+
+
+def forward(image: jnp.ndarray, bundles: Bundles, geometry: Geometry) -> jnp.ndarray:
+    """The modelled absorption of every group (its count of groups): :func:`bundle_absorption` of
+    :func:`line_integrals`."""
+    return bundle_absorption(line_integrals(image, bundles, geometry), bundles)
 
 
 def smooth_total_variation(image: jnp.ndarray, eps: float) -> jnp.ndarray:
@@ -162,36 +194,50 @@ def trace_bundles(geometry: RigGeometry, polygon: np.ndarray, row: int, angles: 
                    np.concatenate(owners), taken)
 
 
+def slice_objective(bundles: Bundles, absorption: np.ndarray, weights: np.ndarray, geometry: Geometry, *,
+                    tv_weight: float, eps: float):
+    """f(σ) = ½ Σ_g w_g (A_g(σ) − a_g)² + λ TV_ε(σ) and its gradient, as a function of the flat σ (float64 arrays in
+    and out): the integrals by :func:`path_matrix` (W σ, and Wᵀ for the gradient, in scipy), the bundles' absorption
+    and TV with their exact gradients in JAX. The same value and gradient as JAX differentiating :func:`forward`
+    (tested), at a fraction of its cost: ``map_coordinates`` gathers four neighbours per sample and its gradient
+    scatters them."""
+    matrix = path_matrix(bundles, geometry)
+    shape = (geometry.n, geometry.n)
+    with jax.enable_x64(True):
+        data = jnp.asarray(np.nan_to_num(absorption, nan=0.0), jnp.float64)
+        w = jnp.asarray(weights, jnp.float64)
+
+        def data_term(integrals):
+            residual = jnp.where(w > 0, bundle_absorption(integrals, bundles) - data, 0.0)
+            return 0.5 * jnp.sum(w * residual**2)
+
+        data_grad = jax.jit(jax.value_and_grad(data_term))
+        tv_grad = jax.jit(jax.value_and_grad(lambda image: tv_weight * smooth_total_variation(image, eps)))
+
+    def both(flat):
+        flat = np.asarray(flat, np.float64)
+        with jax.enable_x64(True):
+            value, grad_integrals = data_grad(jnp.asarray(matrix @ flat))
+            tv, grad_tv = tv_grad(jnp.asarray(flat.reshape(shape)))
+        return float(value) + float(tv), matrix.T @ np.asarray(grad_integrals) + np.asarray(grad_tv).ravel()
+
+    return both
+
+
 def fit_slice(bundles: Bundles, absorption: np.ndarray, weights: np.ndarray, upper: np.ndarray, geometry: Geometry,
               *, tv_weight: float, eps: float, start: np.ndarray | None = None, max_iter: int = 300,
               tol: float = 1e-9) -> Solution:
     """σ (n, n) minimising ½ Σ_g w_g (A_g(σ) − a_g)² + λ TV_ε(σ) over the bundles' groups g (rays or bins;
     w_g = 0 leaves one out), 0 ≤ σ ≤ ``upper`` (per cell; 0 outside the support), by L-BFGS-B (scipy) with the
-    exact gradient of :func:`forward` (JAX, float64) from ``start`` (None: zero). ``result`` is ``converged`` where
+    exact gradient (:func:`slice_objective`, float64) from ``start`` (None: zero). ``result`` is ``converged`` where
     L-BFGS-B met its own test (relative reduction of the objective below ``tol``, or a projected gradient of zero),
     ``max_steps`` at the cap; ``stats``: iterations, objective."""
-    with jax.enable_x64(True):
-        data = jnp.asarray(np.nan_to_num(absorption, nan=0.0), jnp.float64)
-        w = jnp.asarray(weights, jnp.float64)
-        shape = (geometry.n, geometry.n)
-
-        def objective(flat):
-            image = flat.reshape(shape)
-            residual = jnp.where(w > 0, forward(image, bundles, geometry) - data, 0.0)
-            return 0.5 * jnp.sum(w * residual**2) + tv_weight * smooth_total_variation(image, eps)
-
-        value_and_grad = jax.jit(jax.value_and_grad(objective))
-
-        def both(flat):
-            value, grad = value_and_grad(jnp.asarray(flat))
-            return float(value), np.asarray(grad, float)
-
-        upper = np.nan_to_num(np.asarray(upper, float), nan=0.0, posinf=np.inf).ravel()
-        x0 = np.zeros(upper.size) if start is None else np.clip(np.nan_to_num(np.ravel(start)), 0.0, upper)
-        result = scipy.optimize.minimize(both, x0, jac=True, method="L-BFGS-B",
-                                         bounds=scipy.optimize.Bounds(0.0, upper),
-                                         options={"maxiter": max_iter, "ftol": tol, "gtol": 0.0})
-    value = result.x.reshape(shape)
+    both = slice_objective(bundles, absorption, weights, geometry, tv_weight=tv_weight, eps=eps)
+    upper = np.nan_to_num(np.asarray(upper, float), nan=0.0, posinf=np.inf).ravel()
+    x0 = np.zeros(upper.size) if start is None else np.clip(np.nan_to_num(np.ravel(start)), 0.0, upper)
+    result = scipy.optimize.minimize(both, x0, jac=True, method="L-BFGS-B", bounds=scipy.optimize.Bounds(0.0, upper),
+                                     options={"maxiter": max_iter, "ftol": tol, "gtol": 0.0})
+    value = result.x.reshape(geometry.n, geometry.n)
     code = outcome(np.asarray(result.status == 0), np.asarray(np.all(np.isfinite(value))))
     return Solution(value, code, {"iterations": int(result.nit), "objective": float(result.fun)})
 
@@ -200,8 +246,9 @@ def fit_slice(bundles: Bundles, absorption: np.ndarray, weights: np.ndarray, upp
 #: absorption over the image's width, the σ a uniform object across the grid would need) [1]
 TV_SMOOTHING = 1e-3
 
-#: bytes per path sample held while fitting (points, lengths, owner, the sampled σ and its gradient, float64)
-SAMPLE_BYTES = 64
+#: bytes per path sample held while fitting, at the peak of building :func:`path_matrix`: the sample (points, length,
+#: owner: 32), its four (path, cell, weight) triples in int64/float64 (96) and their copies in the CSR conversion (~128)
+SAMPLE_BYTES = 256
 
 
 def _fit_one_slice(theta, x, absorption, data, observed, vertices, count, *, geometry: RigGeometry, row: int,
