@@ -20,7 +20,15 @@ from stages._figures import as_figure, image_colorbar, panels, pixel_axes, rgba,
 from stages.tomography.sinogram import coverage_model, optimal_light_angle
 
 #: sizes [in] of the figures that are not of the standard size
-CAPTURE_SIZE, RECONSTRUCTION_SIZE, RECONSTRUCTION_SIZE_NO_TRUTH = (9.0, 2.2), (9.0, 6.0), (9.0, 3.2)
+CAPTURE_SIZE = (9.0, 2.2)
+#: inches per column of the reconstruction figure, and its height with and without the truth's row of errors
+RECONSTRUCTION_COLUMN, RECONSTRUCTION_HEIGHT, RECONSTRUCTION_HEIGHT_NO_TRUTH = 3.0, 6.0, 3.2
+
+
+def reconstruction_size(reconstructions: int, truth: bool) -> tuple[float, float]:
+    """The reconstruction figure's size: a column per reconstruction and one for the truth (or the overview)."""
+    height = RECONSTRUCTION_HEIGHT if truth else RECONSTRUCTION_HEIGHT_NO_TRUTH
+    return RECONSTRUCTION_COLUMN * (1 + reconstructions), height
 
 
 def _slice_name(ds: xr.Dataset, index: int) -> str:
@@ -213,8 +221,9 @@ def _draw_reconstructions(images: list[np.ndarray], titles: list[str], truth: np
         if reliable is not None and reliable.any() and not reliable.all():
             ax.contour(x, y, reliable.astype(float), levels=[0.5], colors="tab:blue", linewidths=0.8)
 
+    columns = 1 + len(images)
     if truth is None:
-        fig, axes = panels(1, 3, size=RECONSTRUCTION_SIZE_NO_TRUTH)
+        fig, axes = panels(1, columns, size=reconstruction_size(len(images), False))
         fig.suptitle(title, fontsize=10)
         overview(axes[0])
         for ax, image, label in zip(axes[1:], images, titles, strict=True):
@@ -222,32 +231,33 @@ def _draw_reconstructions(images: list[np.ndarray], titles: list[str], truth: np
         shared_colorbar(fig, axes, shown, f"σ [{sigma_unit}]", shrink=0.9)
         return rgba(fig)
 
-    fig, axes = panels(2, 3, size=RECONSTRUCTION_SIZE)
+    fig, axes = panels(2, columns, size=reconstruction_size(len(images), True))
     fig.suptitle(title, fontsize=10)
     for ax, image, label in zip(axes[0], [truth, *images], ["(a) truth", *titles], strict=True):
         shown = draw(ax, image, "magma", 0, peak, label)
     shared_colorbar(fig, axes[0], shown, f"σ [{sigma_unit}]", shrink=0.9)
+    letters = "abcdefghij"[columns:]  # after the truth and the reconstructions: the overview, then the errors
     overview(axes[1, 0])
-    axes[1, 0].set_title(f"(d) {axes[1, 0].get_title()}", fontsize=8)
+    axes[1, 0].set_title(f"({letters[0]}) {axes[1, 0].get_title()}", fontsize=8)
     errors = [image - truth for image in images]
     inside = [e[rows, cols] for e in errors]
     limit = max(float(np.nanmax(np.abs(e))) if np.isfinite(e).any() else 0.0 for e in inside)
     limit = limit if limit > 0 else 0.01 * peak  # exact reconstructions: a scale of 1 % of the peak
-    for ax, error, label, letter in zip(axes[1, 1:], errors, titles, "ef", strict=True):
+    for ax, error, label, letter in zip(axes[1, 1:], errors, titles, letters[1:], strict=False):
         rmse = float(np.sqrt(np.nanmean(error ** 2)))
         worst = float(np.nanmax(np.abs(error)))
         name = label.split(") ", 1)[-1].split(" (")[0]
-        text = (f"({letter}) {name} − truth: RMSE {rmse:.2e} {sigma_unit}\n"
-                f"max |error| {worst:.2e} {sigma_unit} (whole slice)")
+        text = f"({letter}) {name} − truth, whole slice:\nRMSE {rmse:.2e}, max |error| {worst:.2e} {sigma_unit}"
         shown = draw(ax, error, "RdBu_r", -limit, limit, text)
     shared_colorbar(fig, axes[1], shown, f"error Δσ [{sigma_unit}]", shrink=0.9)
     return rgba(fig)
 
 
 @stage("reconstruction_figure")
-def reconstruction_figure(fbp: xr.Dataset, optimised: xr.Dataset, truth: xr.Dataset | None = None, /, *,
-                          slice_index: Index = 0) -> xr.Dataset:
-    """FBP beside the constrained optimisation (and the truth, with errors, when given), as in Fig. 18/21.
+def reconstruction_figure(fbp: xr.Dataset, optimised: xr.Dataset, truth: xr.Dataset | None = None,
+                          bundles: xr.Dataset | None = None, /, *, slice_index: Index = 0) -> xr.Dataset:
+    """FBP beside the constrained optimisation (and the truth, with errors, when given), as in Fig. 18/21; with
+    ``bundles``, the path-bundle reconstruction through scattering beside them (#27: both models side by side).
 
     Parameters
     ----------
@@ -258,13 +268,22 @@ def reconstruction_figure(fbp: xr.Dataset, optimised: xr.Dataset, truth: xr.Data
     truth : xr.Dataset or None
         A ``reconstruction`` store holding the true σ on the same grid (``phantom_truth``), of one slice or
         of every reconstructed slice (matched by the ``slice`` coordinate); None: no truth, no error panels.
+    bundles : xr.Dataset or None
+        A ``reconstruction`` store made by ``reconstruct_scattering`` on the same grid (its attrs ``sigma_s``
+        [1/length unit] and ``tv_weight`` title the panel); None: the two shortest-path reconstructions only.
     slice_index : int
         Position along the reconstructions' ``slice`` dim.
     """
-    require_variables(fbp, ("sigma",), "reconstruction_figure")
-    require_variables(optimised, ("sigma",), "reconstruction_figure")
+    given = [fbp, optimised] + ([] if bundles is None else [bundles])
+    for reconstruction in given:
+        require_variables(reconstruction, ("sigma",), "reconstruction_figure")
     images = [r["sigma"].isel(slice=slice_index).data if "slice" in r["sigma"].dims else r["sigma"].data
-              for r in (fbp, optimised)]
+              for r in given]
+    grids = [image.shape[-2:] for image in images]
+    if len(set(grids)) > 1:
+        raise StageError(Problem(f"the reconstructions' grids differ: (y, x) = {', '.join(map(str, grids))} for "
+                                 f"{', '.join(['fbp', 'optimised', 'bundles'][:len(grids)])}",
+                                 fix="reconstruct on one grid (the same sinogram and n_pixels)"))
     x = fbp["x"].values
     y = fbp["y"].values if "y" in fbp.coords else x
     unit = fbp["x"].attrs.get("units", "")
@@ -287,30 +306,39 @@ def reconstruction_figure(fbp: xr.Dataset, optimised: xr.Dataset, truth: xr.Data
     where = _slice_name(fbp, slice_index)
     tv = optimised.attrs.get("tv_weight")
     titles = ["(b) FBP", "(c) optimisation (box + TV" + (f", λ = {tv:g})" if tv is not None else ")")]
-    if truth is None:
-        titles = ["(b) FBP", titles[1]]
+    bundle_text = ""
+    if bundles is not None:
+        sigma_s, bundle_tv = bundles.attrs.get("sigma_s"), bundles.attrs.get("tv_weight")
+        settings = ", ".join(([f"σ_s = {sigma_s:g} {sigma_unit}"] if sigma_s is not None else [])
+                             + ([f"λ = {bundle_tv:g}"] if bundle_tv is not None else []))
+        titles.append("(d) path bundles" + (f" ({settings})" if settings else ""))
+        bundle_text = """ and (d) the path-bundle reconstruction through scattering (reconstruct_scattering: each
+            sinogram bin modelled as the mean transmittance over photon walks in the hull at the scattering
+            coefficient σ_s, fitted by L-BFGS-B with the same box and TV)"""
     light = fbp.attrs.get("light_angle_deg")
     title = f"absorption coefficient σ [{sigma_unit}], {where}" + (f", θ_l = {light:g}°" if light is not None else "")
     window = ("a window around the object (where the truth is at least 10 % of its peak or a reconstruction at "
               "least half of it, widened by 30 % on each side)")
+    overview, first_error = ("(e)", "(f") if bundles is not None else ("(d)", "(e")
+    error_letters = f"{first_error}–{'h' if bundles is not None else 'f'})"
     if truth is not None:
-        shown = """(a) the true σ, (b) filtered back projection (FBP) and (c) the constrained optimisation of
-            Eq. 20 (box 0 ≤ σ ≤ σ_max, σ = 0 outside the hull, total variation, by ADMM), on one colour scale from
-            0 to the truth's peak; (d) the whole slice by FBP"""
-        errors = f"""(e, f) each reconstruction minus the truth, on one diverging colour scale symmetric about 0;
-            their titles give the RMSE and the largest absolute error over the whole slice (as the
+        shown = f"""(a) the true σ, (b) filtered back projection (FBP) and (c) the constrained optimisation of
+            Eq. 20 (box 0 ≤ σ ≤ σ_max, σ = 0 outside the hull, total variation, by ADMM){bundle_text}, on one
+            colour scale from 0 to the truth's peak; {overview} the whole slice by FBP"""
+        errors = f"""{error_letters} each reconstruction minus the truth, on one diverging colour scale symmetric
+            about 0; their titles give the RMSE and the largest absolute error over the whole slice (as the
             reconstruction_error stage computes them), in {sigma_unit}."""
     else:
-        shown = """(b) filtered back projection (FBP) and (c) the constrained optimisation of Eq. 20 (box 0 ≤ σ ≤
-            σ_max, σ = 0 outside the hull, total variation, by ADMM), on one colour scale from 0 to the
-            reconstructions' peak; (a) the whole slice by FBP"""
+        shown = f"""(b) filtered back projection (FBP) and (c) the constrained optimisation of Eq. 20 (box 0 ≤ σ ≤
+            σ_max, σ = 0 outside the hull, total variation, by ADMM){bundle_text}, on one colour scale from 0 to
+            the reconstructions' peak; (a) the whole slice by FBP"""
         errors = "No truth was given, so no errors are shown."
     caption = f"""Reconstructed absorption coefficient σ [{sigma_unit}] of {where}, axes in {unit}, in {window}:
         {shown}, with that window boxed and, in blue, the boundary of the cells every ray of which was observed
         (cf. the blue line of Fig. 21). {errors} Reproduces thesis Fig. 21 (expected distribution, FBP and
         optimisation) and the error maps of Fig. 18 with Table 1."""
     return as_figure(_draw_reconstructions, images, titles, reference, reliable, x, y, unit, sigma_unit, title,
-                     caption=caption, size=RECONSTRUCTION_SIZE if truth is not None else RECONSTRUCTION_SIZE_NO_TRUTH)
+                     caption=caption, size=reconstruction_size(len(images), truth is not None))
 
 
 def _draw_convergence(objective: np.ndarray, primal: np.ndarray, dual: np.ndarray, iterations: np.ndarray,

@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 import xarray as xr
 
+from pipeline.errors import StageError
 from pipeline.registry import default_registry
-from stages._figures import as_figure, panels, rgba
-from stages.tomography.figures import object_window, reconstruction_figure
+from stages._figures import as_figure, panels, rgba, shape_of
+from stages.tomography.figures import object_window, reconstruction_figure, reconstruction_size
 
 MM = {"units": "mm"}
 
@@ -272,6 +273,33 @@ def test_the_object_window_holds_the_object_with_a_margin():
 def _panel_colours(image: np.ndarray, top: float, bottom: float, left: float, right: float) -> np.ndarray:
     h, w = image.shape[:2]
     return image[int(top * h):int(bottom * h), int(left * w):int(right * w), :3].reshape(-1, 3) / 255.0
+
+
+def test_the_reconstruction_figure_puts_the_path_bundles_beside_both_models():
+    """With a reconstruct_scattering store the figure gains a column (4 × 3 in wide, as declared): its panel is
+    titled by the store's σ_s and λ, and its error panel (bottom right) is neutral for an exact bundle
+    reconstruction and blue (negative error) for one at half the true σ, while the others stay as they were. A
+    bundle reconstruction on another grid is refused with both grids named."""
+    truth = np.zeros((64, 64))
+    truth[40:44, 10:14] = 0.15
+
+    def bundles(sigma):
+        return reconstruction(sigma).assign_attrs(sigma_s=2.0, tv_weight=0.05, method="bundle_lbfgsb_tv")
+
+    figures = [reconstruction_figure(reconstruction(truth), optimised(truth), reconstruction(truth), bundles(b))
+               for b in (truth, truth / 2)]
+    assert figures[0]["image"].shape == shape_of(reconstruction_size(3, True))
+    assert "(d) the path-bundle reconstruction" in figures[0].attrs["caption"]
+    assert "(f–h) each reconstruction minus the truth" in figures[0].attrs["caption"]
+    exact, wrong = (f["image"].values for f in figures)
+    blue = [[(p[:, 2] - p[:, 0] > 0.3).mean() for p in (_panel_colours(i, 0.6, 0.92, left, right) for i in
+                                                         (exact, wrong))] for left, right in ((0.72, 0.88),
+                                                                                              (0.48, 0.64))]
+    assert blue[0][0] == 0 and blue[0][1] > 0.05, blue  # the bundles' error panel
+    assert blue[1] == [0, 0], blue  # the optimisation's, exact in both
+    coarse = reconstruction(truth[::2, ::2])
+    with pytest.raises(StageError, match=r"grids differ: \(y, x\) = \(64, 64\), \(64, 64\), \(32, 32\)"):
+        reconstruction_figure(reconstruction(truth), optimised(truth), None, coarse.assign_attrs(sigma_s=1.0))
 
 
 def test_the_reconstruction_figure_crops_to_the_object_and_shows_the_error():
