@@ -319,8 +319,7 @@ def reconstruction_figure(fbp: xr.Dataset, optimised: xr.Dataset, truth: xr.Data
     title = f"absorption coefficient σ [{sigma_unit}], {where}" + (f", θ_l = {light:g}°" if light is not None else "")
     window = ("a window around the object (where the truth is at least 10 % of its peak or a reconstruction at "
               "least half of it, widened by 30 % on each side)")
-    overview, first_error = ("(e)", "(f") if bundles is not None else ("(d)", "(e")
-    error_letters = f"{first_error}–{'h' if bundles is not None else 'f'})"
+    overview, error_letters = ("(e)", "(f–h)") if bundles is not None else ("(d)", "(e, f)")
     if truth is not None:
         shown = f"""(a) the true σ, (b) filtered back projection (FBP) and (c) the constrained optimisation of
             Eq. 20 (box 0 ≤ σ ≤ σ_max, σ = 0 outside the hull, total variation, by ADMM){bundle_text}, on one
