@@ -158,7 +158,7 @@ _RECONSTRUCTION_EXTRAS = {
                               long_name="relative dual residual per ADMM iteration (NaN after the stop)"),
     # reconstruct_scattering's (stages.tomography.scattering): L-BFGS-B's end and the bundles' sizes
     "final_objective": Variable((), required=False, units="1", long_name="objective at the stop"),
-    "paths_per_bin": Variable((), required=False, units="1", long_name="median walks per observed bin"),
+    "paths_per_bin": Variable((), required=False, units="1", long_name="median distinct paths per observed bin"),
     "bins_without_paths": Variable((), required=False, units="1",
                                    long_name="observed bins no walk reached (left out of the fit)"),
 }

@@ -1,11 +1,12 @@
 """The path-bundle model of tomography through scattering (#27): what :mod:`stages.tomography.scattering`'s
 ``reconstruct_scattering`` fits.
 
-A sinogram bin (or a ray) is a bundle of photon walks that reach its pixels (:func:`trace_bundles`); its modelled
-absorption is −log of the mean of exp(−∫σ) over the bundle (:func:`forward`): ∫σ along each path by bilinear
-interpolation at its samples (:func:`line_integrals` in JAX, the same as the sparse :func:`path_matrix` for the
-fit), and the fit is L-BFGS-B on the bins' squared misfit plus a smooth TV (:func:`fit_slice`, through
-:func:`slice_objective`). The stage module's docstring gives the model's physics and assumptions.
+A sinogram bin (or a ray) is a bundle of paths by which light reaches its pixels, drawn from photon walks connected
+to the pixels (:func:`trace_bundles`); its modelled absorption is −log of the mean of exp(−∫σ) over the bundle
+(:func:`forward`): ∫σ along each path by bilinear interpolation at its samples (:func:`line_integrals` in JAX, the
+same as the sparse :func:`path_matrix` for the fit), and the fit is L-BFGS-B on the bins' squared misfit plus a
+smooth TV (:func:`fit_slice`, through :func:`slice_objective`). The stage module's docstring gives the model's
+physics and assumptions.
 """
 
 from __future__ import annotations
@@ -18,24 +19,26 @@ import numpy as np
 import scipy.optimize
 import scipy.sparse
 
-from devices.geometry import RigGeometry, to_lab
+from devices.geometry import RigGeometry, to_lab, to_object
 from stages._solution import Solution, outcome
 from stages.tomography._admm import gradient
 from stages.tomography._projector import Geometry
-from stages.tomography._walks import beam_entry, random_walks, walk_body
+from stages.tomography._walks import beam_entry, exit_weights, random_walks, walk_body
 
 
 @dataclass(frozen=True)
 class Bundles:
     """The sampled paths of one slice's rays, ready for :func:`forward`: sample ``points`` (P, 2) in the object frame
     (x, y) with the 3-D ``lengths`` (P,) each stands for and the path each belongs to (P,); the group each path
-    belongs to (paths,), a ray or a sinogram bin whose measurement the bundle models; the paths of each group."""
+    belongs to (paths,), a ray or a sinogram bin whose measurement the bundle models; the paths of each group, and
+    how many of them are distinct (a path drawn twice counts twice in ``counts``; None: all are)."""
 
     points: np.ndarray
     lengths: np.ndarray
     path: np.ndarray
     group: np.ndarray
     counts: np.ndarray
+    distinct: np.ndarray | None = None
 
 
 def path_samples(vertices: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -45,7 +48,12 @@ def path_samples(vertices: np.ndarray, spacing: float) -> tuple[np.ndarray, np.n
     start, end = vertices[:, :-1], vertices[:, 1:]
     valid = np.isfinite(end[..., 0]) & np.isfinite(start[..., 0])
     owner, _ = np.nonzero(valid)
-    a, b = start[valid], end[valid]
+    return segment_samples(start[valid], end[valid], owner, spacing)
+
+
+def segment_samples(a: np.ndarray, b: np.ndarray, owner: np.ndarray, spacing: float
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`path_samples` of segments from ``a`` to ``b`` (S, 3), each of polyline ``owner`` (S,)."""
     flat = np.linalg.norm(b[:, :2] - a[:, :2], axis=1)
     count = np.maximum(np.ceil(flat / spacing), 1).astype(np.int64)
     segment = np.repeat(np.arange(len(a)), count)
@@ -124,42 +132,87 @@ def smooth_total_variation(image: jnp.ndarray, eps: float) -> jnp.ndarray:
 
 
 def trace_bundles(geometry: RigGeometry, polygon: np.ndarray, row: int, angles: np.ndarray, group: np.ndarray,
-                  n_groups: int, *, sigma_s: float, photons: int, paths_per_group: int, row_band: int, spacing: float,
+                  n_groups: int, *, sigma_s: float, photons: int, paths_per_group: int, spacing: float,
                   rng: np.random.Generator, max_events: int = 200) -> Bundles:
     """The bundles of one slice, per group of its rays: ``group`` (angle, col) names each ray's group (its own index,
-    or its sinogram bin, below ``n_groups``), −1 for no ray. Per angle, ``photons`` walks from where the light's
-    ray enters the contour; a walk that leaves toward the camera onto a pixel within ``row_band`` rows of ``row``
-    belongs to the group of that pixel's column, until the group holds ``paths_per_group`` paths."""
+    or its sinogram bin, below ``n_groups``), −1 for no ray.
+
+    Per angle, ``photons`` walks from where the light's ray enters the contour, each connected from every vertex it
+    flew from to the surface point that each pixel of the row with a ray sees (next-event estimation,
+    :func:`stages.tomography._walks.exit_weights`, over the pixel's footprint): a path (the walk up to the vertex,
+    then straight to the point) and the light it brings. Each group holds ``paths_per_group`` paths drawn with
+    replacement from all the connections to its pixels, over all angles, in proportion to their light (a reservoir:
+    a pixel's light at a later angle takes over each path with the chance of its share of the group's light so far):
+    the paths by which its pixels' light arrives, on the row itself, every group that light reaches with the same
+    number of paths. Where a walk's own exit lands on one pixel at most, its connections reach them all."""
     body = walk_body(polygon, geometry)
     camera = geometry.camera
     height = float(camera.axis_height(row)[0]) if geometry.light_kind == "sheet" else geometry.beam_height
-    taken = np.zeros(n_groups, np.int64)
-    chosen, owners = [], []
+    origins, directions = camera.back_project(np.full(camera.cols, row), np.arange(camera.cols))
+    slots = np.full((n_groups, paths_per_group), -1)  # index into the paths drawn
+    held = np.zeros(n_groups)  # the light of the connections seen so far, per group
+    drawn, lengths, first = [], [], 0  # the drawn paths' vertices, flat, and how many each has
     for a, angle in enumerate(np.asarray(angles, float)):
-        if not (group[a] >= 0).any() or (light := beam_entry(body, geometry, angle, height)) is None:
+        cols = np.flatnonzero(group[a] >= 0)
+        if not len(cols) or (light := beam_entry(body, geometry, angle, height)) is None:
             continue
+        o, d = to_object(origins[cols], angle), to_object(directions[cols], angle)
+        seen = body.interval(o, d)
+        point = o + np.where(seen.hit, seen.t_in, 0.0)[:, None] * d
+        lab_point, lab_normal = to_lab(point, angle), to_lab(seen.normal_in, angle)
+        facing = seen.hit & camera.facing(lab_point, lab_normal)
+        if not facing.any():
+            continue
+        cols, point, normal = cols[facing], point[facing], seen.normal_in[facing]
+        area = camera.pixel_footprint(lab_point[facing], lab_normal[facing])
         walks = random_walks(body, *light, sigma_s, photons, rng, max_events=max_events)
-        q, n = to_lab(walks.exit_point, angle), to_lab(walks.exit_normal, angle)
-        r, c = (np.rint(v).astype(np.int64) for v in camera.project(q))
-        seen = camera.facing(q, n) & (np.abs(r - row) <= row_band) & (c >= 0) & (c < camera.cols)
-        owner = np.full(len(seen), -1)
-        owner[seen] = group[a, c[seen]]
-        index = np.flatnonzero(owner >= 0)
-        owner = owner[index]
-        order = np.argsort(owner, kind="stable")  # each group's walks in the order traced
-        index, owner = index[order], owner[order]
-        rank = np.arange(len(owner)) - np.searchsorted(owner, owner, side="left") + taken[owner]
-        keep = rank < paths_per_group
-        chosen.append(walks.vertices[index[keep]])
-        owners.append(owner[keep])
-        taken += np.bincount(owner[keep], minlength=n_groups)
-    if not chosen:
-        return Bundles(np.zeros((0, 2)), np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.int64), taken)
-    samples = [path_samples(v, spacing) for v in chosen]
-    first = np.cumsum([0] + [len(v) for v in chosen])
-    return Bundles(np.concatenate([p for p, _, _ in samples]), np.concatenate([s for _, s, _ in samples]),
-                   np.concatenate([k + f for (_, _, k), f in zip(samples, first[:-1], strict=True)]),
-                   np.concatenate(owners), taken)
+        walk, vertex, weights = exit_weights(walks, light[1], point, normal, area, sigma_s)
+        total = weights.sum(axis=0)
+        cumulative = np.cumsum(weights, axis=0)
+        picks, targets, owners = [], [], []
+        for t in np.flatnonzero(total > 0):
+            g = group[a, cols[t]]
+            held[g] += total[t]
+            taken = np.flatnonzero(rng.random(paths_per_group) < total[t] / held[g])  # all, for a group's first
+            if len(taken):
+                picks.append(np.searchsorted(cumulative[:, t], rng.random(len(taken)) * total[t], side="right"))
+                targets.append(np.full(len(taken), t))
+                owners.append((g, taken))
+        if not picks:
+            continue
+        pick = np.minimum(np.concatenate(picks), len(walk) - 1)
+        target = np.concatenate(targets)
+        reach = vertex[pick]  # each path: the walk's vertices up to here, then the pixel's point
+        longest = int(reach.max()) + 2
+        path = np.full((len(pick), longest, 3), np.nan)
+        path[:, :longest - 1] = walks.vertices[walk[pick], :longest - 1]
+        path[np.arange(longest)[None, :] > reach[:, None]] = np.nan
+        path[np.arange(len(pick)), reach + 1] = point[target]
+        keep = np.isfinite(path[..., 0])
+        drawn.append(path[keep])
+        lengths.append(keep.sum(axis=1))
+        number = first + np.arange(len(pick))
+        k = 0
+        for g, taken in owners:
+            slots[g, taken] = number[k:k + len(taken)]
+            k += len(taken)
+        first += len(pick)
+    counts = (slots >= 0).sum(axis=1)
+    if not first:
+        return Bundles(np.zeros((0, 2)), np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.int64), counts, counts)
+    owner, taken = np.nonzero(slots >= 0)
+    chosen = slots[owner, taken]  # the paths kept, in group order (a path drawn twice counts twice)
+    lengths = np.concatenate(lengths)
+    starts = np.cumsum(lengths) - lengths
+    vertices = np.concatenate(drawn)
+    index = np.repeat(starts[chosen], lengths[chosen]) + (np.arange(lengths[chosen].sum())
+                                                          - np.repeat(np.cumsum(lengths[chosen]) - lengths[chosen],
+                                                                      lengths[chosen]))
+    flat, of = vertices[index], np.repeat(np.arange(len(chosen)), lengths[chosen])
+    same = of[:-1] == of[1:]
+    points, sample_lengths, path = segment_samples(flat[:-1][same], flat[1:][same], of[:-1][same], spacing)
+    pairs = np.unique(np.c_[owner, chosen], axis=0)
+    return Bundles(points, sample_lengths, path, owner, counts, np.bincount(pairs[:, 0], minlength=n_groups))
 
 
 def slice_objective(bundles: Bundles, absorption: np.ndarray, weights: np.ndarray, geometry: Geometry, *,

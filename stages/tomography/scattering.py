@@ -8,9 +8,12 @@ docs/results.md). Here each sinogram bin is a **bundle of paths**:
 * Photon random walks are traced from ``p_l`` in the homogeneous object (the hull's contour extruded in z, the
   scattering coefficient σ_s, isotropic phase function, Lambertian launch through the skin), exactly as in the
   reference object, which has the same σ_s and no absorber: its frames are the sum over these paths' exits.
-* A walk belongs to the sinogram bin of the ray of the camera pixel that sees its exit point, where that pixel is
-  on the slice's row (within ``row_band`` rows: the walks that leave just above or below the slice, for statistics)
-  and holds a ray; each bin keeps up to ``paths_per_bin`` walks.
+* Each walk is connected, from every vertex it flew from, to the surface point each pixel of the slice's row sees
+  (next-event estimation: the chance that its next flight leaves there, :func:`stages.tomography._walks.exit_weights`),
+  so every walk tells every pixel by which paths, and how much of, its light arrives; a sinogram bin draws
+  ``paths_per_bin`` paths from the connections to its rays' pixels, in proportion to their light. A walk's own exit
+  would reach one pixel, and the slice's row only by chance (at σ_s = 3, 2 walks in 1 000): each bin gets the same
+  number of paths, on the row itself, for a fraction of the walks.
 * The target's frame weighs each path by exp(−∫σ) along it, so the absorption the pipeline measures,
   A = log I_reference − log I_target, is modelled as ``A(σ) = −log( mean over the bundle of exp(−∫_path σ) )``:
   nonlinear in σ, smooth, and differentiable in JAX. ∫σ along a path is a sum over its samples (``spacing`` cells
@@ -87,7 +90,7 @@ def _fit_one_slice(theta, x, absorption, data, observed, vertices, count, *, geo
     group = np.where((flat >= 0) & observed.ravel()[np.maximum(flat, 0)], flat, -1)
     bundles = trace_bundles(geometry, polygon, row, angles, group, n_theta * n_x, sigma_s=settings["sigma_s"],
                             photons=settings["photons"], paths_per_group=settings["paths_per_bin"],
-                            row_band=settings["row_band"], spacing=grid.cell * settings["spacing"],
+                            spacing=grid.cell * settings["spacing"],
                             rng=np.random.default_rng([seed, row]), max_events=settings["max_events"])
     if problems := memory_problems(len(bundles.points) * SAMPLE_BYTES, f"slice {row}'s path samples",
                                    fix="lower paths_per_bin or raise spacing"):
@@ -103,7 +106,7 @@ def _fit_one_slice(theta, x, absorption, data, observed, vertices, count, *, geo
                     eps=TV_SMOOTHING * max(scale, np.finfo(float).tiny), max_iter=settings["max_iter"],
                     tol=settings["tol"])
     return fit.value, _stats(int(fit.result) == Result.converged, fit.stats["iterations"], fit.stats["objective"],
-                             float(np.median(counts[used])), int((observed.ravel() & (counts == 0)).sum()))
+                             float(np.median(bundles.distinct[used])), int((observed.ravel() & (counts == 0)).sum()))
 
 
 def _stats(*values) -> tuple[np.ndarray, ...]:
@@ -114,13 +117,14 @@ def _stats(*values) -> tuple[np.ndarray, ...]:
 def reconstruct_scattering(rays: xr.Dataset, sinogram: xr.Dataset, hull: xr.Dataset,
                            scattering: xr.Dataset | None = None, /, *, sigma_s: NonNegative | None = None,
                            tv_weight: NonNegative = TVADMM.DEFAULT_TV_WEIGHT, n_pixels: Count | None = None,
-                           photons: Count = 40_000, paths_per_bin: Count = 64, row_band: Index = 16,
+                           photons: Count = 5_000, paths_per_bin: Count = 64,
                            spacing: Positive = 1.0, sigma_max: Positive | None = None, max_events: Count = 1000,
                            max_iter: MaxIter = 500, tol: Positive = 1e-7, seed: Index = 0) -> xr.Dataset:
     """σ per slice under the path-bundle model of a scattering medium (module docstring; lazy, one task per slice).
 
-    Each observed sinogram bin is modelled as −log of the mean transmittance of ``paths_per_bin`` photon walks that
-    reach its rays' pixels, traced from each view's entry point in the hull with scattering coefficient σ_s; the fit
+    Each observed sinogram bin is modelled as −log of the mean transmittance of ``paths_per_bin`` paths by which light
+    reaches its rays' pixels, drawn from photon walks traced from each view's entry point in the hull with scattering
+    coefficient σ_s and connected to the pixels (next-event estimation); the fit
     is L-BFGS-B on ½‖A(σ) − a‖² over observed bins + λ TV, 0 ≤ σ ≤ σ_max, σ = 0 outside the hull. With σ_s = 0 this is
     :func:`stages.tomography.reconstruct.reconstruct_tv` (its defaults, ``tv_weight`` and ``n_pixels``).
 
@@ -146,12 +150,11 @@ def reconstruct_scattering(rays: xr.Dataset, sinogram: xr.Dataset, hull: xr.Data
     n_pixels : int or None
         Image size n; None: the sinogram's number of X bins.
     photons : int
-        Walks traced per view [1].
+        Walks traced per view [1]: each is connected to every pixel of the row, so more walks give a bundle more
+        distinct paths to be drawn from (fewer repeats).
     paths_per_bin : int
-        Walks kept per sinogram bin (its bundle) [1]; the samples of a slice grow with it.
-    row_band : int
-        Walks that leave within this many camera rows of the slice's row count for it [rows]: more walks, at the
-        cost of some that left a little above or below the slice.
+        Paths drawn per sinogram bin (its bundle; with replacement, so a path may count twice) [1]; the samples of a
+        slice grow with it.
     spacing : float
         Distance between samples along a path, in cells [1].
     sigma_max : float or None
@@ -168,8 +171,9 @@ def reconstruct_scattering(rays: xr.Dataset, sinogram: xr.Dataset, hull: xr.Data
 
     Returns a ``reconstruction`` store: ``sigma`` over (slice, y, x), NaN for a slice without a contour or where no
     walk reached an observed bin (no data: never a confident 0); per slice ``converged`` (L-BFGS-B met ``tol``),
-    ``iterations``, ``final_objective``, ``paths_per_bin`` (median over the observed bins) and ``bins_without_paths``
-    (observed bins no walk reached: left out of the fit; raise ``photons`` or ``row_band`` if many).
+    ``iterations``, ``final_objective``, ``paths_per_bin`` (the median over the observed bins of their distinct
+    paths: below the setting where paths repeat) and ``bins_without_paths`` (observed bins no walk's light reached:
+    left out of the fit; raise ``photons`` if many).
     """
     sigma_s = _scattering_coefficient(scattering, sigma_s)
     if sigma_s == 0:
@@ -186,7 +190,7 @@ def reconstruct_scattering(rays: xr.Dataset, sinogram: xr.Dataset, hull: xr.Data
     grid = grid_geometry(sinogram, n_pixels)
     shell = contours(hull, sinogram["slice"], "reconstruct_scattering")
     settings = {"sigma_s": sigma_s, "tv_weight": tv_weight, "photons": photons, "paths_per_bin": paths_per_bin,
-                "row_band": row_band, "spacing": spacing, "sigma_max": np.inf if sigma_max is None else sigma_max,
+                "spacing": spacing, "sigma_max": np.inf if sigma_max is None else sigma_max,
                 "max_events": max_events, "max_iter": max_iter, "tol": tol}
     angles = rays["angle"].values
     fit = dask.delayed(_fit_one_slice, nout=2, pure=True)
@@ -206,7 +210,7 @@ def reconstruct_scattering(rays: xr.Dataset, sinogram: xr.Dataset, hull: xr.Data
     estimated = {} if scattering is None else {"sigma_s_estimated": True}
     return _output(sinogram, grid, variables, estimated | {"method": "bundle_lbfgsb_tv", "sigma_s": sigma_s,
                                                "tv_weight": tv_weight, "photons": photons,
-                                               "paths_per_bin": paths_per_bin, "row_band": row_band, "seed": seed})
+                                               "paths_per_bin": paths_per_bin, "seed": seed})
 
 
 def _scattering_coefficient(scattering: xr.Dataset | None, sigma_s: float | None) -> float:

@@ -7,7 +7,7 @@ import numpy as np
 
 from devices.geometry import OrthographicCamera, RigGeometry
 from devices.sim.shapes import Ellipse, Prism
-from stages.tomography._walks import beam_entry, random_walks, walk_body, walk_weights
+from stages.tomography._walks import beam_entry, exit_weights, random_walks, walk_body, walk_weights
 
 CIRCLE = Prism(Ellipse((0.0, 0.0), (1.0, 1.0), 0.0))
 ENTRY, NORMAL = np.array([-1.0, 0.0, 0.0]), np.array([-1.0, 0.0, 0.0])
@@ -86,3 +86,31 @@ def test_the_walks_contour_is_simplified_within_its_tolerance_and_the_beam_enter
     entry, normal = beam_entry(CIRCLE, geometry, 0.0, 0.25)
     np.testing.assert_allclose(entry, [np.sin(np.pi / 4), np.cos(np.pi / 4), 0.25], atol=1e-12)
     np.testing.assert_allclose(normal, [np.sin(np.pi / 4), np.cos(np.pi / 4), 0.0], atol=1e-12)
+
+
+def test_next_event_weights_predict_where_the_walks_leave():
+    """Eight regions of the circle prism's wall (0.4 rad × 0.4 tall about z = 0, all around), each tiled by 256
+    patches of 0.025 (a 25th of the mean free path): the next-event weights of 2 000 recorded walks
+    (:func:`exit_weights`), summed over a region's patches, estimate the share of 400 000 walks that leave through it,
+    within 4 combined standard errors; and the launch sends light straight only where its flight is inward."""
+    sigma_s, tile, span = 1.5, 0.025, 0.4
+    centres = np.linspace(-np.pi, np.pi, 8, endpoint=False) + np.pi / 8
+    offsets = (np.arange(16) + 0.5) * tile - span / 2
+    phi = (centres[:, None, None] + offsets[None, :, None] + 0 * offsets[None, None, :]).ravel()
+    z = np.broadcast_to(offsets[None, None, :], (8, 16, 16)).ravel()
+    points, normals = np.c_[np.cos(phi), np.sin(phi), z], np.c_[np.cos(phi), np.sin(phi), 0 * z]
+    walks = random_walks(CIRCLE, ENTRY, NORMAL, sigma_s, 2000, np.random.default_rng(8))
+    walk, vertex, weights = exit_weights(walks, NORMAL, points, normals, np.full(len(z), tile**2), sigma_s)
+    per_walk = np.zeros((2000, 8))
+    np.add.at(per_walk, walk, weights.reshape(len(walk), 8, 256).sum(axis=2))  # each walk's expected exits
+    predicted, predicted_se = per_walk.mean(axis=0), per_walk.std(axis=0) / np.sqrt(2000)
+    direct = random_walks(CIRCLE, ENTRY, NORMAL, sigma_s, 400_000, np.random.default_rng(9), record=False)
+    angle = np.arctan2(direct.exit_point[:, 1], direct.exit_point[:, 0])
+    near = np.abs(np.angle(np.exp(1j * (angle[:, None] - centres[None, :])))) < span / 2
+    share = (near & (np.abs(direct.exit_point[:, 2:3]) < span / 2)).mean(axis=0)
+    share_se = np.sqrt(share * (1 - share) / 400_000)
+    assert share.min() > 0.003  # the far side gets light too (after scatterings)
+    assert np.all(np.abs(predicted - share) < 4 * np.hypot(predicted_se, share_se)), (predicted, share)
+    launch = weights[vertex == 0]
+    toward = points[None, :, :2] - walks.vertices[walk[vertex == 0], 0][:, None, :2]
+    assert np.all(launch[np.einsum("mtj,j->mt", toward, -NORMAL[:2]) <= 0] == 0)
