@@ -156,15 +156,9 @@ def trace_bundles(geometry: RigGeometry, polygon: np.ndarray, row: int, angles: 
         cols = np.flatnonzero(group[a] >= 0)
         if not len(cols) or (light := beam_entry(body, geometry, angle, height)) is None:
             continue
-        o, d = to_object(origins[cols], angle), to_object(directions[cols], angle)
-        seen = body.interval(o, d)
-        point = o + np.where(seen.hit, seen.t_in, 0.0)[:, None] * d
-        lab_point, lab_normal = to_lab(point, angle), to_lab(seen.normal_in, angle)
-        facing = seen.hit & camera.facing(lab_point, lab_normal)
-        if not facing.any():
+        cols, point, normal, area = _seen_patches(body, camera, origins[cols], directions[cols], cols, angle)
+        if not len(cols):
             continue
-        cols, point, normal = cols[facing], point[facing], seen.normal_in[facing]
-        area = camera.pixel_footprint(lab_point[facing], lab_normal[facing])
         walks = random_walks(body, *light, sigma_s, photons, rng, max_events=max_events)
         walk, vertex, weights = exit_weights(walks, light[1], point, normal, area, sigma_s)
         total = weights.sum(axis=0)
@@ -202,17 +196,34 @@ def trace_bundles(geometry: RigGeometry, polygon: np.ndarray, row: int, angles: 
         return Bundles(np.zeros((0, 2)), np.zeros(0), np.zeros(0, np.int64), np.zeros(0, np.int64), counts, counts)
     owner, taken = np.nonzero(slots >= 0)
     chosen = slots[owner, taken]  # the paths kept, in group order (a path drawn twice counts twice)
-    lengths = np.concatenate(lengths)
-    starts = np.cumsum(lengths) - lengths
-    vertices = np.concatenate(drawn)
-    index = np.repeat(starts[chosen], lengths[chosen]) + (np.arange(lengths[chosen].sum())
-                                                          - np.repeat(np.cumsum(lengths[chosen]) - lengths[chosen],
-                                                                      lengths[chosen]))
-    flat, of = vertices[index], np.repeat(np.arange(len(chosen)), lengths[chosen])
-    same = of[:-1] == of[1:]
-    points, sample_lengths, path = segment_samples(flat[:-1][same], flat[1:][same], of[:-1][same], spacing)
+    points, sample_lengths, path = _kept_samples(np.concatenate(drawn), np.concatenate(lengths), chosen, spacing)
     pairs = np.unique(np.c_[owner, chosen], axis=0)
     return Bundles(points, sample_lengths, path, owner, counts, np.bincount(pairs[:, 0], minlength=n_groups))
+
+
+def _seen_patches(body, camera, origins: np.ndarray, directions: np.ndarray, cols: np.ndarray, angle: float):
+    """The pixels of ``cols`` (lab rays ``origins``, ``directions``) that see ``body`` facing them at stage angle
+    ``angle``: their columns, the points they see and the outward normals there (object frame), and the area each
+    pixel's footprint covers."""
+    o, d = to_object(origins, angle), to_object(directions, angle)
+    seen = body.interval(o, d)
+    point = o + np.where(seen.hit, seen.t_in, 0.0)[:, None] * d
+    lab_point, lab_normal = to_lab(point, angle), to_lab(seen.normal_in, angle)
+    facing = seen.hit & camera.facing(lab_point, lab_normal)
+    area = camera.pixel_footprint(lab_point[facing], lab_normal[facing])
+    return cols[facing], point[facing], seen.normal_in[facing], area
+
+
+def _kept_samples(vertices: np.ndarray, lengths: np.ndarray, chosen: np.ndarray, spacing: float):
+    """:func:`segment_samples` of the polylines ``chosen`` (a polyline may be chosen twice) among those whose vertices
+    lie one after another in ``vertices`` (V, 3), ``lengths`` (polylines,) each; the samples' polyline is its place in
+    ``chosen``."""
+    counts = lengths[chosen]
+    within = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts)
+    flat = vertices[np.repeat((np.cumsum(lengths) - lengths)[chosen], counts) + within]
+    of = np.repeat(np.arange(len(chosen)), counts)
+    same = of[:-1] == of[1:]  # consecutive vertices of one polyline: a segment
+    return segment_samples(flat[:-1][same], flat[1:][same], of[:-1][same], spacing)
 
 
 def slice_objective(bundles: Bundles, absorption: np.ndarray, weights: np.ndarray, geometry: Geometry, *,
