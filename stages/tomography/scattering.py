@@ -124,8 +124,8 @@ def reconstruct_scattering(rays: xr.Dataset, sinogram: xr.Dataset, hull: xr.Data
 
     Each observed sinogram bin is modelled as −log of the mean transmittance of ``paths_per_bin`` paths by which light
     reaches its rays' pixels, drawn from photon walks traced from each view's entry point in the hull with scattering
-    coefficient σ_s and connected to the pixels (next-event estimation); the fit
-    is L-BFGS-B on ½‖A(σ) − a‖² over observed bins + λ TV, 0 ≤ σ ≤ σ_max, σ = 0 outside the hull. With σ_s = 0 this is
+    coefficient σ_s and connected to the pixels (next-event estimation); the fit is L-BFGS-B on ½‖A(σ) − a‖² over
+    observed bins + λ TV, 0 ≤ σ ≤ σ_max, σ = 0 outside the hull. With σ_s = 0 this is
     :func:`stages.tomography.reconstruct.reconstruct_tv` (its defaults, ``tv_weight`` and ``n_pixels``).
 
     Parameters
