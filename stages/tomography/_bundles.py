@@ -19,11 +19,11 @@ import numpy as np
 import scipy.optimize
 import scipy.sparse
 
-from devices.geometry import RigGeometry, to_lab, to_object
+from devices.geometry import RigGeometry, to_lab
 from stages._solution import Solution, outcome
 from stages.tomography._admm import gradient
 from stages.tomography._projector import Geometry
-from stages.tomography._walks import beam_entry, exit_weights, random_walks, walk_body
+from stages.tomography._walks import beam_entry, exit_weights, random_walks, surface_seen, walk_body
 
 
 @dataclass(frozen=True)
@@ -205,13 +205,11 @@ def _seen_patches(body, camera, origins: np.ndarray, directions: np.ndarray, col
     """The pixels of ``cols`` (lab rays ``origins``, ``directions``) that see ``body`` facing them at stage angle
     ``angle``: their columns, the points they see and the outward normals there (object frame), and the area each
     pixel's footprint covers."""
-    o, d = to_object(origins, angle), to_object(directions, angle)
-    seen = body.interval(o, d)
-    point = o + np.where(seen.hit, seen.t_in, 0.0)[:, None] * d
-    lab_point, lab_normal = to_lab(point, angle), to_lab(seen.normal_in, angle)
-    facing = seen.hit & camera.facing(lab_point, lab_normal)
+    hit, point, normal, _ = surface_seen(body, origins, directions, angle)
+    lab_point, lab_normal = to_lab(point, angle), to_lab(normal, angle)
+    facing = hit & camera.facing(lab_point, lab_normal)
     area = camera.pixel_footprint(lab_point[facing], lab_normal[facing])
-    return cols[facing], point[facing], seen.normal_in[facing], area
+    return cols[facing], point[facing], normal[facing], area
 
 
 def _kept_samples(vertices: np.ndarray, lengths: np.ndarray, chosen: np.ndarray, spacing: float):

@@ -13,9 +13,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from devices.geometry import RigGeometry, to_lab, to_object
+from devices.geometry import RigGeometry, to_lab
 from devices.sim.shapes import Prism
-from stages.tomography._walks import Walks, beam_entry, random_walks, walk_weights
+from stages.tomography._walks import Walks, beam_entry, random_walks, surface_seen, walk_weights
 
 #: pixels that see the hull more obliquely than this (from its normal) are not compared: their areas are the hull's
 #: least certain [degree]. On the workflow's σ_s = 3 capture, 72° gives 2.71 [2.49, ∞]; 80° closes the interval but
@@ -50,13 +50,11 @@ def exit_profile(reference: np.ndarray, usable: np.ndarray, angles: np.ndarray, 
     for v, angle in enumerate(np.asarray(angles, float)):
         if (entry := beam_entry(body, geometry, angle, height)) is None:
             continue
-        o, d = to_object(origins, angle), to_object(directions, angle)
-        iv = body.interval(o, d)
-        point = o + np.where(iv.hit, iv.t_in, 0.0)[:, None] * d
-        facing = np.einsum("ij,ij->i", iv.normal_in, -d) > np.cos(np.deg2rad(GRAZING_DEG))
-        used = iv.hit & facing & usable[v].ravel()
+        hit, point, normal, d = surface_seen(body, origins, directions, angle)
+        facing = np.einsum("ij,ij->i", normal, -d) > np.cos(np.deg2rad(GRAZING_DEG))
+        used = hit & facing & usable[v].ravel()
         area = np.zeros(len(point))
-        area[used] = camera.pixel_footprint(to_lab(point[used], angle), to_lab(iv.normal_in[used], angle))
+        area[used] = camera.pixel_footprint(to_lab(point[used], angle), to_lab(normal[used], angle))
         kept.append(v)
         entries.append(entry)
         distance.append(np.where(used, np.linalg.norm(point - entry[0], axis=1), np.nan))

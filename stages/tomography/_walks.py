@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from skimage.measure import approximate_polygon
 
-from devices.geometry import RigGeometry, to_object_xy
+from devices.geometry import RigGeometry, to_object, to_object_xy
 from devices.sim.shapes import Prism, convex_polygon
 from devices.sim.tomography import cosine_hemisphere, isotropic
 
@@ -138,6 +138,16 @@ def exit_weights(walks: Walks, normal: np.ndarray, points: np.ndarray, normals: 
             block[first] *= 4.0 * np.maximum(cos_in, 0.0)
         weights[k:k + step] = block
     return walk, vertex, weights
+
+
+def surface_seen(body: Prism, origins: np.ndarray, directions: np.ndarray, angle_deg: float
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Where camera rays (lab ``origins``, unit ``directions``, (N, 3)) first meet ``body`` at stage angle
+    ``angle_deg``: whether they do (N,), the point and the outward normal there (object frame, (N, 3); the ray's
+    origin where it misses), and the directions in the object frame."""
+    o, d = to_object(origins, angle_deg), to_object(directions, angle_deg)
+    seen = body.interval(o, d)
+    return seen.hit, o + np.where(seen.hit, seen.t_in, 0.0)[:, None] * d, seen.normal_in, d
 
 
 def walk_body(polygon: np.ndarray, geometry: RigGeometry) -> Prism:

@@ -2,7 +2,7 @@
 and how well it recovers the truth's strongest feature (an absorbing inclusion): its mean σ there, where its centroid
 lies and how large it is.
 
-The numbers a workflow's report quotes (``{fbp_error.rmse:.3e}``) and a study compares; lazy (two 0-d dask
+The numbers a workflow's report quotes (``{fbp_error.rmse:.3e}``) and a study compares; lazy (0-d dask
 reductions).
 """
 
@@ -79,11 +79,12 @@ def reconstruction_error(reconstruction: xr.Dataset, truth: xr.Dataset, /) -> xr
 
 def _region(sigma: xr.DataArray, region: xr.DataArray) -> tuple[tuple[xr.DataArray, xr.DataArray], xr.DataArray]:
     """The σ-weighted centroid (x, y) of ``region``'s cells and its radius √(area/π), per slice (lazy)."""
-    weight = sigma.where(region & (sigma > 0), 0.0)
+    region = region & (sigma > 0)
+    weight = sigma.where(region, 0.0)
     total = weight.sum(("y", "x"))
     centre = tuple((weight * sigma[dim]).sum(("y", "x")) / total.where(total > 0) for dim in ("x", "y"))
     cell = abs(float(np.diff(sigma["x"].values[:2])[0]) * float(np.diff(sigma["y"].values[:2])[0]))
-    cells = (region & (sigma > 0)).sum(("y", "x"))
+    cells = region.sum(("y", "x"))
     return centre, np.sqrt(cells.where(cells > 0) * cell / np.pi)
 
 

@@ -8,7 +8,6 @@ import numpy as np
 import pytest
 
 from pipeline.schema import check_dataset, with_metadata
-from stages.tomography._projector import Geometry
 
 
 def monte_carlo_capture(seed: int, step: float = 12.0, photons: int = 100_000, sigma_s: float = 1.0,
@@ -99,15 +98,17 @@ def test_a_slice_with_no_observed_bin_is_nan_and_unconverged_not_zero(seed0):
 
 def test_the_bundles_absorption_is_the_simulators_own_at_the_true_sigma(seed0):
     """The bundle model against the Monte Carlo simulator (devices.sim: its own walks, absorbed along the way, binned
-    to the pixel that sees each exit), at the scene's own σ (the σ = 10 disc on a 128-grid, anti-aliased): over 8
+    to the pixel that sees each exit), at the scene's own σ (``phantom_truth`` on a 128-grid): over 8
     regions of the slice's row, all 30 views, A = log Σ reference − log Σ target equals the model's absorption of
     the region's bundle (3 000 paths drawn from 1 500 walks a view, connected to the region's pixels) within 0.1
     (measured: at most 0.08, most within 0.04; three seeds of the model spread ±0.05; the simulator's 100 k photons
     a frame are noisy too). On the 32-grid of the reconstructions the same disc blurred by bilinear interpolation
     reads up to 0.07 higher: a coarse grid's absorber needs less σ to absorb as much."""
+    import workflows
     from devices.geometry import RigGeometry
     from stages.tomography._bundles import forward, trace_bundles
     from stages.tomography.hull import contours
+    from stages.tomography.phantom import phantom_truth
     from stages.tomography.reconstruct import grid_geometry
 
     rays, sinogram, hull, _, cap = seed0
@@ -120,12 +121,9 @@ def test_the_bundles_absorption_is_the_simulators_own_at_the_true_sigma(seed0):
     lit = np.isfinite(rays["absorption"].sel(row=row).values) | (rays["reason"].sel(row=row).values == 5)
     group = np.where(lit, np.arange(cap.sizes["col"])[None, :] // (cap.sizes["col"] // 8), -1)
     simulated = np.array([np.log(reference[group == k].sum()) - np.log(target[group == k].sum()) for k in range(8)])
-    extent = grid_geometry(sinogram, None).extent
-    fine = Geometry.from_grids(np.arange(4) * 45.0, np.linspace(-extent, extent, 128), 128, extent)
-    offsets = ((np.arange(4) + 0.5) / 4 - 0.5) * fine.cell
-    x = fine.centres[None, :, None, None] + offsets[None, None, None, :]
-    y = fine.centres[:, None, None, None] + offsets[None, None, :, None]
-    disc = 10.0 * (((x - 0.35) ** 2 + (y - 0.2) ** 2) < 0.2**2).mean(axis=(2, 3))  # the scene's inner cylinder
+    fine = grid_geometry(sinogram, 128)
+    disc = phantom_truth(sinogram, scene=str(workflows.scene("cylinder-in-cylinder-s1")), n_pixels=128)
+    disc = disc["sigma"].values[0]  # the scene's inner cylinder, supersampled
     bundles = trace_bundles(geometry, polygon, row, cap["angle"].values, group, 8, sigma_s=1.0, photons=1500,
                             paths_per_group=3000, spacing=fine.cell, rng=np.random.default_rng(0), max_events=1000)
     assert np.all(bundles.counts == 3000)
