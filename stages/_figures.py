@@ -91,3 +91,14 @@ def pixel_axes(ax, xlabel: str = "col [px]", ylabel: str | None = "row [px]", fo
     if ylabel:
         ax.set_ylabel(ylabel, fontsize=fontsize)
     ax.tick_params(labelsize=fontsize - 1)
+
+
+def slice_name(ds: xr.Dataset, index: int) -> str:
+    """'slice 0 of 2 (camera row 59)': a slice's position and, where the dataset has one, its coordinate."""
+    if "slice" not in ds.dims:
+        return "the one slice"
+    name = f"slice {index} of {ds.sizes['slice']}"
+    if "slice" in ds.coords:
+        name += f" (camera row {ds['slice'].values[index]:g})"
+    return name
+

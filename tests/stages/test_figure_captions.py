@@ -11,7 +11,7 @@ import xarray as xr
 from pipeline.errors import StageError
 from pipeline.registry import default_registry
 from stages._figures import as_figure, panels, rgba, shape_of
-from stages.tomography.figures import object_window, reconstruction_figure, reconstruction_size
+from stages.tomography.reconstruction_figures import object_window, reconstruction_figure, reconstruction_size
 
 MM = {"units": "mm"}
 

@@ -17,7 +17,7 @@ from pipeline import StageError
 from stages.tomography.acquire import AngleSweep
 from stages.tomography.calibrate import absorption
 from stages.tomography.evaluate import reconstruction_error
-from stages.tomography.figures import upright, volume_figure
+from stages.tomography.reconstruction_figures import upright, volume_figure
 from stages.tomography.hull import silhouettes, visual_hull
 from stages.tomography.paths import align_paths
 from stages.tomography.phantom import phantom_truth
