@@ -158,7 +158,9 @@ def _slice_inputs(sinogram: xr.Dataset, hull: xr.Dataset | None, geometry: Geome
         yield absorption[k], observed[k], polygon
 
 
-def _check(sinogram: xr.Dataset, hull: xr.Dataset | None, name: str) -> None:
+def check_inputs(sinogram: xr.Dataset, hull: xr.Dataset | None, name: str) -> None:
+    """Raise a ``StageError`` naming stage ``name`` unless ``sinogram`` has ``absorption`` and ``observed`` over a
+    ``slice`` dim and ``hull`` (if given) has a contour for each of its slices."""
     require_variables(sinogram, ("absorption", "observed"), name)
     if "slice" not in sinogram.dims:
         raise StageError(Problem(f"{name}: the sinogram has no slice dim", fix="bin it with bin_sinogram"))
@@ -188,7 +190,10 @@ def ome_attrs(z: np.ndarray, y: np.ndarray, x: np.ndarray, unit: str) -> dict:
         {"path": "sigma", "coordinateTransformations": transforms}]}]}}
 
 
-def _output(sinogram: xr.Dataset, geometry: Geometry, variables: dict, attrs: dict) -> xr.Dataset:
+def reconstruction_store(sinogram: xr.Dataset, geometry: Geometry, variables: dict, attrs: dict) -> xr.Dataset:
+    """A ``reconstruction`` store of ``variables`` (``sigma`` over (slice, y, x) and per-slice numbers) on
+    ``geometry``'s grid in the sinogram's length unit, with its slices, heights (and OME-Zarr attrs where they form a
+    grid), observed share and rig attrs, plus ``attrs``."""
     unit = sinogram["x"].attrs.get("units", sinogram.attrs.get("length_unit", "px"))
     centres = geometry.centres
     coords = {"y": ("y", centres, {"units": unit}), "x": ("x", centres, {"units": unit}),
@@ -281,14 +286,14 @@ def fbp(sinogram: xr.Dataset, hull: xr.Dataset | None = None, /, *, n_pixels: Co
     dtype : str
         ``float32`` or ``float64``.
     """
-    _check(sinogram, hull, "fbp")
+    check_inputs(sinogram, hull, "fbp")
     geometry = grid_geometry(sinogram, n_pixels)
     inputs = _blocks(sinogram, hull)
     template = _template(inputs, geometry, {"sigma": (("slice", "y", "x"), np.dtype(dtype)),
                                               "reliable": (("slice", "y", "x"), np.dtype(bool))})
     out = xr.map_blocks(_fbp_block, inputs, kwargs={"geometry": geometry, "filter_name": filter, "fill": fill,
                                                     "dtype": dtype}, template=template)
-    return _output(sinogram, geometry, {"sigma": out["sigma"], "reliable": out["reliable"]},
+    return reconstruction_store(sinogram, geometry, {"sigma": out["sigma"], "reliable": out["reliable"]},
                    {"method": "fbp", "filter": filter, "fill": fill})
 
 
@@ -359,7 +364,7 @@ def reconstruct_tv(sinogram: xr.Dataset, hull: xr.Dataset | None = None, /, *,
     dtype : str
         ``float32`` or ``float64``.
     """
-    _check(sinogram, hull, "reconstruct_tv")
+    check_inputs(sinogram, hull, "reconstruct_tv")
     if tv_weight < 0 or rho <= 0 or tol <= 0 or max_iter < 1 or cg_steps < 1 or bound_slack < 0:
         raise StageError(Problem("tv_weight and bound_slack must be >= 0; rho, tol > 0; max_iter, cg_steps >= 1"))
     geometry = grid_geometry(sinogram, n_pixels, projector)
@@ -373,5 +378,5 @@ def reconstruct_tv(sinogram: xr.Dataset, hull: xr.Dataset | None = None, /, *,
         "dual_residual": (hist, np.dtype(dtype))}, {"iteration": max_iter})
     out = xr.map_blocks(_tv_block, inputs, kwargs={"solver": solver, "slack": bound_slack, "bound": bound,
                                                    "dtype": dtype}, template=template)
-    return _output(sinogram, geometry, {name: out[name] for name in template.data_vars},
+    return reconstruction_store(sinogram, geometry, {name: out[name] for name in template.data_vars},
                    {"method": "admm_tv", "tv_weight": tv_weight, "bound": bound, "tol": tol, "max_iter": max_iter})

@@ -62,7 +62,13 @@ from stages.tomography._exit_profile import (
 from stages.tomography._projector import Geometry
 from stages.tomography._walks import walk_body
 from stages.tomography.hull import contours
-from stages.tomography.reconstruct import _check, _output, grid_geometry, reconstruct_tv, support_mask
+from stages.tomography.reconstruct import (
+    check_inputs,
+    grid_geometry,
+    reconstruct_tv,
+    reconstruction_store,
+    support_mask,
+)
 from stages.tomography.sinogram import bin_index
 
 #: the TV smoothing ε of :func:`stages.tomography._bundles.smooth_total_variation`, relative to the data's σ scale
@@ -179,7 +185,7 @@ def reconstruct_scattering(rays: xr.Dataset, sinogram: xr.Dataset, hull: xr.Data
     if sigma_s == 0:
         return reconstruct_tv(sinogram, hull, tv_weight=tv_weight, n_pixels=n_pixels)
     require_variables(rays, ("theta", "x", "absorption"), "reconstruct_scattering")
-    _check(sinogram, hull, "reconstruct_scattering")
+    check_inputs(sinogram, hull, "reconstruct_scattering")
     geometry = RigGeometry.from_attrs(hull.attrs, rays.sizes["row"], rays.sizes["col"],
                                       where="reconstruct_scattering: hull")
     rows = sinogram["slice"].values
@@ -208,9 +214,9 @@ def reconstruct_scattering(rays: xr.Dataset, sinogram: xr.Dataset, hull: xr.Data
     for m, name in enumerate(_STATS):
         variables[name] = (("slice",), da.stack([s[m] for s in stats]))
     estimated = {} if scattering is None else {"sigma_s_estimated": True}
-    return _output(sinogram, grid, variables, estimated | {"method": "bundle_lbfgsb_tv", "sigma_s": sigma_s,
-                                               "tv_weight": tv_weight, "photons": photons,
-                                               "paths_per_bin": paths_per_bin, "seed": seed})
+    return reconstruction_store(sinogram, grid, variables,
+                                estimated | {"method": "bundle_lbfgsb_tv", "sigma_s": sigma_s, "tv_weight": tv_weight,
+                                             "photons": photons, "paths_per_bin": paths_per_bin, "seed": seed})
 
 
 def _scattering_coefficient(scattering: xr.Dataset | None, sigma_s: float | None) -> float:
