@@ -27,6 +27,14 @@ so λ means what it means there; TV_ε = Σ (√(|∇σ|² + ε²) − ε), a sm
 around: the stage is ``reconstruct_tv``, at its cost. The model's pieces (the bundles, their integrals and the fit)
 are in :mod:`stages.tomography._bundles`.
 
+Known bias: behind a strong absorber, where few of a bin's paths dodge it, −log of a drawn bundle's mean reads high
+(the rare dodgers are what a finite bundle from a finite pool of walks misses), so σ there reads low. Measured on
+the §4.4.4 scenes from captures with 4× the workflow's photons (docs/results.md, "What these numbers rest on"): the
+model at the true σ predicts the shadow's absorption 0.09 (σ_s = 1) to 0.18 (σ_s = 3) too high at the defaults, 0.04
+at σ_s = 1 with ``paths_per_bin: 256`` from ``photons: 20000``. With the defaults the absorber's mean σ read 32 %
+low at σ_s = 1, with those settings 22 % (5× the time). Raise both where an absorber's σ matters more than time and
+memory (the samples grow with ``paths_per_bin``).
+
 σ_s need not be known: :func:`estimate_scattering` fits it, with a bootstrap interval, to how the reference frames
 spread the beam's light with the distance from its entry point, on the same walks (:mod:`stages.tomography._walks`),
 and ``reconstruct_scattering`` takes its store in place of the setting.
