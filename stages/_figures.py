@@ -101,4 +101,3 @@ def slice_name(ds: xr.Dataset, index: int) -> str:
     if "slice" in ds.coords:
         name += f" (camera row {ds['slice'].values[index]:g})"
     return name
-

@@ -294,7 +294,7 @@ def fbp(sinogram: xr.Dataset, hull: xr.Dataset | None = None, /, *, n_pixels: Co
     out = xr.map_blocks(_fbp_block, inputs, kwargs={"geometry": geometry, "filter_name": filter, "fill": fill,
                                                     "dtype": dtype}, template=template)
     return reconstruction_store(sinogram, geometry, {"sigma": out["sigma"], "reliable": out["reliable"]},
-                   {"method": "fbp", "filter": filter, "fill": fill})
+                                {"method": "fbp", "filter": filter, "fill": fill})
 
 
 def _tv_block(block: xr.Dataset, *, solver: TVADMM, slack: float, bound: str, dtype: str) -> xr.Dataset:
@@ -379,4 +379,5 @@ def reconstruct_tv(sinogram: xr.Dataset, hull: xr.Dataset | None = None, /, *,
     out = xr.map_blocks(_tv_block, inputs, kwargs={"solver": solver, "slack": bound_slack, "bound": bound,
                                                    "dtype": dtype}, template=template)
     return reconstruction_store(sinogram, geometry, {name: out[name] for name in template.data_vars},
-                   {"method": "admm_tv", "tv_weight": tv_weight, "bound": bound, "tol": tol, "max_iter": max_iter})
+                                {"method": "admm_tv", "tv_weight": tv_weight, "bound": bound, "tol": tol,
+                                 "max_iter": max_iter})
