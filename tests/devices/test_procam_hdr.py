@@ -42,6 +42,7 @@ def test_hdr_adds_the_exposure_that_unclips_a_bright_lobe_and_states_its_cost(tm
     assert _window_error(capture, hdr, s) < 0.005 < 0.01 < _window_error(plain, without, s)
 
 
+@pytest.mark.slow  # default job over its 8 minutes: run in the slow job
 def test_hdr_adds_nothing_where_the_light_clips_within_one_line_time(tmp_path):
     """A mirror-like direct peak (8 000 counts in one row's line time): every exposure clips it equally."""
     s = highlight_scene(10_000.0, albedo=0.8)

@@ -181,6 +181,7 @@ def blur_measures(sigma_s: float) -> tuple[float, float]:
     return float(a[shadow].sum() / np.abs(a[inner]).sum()), float(np.corrcoef(a[inner], sharp[inner])[0, 1])
 
 
+@pytest.mark.slow  # default job over its 8 minutes: run in the slow job
 def test_scattering_blurs_the_projection_monotonically():
     """§4.4.4: the inclusion's shadow spreads as σ_s grows (≈0, 1, 2, 3, 5 /mm), in both measures.
 

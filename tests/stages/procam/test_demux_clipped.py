@@ -67,6 +67,7 @@ def test_clipped_frames_solve_the_one_sided_problem_of_cvxpy(dtype):
     np.testing.assert_allclose(ours.stats["gap_bound"], bound, rtol=0.15, atol=1e-4)
 
 
+@pytest.mark.slow  # default job over its 8 minutes: run in the slow job
 def test_a_clipped_frame_is_never_explained_below_its_clip_level_and_masking_it_is_what_went_wrong():
     rng = np.random.default_rng(5)
     matrix, truth, data, clipped = clipped_pixels(rng, 32, level=1.0)

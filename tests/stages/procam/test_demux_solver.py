@@ -110,6 +110,7 @@ def test_masked_frames_solve_the_masked_problem():
     assert np.all((value - optimum) / np.abs(optimum) <= 1e-4)
 
 
+@pytest.mark.slow  # default job over its 8 minutes: run in the slow job
 @pytest.mark.parametrize("max_iter", [2000, 90], ids=["converging", "capped"])
 @pytest.mark.parametrize("slots", [512, 64], ids=["compacted", "streamed"])
 def test_compacting_or_streaming_the_pixels_changes_no_pixel(slots, max_iter):
@@ -185,6 +186,7 @@ def test_boundary_rule_drops_frames_whose_edge_cuts_the_epipolar_row():
     assert drop.tolist() == [False, True, True, False, True]
 
 
+@pytest.mark.slow  # default job over its 8 minutes: run in the slow job
 def test_float32_does_not_settle_at_zero_where_the_pseudo_inverse_start_is_rounding_noise():
     """Regression (found on the thesis's Fig. 43 multiplexed sweep: l_w = 50 px lines every 10 px, t_e = 850 µs,
     32 lines over 36 u-cells): (2G)⁺ along the directions only α holds reaches 1.6e10, so in float32 both

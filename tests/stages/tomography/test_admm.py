@@ -109,6 +109,7 @@ def test_capped_solve_is_data_unless_throw():
         TVADMM(geometry, max_iter=5, throw=True).solve_slices(*args)
 
 
+@pytest.mark.slow  # default job over its 8 minutes: run in the slow job
 @pytest.mark.parametrize("device", [False, True])
 def test_a_batch_of_slices_is_each_slice_solved_alone(device, monkeypatch):
     """solve_slices (one batch, the sparse system matrix as JAX's BCSR, which float64 always takes) gives each slice what

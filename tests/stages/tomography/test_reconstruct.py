@@ -70,6 +70,7 @@ def test_adjoint_identity(n, n_theta, n_x, seed, method):
     assert left == pytest.approx(right, rel=1e-12, abs=1e-12)
 
 
+@pytest.mark.slow  # default job over its 8 minutes: run in the slow job
 @pytest.mark.parametrize(("n", "n_theta", "n_x", "seed", "method"), [
     (16, 7, 11, 1, "joseph"), (9, 12, 20, 2, "binary"), (32, 45, 40, 4, "joseph")])
 def test_the_system_matrix_is_the_projector(n, n_theta, n_x, seed, method):
