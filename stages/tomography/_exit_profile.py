@@ -1,5 +1,5 @@
 """The reference frames' exit profile and the walks that model it: what
-:func:`stages.tomography.scattering.estimate_scattering` fits σ_s with.
+:func:`stages.tomography.scattering_estimate.estimate_scattering` fits σ_s with.
 
 The frames' light around the beam's slice is binned by each pixel's distance from the light's entry point
 (:func:`exit_profile`); walks traced at σ_0 are binned by the pixel that sees their exit and reweighted to candidates

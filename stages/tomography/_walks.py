@@ -1,4 +1,5 @@
-"""Photon random walks in a hull's slice (the scattering stages' Monte Carlo, :mod:`stages.tomography.scattering`).
+"""Photon random walks in a hull's slice: the Monte Carlo of :mod:`stages.tomography.scattering` and
+:mod:`stages.tomography.scattering_estimate`.
 
 The object is the slice's contour extruded in z (a prism), filled with an isotropic scatterer of coefficient σ_s
 and no absorption: the reference object of the capture. A walk is launched through the skin where the light's ray

@@ -1,4 +1,5 @@
-"""reconstruct_scattering and estimate_scattering (#27) on Monte Carlo captures of the §4.4.4 scene."""
+"""reconstruct_scattering (#27) on Monte Carlo captures of the §4.4.4 scene (the captures: scattering_scenes.py;
+the σ_s = 1 one is the package fixture ``seed0``)."""
 
 from __future__ import annotations
 
@@ -8,59 +9,7 @@ import numpy as np
 import pytest
 
 from pipeline.schema import check_dataset, with_metadata
-
-
-def monte_carlo_capture(seed: int, step: float = 12.0, photons: int = 100_000, sigma_s: float = 1.0,
-                        samples: tuple[str, ...] = ("target", "reference")):
-    """The §4.4.4 scene (absorber σ = 10, radius 0.2 in a radius-1 cylinder) at ``sigma_s``: Monte Carlo frames of
-    ``samples`` every ``step`` degrees with the given scattering seed, backlit and dark frames, unclipped; and the
-    scene's path."""
-    import xarray as xr
-
-    import workflows
-    from devices.sim import tomography as tomo
-    from devices.sim.scene import load_scene
-
-    path = workflows.scene("cylinder-in-cylinder-s1")
-    scene = load_scene(path)
-    scene = scene.model_copy(update={"effects": scene.effects.model_copy(update={
-        "scattering": scene.effects.scattering.model_copy(update={"seed": seed, "photons": photons,
-                                                                  "sigma_s": sigma_s})})})
-    angles = np.arange(0.0, 360.0, step)
-    frames = {k: [] for k in (*samples, "backlit")}
-    for a in angles:
-        seen = tomo.exit_points(scene, a)
-        for sample in samples:
-            frames[sample].append(tomo.lit_frame(scene, a, sample, seen) + 64)
-        frames["backlit"].append(np.where(tomo.silhouette(scene, a, seen), 64.0, 2064.0))
-    dims = ("angle", "row", "col")
-    cap = xr.Dataset({k: (dims, np.array(v)) for k, v in frames.items()}
-                     | {"dark": (("row", "col"), np.full(frames["backlit"][0].shape, 64.0))},
-                     coords={"angle": ("angle", angles, {"units": "degree"})},
-                     attrs=scene.geometry().attrs() | {"saturation_level": 1e9}).chunk({"angle": 10})
-    return cap, path
-
-
-def scattering_capture(seed: int, step: float = 12.0, photons: int = 100_000):
-    """:func:`monte_carlo_capture` at σ_s = 1 through absorption, hull, rays and a sinogram of one θ bin per view
-    and 32 X bins; with the truth on the reconstruction grid, and the capture."""
-    from stages.tomography.calibrate import absorption
-    from stages.tomography.hull import silhouettes, visual_hull
-    from stages.tomography.paths import align_paths
-    from stages.tomography.phantom import phantom_truth
-    from stages.tomography.sinogram import bin_sinogram
-
-    cap, path = monte_carlo_capture(seed, step, photons)
-    hull = visual_hull(silhouettes(cap)).compute()
-    rays = align_paths(absorption(cap, min_signal=1.0), hull).compute()
-    sinogram = bin_sinogram(rays, n_theta=int(180 / step), n_x=32).compute()
-    truth = phantom_truth(sinogram, scene=str(path)).compute()
-    return rays, sinogram, hull, truth["sigma"].values[0], cap
-
-
-@pytest.fixture(scope="module")
-def seed0():
-    return scattering_capture(0)
+from tests.stages.tomography.scattering_scenes import scattering_capture
 
 
 def test_at_sigma_s_zero_the_stage_is_the_shortest_path_reconstruction(seed0):
@@ -160,90 +109,6 @@ def test_the_bundle_model_recovers_the_absorber_the_shortest_path_model_halves(s
     assert linear[inside].mean() < 5.0
     assert ours[inside].mean() > 7.0
     assert rmse(ours) < 0.7 * rmse(linear)
-
-
-# ---- σ_s from the reference frames ----------------------------------------------------------------------------------
-
-def test_the_profile_misfit_takes_away_the_monte_carlo_share_of_the_residual():
-    """Modelled bin counts drawn as Poisson(λ_b) against a measured profile c·λ_b (the right shape): Σ r² alone
-    averages (1 − 1/B) Σ 1/λ_b, the noise of the log counts; the misfit, with the walks' variance 1/n_b taken away,
-    averages 0 (within 4 standard errors over 4000 draws); a wrong shape stays above it."""
-    from stages.tomography._exit_profile import profile_misfit
-
-    rng = np.random.default_rng(7)
-    lam = np.geomspace(30.0, 400.0, 10)
-    drawn = rng.poisson(lam, size=(4000, 10)).astype(float)
-    misfit = profile_misfit(3.7 * lam, drawn, 1.0 / drawn)
-    assert abs(misfit.mean()) < 4 * misfit.std() / np.sqrt(len(misfit))
-    residual = np.log(3.7 * lam) - np.log(drawn)
-    raw = ((residual - residual.mean(axis=1, keepdims=True)) ** 2).sum(axis=1)
-    assert raw.mean() == pytest.approx(0.9 * (1 / lam).sum(), rel=0.1)
-    tilted = profile_misfit(3.7 * lam * np.linspace(0.8, 1.2, 10), drawn, 1.0 / drawn)
-    assert tilted.mean() > 10 * misfit.std() / np.sqrt(len(misfit))
-    assert np.isinf(profile_misfit(lam, np.zeros((1, 10)), np.ones((1, 10))))[0]
-
-
-def test_the_curves_minimum_is_the_parabolas_in_log_sigma():
-    """A misfit that is a parabola in log σ_s, sampled on a log grid, gives its vertex exactly (1e-9); a minimum at
-    the grid's end gives the end; no finite value gives NaN."""
-    from stages.tomography._exit_profile import curve_minimum
-
-    grid = 2.0 * 2.0 ** np.linspace(-0.5, 0.5, 41)
-    assert curve_minimum(3.0 * np.log(grid / 2.3) ** 2 + 1.0, grid) == pytest.approx(2.3, rel=1e-9)
-    assert curve_minimum(-np.log(grid), grid) == grid[-1]
-    assert np.isnan(curve_minimum(np.full(41, np.inf), grid))
-
-
-@pytest.fixture(scope="module")
-def reference_s2():
-    from stages.tomography.hull import silhouettes, visual_hull
-
-    cap, _ = monte_carlo_capture(0, step=10.0, photons=200_000, sigma_s=2.0, samples=("reference",))
-    return cap, visual_hull(silhouettes(cap)).compute()
-
-
-@pytest.mark.parametrize("case", ["sigma_s=1", pytest.param("sigma_s=2", marks=pytest.mark.slow)])  # 2: ~50 s
-def test_the_estimate_recovers_the_scenes_sigma_s_within_its_stated_uncertainty(case, seed0, request):
-    """Monte Carlo reference frames of the §4.4.4 cylinder at σ_s = 1 (30 views, 100 k photons a frame) and 2
-    (36 views, 200 k; 20 k walks a view): the scene's σ_s lies within two of the estimate's stated standard
-    deviations (the bootstrap's 16–84 % half-widths), and the interval is informative: narrower than ±25 %.
-    Measured: σ_s = 1: 1.016 [0.978, 1.048]; σ_s = 2: 1.93 [1.82, 2.02]. (At σ_s = 3 and above the profile no
-    longer tells σ_s apart from larger values: the workflow's σ_s = 3 capture gives 2.71 [2.49, ∞], docs/results.md.)
-    """
-    from stages.tomography.scattering import estimate_scattering
-
-    truth, width = (1.0, 0.25) if case == "sigma_s=1" else (2.0, 0.25)
-    cap, hull = (seed0[4], seed0[2]) if truth == 1.0 else request.getfixturevalue("reference_s2")
-    out = estimate_scattering(cap, hull, photons=20_000, bootstrap=100).compute()
-    assert check_dataset(with_metadata(out, "scattering_estimate"), "scattering_estimate") == []
-    estimate, low, high = (float(out[k]) for k in ("sigma_s", "sigma_s_low", "sigma_s_high"))
-    print(f"{case}: {estimate:.3f} [{low:.3f}, {high:.3f}], {int(out['rounds'])} rounds, "
-          f"{float(out['effective_walks']):.0f} effective walks")
-    assert bool(out["settled"]) and low <= estimate <= high
-    assert estimate - 2 * (estimate - low) <= truth <= estimate + 2 * (high - estimate)
-    assert high - low < 2 * width * truth
-    misfit = out["objective"].values
-    assert np.isfinite(misfit).sum() >= 5 and out["candidate_sigma_s"].values[np.argmin(misfit)] == pytest.approx(
-        estimate, rel=0.05)
-
-
-def test_building_the_estimate_computes_nothing_and_a_light_sheet_is_refused(seed0, no_compute):
-    from pipeline import StageError
-    from stages.tomography.scattering import estimate_scattering
-
-    cap, hull = seed0[4], seed0[2]
-    out = estimate_scattering(cap, hull, photons=200)
-    assert no_compute.count == 0 and out["sigma_s"].dims == ()
-    with pytest.raises(StageError, match="is a sheet"):
-        estimate_scattering(cap.assign_attrs(light_kind="sheet"), hull)
-
-
-def test_reference_frames_without_a_finite_pixel_give_no_estimate_not_a_confident_one(seed0):
-    from stages.tomography.scattering import estimate_scattering
-
-    cap, hull = seed0[4], seed0[2]
-    blind = estimate_scattering(cap.assign(reference=cap["reference"] * np.nan), hull, photons=200).compute()
-    assert np.isnan(float(blind["sigma_s"])) and not bool(blind["settled"])
 
 
 def test_the_reconstruction_takes_sigma_s_from_an_estimate_and_refuses_an_ambiguous_or_failed_one(seed0):
