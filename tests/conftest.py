@@ -2,11 +2,18 @@
 
 from __future__ import annotations
 
+import os
 import textwrap
 from pathlib import Path
 
 import dask
 import pytest
+
+# The command line's rich consoles take their width from COLUMNS when they are made (at import), and a test gives
+# each command its width through the runner's environment: a COLUMNS that the test run inherits (pytest-xdist's
+# workers set 80, some shells export it) would freeze every console at that width first.
+os.environ.pop("COLUMNS", None)
+os.environ.pop("LINES", None)
 
 SMALL_WORKFLOW = textwrap.dedent("""\
     workflow: small-absorption
