@@ -14,6 +14,7 @@ the accuracy of the run whose speed is reported; the curve shows what more itera
 (``--finish-rounds``), cost.
 
     python benchmarks/demux_throughput.py [--rows 1200] [--cols 1600] [--sample 200] [--quick]
+                                          [--scheduler threads|processes]
 
 The I/O floor (reading the capture and writing a transport like the stage's, timed alone in a fresh process)
 is what no solver can go under in this store-to-store step; with it the run's time splits into I/O and solve.
@@ -24,6 +25,7 @@ Last line: ``demux: px_per_s=<a> speedup_vs_cvxpy=<b> gap=<median relative objec
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import resource
@@ -142,8 +144,15 @@ def measure(mode: str, args) -> dict:
         from stages.procam.demux import OffsetGrid, demux_plane_to_ray
 
         pixels = args.rows * args.cols
-        with dask.config.set(scheduler="threads", num_workers=args.workers), tempfile.TemporaryDirectory() as tmp:
-            start = time.perf_counter()
+        with contextlib.ExitStack() as stack:
+            tmp = stack.enter_context(tempfile.TemporaryDirectory())
+            start, client = time.perf_counter(), None
+            if args.scheduler == "processes" and mode == "selpath":  # as `scheduler: processes` runs a workflow:
+                from pipeline.compute import local_cluster  # single-threaded worker processes (timed from here)
+
+                client = stack.enter_context(local_cluster(args.workers))
+            else:
+                stack.enter_context(dask.config.set(scheduler="threads", num_workers=args.workers))
             if mode == "generate":
                 to_store(_capture(k, args.rows, args.cols), args.store, "plane_to_ray_capture")
             elif mode == "io":  # the floor under any solver: read the capture, write a transport like the stage's
@@ -160,7 +169,9 @@ def measure(mode: str, args) -> dict:
                                          **_options(args))
                 to_store(out, args.out or f"{tmp}/t.zarr", "plane_to_ray_transport")
             seconds = time.perf_counter() - start
-            result = {"seconds": seconds, "pixels": pixels, "peak_rss_gb": _peak_rss_gb()}
+            # with worker processes, this one's peak and each worker's, added: what the machine must hold at most
+            peak = _peak_rss_gb() + (sum(client.run(_peak_rss_gb).values()) if client is not None else 0.0)
+            result = {"seconds": seconds, "pixels": pixels, "peak_rss_gb": peak}
             if mode == "selpath":  # the stage's own output on the sample pixels, for the objective gap
                 from stages.procam._demux_problem import DemuxProblem
 
@@ -265,6 +276,9 @@ def main() -> None:
     parser.add_argument("--cols", type=int, default=1600)
     parser.add_argument("--k", type=int, default=128)
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--scheduler", choices=("threads", "processes"), default="threads",
+                        help="the timed runs' scheduler, as a workflow's `scheduler:` (processes: single-threaded "
+                             "worker processes, timed from the cluster's start; peak RSS adds the workers')")
     parser.add_argument("--sample", type=int, default=200)
     parser.add_argument("--max-iter", type=int, help="default: the stage's")
     parser.add_argument("--polish-iter", type=int, help="default: the stage's")
@@ -280,6 +294,7 @@ def main() -> None:
         print(json.dumps(measure(args.measure, args)))
         return
     settings = [f"--{name.replace('_', '-')}={value}" for name, value in _options(args).items()]
+    settings.append(f"--scheduler={args.scheduler}")
     argv = [f"--rows={args.rows}", f"--cols={args.cols}", f"--sample={args.sample}", *settings]
     if args.quick:
         argv = ["--rows=240", "--cols=320", "--sample=60", *settings]
@@ -310,7 +325,8 @@ def main() -> None:
             out = [f"--out={tmp}/transport-{k}.zarr"] if (k, workers, cached) == (128, 2, False) else []
             run = _run("selpath", argv + store + out + (cache if cached else []), k=k, workers=workers)
             results[(k, workers, cached)] = run | {"px_per_s": run["pixels"] / run["seconds"]}
-            label = f"demux K={k}, {workers} worker(s)" + (", cache warm" if workers == 2 and cached else "")
+            kind = "process(es)" if args.scheduler == "processes" else "worker(s)"
+            label = f"demux K={k}, {workers} {kind}" + (", cache warm" if workers == 2 and cached else "")
             print(f"{label:<38}{run['seconds']:>9.1f}{run['pixels'] / run['seconds']:>10.0f}"
                   f"{run['peak_rss_gb']:>13.2f}{run['converged']:>11.1%}{run['iterations_mean']:>12.1f}")
             if out:
