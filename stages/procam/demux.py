@@ -212,8 +212,9 @@ def _transport_attrs(kind: str, capture: xr.Dataset, *, timing: dict, delays, ex
     """The attrs every transport store records: what it was captured of, its settings, the timing used and the
     frames dropped."""
     dropped = [[float(d), float(e)] for d, e in zip(delays[~keep], exposures[~keep], strict=True)]
-    return {"selpath_kind": kind, **{k: capture.attrs[k] for k in CAPTURE_ATTRS if k in capture.attrs}, **settings, "scan_speed_px_per_us": timing["scan_speed"],
-            "line_time_us": timing["line_time"], "sync_offset_us": timing["sync_offset"],
+    return {"selpath_kind": kind, **{k: capture.attrs[k] for k in CAPTURE_ATTRS if k in capture.attrs}, **settings,
+            "scan_speed_px_per_us": timing["scan_speed"], "line_time_us": timing["line_time"],
+            "sync_offset_us": timing["sync_offset"],
             "full_scale_counts": full_scale, "frames_dropped": dropped, "boundary_margin_us": margin}
 
 
@@ -247,7 +248,8 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
     (f(T) − f*)/f(T), from weak duality: conservative, as tight as T's KKT conditions), ``frames_used`` and
     ``frames_clipped``, ``censored`` and ``censored_offsets`` (offsets whose light was seen only clipped: T there
     is a lower bound, and the pixel is not ``converged``) and ``clip_ratio`` (how much dimmer the light must be for
-    nothing to clip). ``uncensored_fraction`` (0-d) is the share of pixels not censored (docs/format.md).
+    nothing to clip). ``uncensored_fraction`` (0-d) is the share of pixels not censored, ``certified_fraction`` (0-d)
+    the share whose ``gap_bound`` is at most ``gap_tol`` (docs/format.md).
 
     Parameters
     ----------
@@ -322,7 +324,7 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
         "solver": solver, "problem": problem, "keep": keep, "levels": levels}, template=template)
     out = out.assign_coords(offset=("offset", grid, {"units": "px", "long_name": "projector row − camera row"}))
     out["transport"].attrs = {"units": "counts", "long_name": "plane-to-ray transport T(v, s, t)"}
-    out = _describe(out, int(keep.sum()), "plane_to_ray_transport")
+    out = _describe(out, int(keep.sum()), "plane_to_ray_transport", gap_tol)
     return out.assign_attrs(_transport_attrs(
         "plane_to_ray_transport", capture, timing=timing, delays=delays, exposures=exposures, keep=keep, margin=margin,
         full_scale=scale, alpha=alpha, beta=beta, tol=tol, gap_tol=gap_tol, finish_rounds=finish_rounds,
@@ -342,10 +344,11 @@ PER_PIXEL_DESCRIPTIONS = {
 }
 
 
-def _describe(out: xr.Dataset, frames: int, kind: str) -> xr.Dataset:
+def _describe(out: xr.Dataset, frames: int, kind: str, gap_tol: float) -> xr.Dataset:
     """Attrs of the per-pixel variables (the schema's units and long names, as a store written from it will
-    carry them) and the result's shares: usable observations (floor 5 %) and pixels not censored (no floor: a
-    report, which the engine logs with its advice when below 1)."""
+    carry them) and the result's shares: usable observations (floor 5 %), pixels not censored (no floor: a
+    report, which the engine logs with its advice when below 1) and pixels certified (``gap_bound`` ≤ ``gap_tol``;
+    no floor: a report; ``converged`` also counts pixels whose residuals met ``tol``)."""
     for name, description in PER_PIXEL_DESCRIPTIONS.items():
         out[name].attrs = {"description": description}
     out = with_metadata(out, kind)
@@ -356,6 +359,12 @@ def _describe(out: xr.Dataset, frames: int, kind: str) -> xr.Dataset:
         fix="where pixels are censored, lower the projector's power or add a neutral-density filter by their "
             "clip_ratio (or sweep shorter exposures where the clipped light sums over many rows)",
         advise_below=1.0)
+    out["certified_fraction"] = usable_share(
+        (out["gap_bound"] <= gap_tol).mean(), floor=0.0, label="certified",
+        what=f"pixels whose certified objective-gap bound is at most gap_tol = {gap_tol:g} (converged ones "
+             "beyond them met the residual test, tol: their gap_bound says what is proven)",
+        fix="for a certificate on every pixel set finish_rounds (16 rounds certified every pixel of the "
+            "benchmarks' catalogue, at 5–10× the time); a tighter tol certifies more at the cost of iterations")
     return out
 
 
@@ -476,7 +485,7 @@ def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, 
     out["transport"].attrs = {"units": "counts", "long_name": "full transport T(u, v, s, t)",
                               "description": f"light from a {step:g}-column u-cell; NaN where no line reached"}
     out["u_direct"].attrs = {"units": "px", "long_name": "direct correspondence u₀ (centre of the brightest cell)"}
-    out = _describe(out, int(keep.sum()) * capture.sizes["line"], "full_transport")
+    out = _describe(out, int(keep.sum()) * capture.sizes["line"], "full_transport", gap_tol)
     return out.assign_attrs(_transport_attrs(
         "full_transport", capture, timing=timing, delays=delays, exposures=exposures, keep=keep, margin=margin,
         full_scale=scale, alpha=alpha, beta=beta, tol=tol, gap_tol=gap_tol, max_iter=max_iter,

@@ -82,10 +82,13 @@ def test_gap_tol_is_a_stage_setting_and_a_certified_pixel_is_converged():
         assert out.attrs["gap_tol"] == gap_tol
         bound, converged = out["gap_bound"].values, out["converged"].values
         np.testing.assert_array_equal(converged, bound <= gap_tol)
+        # the store's 0-d share of certified pixels, which the engine logs
+        assert float(out["certified_fraction"]) == pytest.approx(np.mean(bound <= gap_tol), abs=1e-12)
     assert 0 < converged.mean() < 1  # the loose gap_tol certifies some pixels within 10 iterations, not all
     finished = demux_plane_to_ray(capture, tol=1e-12, gap_tol=1e-3, finish_rounds=4, max_iter=10).compute()
     assert finished.attrs["finish_rounds"] == 4
     assert finished["converged"].mean() > converged.mean()  # the finish certifies pixels ADMM left unproven
+    assert float(finished["certified_fraction"]) > converged.mean()
     assert np.all(finished["gap_bound"].values <= np.maximum(bound, 1e-3))
 
 
