@@ -363,8 +363,9 @@ def _describe(out: xr.Dataset, frames: int, kind: str, gap_tol: float) -> xr.Dat
         (out["gap_bound"] <= gap_tol).mean(), floor=0.0, label="certified",
         what=f"pixels whose certified objective-gap bound is at most gap_tol = {gap_tol:g} (converged ones "
              "beyond them met the residual test, tol: their gap_bound says what is proven)",
-        fix="for a certificate on every pixel set finish_rounds (16 rounds certified every pixel of the "
-            "benchmarks' catalogue, at 5–10× the time); a tighter tol certifies more at the cost of iterations")
+        fix=("for a certificate on every pixel set finish_rounds (16 rounds certified every pixel of the "
+             "benchmarks' catalogue, at 2–10× the time); a tighter tol " if kind == "plane_to_ray_transport" else
+             "a tighter tol (the full transport has no exact finish) ") + "certifies more pixels, at more iterations")
     return out
 
 
