@@ -363,10 +363,18 @@ def _describe(out: xr.Dataset, frames: int, kind: str, gap_tol: float) -> xr.Dat
         (out["gap_bound"] <= gap_tol).mean(), floor=0.0, label="certified",
         what=f"pixels whose certified objective-gap bound is at most gap_tol = {gap_tol:g} (converged ones "
              "beyond them met the residual test, tol: their gap_bound says what is proven)",
-        fix=("for a certificate on every pixel set finish_rounds (16 rounds certified every pixel of the "
-             "benchmarks' catalogue, at 2–10× the time); a tighter tol " if kind == "plane_to_ray_transport" else
-             "a tighter tol (the full transport has no exact finish) ") + "certifies more pixels, at more iterations")
+        fix=CERTIFY_ADVICE[kind])
     return out
+
+
+#: how each transport kind certifies more pixels (the full transport's solver has no exact finish)
+CERTIFY_ADVICE = {
+    "plane_to_ray_transport": "for a certificate on every pixel set finish_rounds (16 rounds certified every pixel of "
+                              "the benchmarks' catalogue, at 2–10× the time); a tighter tol certifies more pixels, "
+                              "at more iterations",
+    "full_transport": "a tighter tol certifies more pixels, at more iterations (the full transport has no exact "
+                      "finish)",
+}
 
 
 def _usable(frames_used: xr.DataArray, frames: int) -> xr.DataArray:
