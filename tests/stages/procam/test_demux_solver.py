@@ -330,3 +330,39 @@ def test_the_kkt_bound_is_the_lagrangian_gap_and_far_tighter_than_the_first_orde
     assert np.all(solution.stats["gap_bound"] >= (value - optimum) / value - 1e-6)
     first_order = certified_gap(replace(problem, definite=False), solution.value, data)
     assert np.median(solution.stats["gap_bound"]) * 10 <= np.median(first_order)
+
+
+def _dot_precisions(jaxpr) -> list:
+    """The precision of every matrix product in a jaxpr, its sub-jaxprs (jit, map, einsum's) included."""
+    found = []
+    for eqn in jaxpr.eqns:
+        if eqn.primitive.name == "dot_general":
+            found.append(eqn.params["precision"])
+        for value in eqn.params.values():
+            for sub in value if isinstance(value, tuple | list) else (value,):
+                inner = getattr(sub, "jaxpr", sub)
+                if hasattr(inner, "eqns"):  # a Jaxpr (a ClosedJaxpr's .jaxpr)
+                    found += _dot_precisions(inner)
+    return found
+
+
+@pytest.mark.parametrize("kind", ["dense", "kronecker"])
+def test_every_operator_product_asks_for_full_precision(kind):
+    """JAX's default float32 product is TF32 on Ampere/Hopper GPUs (relative error ~5e-4, far above gap_tol 1e-4):
+    every product the solver's kernels apply (forward, adjoint, the T-update, the pseudo-inverse, 2G) carries
+    Precision.HIGHEST. On a CPU both precisions give the same numbers, so the jaxpr is what a CPU test can check."""
+    from stages.procam._demux_problem import SeparableDemuxProblem
+
+    if kind == "dense":
+        problem = DemuxProblem.build(sweep_matrix(*CASES["well-posed"]))
+    else:
+        rng = np.random.default_rng(0)
+        problem = SeparableDemuxProblem.build(rng.uniform(0, 1, (5, 3)), rng.uniform(0, 1, (7, 4)))
+    ops = problem.operators(np.float32)
+    t = np.ones((3, problem.offsets), np.float32)
+    r = np.ones((3, problem.frames), np.float32)
+    highest = (jax.lax.Precision.HIGHEST, jax.lax.Precision.HIGHEST)
+    for name, x in (("forward", t), ("adjoint", r), ("update", t), ("inverse", t), ("gram2", t)):
+        precisions = _dot_precisions(jax.make_jaxpr(getattr(ops, name))(x).jaxpr)
+        assert precisions, name
+        assert all(p == highest for p in precisions), (name, precisions)
