@@ -37,7 +37,7 @@ def main() -> None:
     from benchmarks.demux_throughput import _matrix, _offsets, _pixels
     from stages.procam._demux_problem import DemuxProblem
     from stages.procam._demux_solver import DemuxADMM
-    from stages.procam.demux import solve_pixels
+    from stages.procam._demux_store import solve_pixels
 
     k = 128
     matrix = _matrix(k, kept=True)

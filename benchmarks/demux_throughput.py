@@ -141,7 +141,8 @@ def measure(mode: str, args) -> dict:
         enable_compile_cache()
     k = args.k
     if mode in ("selpath", "generate", "io"):
-        from stages.procam.demux import OffsetGrid, demux_plane_to_ray
+        from stages.procam._demux_store import OffsetGrid
+        from stages.procam.demux import demux_plane_to_ray
 
         pixels = args.rows * args.cols
         with contextlib.ExitStack() as stack:
@@ -197,7 +198,7 @@ def measure(mode: str, args) -> dict:
 
         from stages.procam._demux_problem import DemuxProblem
         from stages.procam._demux_solver import DemuxADMM
-        from stages.procam.demux import solve_pixels
+        from stages.procam._demux_store import solve_pixels
 
         matrix = _matrix(k, kept=True)
         problem = DemuxProblem.build(matrix)

@@ -107,7 +107,7 @@ def camera_attr_problems(attrs: Mapping, *, sensor_defaults: bool = False) -> li
 
 
 _FRAME = ("row", "col")
-#: the per-pixel solver's results beside a transport (:mod:`stages.procam.demux`)
+#: the per-pixel solver's results beside a transport (:mod:`stages.procam._demux_store`)
 _DEMUX_EXTRAS = {
     "iterations": Variable(_FRAME, required=False, units="1", long_name="ADMM iterations run for the pixel"),
     "converged": Variable(_FRAME, required=False, units=None,

@@ -24,8 +24,8 @@ import workflows
 from pipeline import SpecError, load_workflow
 from pipeline.registry import default_registry
 from stages._sweeps import sweep_count
+from stages.procam._demux_store import OffsetGrid
 from stages.procam.acquire import PixelSweep, TimeSweep
-from stages.procam.demux import OffsetGrid
 from stages.tomography.acquire import AngleSweep
 
 WORKFLOWS = workflows.folder()

@@ -15,8 +15,9 @@ from devices.sim.procam_scene import ProcamScene
 from pipeline.errors import StageError
 from stages.procam._demux_problem import SeparableDemuxProblem
 from stages.procam._demux_solver import DemuxADMM
+from stages.procam._demux_store import OffsetGrid
 from stages.procam._illumination import box_overlap, line_cells, line_illumination, plane_to_ray_illumination
-from stages.procam.demux import OffsetGrid, demux_full
+from stages.procam.demux_full import demux_full
 from stages.procam.figures import profile_2d_figure, relighting_full_figure
 from stages.procam.relight import cell_average, checkerboard_relight, relight_full
 

@@ -10,8 +10,9 @@ from devices.sim import procam_transport as tr
 from devices.sim.procam_scene import ProcamScene
 from stages.procam._demux_problem import DemuxProblem
 from stages.procam._demux_solver import DemuxADMM
+from stages.procam._demux_store import solve_pixels
 from stages.procam._illumination import plane_to_ray_illumination
-from stages.procam.demux import demux_plane_to_ray, solve_pixels
+from stages.procam.demux import demux_plane_to_ray
 from stages.procam.figures import epipolar_figure, relighting_figure
 from tests.stages.procam.test_demux import RIG, capture_of
 

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import pytest
 
-from stages.procam.demux import demux_full, demux_plane_to_ray
+from stages.procam.demux import demux_plane_to_ray
+from stages.procam.demux_full import demux_full
 from stages.procam.figures import (
     delay_profile_figure,
     epipolar_figure,

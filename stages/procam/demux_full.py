@@ -1,0 +1,150 @@
+"""Demultiplexing a line sweep into full transport T(du, dv, row, col) (§5.3.1).
+
+The same per-pixel problem as plane-to-ray (:mod:`stages.procam.demux`, whose machinery it shares through
+:mod:`stages.procam._demux_store`) over u-cells × offsets, with the separable illumination L_u ⊗ L of Eq. 38
+(:class:`stages.procam._demux_problem.SeparableDemuxProblem`: A is never formed). Lazy over bands of camera rows;
+each pixel's answer is re-indexed from its direct correspondence u₀, so du = 0 is the direct light.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import xarray as xr
+
+from pipeline.constraints import Count, Index, NonNegative, Positive
+from pipeline.errors import Problem, StageError
+from pipeline.registry import stage
+from stages._common import Dtype, GapTol, MaxIter
+from stages.procam._demux_problem import DEFAULT_ALPHA, DEFAULT_BETA, SeparableDemuxProblem
+from stages.procam._demux_solver import DemuxADMM
+from stages.procam._demux_store import (
+    OffsetGrid,
+    describe_transport,
+    levels_of,
+    rig_timing,
+    solve_band,
+    sweep_illumination,
+    transport_attrs,
+    transport_template,
+)
+from stages.procam._illumination import line_cells, line_illumination
+
+#: bytes of full transport one dask task may hold (the default rows_per_tile of demux_full follows from it)
+FULL_TILE_BYTES = 64 * 2**20
+
+
+def _band_full(block: xr.Dataset, *, solver: DemuxADMM, problem: SeparableDemuxProblem, keep: np.ndarray,
+               levels: dict, reach: int, centre_v: int, cells: np.ndarray) -> xr.Dataset:
+    image = block["image"].transpose("line", "delay", "exposure", "row", "col").values
+    n_lines, rows, cols = image.shape[0], *image.shape[-2:]
+    frames = image.reshape(n_lines, -1, rows * cols)[:, keep.ravel()].reshape(-1, rows * cols).T  # line-major
+    shape = (rows, cols)
+    transport, per_pixel = solve_band(solver, problem, frames, shape, **levels)
+    k_u, k_v = problem.cells
+    absolute = transport.reshape(-1, k_u, k_v)  # (P, u-cell, dv)
+    # the direct correspondence u₀: the brightest u-cell on the epipolar row (dv = 0)
+    epipolar = absolute[:, :, centre_v]
+    peak = np.argmax(epipolar, axis=1)
+    lit = epipolar.max(axis=1) > 0
+    du = np.arange(-reach, reach + 1)
+    index = peak[:, None] + du[None, :]
+    inside = (index >= 0) & (index < k_u)
+    relative = np.take_along_axis(absolute, np.clip(index, 0, k_u - 1)[:, :, None], axis=1)
+    relative = np.where(inside[:, :, None], relative, np.nan)  # columns the sweep never lit: unobserved
+    relative[~lit] = np.where(inside[~lit, :, None], 0.0, np.nan)
+    return xr.Dataset({
+        "transport": (("du", "dv", "row", "col"), relative.transpose(1, 2, 0).reshape(du.size, k_v, *shape)
+                      .astype(solver.dtype)),
+        "u_direct": (("row", "col"), np.where(lit, cells[peak], np.nan).reshape(shape).astype(np.float32)),
+        **per_pixel,
+    }, coords={name: block[name] for name in ("row", "col") if name in block.coords})
+
+
+@stage("demux_full")
+def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, /, *,
+               offsets: OffsetGrid | None = None, cell_width_px: Positive | None = None,
+               du_reach_px: NonNegative | None = None, alpha: NonNegative = DEFAULT_ALPHA,
+               beta: NonNegative = DEFAULT_BETA, tol: Positive = DemuxADMM.DEFAULT_TOL,
+               gap_tol: GapTol = DemuxADMM.DEFAULT_GAP_TOL, max_iter: MaxIter = DemuxADMM.DEFAULT_MAX_ITER,
+               polish_iter: Index = DemuxADMM.DEFAULT_POLISH_ITER,
+               boundary_margin_us: NonNegative | None = None, sync_offset_us: float | None = None,
+               full_scale: Positive | None = None, rows_per_tile: Count | None = None,
+               dtype: Dtype = "float32") -> xr.Dataset:
+    """Full transport T(du, dv, row, col) from a ``(delay, exposure, line, row, col)`` capture (§5.3.1).
+
+    Per pixel the thesis's problem (Eq. 40 with the α, β and T ≥ 0 of plane-to-ray) over u-cells × offsets,
+    with the separable illumination L_u ⊗ L (Eq. 38): the lines' boxes on cells of ``cell_width_px``
+    projector columns, and the delay–exposure boxes of Eq. 32–33 on the offset grid. It is solved on
+    absolute u-cells, then each pixel is re-indexed from its direct correspondence u₀ (the brightest cell on
+    its epipolar row, stored as ``u_direct``), so du = 0 is the direct light. Cells the sweep never lit
+    are NaN; pixels with no epipolar light keep du relative to cell 0 and ``u_direct`` NaN.
+
+    Parameters
+    ----------
+    capture : xr.Dataset
+        A ``full_transport_capture`` store (``acquire_full_transport``): ``image`` over (delay, exposure, line [px],
+        row, col) [counts]; attrs ``scan_speed_px_per_us``, ``line_time_us``, ``line_width_px``,
+        ``saturation_counts``, ``dark_level_counts``.
+    scan_calibration : xr.Dataset or None
+        A ``scan_calibration`` store (``calibrate_scan_speed``): its attrs ``scan_speed_px_per_us`` and
+        ``sync_offset_us`` replace the capture's v_p and t_o = 0 (sync_offset_us wins); None: the nominal values.
+    offsets : {start, stop, step} or None
+        dv grid [rows], stop included, at most 10 000 offsets; None: every offset some frame of the sweep lights.
+    cell_width_px : float or None
+        Width of a u-cell [projector columns]; None: the spacing of the lines (the thesis's 20 px).
+    du_reach_px : float or None
+        Keep |du| up to this [px]; None: every offset the sweep can express (2 K_u − 1 cells).
+    alpha, beta : float
+        Smoothness along dv and sparsity weights (thesis: 0.01), on images scaled to [0, 1].
+    tol, gap_tol, max_iter, polish_iter, boundary_margin_us, sync_offset_us, full_scale, dtype
+        As for ``demux_plane_to_ray``.
+    rows_per_tile : int or None
+        Camera rows per dask task; None: as many as keep a task's transport within 64 MiB.
+    """
+    if "line" not in capture.dims:
+        raise StageError(Problem("this capture has no line dimension (a plane-to-ray sweep)",
+                                 fix="use demux_plane_to_ray for (delay, exposure, row, col) captures"))
+    if "line_width_px" not in capture.attrs:
+        raise StageError(Problem("the capture has no attr 'line_width_px'", where="capture",
+                                 fix="acquire with acquire_full_transport, or add the attr (docs/format.md)"))
+    timing = rig_timing(capture, scan_calibration, sync_offset_us)
+    dark, scale, saturation = levels_of(capture, full_scale)
+    sweep = sweep_illumination(capture, timing, boundary_margin_us, offsets)
+    delays, exposures, keep, margin, grid, frame_matrix = sweep
+    lines, width = capture["line"].values, float(capture.attrs["line_width_px"])
+    if lines.size > 1 and not np.allclose(np.diff(lines), np.diff(lines)[0]) and cell_width_px is None:
+        raise StageError(Problem("the line positions are not evenly spaced, so the u-cell width is ambiguous",
+                                 fix="set cell_width_px"))
+    try:
+        cells, step = line_cells(lines, width, cell_width_px)
+    except ValueError as error:
+        raise StageError(Problem(str(error), where="capture line sweep", fix="set cell_width_px > 0")) from None
+    problem = SeparableDemuxProblem.build(line_illumination(lines, width, cells, step), frame_matrix,
+                                          alpha=alpha, beta=beta)
+    k_u = cells.size
+    reach = k_u - 1 if du_reach_px is None else min(int(np.floor(du_reach_px / step)), k_u - 1)
+    cols = capture.sizes["col"]
+    if rows_per_tile is None:
+        per_row = cols * (2 * reach + 1 + k_u) * grid.size * 4
+        rows_per_tile = int(np.clip(FULL_TILE_BYTES // max(per_row, 1), 1, 64))
+    stack = capture[["image"]].chunk({"delay": -1, "exposure": -1, "line": -1, "row": rows_per_tile, "col": -1})
+    template = transport_template(capture, ("du", "dv"), (2 * reach + 1, grid.size), stack.chunksizes["row"], dtype,
+                         u_direct=np.float32)
+    out = xr.map_blocks(_band_full, stack.assign_attrs({}), kwargs={
+        "solver": DemuxADMM(tol=tol, gap_tol=gap_tol, max_iter=max_iter, polish_iter=polish_iter, dtype=dtype),
+        "problem": problem,
+        "keep": keep, "levels": {"dark": dark, "full_scale": scale, "saturation": saturation}, "reach": reach,
+        "centre_v": int(np.argmin(np.abs(grid))), "cells": cells}, template=template)
+    out = out.assign_coords(
+        du=("du", np.arange(-reach, reach + 1) * step, {"units": "px", "long_name": "projector column − u₀"}),
+        dv=("dv", grid, {"units": "px", "long_name": "projector row − camera row"}))
+    out["transport"].attrs = {"units": "counts", "long_name": "full transport T(u, v, s, t)",
+                              "description": f"light from a {step:g}-column u-cell; NaN where no line reached"}
+    out["u_direct"].attrs = {"units": "px", "long_name": "direct correspondence u₀ (centre of the brightest cell)"}
+    out = describe_transport(out, int(keep.sum()) * capture.sizes["line"], "full_transport", gap_tol)
+    return out.assign_attrs(transport_attrs(
+        "full_transport", capture, timing=timing, delays=delays, exposures=exposures, keep=keep, margin=margin,
+        full_scale=scale, alpha=alpha, beta=beta, tol=tol, gap_tol=gap_tol, max_iter=max_iter,
+        polish_iter=polish_iter, dtype=dtype,
+        line_width_px=width, cell_width_px=step, cells_px=cells.tolist(), lines=int(lines.size),
+        **{name: capture.attrs[name] for name in ("projector_shape",) if name in capture.attrs}))
