@@ -146,8 +146,8 @@ def solve_pixels(solver: DemuxADMM, problem: DemuxProblem | SeparableDemuxProble
 
 
 def solve_band(solver: DemuxADMM, problem: DemuxProblem | SeparableDemuxProblem, frames: np.ndarray,
-                shape: tuple[int, int], *, dark: float, full_scale: float, saturation: float
-                ) -> tuple[np.ndarray, dict]:
+               shape: tuple[int, int], *, dark: float, full_scale: float, saturation: float
+               ) -> tuple[np.ndarray, dict]:
     """Solve a band's (P, N) raw frames: (T (P, K) in counts, the per-pixel variables beside it).
 
     A frame at or above ``saturation`` is kept as a clipped observation (its light is at least the clip level,
@@ -180,12 +180,12 @@ def solve_band(solver: DemuxADMM, problem: DemuxProblem | SeparableDemuxProblem,
 
 #: per-pixel variables every transport store holds beside T (see solve_band), with their dtypes
 PER_PIXEL = {"iterations": np.int32, "converged": bool, "censored": bool, "censored_offsets": np.int32,
-              "objective": np.float32, "frames_used": np.int32, "frames_clipped": np.int32, "gap_bound": np.float32,
-              "clip_ratio": np.float32}
+             "objective": np.float32, "frames_used": np.int32, "frames_clipped": np.int32, "gap_bound": np.float32,
+             "clip_ratio": np.float32}
 
 
 def transport_template(capture: xr.Dataset, transport_dims: tuple[str, ...], transport_sizes: tuple[int, ...],
-              row_chunks: tuple[int, ...], dtype: str, **per_pixel) -> xr.Dataset:
+                       row_chunks: tuple[int, ...], dtype: str, **per_pixel) -> xr.Dataset:
     """The lazy template of a transport store: T over ``transport_dims`` + (row, col), and per-pixel maps."""
     rows, cols = capture.sizes["row"], capture.sizes["col"]
 
@@ -203,7 +203,7 @@ CAPTURE_ATTRS = ("rig", "scene", "effects", "simulated_scene")
 
 
 def transport_attrs(kind: str, capture: xr.Dataset, *, timing: dict, delays, exposures, keep, margin: float,
-                     full_scale: float, **settings) -> dict:
+                    full_scale: float, **settings) -> dict:
     """The attrs every transport store records: what it was captured of, its settings, the timing used and the
     frames dropped."""
     dropped = [[float(d), float(e)] for d, e in zip(delays[~keep], exposures[~keep], strict=True)]

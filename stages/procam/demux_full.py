@@ -129,7 +129,7 @@ def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, 
         rows_per_tile = int(np.clip(FULL_TILE_BYTES // max(per_row, 1), 1, 64))
     stack = capture[["image"]].chunk({"delay": -1, "exposure": -1, "line": -1, "row": rows_per_tile, "col": -1})
     template = transport_template(capture, ("du", "dv"), (2 * reach + 1, grid.size), stack.chunksizes["row"], dtype,
-                         u_direct=np.float32)
+                                  u_direct=np.float32)
     out = xr.map_blocks(_band_full, stack.assign_attrs({}), kwargs={
         "solver": DemuxADMM(tol=tol, gap_tol=gap_tol, max_iter=max_iter, polish_iter=polish_iter, dtype=dtype),
         "problem": problem,

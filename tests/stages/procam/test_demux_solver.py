@@ -6,6 +6,7 @@ from dataclasses import replace
 
 import cvxpy as cp
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -365,4 +366,23 @@ def test_every_operator_product_asks_for_full_precision(kind):
     for name, x in (("forward", t), ("adjoint", r), ("update", t), ("inverse", t), ("gram2", t)):
         precisions = _dot_precisions(jax.make_jaxpr(getattr(ops, name))(x).jaxpr)
         assert precisions, name
+        assert all(p == highest for p in precisions), (name, precisions)
+    # and every product in the jitted kernels a solve runs (a product written there directly would show here)
+    from stages.procam import _demux_kernels as kernels
+
+    data = np.random.default_rng(1).uniform(0, 1, (8, problem.frames)).astype(np.float32)
+    weight, clipped = np.ones(data.shape, np.float32), np.zeros(data.shape, np.float32)
+    pool, scale, z0 = kernels.start(ops, data, weight, clipped, masked=True, chunk=8)
+    limits = kernels.Limits(jnp.asarray(5e-3, jnp.float32), jnp.asarray(50, jnp.int32))
+    traced = {
+        "start": jax.make_jaxpr(lambda d: kernels.start(ops, d, weight, clipped, masked=True, chunk=8))(data),
+        "gaps": jax.make_jaxpr(lambda z: kernels.gaps(ops, pool, z, chunk=8, masked=True))(z0),
+        "stream": jax.make_jaxpr(lambda z: kernels.stream(ops, limits, pool, z, jnp.asarray(8, jnp.int32),
+                                                          check_every=5, masked=True, slots=8))(z0),
+        "finish": jax.make_jaxpr(lambda z: kernels.finish(ops, pool, scale, z, polish_iter=5, polish_rounds=2,
+                                                          masked=True, chunk=8))(z0),
+    }
+    for name, jaxpr in traced.items():
+        precisions = _dot_precisions(jaxpr.jaxpr)
+        assert len(precisions) >= 2, name
         assert all(p == highest for p in precisions), (name, precisions)
