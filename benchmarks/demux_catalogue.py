@@ -189,6 +189,11 @@ def main() -> None:
     rows = []
     for case in catalogue(pixels, ks):
         rows.extend(run_case(case, sample))
+    import jax
+
+    from benchmarks.demux_throughput import device_line
+
+    print(f"device: {device_line(jax)}")
     print(f"demux catalogue: {pixels} px per case, true gap on {sample} px against Clarabel at 1e-12; bound = "
           "certified gap bound over all px; conv = converged (residuals met tol, or certified), cert = bound ≤ "
           "gap_tol; warm µs/px on this machine")

@@ -46,6 +46,13 @@ EXPOSURES_US = [170.0, 510.0, 850.0]
 SPEED, LINE_TIME = 1 / 17, 17.0  # the default rig: v_p = 1 row per 17 µs, t_p = 17 µs
 
 
+def device_line(jax) -> str:
+    """What the solver ran on: JAX's first device and backend, JAX's version and the host's CPU cores (timings
+    compare only on the same)."""
+    return (f"{jax.devices()[0].device_kind} ({jax.default_backend()}), JAX {jax.__version__}, "
+            f"{os.cpu_count()} CPU cores")
+
+
 def _peak_rss_gb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # kB on Linux
 
@@ -259,8 +266,11 @@ def measure(mode: str, args) -> dict:
                          "bound_median": float(np.median(result.stats["gap_bound"])),
                          "bound_max": float(np.max(result.stats["gap_bound"])),
                          "s_per_px": timed(finish_rounds=rounds)})
-        return {"clarabel_s_per_px": clarabel_s, "default_s_per_px": float(np.median(default_s)),
-                "curve": rows, "optimum": optimum.tolist(), "peak_rss_gb": _peak_rss_gb()}
+        import jax
+
+        return {"device": device_line(jax), "clarabel_s_per_px": clarabel_s,
+                "default_s_per_px": float(np.median(default_s)), "curve": rows, "optimum": optimum.tolist(),
+                "peak_rss_gb": _peak_rss_gb()}
     raise ValueError(mode)
 
 
@@ -301,6 +311,7 @@ def main() -> None:
     if args.quick:
         argv = ["--rows=240", "--cols=320", "--sample=60", *settings]
     curve = _run("curve", argv, k=128)
+    print(f"device: {curve['device']}")
     print(f"per-pixel CVXPY at K = 128: default solver {curve['default_s_per_px'] * 1e3:.1f} ms, "
           f"parametrised Clarabel {curve['clarabel_s_per_px'] * 1e3:.1f} ms")
     print("accuracy versus time (K = 128, float32, 16384 pixels in the stage's calls on 2 threads; gap = relative "
