@@ -31,16 +31,15 @@ def main() -> None:
 
     import stages.procam._demux_problem as demux_problem
     from benchmarks.demux_catalogue import reference
-    from benchmarks.demux_throughput import _kept, _matrix, _pixels, device_line
+    from benchmarks.demux_throughput import _matrix, _sample, device_line
     from stages.procam._demux_solver import DemuxADMM
 
     device = device_line(jax)
     print(f"device: {device}")
     k = 128
     problem = demux_problem.DemuxProblem.build(_matrix(k, kept=True))
-    _, images = _pixels(k, max(args.sizes), seed=0)
-    counts = (images * 4095).astype(np.float32)[:, _kept(k)]
-    data, clipped = counts / np.float32(4095), counts >= 4095
+    largest = max(args.sizes)
+    data, clipped = _sample(k, largest, 1, largest)  # the benchmark's pixels as the stage sees them, one row of them
     optimum = reference(problem, data[:200], None, clipped[:200])
     methods = [("defaults", jax.lax.Precision.HIGHEST, {}), ("finish 16", jax.lax.Precision.HIGHEST,
                                                             {"finish_rounds": 16}),
