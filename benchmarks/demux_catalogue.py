@@ -14,7 +14,7 @@ Methods: the solver's defaults (float32), the same in float64, and each with the
 (``finish_rounds=16``). Times are warm (the second of two identical calls; compiles excluded), µs per pixel on
 this machine's threads.
 
-    python -m benchmarks.demux_catalogue [--pixels 2048] [--sample 24] [--quick]
+    python -m benchmarks.demux_catalogue [--pixels 2048] [--sample 24] [--quick] [--cases NAME ...]
 
 Last line: ``catalogue: cases=<n> defaults_max_bound=<b> defaults_median_bound=<m> finish64_max_bound=<c>
 bound_below_gap=<v>``
@@ -183,11 +183,15 @@ def main() -> None:
     parser.add_argument("--pixels", type=int, default=2048, help="pixels per case")
     parser.add_argument("--sample", type=int, default=24, help="pixels per case solved by Clarabel")
     parser.add_argument("--quick", action="store_true", help="256 pixels, 8 sampled, K = 64 and 128")
+    parser.add_argument("--cases", nargs="+", metavar="NAME",
+                        help="only the cases whose name contains one of these (e.g. 'NaN' 'K=128')")
     args = parser.parse_args()
     pixels, sample, ks = (256, 8, (64, 128)) if args.quick else (args.pixels, args.sample, (64, 128, 256))
 
     rows = []
     for case in catalogue(pixels, ks):
+        if args.cases and not any(name in case.name for name in args.cases):
+            continue
         rows.extend(run_case(case, sample))
     import jax
 

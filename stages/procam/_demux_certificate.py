@@ -1,10 +1,11 @@
 """The certificate of a demultiplexed pixel (#25): certified bounds on its relative objective gap, from weak duality.
 
 :func:`certified_gap` is the float64 reference (the first-order bound from T's own gradients with a dual search,
-:func:`best_dual_value`, and for fully observed, unclipped pixels of a dense problem the second-order
-:func:`kkt_gap`); :mod:`stages.procam._demux_kernels` evaluates the same bounds in the solver's dtype with these
-functions (written for numpy or ``jax.numpy`` through ``xp``). The problems themselves are in
-:mod:`stages.procam._demux_problem`.
+:func:`best_dual_value`, and for every pixel of a dense problem the second-order :func:`kkt_gap`, through
+:func:`kept_quadratic` where frames are masked or clipped: :func:`kkt_bound`); :mod:`stages.procam._demux_kernels`
+evaluates the same bounds in the solver's dtype with these functions (written for numpy or ``jax.numpy`` through
+``xp``; there the second-order one for fully observed, unclipped pixels only, the solver adding :func:`kkt_bound` on
+the host for the others). The problems themselves are in :mod:`stages.procam._demux_problem`.
 """
 
 from __future__ import annotations
@@ -72,30 +73,108 @@ def best_dual_value(xp, a, b, z, g, e_y, e_u, n_e, beta, steps=DUAL_SEARCH_STEPS
 KKT_HELD = (0.0, 1e-6, 1e-4, 1e-2)
 
 
-def kkt_gap(xp, t, gradient, inverse, primal, applies, shares=KKT_HELD):
-    """A second certified bound, from the Lagrangian dual of min f(T) s.t. T ≥ 0 when every frame of the pixel
-    is an observed, unclipped one, so that f is the quadratic TᵀGT − 2yᵀAT + βᵀT + ‖y‖² with 2G = 2(AᵀA + αDᵀD)
-    positive definite: for any multiplier λ ≥ 0, g(λ) = min_T f(T) − λᵀT ≤ f*, and with δ = ∇f(T) − λ,
+def kkt_gap(xp, t, gradient, quadratic, primal, applies, shares=KKT_HELD):
+    """A second certified bound, from the Lagrangian dual of min f(T) s.t. T ≥ 0 through a quadratic q ≤ f that
+    touches f at T: f's squared residuals of the observed, unclipped frames, α‖DT‖² and β1ᵀT as they are, and each
+    other frame's convex term (a clipped frame's max(0, y − A_iT)², or nothing for a masked one) replaced by its
+    tangent at T. Then q has Hessian 2G_p = 2(A_EᵀA_E + αDᵀD) over the kept frames E, q(T) = f(T), ∇q(T) = ∇f(T),
+    and where 2G_p is positive definite, for any multiplier λ ≥ 0, g(λ) = min_T' q(T') − λᵀT' ≤ q(T*) ≤ f* (T* ≥ 0
+    the optimum), and with δ = ∇f(T) − λ
 
-        f(T) − g(λ) = λᵀT + ½ δᵀ(2G)⁻¹δ
+        f(T) − g(λ) = λᵀT + ½ δᵀ(2G_p)⁻¹δ
 
-    (f − λᵀT is quadratic with Hessian 2G, minimised at T − (2G)⁻¹δ). With λ = max(∇f(T), 0) on the offsets held
-    at 0 (at most a share of the peak, for each of ``shares``; the smallest bound over them) and 0 elsewhere, both
-    terms vanish at the optimum and the bound is
-    second order in T's KKT residual (the first-order bound of :func:`certified_gap` is first order in it). No
-    cancellation: both terms are non-negative. ``inverse`` applies (2G)⁻¹ to (P, K) rows; ``applies`` (P,) says
-    where the pixel's objective is that quadratic; elsewhere the bound is 1 (no information). Relative to
-    ``primal`` = f(T)."""
+    (q − λᵀT' is quadratic with Hessian 2G_p, minimised at T − (2G_p)⁻¹δ). With λ = max(∇f(T), 0) on the offsets
+    held at 0 (at most a share of the peak, for each of ``shares``; the smallest bound over them) and 0 elsewhere,
+    both terms vanish at the optimum and the bound is second order in T's KKT residual (the first-order bound of
+    :func:`certified_gap` is first order in it). No cancellation: both terms are non-negative. ``quadratic`` maps
+    (P, K) rows δ to each pixel's δᵀ(2G_p)⁻¹δ (P,) (the shared (2G)⁻¹ where every frame is kept;
+    :func:`kept_quadratic` otherwise); ``applies`` (P,) says where 2G_p is positive definite; elsewhere the bound is
+    1 (no information).
+    Relative to ``primal`` = f(T)."""
     peak = xp.max(t, axis=-1, keepdims=True)
     gap = None
     for share in shares:
         lam = xp.where(t <= share * peak, xp.maximum(gradient, 0.0), 0.0)
         delta = gradient - lam
-        candidate = xp.sum(lam * t, axis=-1) + 0.5 * xp.sum(delta * inverse(delta), axis=-1)
+        candidate = xp.sum(lam * t, axis=-1) + 0.5 * quadratic(delta)
         gap = candidate if gap is None else xp.minimum(gap, candidate)
     tiny = xp.finfo(t.dtype).tiny
     relative = xp.where(primal > 0, xp.minimum(xp.maximum(gap, 0.0) / xp.maximum(primal, tiny), 1.0), 0.0)
     return xp.where(applies, relative, 1.0)
+
+
+#: the margin below which a pixel's Woodbury core M = I − 2A_R(2G)⁻¹A_Rᵀ (eigenvalues in (0, 1] where its reduced
+#: Hessian is positive definite) does not count as positive definite: :func:`kept_quadratic` factorises M − floor·I,
+#: whose inverse is above M⁻¹ (a looser bound, never a wrong one), and gives up where that is not positive definite,
+#: so rounding of M (~1e-16 of its entries, which are at most ~1) stays below a millionth of what it proves
+WOODBURY_FLOOR = 1e-9
+
+
+def kept_quadratic(problem: DemuxProblem, kept: np.ndarray):
+    """Each pixel's quadratic form δᵀ(2G_p)⁻¹δ with 2G_p = 2(A_EᵀA_E + αDᵀD) over its kept frames E (``kept``
+    (P, N) bool), from the shared H = (2G)⁻¹ by Woodbury: with R the frames left out, 2G_p = 2G − 2A_RᵀA_R and
+
+        (2G_p)⁻¹ = H + 2 H A_Rᵀ M⁻¹ A_R H,   M = I − 2 A_R H A_Rᵀ  (|R| × |R|),   so
+        δᵀ(2G_p)⁻¹δ = δᵀHδ + 2 ‖L⁻¹v‖²,   v = A_R H δ,  LLᵀ = M (− :data:`WOODBURY_FLOOR` · I),
+
+    so a pixel pays a Cholesky factor of its |R| × |R| core (C = A H Aᵀ's submatrix on R, C shared), not a K × K
+    factorisation, and 2G_p is positive definite exactly where M is (Schur complement). Float64, host (pixels grouped
+    by |R|, one batched factorisation a group; eigenvalues only where one of a group's factors fails). Returns
+    (``quadratic``: (P, K) rows ↦ (P,), ``applies`` (P,) bool: 2G positive definite and M − floor·I too). Dense
+    problems only."""
+    kept = np.asarray(kept, bool)
+    h, a = problem.inverse, problem.illumination
+    removed = ~kept
+    counts = removed.sum(axis=1)
+    applies = np.full(kept.shape[0], bool(problem.definite))
+    groups = []
+    if problem.definite:
+        core = a @ h @ a.T
+        for r in np.unique(counts[counts > 0]):
+            rows = np.flatnonzero(counts == r)
+            index = np.nonzero(removed[rows])[1].reshape(rows.size, r)  # each row's left-out frames, in order
+            shifted = (1.0 - WOODBURY_FLOOR) * np.eye(r) - 2.0 * core[index[:, :, None], index[:, None, :]]
+            try:
+                factor = np.linalg.cholesky(shifted)
+            except np.linalg.LinAlgError:  # some pixel's M is (nearly) singular: find which, factor the others
+                ok = np.linalg.eigvalsh(shifted)[:, 0] > WOODBURY_FLOOR  # a margin, so that their factors exist
+                applies[rows[~ok]] = False
+                factor = np.linalg.cholesky(np.where(ok[:, None, None], shifted, np.eye(r)))
+            groups.append((rows, index, np.linalg.inv(factor)))
+
+    def quadratic(delta):
+        hd = delta @ h
+        value = np.sum(delta * hd, axis=-1)
+        if groups:
+            v = hd @ a.T
+            for rows, index, whitening in groups:
+                w = np.einsum("pij,pj->pi", whitening, np.take_along_axis(v[rows], index, axis=1))
+                value[rows] += 2.0 * np.sum(w**2, axis=-1)
+        return value
+
+    return quadratic, applies
+
+
+def kkt_bound(problem: DemuxProblem, transport: np.ndarray, data: np.ndarray, weight: np.ndarray | None = None,
+              clipped: np.ndarray | None = None) -> np.ndarray:
+    """:func:`kkt_gap` of each pixel of a dense problem in float64, each with the Hessian of its observed unclipped
+    frames (:func:`kept_quadratic`); 1 where it does not apply (2G or a pixel's 2G_p not positive definite).
+    Arguments as for :func:`certified_gap`."""
+    t = np.asarray(transport, np.float64)
+    if weight is not None:
+        weight = (np.asarray(weight) > 0).astype(np.float64)
+    residual, _ = _residual(problem, t, data, weight, clipped)
+    gradient = 2.0 * residual @ problem.illumination + 2.0 * problem.alpha * _dtd_np(t) + problem.beta
+    primal = (residual**2).sum(-1) + problem.alpha * _smoothness(problem, t) + problem.beta * t.sum(-1)
+    kept = np.isfinite(np.asarray(data, np.float64))
+    if weight is not None:
+        kept &= weight > 0
+    if clipped is not None:
+        kept &= ~np.asarray(clipped, bool)
+    quadratic, applies = kept_quadratic(problem, kept)
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        relative = kkt_gap(np, t, gradient, quadratic, primal, applies)
+    return np.where(np.isfinite(relative), relative, 1.0)
 
 
 def certified_gap(problem: DemuxProblem | SeparableDemuxProblem, transport: np.ndarray, data: np.ndarray,
@@ -120,8 +199,9 @@ def certified_gap(problem: DemuxProblem | SeparableDemuxProblem, transport: np.n
     A clipped frame's term max(0, y − r)² has the conjugate u y + u²/4 for u ≤ 0 (+∞ above): the same with the
     constraint u ≤ 0, which its gradient u = 2 min(0, AT − y), every θ ≥ 0 and a shift on unclipped frames keep.
 
-    Where every frame of a pixel is observed and unclipped and 2G is positive definite, the smaller of this bound
-    and :func:`kkt_gap`'s (second order in the KKT residual) is returned: both are bounds.
+    For a dense problem whose 2G is positive definite, the smaller of this bound and :func:`kkt_gap`'s (second
+    order in the KKT residual) is returned: both are bounds. A pixel with masked or clipped frames takes the latter
+    with its own Hessian over its observed unclipped frames (:func:`kept_quadratic`), where that is positive definite.
     """
     t = np.asarray(transport, np.float64)
     if weight is not None:  # a frame is observed or not (the solver's rule): a fractional weight is not this QP's
@@ -153,8 +233,6 @@ def certified_gap(problem: DemuxProblem | SeparableDemuxProblem, transport: np.n
         primal = b + problem.beta * t.sum(-1)
         gap = np.maximum(primal - dual, 0.0)
         relative = np.where(primal > 0, np.minimum(gap / primal, 1.0), 0.0)
-        if isinstance(problem, DemuxProblem) and problem.definite:
-            applies = np.all(e * np.isfinite(np.asarray(data, np.float64)) > 0, axis=-1)
-            relative = np.minimum(relative, kkt_gap(np, t, z + problem.beta, lambda v: v @ problem.inverse,
-                                                    primal, applies))
+    if isinstance(problem, DemuxProblem) and problem.definite:
+        relative = np.minimum(relative, kkt_bound(problem, t, data, weight, clipped))
     return np.where(np.isfinite(relative), relative, 1.0)

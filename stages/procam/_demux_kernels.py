@@ -330,8 +330,8 @@ def certified_gap(ops, rows: Rows, t, *, masked: bool, steps: int = DUAL_SEARCH_
     first_order = jnp.where(primal > 0, jnp.minimum(gap / jnp.maximum(primal, tiny), 1.0), 0.0)
     if not isinstance(ops, DenseOperators):  # the separable problem keeps the first-order bound only
         return first_order
-    return jnp.minimum(first_order, kkt_gap(jnp, t, z + rows.beta, ops.inverse, primal, applies & (ops.definite > 0),
-                                            shares))
+    return jnp.minimum(first_order, kkt_gap(jnp, t, z + rows.beta, lambda d: jnp.sum(d * ops.inverse(d), axis=-1),
+                                            primal, applies & (ops.definite > 0), shares))
 
 
 def _gradient(ops, rows: Rows, t):

@@ -38,7 +38,8 @@ DESIGN §6), so this is a batched ADMM in plain JAX (kernels in
   one of :func:`~stages.procam._demux_certificate.kkt_gap`, second order in the KKT residual: on float32 solves stopped
   at ``tol`` it is typically 1–15× above the true gap at the median (the first-order one alone 10–200×), but far
   above it where T's KKT conditions are off (p99 0.1–0.3) (``converged`` means the residual test or a bound ≤
-  ``gap_tol``);
+  ``gap_tol``); a pixel with masked or clipped frames gets the Lagrangian one after the solve, on the host in
+  float64, with its own Hessian by Woodbury from the shared one (:meth:`DemuxADMM._certify_partial`);
 * optionally (``finish_rounds``) an exact finish: primal–dual active-set rounds with float64 solves on each
   pixel's free offsets (:mod:`stages.procam._demux_finish`), which takes every pixel's bound to ≤ ``gap_tol`` at
   2–8× ADMM's time (``benchmarks/demux_catalogue.py``).
@@ -73,6 +74,7 @@ import numpy as np
 
 from stages._solution import Result, Solution, outcome, raise_if_failed
 from stages.procam import _demux_kernels as kernels
+from stages.procam._demux_certificate import kkt_bound
 from stages.procam._demux_finish import active_set_finish
 from stages.procam._demux_kernels import MIN_BATCH, Batch, Limits, Rows, State, alive, compact_at
 from stages.procam._demux_problem import DemuxProblem, SeparableDemuxProblem
@@ -216,6 +218,8 @@ class DemuxADMM:
             objective[lost] = problem.objective(start.transport[lost], np.where(weight, data, 0.0)[lost],
                                                 weight[lost], clipped[lost]).astype(objective.dtype)
             done[lost] = True
+        if isinstance(problem, DemuxProblem) and problem.definite and (any_clipped or not weight.all()):
+            gap, done = self._certify_partial(problem, data, weight, clipped, transport, gap, np.array(done))
         if self.finish_rounds and isinstance(problem, DemuxProblem):
             transport, objective, gap, done = self._finish(problem, data, weight, clipped, transport, objective,
                                                            gap, np.array(done))
@@ -230,6 +234,19 @@ class DemuxADMM:
         if self.throw:
             raise_if_failed(solution, "DemuxADMM", items="pixels")
         return solution
+
+    def _certify_partial(self, problem: DemuxProblem, data, weight, clipped, transport, gap, done):
+        """The KKT bound, in float64 on the host, of the finite pixels with masked or clipped frames whose bound
+        exceeds ``gap_tol`` (the solver's kernels give those the first-order bound only: their Hessian is their own,
+        here by Woodbury from the shared one, :func:`~stages.procam._demux_certificate.kkt_bound`); each such
+        pixel keeps the smaller bound, and is converged where it is at most ``gap_tol``."""
+        partial = ~(weight & ~clipped).all(axis=1)
+        scope = np.flatnonzero(partial & (gap > self.gap_tol) & np.isfinite(transport).all(axis=1))
+        if scope.size:
+            host = kkt_bound(problem, transport[scope], data[scope], weight[scope], clipped[scope])
+            gap[scope] = np.minimum(gap[scope], host).astype(gap.dtype)
+            done[scope] |= gap[scope] <= self.gap_tol
+        return gap, done
 
     def _finish(self, problem: DemuxProblem, data, weight, clipped, transport, objective, gap, done):
         """The exact active-set finish on the finite pixels whose bound exceeds ``gap_tol``; their objective, bound
