@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from stages.procam._demux_certificate import certified_gap
+from stages.procam._demux_certificate import DUAL_STEPS, certified_gap
 from stages.procam._demux_problem import DemuxProblem
 from stages.procam._illumination import difference_operator
 
@@ -38,12 +38,14 @@ _SEARCH = 0
 
 def active_set_finish(problem: DemuxProblem, transport: np.ndarray, data: np.ndarray, bound: np.ndarray, *,
                       rounds: int, gap_tol: float, weight: np.ndarray | None = None,
-                      clipped: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+                      clipped: np.ndarray | None = None, dual_steps: int = DUAL_STEPS) -> tuple[np.ndarray, np.ndarray]:
     """Up to ``rounds`` exact active-set rounds on the pixels whose ``bound`` exceeds ``gap_tol``.
 
     ``transport`` (P, K) is ADMM's answer in the data's units, ``data`` (P, N) with ``weight`` (0/1, None: all
     observed; non-finite data are masked) and ``clipped`` flags (data there the clip level), ``bound`` (P,) its
-    certified bounds. Returns (transport in ``transport``'s dtype, the float64 certified bound of that returned
+    certified bounds; ``dual_steps`` of the KKT bound's dual ascent for the returned answers (none in the rounds,
+    whose exact free-set solves leave no weak-direction residual for it to remove, nor for the incoming answer they
+    are compared with). Returns (transport in ``transport``'s dtype, the float64 certified bound of that returned
     transport), each pixel's never worse than it came.
     """
     transport, bound = np.array(transport), np.array(bound, np.float64)
@@ -64,7 +66,8 @@ def active_set_finish(problem: DemuxProblem, transport: np.ndarray, data: np.nda
     # start from the float64 bound of the incoming answer (the solver's is float32 and may read low), so every
     # returned bound of these pixels is a float64 one of the returned transport
     best_t = transport[todo]
-    best_bound = certified_gap(problem, best_t.astype(np.float64), raw, seen, clip, search_steps=_SEARCH)
+    best_bound = certified_gap(problem, best_t.astype(np.float64), raw, seen, clip, search_steps=_SEARCH,
+                               dual_steps=0)  # the rounds' own bound, so that a round's answer is judged alike
     live = np.flatnonzero(best_bound > gap_tol)  # rows of todo still in the rounds
     free = t > 0
     for round_ in range(rounds):
@@ -80,12 +83,26 @@ def active_set_finish(problem: DemuxProblem, transport: np.ndarray, data: np.nda
         t[live] = _solve_free(problem, frames, y_l, beta[live], free[live], smooth)
         candidate = (np.maximum(t[live], 0.0) * scale[live]).astype(transport.dtype)  # as returned: the proof's T
         gap = certified_gap(problem, candidate.astype(np.float64), raw[live], seen[live], clip[live],
-                            search_steps=_SEARCH)
+                            search_steps=_SEARCH, dual_steps=0)
         better = gap < best_bound[live]
         best_t[live[better]], best_bound[live[better]] = candidate[better], gap[better]
         live = live[best_bound[live] > gap_tol]
-    # the returned bound is certified_gap's own (with its dual search: never above the rounds' search-free one)
-    transport[todo], bound[todo] = best_t, certified_gap(problem, best_t.astype(np.float64), raw, seen, clip)
+    # the returned bound is certified_gap's own (with its dual search: never above the rounds' search-free one, and
+    # its dual ascent); where a round's answer replaced the incoming one, the better of the two by that bound (the
+    # ascent can favour the incoming answer that the rounds' bound ranked below)
+    final = certified_gap(problem, best_t.astype(np.float64), raw, seen, clip, dual_steps=0)
+    loose = np.flatnonzero(final > gap_tol) if dual_steps else np.zeros(0, int)  # the ascent only where it may matter
+    if loose.size:
+        final[loose] = certified_gap(problem, best_t[loose].astype(np.float64), raw[loose], seen[loose], clip[loose],
+                                     dual_steps=dual_steps)
+    # candidates for going back: a round's answer whose bound is above the incoming one's (the caller's, in its dtype)
+    changed = np.flatnonzero(np.any(best_t != transport[todo], axis=1) & (bound[todo] < final))
+    if dual_steps and changed.size:
+        incoming = certified_gap(problem, transport[todo[changed]].astype(np.float64), raw[changed], seen[changed],
+                                 clip[changed], dual_steps=dual_steps)
+        back = changed[incoming < final[changed]]
+        best_t[back], final[back] = transport[todo[back]], incoming[incoming < final[changed]]
+    transport[todo], bound[todo] = best_t, final
     return transport, bound
 
 

@@ -271,15 +271,16 @@ def stream(ops, limits: Limits, pool: Rows, z0, live, *, check_every: int, maske
     return jax.lax.while_loop(keep_going, body, (pixel, rows, batch, jnp.asarray(slots, pixel.dtype), out))
 
 
-@partial(jax.jit, static_argnames=("polish_iter", "polish_rounds", "masked", "chunk"))
-def finish(ops, pool: Rows, scale, z, *, polish_iter: int, polish_rounds: int, masked: bool, chunk: int):
+@partial(jax.jit, static_argnames=("polish_iter", "polish_rounds", "dual_steps", "masked", "chunk"))
+def finish(ops, pool: Rows, scale, z, *, polish_iter: int, polish_rounds: int, dual_steps: int, masked: bool,
+           chunk: int):
     """The polish (conjugate gradients on the free offsets' KKT system, kept where it lowers the objective; after
     the first round, offsets held at 0 whose gradient is negative are freed too), then T, its objective in the
-    data's units and the certified gap bound."""
+    data's units and the certified gap bound (with ``dual_steps`` of the KKT bound's dual ascent)."""
 
     def rows_of(y, weight, clipped, two_aty, b_pixel, scale, z):
         return _finish_rows(ops, Rows(y, weight, clipped, two_aty, b_pixel), scale, z, polish_iter=polish_iter,
-                            polish_rounds=polish_rounds, masked=masked)
+                            polish_rounds=polish_rounds, dual_steps=dual_steps, masked=masked)
 
     return _in_chunks(rows_of, chunk, *pool, scale, z)
 
@@ -299,12 +300,14 @@ def gaps(ops, pool: Rows, z, *, chunk: int, masked: bool):
                                                shares=START_SHARES), chunk, *pool, z)
 
 
-def certified_gap(ops, rows: Rows, t, *, masked: bool, steps: int = DUAL_SEARCH_STEPS, shares=KKT_HELD):
+def certified_gap(ops, rows: Rows, t, *, masked: bool, steps: int = DUAL_SEARCH_STEPS, shares=KKT_HELD,
+                  dual_steps: int = 0):
     """:func:`stages.procam._demux_certificate.certified_gap` (the methods and their proofs are there: the first-order
     bound, and for dense problems on fully observed, unclipped pixels the smaller KKT bound) on the scaled data,
     in the solver's dtype, with ``steps`` of the dual search and the KKT bound's ``shares``: about as much as two
-    to four iterations. Where no frame of the call is masked or clipped (``masked`` False) every frame is in the
-    dual's shift, whose Aᵀe is then one row for all pixels. In float32 it is a bound up to rounding (within 15 %
+    to four iterations; and ``dual_steps`` of the KKT bound's dual ascent, one K × K product each. Where no frame
+    of the call is masked or clipped (``masked`` False) every frame is in the dual's shift, whose Aᵀe is then one
+    row for all pixels. In float32 it is a bound up to rounding (within 15 %
     or 1e-4 of the float64 reference on the solver's tests, where the bound lies at 1e-5 to 3e-3: the most negative
     gradient entry decides it and carries float32 rounding)."""
     prediction = ops.forward(t)
@@ -331,7 +334,8 @@ def certified_gap(ops, rows: Rows, t, *, masked: bool, steps: int = DUAL_SEARCH_
     if not isinstance(ops, DenseOperators):  # the separable problem keeps the first-order bound only
         return first_order
     return jnp.minimum(first_order, kkt_gap(jnp, t, z + rows.beta, lambda d: jnp.sum(d * ops.inverse(d), axis=-1),
-                                            primal, applies & (ops.definite > 0), shares))
+                                            primal, applies & (ops.definite > 0), shares, inverse=ops.inverse,
+                                            step=ops.dual_step, steps=dual_steps))
 
 
 def _gradient(ops, rows: Rows, t):
@@ -367,7 +371,8 @@ def _polish(ops, rows: Rows, z, before, free, *, polish_iter: int, masked: bool)
     return jnp.where(better[:, None], polished, z), jnp.where(better, value, before)
 
 
-def _finish_rows(ops, rows: Rows, scale, z, *, polish_iter: int, polish_rounds: int, masked: bool):
+def _finish_rows(ops, rows: Rows, scale, z, *, polish_iter: int, polish_rounds: int, dual_steps: int,
+                 masked: bool):
     dtype = rows.y.dtype
     value = _objective(ops, rows, z)
     if polish_iter:
@@ -376,4 +381,4 @@ def _finish_rows(ops, rows: Rows, scale, z, *, polish_iter: int, polish_rounds: 
             if round_:  # an offset held at 0 whose gradient is negative would lower f: free it (an active-set step)
                 free = free | (_gradient(ops, rows, z) < 0)
             z, value = _polish(ops, rows, z, value, free.astype(dtype), polish_iter=polish_iter, masked=masked)
-    return z * scale, value * scale[:, 0] ** 2, certified_gap(ops, rows, z, masked=masked)
+    return z * scale, value * scale[:, 0] ** 2, certified_gap(ops, rows, z, masked=masked, dual_steps=dual_steps)

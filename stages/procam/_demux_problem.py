@@ -62,6 +62,9 @@ class DemuxProblem:
     #: 2G is positive definite (its smallest eigenvalue above 1e-12 of its largest): then (2G)⁺ = (2G)⁻¹ and the
     #: KKT bound of :func:`stages.procam._demux_certificate.kkt_gap` holds
     definite: bool = False
+    #: λ_min(2G) where 2G is positive definite (else 0): the step of the KKT bound's dual ascent, whose gradient
+    #: (2G)⁻¹δ − T is 1/λ_min(2G)-Lipschitz in the multipliers
+    dual_step: float = 0.0
 
     @classmethod
     def build(cls, illumination: np.ndarray, *, alpha: float = DEFAULT_ALPHA, beta: float = DEFAULT_BETA,
@@ -80,7 +83,7 @@ class DemuxProblem:
         update = np.linalg.inv(gram2 + rho * np.eye(k))
         definite = bool(k) and float(eigenvalues[0]) > 1e-12 * top
         return cls(illumination, float(alpha), float(beta), float(rho), gram2, update, np.linalg.pinv(gram2),
-                   definite)
+                   definite, float(eigenvalues[0]) if definite else 0.0)
 
     @property
     def frames(self) -> int:
@@ -94,7 +97,8 @@ class DemuxProblem:
         """The operators the solver's kernels apply, as JAX arrays of ``dtype``."""
         cast = _caster(dtype)
         return DenseOperators(*map(cast, (self.illumination, self.gram2, self.update, self.inverse, self.alpha,
-                                          self.beta, self.rho, float(self.definite))))
+                                          self.beta, self.rho, float(self.definite),
+                                          self.dual_step if self.definite else 0.0)))
 
     def forward(self, transport: np.ndarray, dtype=np.float64) -> np.ndarray:
         """(P, K) transport → (P, N) predicted observations, in ``dtype`` (the reference's float64 by default)."""
@@ -244,6 +248,7 @@ class DenseOperators(NamedTuple):
     beta: jnp.ndarray
     rho: jnp.ndarray
     definite: jnp.ndarray  # 1 where 2G is positive definite (the KKT bound holds), else 0
+    dual_step: jnp.ndarray  # λ_min(2G) where definite, else 0 (DemuxProblem.dual_step)
 
     def forward(self, t):
         """A T per pixel: (P, K) → (P, N)."""

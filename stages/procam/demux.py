@@ -49,7 +49,7 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
                        offsets: OffsetGrid | None = None, alpha: NonNegative = DEFAULT_ALPHA,
                        beta: NonNegative = DEFAULT_BETA, tol: Positive = DemuxADMM.DEFAULT_TOL,
                        gap_tol: GapTol = DemuxADMM.DEFAULT_GAP_TOL, finish_rounds: FinishRounds = 0,
-                       max_iter: MaxIter = DemuxADMM.DEFAULT_MAX_ITER,
+                       dual_steps: Index = DemuxADMM.DEFAULT_DUAL_STEPS, max_iter: MaxIter = DemuxADMM.DEFAULT_MAX_ITER,
                        polish_iter: Index = DemuxADMM.DEFAULT_POLISH_ITER,
                        boundary_margin_us: NonNegative | None = None, sync_offset_us: float | None = None,
                        full_scale: Positive | None = None, rows_per_tile: Count = 32,
@@ -60,7 +60,8 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
     ``full_scale``; T is returned in counts. A frame at or above ``saturation_counts`` is kept as a lower bound
     (the one-sided penalty max(0, s − A_i T)²); a non-finite one is masked. Besides T, per pixel: iterations,
     ``converged``, objective, ``gap_bound`` (a certified upper bound on the relative objective gap
-    (f(T) − f*)/f(T), from weak duality: conservative, as tight as T's KKT conditions), ``frames_used`` and
+    (f(T) − f*)/f(T), from weak duality: conservative, as tight as T's KKT conditions and ``dual_steps`` make it),
+    ``frames_used`` and
     ``frames_clipped``, ``censored`` and ``censored_offsets`` (offsets whose light was seen only clipped: T there
     is a lower bound, and the pixel is not ``converged``) and ``clip_ratio`` (how much dimmer the light must be for
     nothing to clip). ``uncensored_fraction`` (0-d) is the share of pixels not censored, ``certified_fraction`` (0-d)
@@ -105,6 +106,13 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
         ADMM's 9–43 µs/px; in the stage's calls on the benchmark stack (``benchmarks/demux_throughput.py``
         --quick), 67 against 7.2 µs/px, bound median 3.1e-3 → 1.2e-6, max 0.18 → 8.5e-5. Use it when each
         pixel's answer must be proven.
+    dual_steps : int
+        Steps of the certificate's dual ascent (projected accelerated gradient on the KKT bound's multipliers, one
+        K × K product per pixel each; 0: the fixed multipliers alone). It tightens ``gap_bound``, not T: measured
+        (``benchmarks/demux_catalogue.py``, thesis K = 128, 8192 px, float32 defaults), bound median / p99 and
+        certified share 3.0e-4 / 0.18 / 32 % with 0 steps, 1.1e-4 / 1.1e-2 / 49 % with 10 (the default, +21–27 %
+        of the solve's time at K = 64–256), 9.1e-5 / 8.0e-3 / 52 % with 20; the true gap's median there is
+        9.0e-5. 0 for the last bit of throughput where proven accuracy does not matter.
     max_iter : int
         Iteration cap, in [1, 1 000 000]; a pixel that reaches it is flagged unconverged. A solver call streams its
         pixels through a batch refilled as they converge, so the cap bounds only the slow ones.
@@ -133,8 +141,8 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
     stack = capture[["image"]].chunk({"delay": -1, "exposure": -1, "row": rows_per_tile, "col": -1})
     template = transport_template(capture, ("offset",), (grid.size,), stack.chunksizes["row"], dtype)
     levels = {"dark": dark, "full_scale": scale, "saturation": saturation}
-    solver = DemuxADMM(tol=tol, gap_tol=gap_tol, finish_rounds=finish_rounds, max_iter=max_iter,
-                       polish_iter=polish_iter, dtype=dtype)
+    solver = DemuxADMM(tol=tol, gap_tol=gap_tol, finish_rounds=finish_rounds, dual_steps=dual_steps,
+                       max_iter=max_iter, polish_iter=polish_iter, dtype=dtype)
     out = xr.map_blocks(_band, stack.assign_attrs({}), kwargs={
         "solver": solver, "problem": problem, "keep": keep, "levels": levels}, template=template)
     out = out.assign_coords(offset=("offset", grid, {"units": "px", "long_name": "projector row − camera row"}))
@@ -143,4 +151,4 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
     return out.assign_attrs(transport_attrs(
         "plane_to_ray_transport", capture, timing=timing, delays=delays, exposures=exposures, keep=keep, margin=margin,
         full_scale=scale, alpha=alpha, beta=beta, tol=tol, gap_tol=gap_tol, finish_rounds=finish_rounds,
-        max_iter=max_iter, polish_iter=polish_iter, dtype=dtype))
+        dual_steps=dual_steps, max_iter=max_iter, polish_iter=polish_iter, dtype=dtype))

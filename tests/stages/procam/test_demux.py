@@ -90,7 +90,9 @@ def test_gap_tol_is_a_stage_setting_and_a_certified_pixel_is_converged():
     assert finished.attrs["finish_rounds"] == 4
     assert finished["converged"].mean() > converged.mean()  # the finish certifies pixels ADMM left unproven
     assert float(finished["certified_fraction"]) > converged.mean()
-    assert np.all(finished["gap_bound"].values <= np.maximum(bound, 1e-3))
+    # never worse than it came, up to the float64 recomputation of a float32 bound of the same T (1e-5 relative:
+    # where the finish's rounds do not improve on ADMM's answer, it returns that answer with its float64 bound)
+    assert np.all(finished["gap_bound"].values <= np.maximum(bound, 1e-3) * (1 + 1e-5))
 
 
 def test_transport_matches_the_simulator_truth(noise_free):

@@ -24,16 +24,17 @@ def test_the_finish_certifies_every_pixel_and_reaches_clarabels_optimum(case):
     truth = sparse_transport(rng, 16, offsets)
     data = truth @ a.T + rng.normal(0, 2e-3, (16, a.shape[0]))
     problem = DemuxProblem.build(a)
-    # ADMM stopped early (8 iterations), so that its answers leave the finish work: at the defaults the KKT bound
-    # certifies most of them to 1e-6 without it
-    plain = DemuxADMM(gap_tol=1e-6, max_iter=8).solve(problem, data)
-    finished = DemuxADMM(gap_tol=1e-6, max_iter=8, finish_rounds=6).solve(problem, data)
+    # ADMM stopped early (8 iterations) and its KKT bound without the dual ascent, so that its answers leave the
+    # finish work: at the defaults the KKT bound certifies most of them to 1e-6 without it (all of the wide case's)
+    plain = DemuxADMM(gap_tol=1e-6, max_iter=8, dual_steps=0).solve(problem, data)
+    finished = DemuxADMM(gap_tol=1e-6, max_iter=8, dual_steps=0, finish_rounds=6).solve(problem, data)
     # measured: ADMM's bound max 0.44 / 0.22 / 2.2e-3 / 8.0e-2 (well-posed, rank-deficient, wide, slow); finished
     # max 1.3e-5 / 4.8e-6 / 1.5e-5 / 5.9e-6 (the float32 rounding of the returned T is the floor)
     bound, touched = finished.stats["gap_bound"], plain.stats["gap_bound"] > 1e-6
     assert touched.any()  # measured: 9, 13, 1 and 16 of 16 left to the finish (well-posed, rank-deficient, wide, slow)
     # a finished pixel's bound is of the returned (float32) transport in float64: a proof, recomputed here
-    np.testing.assert_allclose(bound[touched], certified_gap(problem, finished.value.astype(float), data)[touched],
+    np.testing.assert_allclose(bound[touched], certified_gap(problem, finished.value.astype(float), data,
+                                                             dual_steps=0)[touched],
                                rtol=1e-6, atol=1e-15)  # the bound is stored in float32
     assert bound.max() <= 1e-4, (bound.max(), plain.stats["gap_bound"].max())
     # with the finish, converged means certified to gap_tol (1e-6 here: below the float32 floor for most pixels)
@@ -72,7 +73,11 @@ def test_pixels_with_masked_and_clipped_frames_are_finished_to_clarabels_optimum
     seen = np.isfinite(data)
     recomputed = certified_gap(problem, finished.value.astype(float), data, seen, clipped)
     touched = plain.stats["gap_bound"] > 1e-6  # the others ADMM certified itself: the solver's float32 bound
-    np.testing.assert_allclose(bound[touched], recomputed[touched], rtol=1e-6, atol=1e-15)
+    # a finished pixel's bound is a float64 one of the returned T: with the dual ascent where it was above gap_tol
+    # without it (the finish's rule), so between the two recomputed here
+    fixed = certified_gap(problem, finished.value.astype(float), data, seen, clipped, dual_steps=0)
+    assert np.all(bound[touched] >= recomputed[touched] * (1 - 1e-6) - 1e-15)
+    assert np.all(bound[touched] <= fixed[touched] * (1 + 1e-6) + 1e-15)
     np.testing.assert_allclose(bound[~touched], recomputed[~touched], rtol=2e-2, atol=1e-9)
     optimum = reference(problem, data, seen, clipped)
     value = problem.objective(finished.value.astype(float), data, seen, clipped)
