@@ -17,7 +17,6 @@ import numpy as np
 
 from stages.procam._demux_problem import DemuxProblem, SeparableDemuxProblem, _dtd_np, _residual, _smoothness
 
-
 #: golden-section steps of the dual search in :func:`best_dual_value` (the interval shrinks 0.618× per step)
 DUAL_SEARCH_STEPS = 16
 _GOLDEN = (5**0.5 - 1) / 2
@@ -77,9 +76,9 @@ KKT_HELD = (0.0, 1e-6, 1e-4, 1e-2)
 
 
 #: projected accelerated gradient steps of the KKT bound's dual ascent (:func:`kkt_gap`) in the solver's final
-#: certificate: each costs one K × K product per pixel. Measured on ``benchmarks/demux_catalogue.py`` (thesis K = 128,
-#: float32 defaults, the bound's median / p99): 0 steps 3.0e-4 / 0.20, 10 steps 9.8e-5 / 1.0e-2, 20 steps 8.3e-5 /
-#: 7.4e-3, 50 steps 7.2e-5 / 5.1e-3, where the true gap's median is 9.0e-5
+#: certificate: each costs one K × K product per pixel. Measured ad hoc in float64 on the solver's float32 answers to
+#: ``benchmarks/demux_catalogue.py``'s thesis K = 128 case (the bound's median / p99): 0 steps 3.0e-4 / 0.20, 10 steps
+#: 9.8e-5 / 1.0e-2, 20 steps 8.3e-5 / 7.4e-3, 50 steps 7.2e-5 / 5.1e-3, where the true gap's median is 9.0e-5
 DUAL_STEPS = 10
 
 
@@ -160,10 +159,11 @@ def _dual_ascent(xp, t, gradient, inverse, lam, gap, step, steps):
     return carry[3]
 
 
-#: the margin below which a pixel's Woodbury core M = I − 2A_R(2G)⁻¹A_Rᵀ (eigenvalues in (0, 1] where its reduced
-#: Hessian is positive definite) does not count as positive definite: :func:`kept_hessian` factorises M − floor·I,
-#: whose inverse is above M⁻¹ (a looser bound, never a wrong one), and gives up where that is not positive definite,
-#: so rounding of M (~1e-16 of its entries, which are at most ~1) stays below a millionth of what it proves
+#: the least margin below which a pixel's Woodbury core M = I − 2A_R(2G)⁻¹A_Rᵀ (eigenvalues in (0, 1] where its
+#: reduced Hessian is positive definite) does not count as positive definite: :func:`kept_hessian` factorises
+#: M − floor·I, whose inverse is above M⁻¹ (a looser bound, never a wrong one), and gives up where that fails. The
+#: floor used is the larger of this and 1000 ε · tr(2G)/λ_min(2G) (an upper bound on cond(2G) times the float64 ε):
+#: M's entries, at most ~1, carry the error of (2G)⁻¹, about ε · cond(2G), which the floor must cover
 WOODBURY_FLOOR = 1e-9
 
 
@@ -184,30 +184,35 @@ def kept_hessian(problem: DemuxProblem, kept: np.ndarray) -> KeptHessian:
         δᵀ(2G_p)⁻¹δ = δᵀHδ + 2 ‖L⁻¹v‖²,   v = A_R H δ,  LLᵀ = M (− :data:`WOODBURY_FLOOR` · I),
 
     so a pixel pays a Cholesky factor of its |R| × |R| core (C = A H Aᵀ's submatrix on R, C shared), not a K × K
-    factorisation, and 2G_p is positive definite exactly where M is (Schur complement). Its smallest eigenvalue is at
-    least λ_min(2G) · min(1, λ_min(M)) (2G_p = (2G)^½ (I − 2H^½A_RᵀA_RH^½) (2G)^½, whose middle factor has M's
-    eigenvalues and ones) and λ_min(M) ≥ 1/‖L⁻¹‖_F²: the dual ascent's safe step. Float64, host (pixels grouped by
-    |R|, one batched factorisation a group; eigenvalues only where one of a group's factors fails). Dense problems
-    only."""
+    factorisation, and 2G_p is positive definite exactly where M is (Schur complement): ``applies`` where the factor
+    of M − floor·I exists (:data:`WOODBURY_FLOOR`). Its smallest eigenvalue is at least λ_min(2G) · min(1, λ_min(M))
+    (2G_p = (2G)^½ (I − 2H^½A_RᵀA_RH^½) (2G)^½, whose middle factor has M's eigenvalues and ones) and
+    λ_min(M) ≥ 1/‖L⁻¹‖_F²: the dual ascent's safe step. Float64, host (pixels grouped by |R|, one batched
+    factorisation a group, pixel by pixel only where one of a group's fails). Dense problems only."""
     kept = np.asarray(kept, bool)
     h, a = problem.inverse, problem.illumination
     removed = ~kept
     counts = removed.sum(axis=1)
-    applies = np.full(kept.shape[0], bool(problem.definite))
+    usable = bool(problem.definite) and problem.dual_step > 0  # dual_step: λ_min(2G), set by DemuxProblem.build
+    applies = np.full(kept.shape[0], usable)
     step = np.full((kept.shape[0], 1), problem.dual_step)
     groups = []
-    if problem.definite:
+    if usable:
         core = a @ h @ a.T
+        floor = max(WOODBURY_FLOOR, 1e3 * np.finfo(float).eps * np.trace(problem.gram2) / problem.dual_step)
         for r in np.unique(counts[counts > 0]):
             rows = np.flatnonzero(counts == r)
             index = np.nonzero(removed[rows])[1].reshape(rows.size, r)  # each row's left-out frames, in order
-            shifted = (1.0 - WOODBURY_FLOOR) * np.eye(r) - 2.0 * core[index[:, :, None], index[:, None, :]]
+            shifted = (1.0 - floor) * np.eye(r) - 2.0 * core[index[:, :, None], index[:, None, :]]
             try:
                 factor = np.linalg.cholesky(shifted)
-            except np.linalg.LinAlgError:  # some pixel's M is (nearly) singular: find which, factor the others
-                ok = np.linalg.eigvalsh(shifted)[:, 0] > WOODBURY_FLOOR  # a margin, so that their factors exist
-                applies[rows[~ok]] = False
-                factor = np.linalg.cholesky(np.where(ok[:, None, None], shifted, np.eye(r)))
+            except np.linalg.LinAlgError:  # some pixel's M − floor·I is not positive definite: each on its own
+                factor = np.empty_like(shifted)
+                for i, matrix in enumerate(shifted):
+                    try:
+                        factor[i] = np.linalg.cholesky(matrix)
+                    except np.linalg.LinAlgError:
+                        applies[rows[i]], factor[i] = False, np.eye(r)
             whitening = np.linalg.inv(factor)
             step[rows, 0] *= np.minimum(1.0, 1.0 / np.sum(whitening**2, axis=(1, 2)))
             groups.append((rows, index, whitening))
@@ -251,9 +256,9 @@ def kkt_bound(problem: DemuxProblem, transport: np.ndarray, data: np.ndarray, we
     residual, _ = _residual(problem, t, data, weight, clipped)
     gradient = 2.0 * residual @ problem.illumination + 2.0 * problem.alpha * _dtd_np(t) + problem.beta
     primal = (residual**2).sum(-1) + problem.alpha * _smoothness(problem, t) + problem.beta * t.sum(-1)
-    kept = np.isfinite(np.asarray(data, np.float64))
-    if weight is not None:
-        kept &= weight > 0
+    # the frames the objective counts (weight None: all of them, non-finite data as 0 like _residual; the solver
+    # always passes its weight, which masks them) less the clipped ones
+    kept = np.ones(np.shape(data), bool) if weight is None else weight > 0
     if clipped is not None:
         kept &= ~np.asarray(clipped, bool)
 
@@ -261,7 +266,7 @@ def kkt_bound(problem: DemuxProblem, transport: np.ndarray, data: np.ndarray, we
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         gap, lam = _kkt_shares(np, t, gradient, hessian.quadratic, KKT_HELD)
         relative = _relative(np, gap, primal, hessian.applies)
-        rows = np.flatnonzero(relative > above) if dual_steps else np.zeros(0, int)
+        rows = np.flatnonzero((relative > above) & hessian.applies) if dual_steps else np.zeros(0, int)
         if rows.size:  # the ascent with these pixels' own factors
             part = hessian if rows.size == t.shape[0] else kept_hessian(problem, kept[rows])
             ascended = _dual_ascent(np, t[rows], gradient[rows], part.inverse, lam[rows], gap[rows], part.step,

@@ -46,7 +46,9 @@ def active_set_finish(problem: DemuxProblem, transport: np.ndarray, data: np.nda
     certified bounds; ``dual_steps`` of the KKT bound's dual ascent for the returned answers (none in the rounds,
     whose exact free-set solves leave no weak-direction residual for it to remove, nor for the incoming answer they
     are compared with). Returns (transport in ``transport``'s dtype, the float64 certified bound of that returned
-    transport), each pixel's never worse than it came.
+    transport), each pixel's never worse than it came up to the rounding of the incoming bound (a pixel the rounds do
+    not improve returns its own answer with that answer's float64 bound, which may read ~1e-6 relative above a
+    float32 ``bound``).
     """
     transport, bound = np.array(transport), np.array(bound, np.float64)
     todo = np.flatnonzero(bound > gap_tol)

@@ -143,7 +143,7 @@ class DemuxADMM:
     its residuals say (checked at the warm start, where such a pixel is not iterated at all, and at the end);
     ``dual_steps``: projected accelerated gradient steps on the multipliers of the final certificate's KKT bound
     (its dual ascent, :func:`~stages.procam._demux_certificate.kkt_gap`: one K × K product per pixel each; 0: the
-    fixed multipliers alone, a bound 3–6× looser at the median and 10–100× at the p99 on the catalogue);
+    fixed multipliers alone, a bound up to 7× looser at the median and 18× at the p99 on the catalogue);
     ``finish_rounds``: exact active-set rounds (float64 free-set solves, :mod:`stages.procam._demux_finish`) on
     the pixels whose bound still exceeds ``gap_tol`` after the polish (dense problems; masked and clipped frames
     included); with it, ``converged`` means certified: bound ≤ ``gap_tol`` (in float64 for every pixel the finish

@@ -110,7 +110,7 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
         Steps of the certificate's dual ascent (projected accelerated gradient on the KKT bound's multipliers, one
         K × K product per pixel each; 0: the fixed multipliers alone). It tightens ``gap_bound``, not T: measured
         (``benchmarks/demux_catalogue.py``, thesis K = 128, 8192 px, float32 defaults), bound median / p99 and
-        certified share 3.0e-4 / 0.18 / 32 % with 0 steps, 1.1e-4 / 1.1e-2 / 49 % with 10 (the default, +21–27 %
+        certified share 3.0e-4 / 0.18 / 32 % with 0 steps, 1.1e-4 / 1.1e-2 / 49 % with 10 (the default, +21–28 %
         of the solve's time at K = 64–256), 9.1e-5 / 8.0e-3 / 52 % with 20; the true gap's median there is
         9.0e-5. 0 for the last bit of throughput where proven accuracy does not matter.
     max_iter : int
