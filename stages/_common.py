@@ -28,6 +28,10 @@ GapTol = Annotated[float, pydantic.Field(ge=0, lt=1)]
 #: rounds of an exact active-set finish: 0 (none) to 20 (it converges in a few or cycles)
 FinishRounds = Annotated[int, pydantic.Field(ge=0, le=20)]
 
+#: steps of a certificate's dual ascent: 0 (none) to 1000 (each costs about an iteration; past ~100 the bound is
+#: within 1e-4 of its limit on the solver tests' sweeps)
+DualSteps = Annotated[int, pydantic.Field(ge=0, le=1000)]
+
 
 def sweep_log(progress: bool):
     """Where an acquisition's messages (its plan, resuming, frames captured) go: the terminal, under the step's

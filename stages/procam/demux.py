@@ -18,7 +18,7 @@ import xarray as xr
 from pipeline.constraints import Count, Index, NonNegative, Positive
 from pipeline.errors import Problem, StageError
 from pipeline.registry import stage
-from stages._common import Dtype, FinishRounds, GapTol, MaxIter
+from stages._common import Dtype, DualSteps, FinishRounds, GapTol, MaxIter
 from stages.procam._demux_problem import DEFAULT_ALPHA, DEFAULT_BETA, DemuxProblem
 from stages.procam._demux_solver import DemuxADMM
 from stages.procam._demux_store import (
@@ -49,7 +49,8 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
                        offsets: OffsetGrid | None = None, alpha: NonNegative = DEFAULT_ALPHA,
                        beta: NonNegative = DEFAULT_BETA, tol: Positive = DemuxADMM.DEFAULT_TOL,
                        gap_tol: GapTol = DemuxADMM.DEFAULT_GAP_TOL, finish_rounds: FinishRounds = 0,
-                       dual_steps: Index = DemuxADMM.DEFAULT_DUAL_STEPS, max_iter: MaxIter = DemuxADMM.DEFAULT_MAX_ITER,
+                       dual_steps: DualSteps = DemuxADMM.DEFAULT_DUAL_STEPS,
+                       max_iter: MaxIter = DemuxADMM.DEFAULT_MAX_ITER,
                        polish_iter: Index = DemuxADMM.DEFAULT_POLISH_ITER,
                        boundary_margin_us: NonNegative | None = None, sync_offset_us: float | None = None,
                        full_scale: Positive | None = None, rows_per_tile: Count = 32,
@@ -108,11 +109,11 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
         pixel's answer must be proven.
     dual_steps : int
         Steps of the certificate's dual ascent (projected accelerated gradient on the KKT bound's multipliers, one
-        K × K product per pixel each; 0: the fixed multipliers alone). It tightens ``gap_bound``, not T: measured
-        (``benchmarks/demux_catalogue.py``, thesis K = 128, 8192 px, float32 defaults), bound median / p99 and
-        certified share 3.0e-4 / 0.18 / 32 % with 0 steps, 1.1e-4 / 1.1e-2 / 49 % with 10 (the default, +21–28 %
-        of the solve's time at K = 64–256), 9.1e-5 / 8.0e-3 / 52 % with 20; the true gap's median there is
-        9.0e-5. 0 for the last bit of throughput where proven accuracy does not matter.
+        K × K product per pixel each), in [0, 1000]; 0: the fixed multipliers alone. It tightens ``gap_bound``,
+        not T. Measured (``benchmarks/demux_catalogue.py``, thesis K = 128, 8192 px, float32 defaults), bound
+        median / p99 and certified share: 3.0e-4 / 0.18 / 32 % with 0 steps; 1.1e-4 / 1.1e-2 / 49 % with 10 (the
+        default, +21–28 % of the solve's time at K = 64–256); 9.1e-5 / 8.0e-3 / 52 % with 20; the true gap's
+        median there is 9.0e-5. 0 for the last bit of throughput where proven accuracy does not matter.
     max_iter : int
         Iteration cap, in [1, 1 000 000]; a pixel that reaches it is flagged unconverged. A solver call streams its
         pixels through a batch refilled as they converge, so the cap bounds only the slow ones.

@@ -219,3 +219,18 @@ def test_padding_and_masked_pixels_keep_the_other_calls_on_the_unmasked_path(mon
     alone = solve_pixels(solver, problem, data[masked], weight[masked]).value
     np.testing.assert_allclose(problem.objective(transport[masked], data[masked], every[masked]),
                                problem.objective(alone, data[masked], every[masked]), rtol=1e-5)
+
+
+def test_dual_steps_is_a_stage_setting_that_tightens_the_bound_and_changes_no_answer():
+    """``dual_steps`` reaches the solver and the attrs; the transport is the same with and without the ascent (it
+    only chooses the certificate's multipliers), every bound is at most the ascent-free one and the median lower,
+    and a negative value is refused before any work, naming the setting."""
+    capture = capture_of(scene())
+    plain = demux_plane_to_ray(capture, dual_steps=0).compute()
+    ascended = demux_plane_to_ray(capture, dual_steps=20).compute()
+    assert plain.attrs["dual_steps"] == 0 and ascended.attrs["dual_steps"] == 20
+    np.testing.assert_array_equal(ascended["transport"].values, plain["transport"].values)
+    assert np.all(ascended["gap_bound"].values <= plain["gap_bound"].values)
+    assert np.median(ascended["gap_bound"].values) < np.median(plain["gap_bound"].values)
+    with pytest.raises(ValueError, match="dual_steps"):
+        demux_plane_to_ray(capture, dual_steps=-1)
