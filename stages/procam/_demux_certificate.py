@@ -106,25 +106,35 @@ def kkt_gap(xp, t, gradient, quadratic, primal, applies, shares=KKT_HELD, *, inv
     rows, so for pixels whose 2G_p is 2G): one product a step, the bound taken at each projected point and the
     smallest kept. The steps matter where ADMM's T leaves δ in 2G's weak directions, which (2G)⁻¹ amplifies and
     the fixed shares cannot remove. Relative to ``primal`` = f(T)."""
-    gap, best = _kkt_shares(xp, t, gradient, quadratic, shares)
-    if steps:
-        gap = _dual_ascent(xp, t, gradient, inverse, best, gap, step, steps)
+    if steps:  # the shares' products give the start's (2G)⁻¹δ as well: every step then adds a new point
+        gap, best, solved = _kkt_shares(xp, t, gradient, quadratic, shares, inverse=inverse)
+        gap = _dual_ascent(xp, t, gradient, inverse, best, gap, step, steps, solved=solved)
+    else:
+        gap, _, _ = _kkt_shares(xp, t, gradient, quadratic, shares)
     return _relative(xp, gap, primal, applies)
 
 
-def _kkt_shares(xp, t, gradient, quadratic, shares):
-    """The smallest λᵀT + ½δᵀ(2G_p)⁻¹δ over the shares' multipliers (see :func:`kkt_gap`), and those multipliers."""
+def _kkt_shares(xp, t, gradient, quadratic, shares, inverse=None):
+    """The smallest λᵀT + ½δᵀ(2G_p)⁻¹δ over the shares' multipliers (see :func:`kkt_gap`), those multipliers, and
+    (with ``inverse``, which then replaces ``quadratic``) their (2G_p)⁻¹δ, else None."""
     peak = xp.max(t, axis=-1, keepdims=True)
-    gap = best = None
+    gap = best = best_solved = None
     for share in shares:
         lam = xp.where(t <= share * peak, xp.maximum(gradient, 0.0), 0.0)
-        candidate = xp.sum(lam * t, axis=-1) + 0.5 * quadratic(gradient - lam)
-        if gap is None:
-            gap, best = candidate, lam
+        delta = gradient - lam
+        if inverse is None:
+            candidate, solved = xp.sum(lam * t, axis=-1) + 0.5 * quadratic(delta), None
         else:
-            best = xp.where((candidate < gap)[:, None], lam, best)
+            solved = inverse(delta)
+            candidate = xp.sum(lam * t, axis=-1) + 0.5 * xp.sum(delta * solved, axis=-1)
+        if gap is None:
+            gap, best, best_solved = candidate, lam, solved
+        else:
+            better = (candidate < gap)[:, None]
+            best = xp.where(better, lam, best)
+            best_solved = None if solved is None else xp.where(better, solved, best_solved)
             gap = xp.minimum(gap, candidate)
-    return gap, best
+    return gap, best, best_solved
 
 
 def _relative(xp, gap, primal, applies):
@@ -134,21 +144,24 @@ def _relative(xp, gap, primal, applies):
     return xp.where(applies, relative, 1.0)
 
 
-def _dual_ascent(xp, t, gradient, inverse, lam, gap, step, steps):
-    """``steps`` FISTA steps on g(λ) over λ ≥ 0 from ``lam`` (see :func:`kkt_gap`); the smallest λᵀT + ½δᵀ(2G)⁻¹δ
-    over the projected points, and ``gap``."""
+def _dual_ascent(xp, t, gradient, inverse, lam, gap, step, steps, solved=None):
+    """``steps`` FISTA steps on g(λ) over λ ≥ 0 from ``lam`` (whose (2G)⁻¹(∇f − λ) is ``solved``, computed here
+    where None; see :func:`kkt_gap`); the smallest λᵀT + ½δᵀ(2G)⁻¹δ over ``gap`` and the ``steps`` projected
+    points, one product each (the gradient at a point is its (2G)⁻¹δ − T, so its bound comes free)."""
+    if solved is None:
+        solved = inverse(gradient - lam)
 
     def body(_, carry):
-        y, previous, momentum, gap = carry
-        point = xp.maximum(y, 0.0)
+        point, solved, previous, momentum, gap = carry
+        new = xp.maximum(point + step * (solved - t), 0.0)
+        following = (1.0 + (1.0 + 4.0 * momentum**2) ** 0.5) / 2.0
+        point = xp.maximum(new + (momentum - 1.0) / following * (new - previous), 0.0)
         delta = gradient - point
         solved = inverse(delta)
         gap = xp.minimum(gap, xp.sum(point * t, axis=-1) + 0.5 * xp.sum(delta * solved, axis=-1))
-        new = xp.maximum(point + step * (solved - t), 0.0)
-        following = (1.0 + (1.0 + 4.0 * momentum**2) ** 0.5) / 2.0
-        return new + (momentum - 1.0) / following * (new - previous), new, following, gap
+        return point, solved, new, following, gap
 
-    carry = (lam, lam, xp.ones((), t.dtype), gap)
+    carry = (lam, solved, lam, xp.ones((), t.dtype), gap)
     if xp is np:
         for i in range(steps):
             carry = body(i, carry)
@@ -156,7 +169,7 @@ def _dual_ascent(xp, t, gradient, inverse, lam, gap, step, steps):
         import jax
 
         carry = jax.lax.fori_loop(0, steps, body, carry)
-    return carry[3]
+    return carry[4]
 
 
 #: the least margin below which a pixel's Woodbury core M = I − 2A_R(2G)⁻¹A_Rᵀ (eigenvalues in (0, 1] where its
@@ -264,7 +277,7 @@ def kkt_bound(problem: DemuxProblem, transport: np.ndarray, data: np.ndarray, we
 
     hessian = kept_hessian(problem, kept)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        gap, lam = _kkt_shares(np, t, gradient, hessian.quadratic, KKT_HELD)
+        gap, lam, _ = _kkt_shares(np, t, gradient, hessian.quadratic, KKT_HELD)
         relative = _relative(np, gap, primal, hessian.applies)
         rows = np.flatnonzero((relative > above) & hessian.applies) if dual_steps else np.zeros(0, int)
         if rows.size:  # the ascent with these pixels' own factors

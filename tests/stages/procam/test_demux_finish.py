@@ -78,7 +78,9 @@ def test_pixels_with_masked_and_clipped_frames_are_finished_to_clarabels_optimum
     fixed = certified_gap(problem, finished.value.astype(float), data, seen, clipped, dual_steps=0)
     assert np.all(bound[touched] >= recomputed[touched] * (1 - 1e-6) - 1e-15)
     assert np.all(bound[touched] <= fixed[touched] * (1 + 1e-6) + 1e-15)
-    np.testing.assert_allclose(bound[~touched], recomputed[~touched], rtol=2e-2, atol=1e-9)
+    # the solver's float32 bound against the float64 reference: below ~1e-7 of f both sit at float32's rounding
+    # (measured: 4.9e-8 against 4.7e-8 at the worst pixel, the two dual ascents taking different float paths)
+    np.testing.assert_allclose(bound[~touched], recomputed[~touched], rtol=2e-2, atol=1e-8)
     optimum = reference(problem, data, seen, clipped)
     value = problem.objective(finished.value.astype(float), data, seen, clipped)
     assert np.all((value - optimum) / value <= bound + 1e-9)  # the bound holds
