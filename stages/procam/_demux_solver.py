@@ -35,11 +35,13 @@ DESIGN §6), so this is a batched ADMM in plain JAX (kernels in
   µs/px at K = 128; at the warm start a cheaper form that is exact at an optimum, 0.5 µs/px; the float64
   reference is :func:`~stages.procam._demux_certificate.certified_gap`). A bound, never an estimate: the smaller
   of a first-order one (every pixel) and, for a fully observed, unclipped pixel of a dense problem, the Lagrangian
-  one of :func:`~stages.procam._demux_certificate.kkt_gap`, second order in the KKT residual: on float32 solves stopped
-  at ``tol`` it is typically 1–15× above the true gap at the median (the first-order one alone 10–200×), but far
-  above it where T's KKT conditions are off (p99 0.1–0.3) (``converged`` means the residual test or a bound ≤
-  ``gap_tol``); a pixel with masked or clipped frames gets the Lagrangian one after the solve, on the host in
-  float64, with its own Hessian by Woodbury from the shared one (:meth:`DemuxADMM._certify_partial`);
+  one of :func:`~stages.procam._demux_certificate.kkt_gap`, second order in the KKT residual, whose multipliers
+  then climb the dual for ``dual_steps`` (one K × K product each; +21–31 % of a call's time at 10): on float32
+  solves stopped at ``tol`` it is then 0.9–2.8× the true gap at the median on ``benchmarks/demux_catalogue.py``'s
+  cases (without the ascent 1–15×, the first-order one alone 10–200×), but far above it where T's support is off
+  (p99 ~1e-2) (``converged`` means the residual test or a bound ≤ ``gap_tol``); a pixel with masked or clipped
+  frames gets the Lagrangian one after the solve, on the host in float64, with its own Hessian by Woodbury from
+  the shared one (:meth:`DemuxADMM._certify_partial`);
 * optionally (``finish_rounds``) an exact finish: primal–dual active-set rounds with float64 solves on each
   pixel's free offsets (:mod:`stages.procam._demux_finish`), which takes every pixel's bound to ≤ ``gap_tol`` at
   2–8× ADMM's time (``benchmarks/demux_catalogue.py``).
