@@ -10,8 +10,7 @@ the host for the others). The problems themselves are in :mod:`stages.procam._de
 
 from __future__ import annotations
 
-from collections.abc import Callable
-from typing import NamedTuple
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -58,15 +57,20 @@ def best_dual_value(xp, a, b, z, g, e_y, e_u, n_e, beta, steps=DUAL_SEARCH_STEPS
         keep_left = value(left) > value(right)
         return xp.where(keep_left, lo, left), xp.where(keep_left, right, hi)
 
-    bracket = (xp.zeros_like(a), xp.minimum(cap, 2.0 * xp.maximum(theta_free, 1.0)))
+    bracket = _repeat(xp, steps, step, (xp.zeros_like(a), xp.minimum(cap, 2.0 * xp.maximum(theta_free, 1.0))))
+    return xp.maximum(best, value((bracket[0] + bracket[1]) / 2.0))
+
+
+def _repeat(xp, steps, body, carry):
+    """``body(i, carry)`` ``steps`` times: a Python loop for numpy, one traced ``fori_loop`` step for JAX (not
+    ``steps`` unrolled copies: compile time)."""
     if xp is np:
         for i in range(steps):
-            bracket = step(i, bracket)
-    else:  # one traced step, not `steps` unrolled copies (compile time)
-        import jax
+            carry = body(i, carry)
+        return carry
+    import jax
 
-        bracket = jax.lax.fori_loop(0, steps, step, bracket)
-    return xp.maximum(best, value((bracket[0] + bracket[1]) / 2.0))
+    return jax.lax.fori_loop(0, steps, body, carry)
 
 
 #: the KKT bound's multipliers: offsets at most each of these shares of a pixel's peak count as held at 0 (any choice
@@ -161,15 +165,7 @@ def _dual_ascent(xp, t, gradient, inverse, lam, gap, step, steps, solved=None):
         gap = xp.minimum(gap, xp.sum(point * t, axis=-1) + 0.5 * xp.sum(delta * solved, axis=-1))
         return point, solved, new, following, gap
 
-    carry = (lam, solved, lam, xp.ones((), t.dtype), gap)
-    if xp is np:
-        for i in range(steps):
-            carry = body(i, carry)
-    else:
-        import jax
-
-        carry = jax.lax.fori_loop(0, steps, body, carry)
-    return carry[4]
+    return _repeat(xp, steps, body, (lam, solved, lam, xp.ones((), t.dtype), gap))[4]
 
 
 #: the least margin below which a pixel's Woodbury core M = I − 2A_R(2G)⁻¹A_Rᵀ (eigenvalues in (0, 1] where its
@@ -180,13 +176,57 @@ def _dual_ascent(xp, t, gradient, inverse, lam, gap, step, steps, solved=None):
 WOODBURY_FLOOR = 1e-9
 
 
-class KeptHessian(NamedTuple):
-    """Each pixel's 2G_p over its kept frames, as :func:`kkt_gap` uses it (:func:`kept_hessian`)."""
+@dataclass(frozen=True)
+class KeptHessian:
+    """Each pixel's 2G_p over its kept frames, as :func:`kkt_gap` uses it (built by :func:`kept_hessian`): the shared
+    H = (2G)⁻¹ and A, and per group of pixels with the same number of left-out frames (their rows, those frames'
+    indices, L⁻¹ of their Woodbury cores)."""
 
-    quadratic: Callable  # (P, K) rows δ ↦ (P,) δᵀ(2G_p)⁻¹δ
-    inverse: Callable  # (P, K) rows δ ↦ (P, K) (2G_p)⁻¹δ
+    inverse_matrix: np.ndarray  # H = (2G)⁻¹, (K, K)
+    illumination: np.ndarray  # A, (N, K)
+    lifting: np.ndarray  # A H, (N, K): a left-out frame's correction back on the offsets
+    groups: tuple  # ((rows (m,), left-out frames (m, r), L⁻¹ (m, r, r)), ...)
     step: np.ndarray  # (P, 1): a lower bound on λ_min(2G_p), the dual ascent's step
     applies: np.ndarray  # (P,) bool: 2G_p positive definite (2G, and M − floor·I)
+
+    def _whitened(self, hd):
+        """Per group: (rows, left-out frames, L⁻¹, L⁻¹v_R) with v = A H δ, given the rows H δ."""
+        v = hd @ self.illumination.T
+        for rows, index, whitening in self.groups:
+            yield rows, index, whitening, np.einsum("pij,pj->pi", whitening, np.take_along_axis(v[rows], index, 1))
+
+    def quadratic(self, delta):
+        """(P, K) rows δ ↦ (P,) δᵀ(2G_p)⁻¹δ = δᵀHδ + 2‖L⁻¹v_R‖²."""
+        hd = delta @ self.inverse_matrix
+        value = np.sum(delta * hd, axis=-1)
+        for rows, _, _, w in self._whitened(hd):
+            value[rows] += 2.0 * np.sum(w**2, axis=-1)
+        return value
+
+    def inverse(self, delta):
+        """(P, K) rows δ ↦ (P, K) (2G_p)⁻¹δ = Hδ + 2 (M⁻¹v_R lifted to the frames) A H."""
+        hd = delta @ self.inverse_matrix
+        if not self.groups:
+            return hd
+        lifted = np.zeros((hd.shape[0], self.illumination.shape[0]))
+        for rows, index, whitening, w in self._whitened(hd):
+            part = np.zeros((rows.size, lifted.shape[1]))
+            np.put_along_axis(part, index, np.einsum("pji,pj->pi", whitening, w), axis=1)  # M⁻¹v_R = L⁻ᵀL⁻¹v_R
+            lifted[rows] = part
+        return hd + 2.0 * lifted @ self.lifting
+
+    def rows(self, rows: np.ndarray) -> KeptHessian:
+        """The same pixels' Hessians for the (sorted, distinct) ``rows`` only, renumbered 0…: no factorisation
+        again."""
+        position = np.full(self.applies.shape[0], -1)
+        position[rows] = np.arange(rows.size)
+        groups = []
+        for members, index, whitening in self.groups:
+            inside = position[members] >= 0
+            if inside.any():
+                groups.append((position[members[inside]], index[inside], whitening[inside]))
+        return KeptHessian(self.inverse_matrix, self.illumination, self.lifting, tuple(groups), self.step[rows],
+                           self.applies[rows])
 
 
 def kept_hessian(problem: DemuxProblem, kept: np.ndarray) -> KeptHessian:
@@ -229,32 +269,7 @@ def kept_hessian(problem: DemuxProblem, kept: np.ndarray) -> KeptHessian:
             whitening = np.linalg.inv(factor)
             step[rows, 0] *= np.minimum(1.0, 1.0 / np.sum(whitening**2, axis=(1, 2)))
             groups.append((rows, index, whitening))
-    lifted_h = a @ h
-
-    def quadratic(delta):
-        hd = delta @ h
-        value = np.sum(delta * hd, axis=-1)
-        if groups:
-            v = hd @ a.T
-            for rows, index, whitening in groups:
-                w = np.einsum("pij,pj->pi", whitening, np.take_along_axis(v[rows], index, axis=1))
-                value[rows] += 2.0 * np.sum(w**2, axis=-1)
-        return value
-
-    def inverse(delta):
-        hd = delta @ h
-        if not groups:
-            return hd
-        v = hd @ a.T
-        lifted = np.zeros_like(v)
-        for rows, index, whitening in groups:
-            w = np.einsum("pij,pj->pi", whitening, np.take_along_axis(v[rows], index, axis=1))
-            part = np.zeros((rows.size, v.shape[1]))
-            np.put_along_axis(part, index, np.einsum("pji,pj->pi", whitening, w), axis=1)  # M⁻¹v_R = L⁻ᵀL⁻¹v_R
-            lifted[rows] = part
-        return hd + 2.0 * lifted @ lifted_h
-
-    return KeptHessian(quadratic, inverse, step, applies)
+    return KeptHessian(h, a, a @ h, tuple(groups), step, applies)
 
 
 def kkt_bound(problem: DemuxProblem, transport: np.ndarray, data: np.ndarray, weight: np.ndarray | None = None,
@@ -281,7 +296,7 @@ def kkt_bound(problem: DemuxProblem, transport: np.ndarray, data: np.ndarray, we
         relative = _relative(np, gap, primal, hessian.applies)
         rows = np.flatnonzero((relative > above) & hessian.applies) if dual_steps else np.zeros(0, int)
         if rows.size:  # the ascent with these pixels' own factors
-            part = hessian if rows.size == t.shape[0] else kept_hessian(problem, kept[rows])
+            part = hessian.rows(rows)
             ascended = _dual_ascent(np, t[rows], gradient[rows], part.inverse, lam[rows], gap[rows], part.step,
                                     dual_steps)
             relative[rows] = _relative(np, ascended, primal[rows], part.applies)
