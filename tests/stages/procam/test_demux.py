@@ -79,7 +79,7 @@ def test_gap_tol_is_a_stage_setting_and_a_certified_pixel_is_converged():
     pixel is converged only where its bound is exactly 0 or its residuals met tol."""
     capture = capture_of(scene())
     for gap_tol in (0.0, 1e-3):
-        out = demux_plane_to_ray(capture, tol=1e-12, gap_tol=gap_tol, max_iter=10).compute()
+        out = demux_plane_to_ray(capture, tol=1e-12, gap_tol=gap_tol, finish_rounds=0, max_iter=10).compute()
         assert out.attrs["gap_tol"] == gap_tol
         bound, converged = out["gap_bound"].values, out["converged"].values
         np.testing.assert_array_equal(converged, bound <= gap_tol)
@@ -93,6 +93,24 @@ def test_gap_tol_is_a_stage_setting_and_a_certified_pixel_is_converged():
     # never worse than it came, up to the float64 recomputation of a float32 bound of the same T (1e-5 relative:
     # where the finish's rounds do not improve on ADMM's answer, it returns that answer with its float64 bound)
     assert np.all(finished["gap_bound"].values <= np.maximum(bound, 1e-3) * (1 + 1e-5))
+
+
+def test_max_gap_is_a_stage_setting_and_a_converged_pixel_is_proven_to_it():
+    """The defaults (#25): ``max_gap``, ``polish_rounds`` and the tail finish reach the solver and the attrs, and a
+    converged pixel's certified bound is at most max_gap; without the finish and with a loose residual test, the
+    pixels whose bound exceeds max_gap are not converged though their residuals met tol. gap_tol above max_gap
+    is refused before any work, naming both."""
+    capture = capture_of(scene())
+    out = demux_plane_to_ray(capture).compute()
+    assert (out.attrs["max_gap"], out.attrs["polish_rounds"], out.attrs["finish_rounds"], out.attrs["tol"]) == (
+        1e-3, 2, 16, 2e-3)
+    assert out["converged"].mean() >= 0.99 and np.all(out["gap_bound"].values[out["converged"].values] <= 1e-3)
+    loose = demux_plane_to_ray(capture, tol=5e-2, finish_rounds=0, polish_rounds=1, max_iter=10).compute()
+    bound, converged = loose["gap_bound"].values, loose["converged"].values
+    assert (bound > 1e-3).mean() > 0.05  # measured: a loose residual test leaves many pixels unproven
+    assert not converged[bound > 1e-3].any() and converged[bound <= 1e-3].mean() > 0.5
+    with pytest.raises(StageError, match="max_gap"):
+        demux_plane_to_ray(capture, gap_tol=1e-2, max_gap=1e-3)
 
 
 def test_transport_matches_the_simulator_truth(noise_free):
@@ -226,8 +244,8 @@ def test_dual_steps_is_a_stage_setting_that_tightens_the_bound_and_changes_no_an
     only chooses the certificate's multipliers), every bound is at most the ascent-free one and the median lower,
     and a negative value is refused before any work, naming the setting."""
     capture = capture_of(scene())
-    plain = demux_plane_to_ray(capture, dual_steps=0).compute()
-    ascended = demux_plane_to_ray(capture, dual_steps=20).compute()
+    plain = demux_plane_to_ray(capture, dual_steps=0, finish_rounds=0).compute()  # the finish's scope is by bound
+    ascended = demux_plane_to_ray(capture, dual_steps=20, finish_rounds=0).compute()
     assert plain.attrs["dual_steps"] == 0 and ascended.attrs["dual_steps"] == 20
     np.testing.assert_array_equal(ascended["transport"].values, plain["transport"].values)
     assert np.all(ascended["gap_bound"].values <= plain["gap_bound"].values)

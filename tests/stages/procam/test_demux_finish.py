@@ -26,8 +26,8 @@ def test_the_finish_certifies_every_pixel_and_reaches_clarabels_optimum(case):
     problem = DemuxProblem.build(a)
     # ADMM stopped early (8 iterations) and its KKT bound without the dual ascent, so that its answers leave the
     # finish work: at the defaults the KKT bound certifies most of them to 1e-6 without it (all of the wide case's)
-    plain = DemuxADMM(gap_tol=1e-6, max_iter=8, dual_steps=0).solve(problem, data)
-    finished = DemuxADMM(gap_tol=1e-6, max_iter=8, dual_steps=0, finish_rounds=6).solve(problem, data)
+    plain = DemuxADMM(gap_tol=1e-6, max_iter=8, dual_steps=0, finish_rounds=0).solve(problem, data)
+    finished = DemuxADMM(gap_tol=1e-6, max_gap=1e-6, max_iter=8, dual_steps=0, finish_rounds=6).solve(problem, data)
     # measured: ADMM's bound max 0.44 / 0.22 / 2.2e-3 / 8.0e-2 (well-posed, rank-deficient, wide, slow); finished
     # max 1.3e-5 / 4.8e-6 / 1.5e-5 / 5.9e-6 (the float32 rounding of the returned T is the floor)
     bound, touched = finished.stats["gap_bound"], plain.stats["gap_bound"] > 1e-6
@@ -64,8 +64,8 @@ def test_pixels_with_masked_and_clipped_frames_are_finished_to_clarabels_optimum
     data = np.where(clipped, level, data)
     assert clipped.any(axis=1).mean() > 0.25 and np.isnan(data).any(axis=1).mean() > 0.25
     problem = DemuxProblem.build(a)
-    plain = DemuxADMM(gap_tol=1e-6).solve(problem, data, clipped=clipped)
-    finished = DemuxADMM(gap_tol=1e-6, finish_rounds=8).solve(problem, data, clipped=clipped)
+    plain = DemuxADMM(gap_tol=1e-6, finish_rounds=0).solve(problem, data, clipped=clipped)
+    finished = DemuxADMM(gap_tol=1e-6, max_gap=1e-6, finish_rounds=8).solve(problem, data, clipped=clipped)
     bound = finished.stats["gap_bound"]
     # measured: ADMM's bound max 0.13 (well-posed) / 0.69 (rank-deficient); finished max 5.1e-6 / 6.7e-6
     assert bound.max() <= 1e-4 and np.all(bound <= plain.stats["gap_bound"]), (bound.max(),
@@ -85,3 +85,37 @@ def test_pixels_with_masked_and_clipped_frames_are_finished_to_clarabels_optimum
     value = problem.objective(finished.value.astype(float), data, seen, clipped)
     assert np.all((value - optimum) / value <= bound + 1e-9)  # the bound holds
     np.testing.assert_allclose(value, optimum, rtol=2e-5)
+
+
+def test_max_gap_is_what_converged_proves_and_where_the_finish_runs():
+    """``max_gap`` (the defaults' 1e-3): the exact finish runs on the pixels whose bound after the solve exceeds it
+    and on no other (a pixel between gap_tol and max_gap keeps ADMM's answer), and ``converged`` always means a
+    certified bound of at most max_gap, whatever the residual test said; max_gap = 1 without the finish is the
+    residual test alone. The finished pixels' bounds hold against Clarabel's optimum."""
+    delays, exposures, offsets = CASES["rank-deficient"]
+    a = sweep_matrix(delays, exposures, offsets)
+    rng = np.random.default_rng(14)
+    data = sparse_transport(rng, 64, offsets) @ a.T + rng.normal(0, 2e-3, (64, a.shape[0]))
+    problem = DemuxProblem.build(a)
+    assert problem.definite  # the cap applies where the second-order bound does
+    # a loose residual test, no polish, no dual ascent: answers it accepts with bounds far above 1e-3
+    short = {"tol": 5e-2, "max_iter": 20, "polish_iter": 0, "dual_steps": 0}
+    loose = DemuxADMM(**short, finish_rounds=0, max_gap=1.0).solve(problem, data)
+    capped = DemuxADMM(**short, finish_rounds=0).solve(problem, data)
+    finished = DemuxADMM(**short).solve(problem, data)
+    bound = loose.stats["gap_bound"]
+    above = bound > 1e-3
+    # measured: 52 of 64 pixels above max_gap, every one of them passed the residual test
+    assert (loose.converged & above).sum() >= 5 and (~above).sum() >= 5
+    np.testing.assert_array_equal(capped.value, loose.value)
+    np.testing.assert_array_equal(capped.converged, loose.converged & ~above)
+    # the finish touched the pixels above max_gap only, and took each to a bound of at most max_gap
+    np.testing.assert_array_equal(finished.value[~above], loose.value[~above])
+    assert np.all(finished.stats["gap_bound"][above] <= 1e-3)
+    assert np.all(finished.stats["gap_bound"][finished.converged] <= 1e-3)
+    assert finished.converged.sum() > capped.converged.sum()
+    _, optimum = cvxpy_optimum(problem, data)
+    value = problem.objective(finished.value.astype(float), data)
+    assert np.all((value - optimum) / value <= finished.stats["gap_bound"] + 1e-7)  # the bound holds
+    with pytest.raises(ValueError, match="gap_tol ≤ max_gap"):
+        DemuxADMM(gap_tol=1e-2, max_gap=1e-3)
