@@ -2,7 +2,8 @@
 
 The stage's ADMM stops on a relative-residual test, and its certified gap bound (weak duality from T's own
 gradients) is first-order: about 1e-2 median on the benchmark stack while the true gap is ~1e-4, so the bound
-cannot be the stopping rule. This probe starts from the stage's solution (``DemuxADMM()`` defaults, float32) and
+cannot be the stopping rule. This probe starts from the stage's solution at its pre-#25-finish defaults
+(``DemuxADMM(tol=5e-3, polish_rounds=1, max_gap=1)``: ADMM alone, float32) and
 runs a primal–dual active-set method (Hintermüller, Ito & Kunisch 2003) with *exact* solves on the free set:
 round 1 frees the offsets ADMM left positive; each later round frees i where λ_i − κ T_i ≤ 0 (λ = ∇f, κ = 1e3),
 holds the others at 0 and solves the free set's KKT system exactly (a batched dense solve with the masked Gram
@@ -67,7 +68,7 @@ def main() -> None:
     problem = DemuxProblem.build(a)
     truth, _ = _pixels(k, p, seed=1)
     data = truth @ a.T + np.random.default_rng(3).normal(0, 2e-3, (p, a.shape[0]))
-    solution = DemuxADMM().solve(problem, data)
+    solution = DemuxADMM(tol=5e-3, polish_rounds=1, max_gap=1.0).solve(problem, data)
     start = certified_gap(problem, solution.value.astype(float), data)
     print(f"{p} pixels, K = {k}, N = {a.shape[0]}; ADMM at the stage's defaults (float32): bound median "
           f"{np.median(start):.2e}, p99 {np.percentile(start, 99):.2e}, max {start.max():.2e}; "

@@ -202,7 +202,8 @@ def main() -> None:
 
     print(f"device: {device_line(jax)}")
     print(f"demux catalogue: {pixels} px per case, true gap on {sample} px against Clarabel at 1e-12; bound = "
-          "certified gap bound over all px; conv = converged (residuals met tol, or certified), cert = bound ≤ "
+          "certified gap bound over all px; conv = converged (defaults: bound ≤ max_gap; fast: residuals met tol, or "
+          "certified), cert = bound ≤ "
           "gap_tol; warm µs/px on this machine")
     head = (f"{'case':<15}{'N×K':>8}{'rank':>5}{'cond':>9} {'method':<13}{'gap med':>9}{'gap max':>9}"
             f"{'bnd med':>9}{'bnd p99':>9}{'bnd max':>9}{'conv':>6}{'cert':>6}{'iters':>6}{'µs/px':>7}")

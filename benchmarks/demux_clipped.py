@@ -4,7 +4,8 @@ The benchmark stack of ``demux_throughput.py`` (K = 128, 25 delays × 3 exposure
 its pixels made highlights: their direct peak is raised to 1.5–20× the clip level, so every frame that sees it
 clips (the hard case: the peak is known only as a bound; HDR from a sweep whose short exposure stays unclipped is
 tested in tests/stages/procam/test_demux_highlight.py). Three solves of the same pixels with the stage's solver and
-defaults, float32, each timed on its second run (the first compiles the calls' shapes):
+defaults, float32, each timed on its second run (the first compiles the calls' shapes; since #25's certified
+defaults the ratios include the finish on each run's own tail above max_gap, which differs between the three):
 
 * ``ideal``: a sensor that never clips (the unclipped frames), the accuracy any method could reach;
 * ``masked``: clipped frames dropped, selpath's rule before #30;

@@ -111,7 +111,8 @@ _FRAME = ("row", "col")
 _DEMUX_EXTRAS = {
     "iterations": Variable(_FRAME, required=False, units="1", long_name="ADMM iterations run for the pixel"),
     "converged": Variable(_FRAME, required=False, units=None,
-                          long_name="the pixel's solve met its tolerance and no offset's light is censored"),
+                          long_name="the pixel's solve met its tolerance (plane-to-ray: a certified gap_bound "
+                                    "within max_gap) and no offset's light is censored"),
     "censored": Variable(_FRAME, required=False, units=None,
                          long_name="some offset's light was seen only in clipped frames: T is a lower bound there"),
     "censored_offsets": Variable(_FRAME, required=False, units="1",

@@ -25,6 +25,10 @@ MaxIter = Annotated[int, pydantic.Field(ge=1, le=1_000_000)]
 #: a tolerance on a certified relative objective gap: a share of the objective, in [0, 1)
 GapTol = Annotated[float, pydantic.Field(ge=0, lt=1)]
 
+#: the largest certified relative objective gap a converged answer may have: a share of the objective, in [0, 1]
+#: (1: no cap)
+MaxGap = Annotated[float, pydantic.Field(ge=0, le=1)]
+
 #: rounds of an exact active-set finish: 0 (none) to 20 (it converges in a few or cycles)
 FinishRounds = Annotated[int, pydantic.Field(ge=0, le=20)]
 

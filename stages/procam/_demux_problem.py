@@ -24,9 +24,9 @@ problem because the T-update's inverse (2G + ρI)⁻¹, built once per sweep, de
 
 Every product of the operators runs at :data:`PRECISION` (full float32 or float64). JAX's default precision for
 float32 products is the hardware's fastest: TF32 on NVIDIA Ampere and Hopper GPUs (a 10-bit mantissa, relative
-error ~5e-4 per product) and bfloat16 passes on TPUs. That is far coarser than the tolerances (``tol`` 5e-3 on
-residuals, ``gap_tol`` 1e-4 on the objective gap), and the certificate that decides ``converged`` is computed with
-the same products. On CPUs the setting changes nothing.
+error ~5e-4 per product) and bfloat16 passes on TPUs. That is far coarser than the tolerances (``tol`` 2e-3 on
+residuals, ``gap_tol`` 1e-4 and ``max_gap`` 1e-3 on the objective gap), and the certificate that decides
+``converged`` is computed with the same products. On CPUs the setting changes nothing.
 """
 
 from __future__ import annotations

@@ -29,7 +29,8 @@ DESIGN §6), so this is a batched ADMM in plain JAX (kernels in
   per pixel only where it lowers the objective (OSQP's "solution polishing", batched); with ``polish_rounds``
   above 1, again with the offsets whose gradient is negative freed as well (active-set steps: one lowers the
   largest objective gap of the solver tests' float32 solves from 1.7e-5 to 1.6e-6, and the benchmark's median
-  from 6.4e-5 to 5.3e-5, for about 9 % more time per pixel, so it is not the default);
+  from 6.4e-5 to 5.3e-5, for about 9 % more time per pixel; two rounds are the default since they thin the tail
+  the finish must take, docs/results.md);
 * a certificate beside the answer: :func:`~stages.procam._demux_kernels.certified_gap` bounds each pixel's
   relative objective gap from weak duality (in the solver's dtype, at the end: about four iterations' cost, 0.8
   µs/px at K = 128; at the warm start a cheaper form that is exact at an optimum, 0.5 µs/px; the float64
@@ -39,7 +40,7 @@ DESIGN §6), so this is a batched ADMM in plain JAX (kernels in
   then climb the dual for ``dual_steps`` (one K × K product each; +21–31 % of a call's time at 10): on float32
   solves stopped at ``tol`` it is then 0.9–2.8× the true gap at the median on ``benchmarks/demux_catalogue.py``'s
   cases (without the ascent 1–15×, the first-order one alone 10–200×), but far above it where T's support is off
-  (p99 ~1e-2) (``converged`` means the residual test or a bound ≤ ``gap_tol``, and a bound ≤ ``max_gap``); a
+  (p99 ~1e-2) (``converged`` means a bound ≤ ``max_gap``, below); a
   pixel with masked or clipped frames gets the Lagrangian one after the solve, on the host in float64, with its
   own Hessian by Woodbury from the shared one (:meth:`DemuxADMM._certify_partial`);
 * an exact finish (``finish_rounds``) on the pixels whose bound still exceeds ``max_gap``: primal–dual
@@ -56,7 +57,8 @@ whatever operators the problem hands them (:meth:`~stages.procam._demux_problem.
 :class:`stages._solution.Solution` with, per pixel, the transport, a result code (converged when its primal
 and dual residuals met ``tol`` relative, checked every ``check_every`` iterations, or when its certified gap bound
 is at most ``gap_tol``, checked at the warm start, where a pixel so certified is not iterated at all, and after
-the polish, and in either case its bound is at most ``max_gap``; ``censored`` when it did
+the polish; on dense problems with a positive definite 2G instead exactly where its bound is at most ``max_gap``;
+``censored`` when it did
 but some offset's light was seen only clipped (:func:`censored_offsets`); else ``max_steps``, or ``nonfinite``)
 and ``stats`` (``iterations`` to convergence, ``max_iter`` if never; ``objective``; ``gap_bound``, the certified
 bound; ``censored_offsets``). A call's
@@ -147,18 +149,20 @@ class DemuxADMM:
     certified, and converged whatever its residuals say (checked at the warm start, where such a pixel is not
     iterated at all, and at the end), and the finish aims at it; ``max_gap`` (≥ ``gap_tol``): the largest certified
     gap a converged pixel may have: a pixel whose bound exceeds it after the solve gets the exact finish, and one
-    still above it is ``max_steps`` whatever its residuals said, so ``converged`` always means a proven gap of at
-    most ``max_gap`` (1: no such cap, the residual test alone). It applies to dense problems whose 2G is positive
-    definite, where the bound is second order in T's KKT residual (:func:`~stages.procam._demux_certificate.kkt_gap`);
-    elsewhere (the Kronecker problem, α = 0 with rank-deficient A) only the first-order bound exists, which an
-    answer short of the exact optimum rarely meets, and ``converged`` keeps its residual meaning;
+    still above it is ``max_steps``: ``converged`` means exactly a proven gap of at most ``max_gap``, whatever the
+    residuals said (a pixel at ``max_iter`` whose bound is within it is converged) (1: no cap, no finish: the
+    residual test or ``gap_tol``). It applies to dense problems whose 2G is positive definite, where the bound is
+    second order in T's KKT residual (:func:`~stages.procam._demux_certificate.kkt_gap`); elsewhere (the
+    Kronecker problem, α = 0 with rank-deficient A) only the first-order bound exists, which an answer short of
+    the exact optimum rarely meets: there neither the cap nor the finish runs, and ``converged`` keeps its
+    residual meaning;
     ``dual_steps``: projected accelerated gradient steps on the multipliers of the final certificate's KKT bound
     (its dual ascent, :func:`~stages.procam._demux_certificate.kkt_gap`: one K × K product per pixel each; 0: the
     fixed multipliers alone, a bound up to 7× looser at the median and 18× at the p99 on the catalogue);
     ``finish_rounds``: exact active-set rounds (float64 free-set solves, :mod:`stages.procam._demux_finish`) on
-    the pixels whose bound exceeds ``max_gap`` after the polish (dense problems; masked and clipped frames
-    included), each taken towards ``gap_tol`` (0: none; a pixel of a finished call certified by the solver's
-    float32 bound may read up to ~1 % above it in float64);
+    the pixels whose bound exceeds ``max_gap`` after the polish (where ``max_gap`` applies; masked and clipped
+    frames included), each taken towards ``gap_tol`` (0: none; a pixel of a finished call certified by the
+    solver's float32 bound may read up to ~1 % above it in float64);
     ``slots``: rows of the streaming batch (None: :func:`batch_slots`);
     ``dtype``: ``float32`` or ``float64`` arithmetic (float64 needs ``jax.enable_x64``); ``throw``: raise
     :class:`stages._solution.SolverError` when a pixel did not converge (default: keep going, the result
@@ -245,11 +249,12 @@ class DemuxADMM:
             done[lost] = True
         if isinstance(problem, DemuxProblem) and problem.definite and (any_clipped or not weight.all()):
             gap, done = self._certify_partial(problem, data, weight, clipped, transport, gap, np.array(done))
-        if self.finish_rounds and isinstance(problem, DemuxProblem):
+        proven = self.max_gap < 1 and isinstance(problem, DemuxProblem) and problem.definite
+        if self.finish_rounds and proven:
             transport, objective, gap, done = self._finish(problem, data, weight, clipped, transport, objective,
                                                            gap, np.array(done))
-        if self.max_gap < 1 and isinstance(problem, DemuxProblem) and problem.definite:
-            done = np.asarray(done) & (gap <= self.max_gap)  # converged means a proven gap of at most max_gap
+        if proven:  # converged means a proven gap of at most max_gap, whatever the residuals said
+            done = gap <= self.max_gap
         finite = np.isfinite(transport).all(axis=-1) & np.isfinite(objective)
         censored = (censored_offsets(problem, transport, np.where(weight, data, 0.0), weight, clipped)
                     if any_clipped else np.zeros(data.shape[0], np.int32))

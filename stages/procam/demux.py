@@ -18,7 +18,7 @@ import xarray as xr
 from pipeline.constraints import Count, Index, NonNegative, Positive
 from pipeline.errors import Problem, StageError
 from pipeline.registry import stage
-from stages._common import Dtype, DualSteps, FinishRounds, GapTol, MaxIter
+from stages._common import Dtype, DualSteps, FinishRounds, GapTol, MaxGap, MaxIter
 from stages.procam._demux_problem import DEFAULT_ALPHA, DEFAULT_BETA, DemuxProblem
 from stages.procam._demux_solver import DemuxADMM
 from stages.procam._demux_store import (
@@ -48,7 +48,7 @@ def _band(block: xr.Dataset, *, solver: DemuxADMM, problem: DemuxProblem, keep: 
 def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, /, *,
                        offsets: OffsetGrid | None = None, alpha: NonNegative = DEFAULT_ALPHA,
                        beta: NonNegative = DEFAULT_BETA, tol: Positive = DemuxADMM.DEFAULT_TOL,
-                       gap_tol: GapTol = DemuxADMM.DEFAULT_GAP_TOL, max_gap: GapTol = DemuxADMM.DEFAULT_MAX_GAP,
+                       gap_tol: GapTol = DemuxADMM.DEFAULT_GAP_TOL, max_gap: MaxGap | None = None,
                        finish_rounds: FinishRounds = DemuxADMM.DEFAULT_FINISH_ROUNDS,
                        dual_steps: DualSteps = DemuxADMM.DEFAULT_DUAL_STEPS,
                        max_iter: MaxIter = DemuxADMM.DEFAULT_MAX_ITER,
@@ -94,19 +94,23 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
         2.7e-4, p90 6.2e-4 [38]; 3e-3 → 1.2e-4 [55]; 2e-3 → 6.1e-5, p90 2.3e-4 [72]; 1e-3 → 1.5e-5 [114,
         4.5 % at the cap]. The default, 2e-3 (5e-3 before #25's certified defaults), with the solver's two polish
         rounds and the finish below, is the cheapest setting measured to take every case of
-        ``benchmarks/demux_catalogue.py`` to a certified median ≤ 1e-4 and max ≤ ``max_gap``.
+        ``benchmarks/demux_catalogue.py`` to a certified max ≤ ``max_gap`` and median ≤ 1e-4 (the NaN-frames
+        case at the goal: 1.00–1.02e-4).
     gap_tol : float
         The certificate's target, in [0, 1): a pixel whose certified bound on the relative objective gap
         (``gap_bound``) is at most this is certified, and converged whatever its residuals say: checked at the warm
         start (such a pixel, e.g. one whose light β outweighs so that T = 0 is exactly optimal, takes no iteration)
         and after the polish; the finish aims at it. 0: only exactly optimal pixels. Dimensionless (a share of the
         pixel's own objective), so meaningful on any intensity scale.
-    max_gap : float
-        The largest certified gap a converged pixel may have, in [gap_tol, 1): pixels whose bound still exceeds it
-        after the polish get the exact finish (``finish_rounds``), and a pixel above it at the end is not
-        ``converged`` whatever its residuals said, so ``converged`` means a proven gap ≤ ``max_gap``. Set it to
+    max_gap : float or None
+        The largest certified gap a converged pixel may have, in [gap_tol, 1]; None: the larger of 1e-3 and
+        ``gap_tol``. Pixels whose bound still exceeds it after the polish get the exact finish
+        (``finish_rounds``), and ``converged`` then means exactly a proven gap ≤ ``max_gap``, whatever the
+        residuals said (a pixel at ``max_iter`` with such a bound is converged, one above it is not). Set it to
         ``gap_tol`` to finish every pixel above ``gap_tol`` (a certificate to ``gap_tol`` on every pixel, at 2–8×
-        the time). Dimensionless, like ``gap_tol``.
+        the time); 1: no cap and no finish (``converged``: the residual test or ``gap_tol``). Where α = 0 leaves
+        2G singular only the first-order bound exists, and neither the cap nor the finish applies.
+        Dimensionless, like ``gap_tol``.
     finish_rounds : int
         Exact active-set rounds after the polish (float64 solves on each pixel's free offsets, masked and clipped
         frames included) for the pixels whose bound exceeds ``max_gap``; in [0, 20]; 0: none (then pixels above
@@ -115,16 +119,18 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
         one to ``max_gap`` or below; the defaults take 1.3–2.3× the time of the earlier fast ones (tol 5e-3, one
         polish round, no finish), whose bound reached 4e-3–0.23 and whose true gap's p99 was 1.3e-3 on the
         benchmark's stack. For the last bit of throughput where proven accuracy does not matter: ``tol: 5e-3,
-        polish_rounds: 1, finish_rounds: 0, max_gap: 0.99, dual_steps: 0``.
+        polish_rounds: 1, max_gap: 1, dual_steps: 0``.
     dual_steps : int
         Steps of the certificate's dual ascent (projected accelerated gradient on the KKT bound's multipliers, one
         K × K product per pixel each), in [0, 1000]; 0: the fixed multipliers alone. It tightens ``gap_bound``,
-        not T. Measured (``benchmarks/demux_catalogue.py``, thesis K = 128, 8192 px, float32 defaults), bound
+        not ADMM's T (a tighter bound leaves fewer pixels to the finish, whose answers do change). Measured
+        (``benchmarks/demux_catalogue.py``, thesis K = 128, 8192 px, float32, the earlier tol 5e-3), bound
         median / p99 and certified share: 3.0e-4 / 0.18 / 32 % with 0 steps; 1.1e-4 / 1.1e-2 / 49 % with 10 (the
         default, +21–28 % of the solve's time at K = 64–256); 9.1e-5 / 8.0e-3 / 52 % with 20; the true gap's
         median there is 9.0e-5. 0 for the last bit of throughput where proven accuracy does not matter.
     max_iter : int
-        Iteration cap, in [1, 1 000 000]; a pixel that reaches it is flagged unconverged. A solver call streams its
+        Iteration cap, in [1, 1 000 000]; a pixel that reaches it is flagged unconverged unless its certified bound
+        is within ``max_gap`` (or, with ``max_gap`` 1, ``gap_tol``). A solver call streams its
         pixels through a batch refilled as they converge, so the cap bounds only the slow ones.
     polish_iter : int
         Conjugate-gradient steps of the final support polish (0: none); it costs about as many products as
@@ -145,6 +151,11 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
     dtype : str
         ``float32`` or ``float64`` arithmetic.
     """
+    max_gap = max(gap_tol, DemuxADMM.DEFAULT_MAX_GAP) if max_gap is None else max_gap
+    if gap_tol > max_gap:
+        raise StageError(Problem(f"gap_tol = {gap_tol:g} is above max_gap = {max_gap:g}",
+                                 fix="gap_tol is the certificate's target and max_gap the largest gap a converged "
+                                     "pixel may have: set gap_tol ≤ max_gap"))
     if "line" in capture.dims:
         raise StageError(Problem("this capture has a line dimension (a full-transport sweep)",
                                  fix="use demux_full for (delay, exposure, line, row, col) captures"))
@@ -155,10 +166,6 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
     stack = capture[["image"]].chunk({"delay": -1, "exposure": -1, "row": rows_per_tile, "col": -1})
     template = transport_template(capture, ("offset",), (grid.size,), stack.chunksizes["row"], dtype)
     levels = {"dark": dark, "full_scale": scale, "saturation": saturation}
-    if gap_tol > max_gap:
-        raise StageError(Problem(f"gap_tol = {gap_tol:g} is above max_gap = {max_gap:g}",
-                                 fix="gap_tol is the certificate's target and max_gap the largest gap a converged "
-                                     "pixel may have: set gap_tol ≤ max_gap"))
     solver = DemuxADMM(tol=tol, gap_tol=gap_tol, max_gap=max_gap, finish_rounds=finish_rounds, dual_steps=dual_steps,
                        max_iter=max_iter, polish_iter=polish_iter, polish_rounds=polish_rounds, dtype=dtype)
     out = xr.map_blocks(_band, stack.assign_attrs({}), kwargs={
