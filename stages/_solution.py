@@ -25,6 +25,7 @@ class Result(enum.IntEnum):
     max_steps = 1  # stopped at the iteration cap before meeting tol
     nonfinite = 2  # the value is not finite (NaN or ±inf): the solve broke down
     censored = 3  # the stopping test was met, but part of the value is a lower bound (clipped observations)
+    unproven = 4  # the value's certified error bound exceeds what a converged item may have (whatever the residuals)
 
     @property
     def message(self) -> str:
@@ -37,6 +38,8 @@ _MESSAGES = {
     Result.nonfinite: "the value is not finite (NaN or inf)",
     Result.censored: "met the tolerance, but part of the value is only a lower bound: it was seen only in clipped "
                      "(saturated) observations",
+    Result.unproven: "its certified error bound (e.g. the objective-gap bound) is above the largest a converged item "
+                     "may have (e.g. max_gap), whether or not it reached the iteration cap",
 }
 
 

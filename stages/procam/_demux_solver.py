@@ -59,7 +59,8 @@ and dual residuals met ``tol`` relative, checked every ``check_every`` iteration
 is at most ``gap_tol``, checked at the warm start, where a pixel so certified is not iterated at all, and after
 the polish; on dense problems with a positive definite 2G instead exactly where its bound is at most ``max_gap``;
 ``censored`` when it did
-but some offset's light was seen only clipped (:func:`censored_offsets`); else ``max_steps``, or ``nonfinite``)
+but some offset's light was seen only clipped (:func:`censored_offsets`); ``unproven`` where the bound exceeds
+``max_gap``; else ``max_steps``, or ``nonfinite``)
 and ``stats`` (``iterations`` to convergence, ``max_iter`` if never; ``objective``; ``gap_bound``, the certified
 bound; ``censored_offsets``). A call's
 pixels stream through one batch whose rows are written out and refilled as their pixels converge or reach
@@ -149,7 +150,7 @@ class DemuxADMM:
     certified, and converged whatever its residuals say (checked at the warm start, where such a pixel is not
     iterated at all, and at the end), and the finish aims at it; ``max_gap`` (≥ ``gap_tol``): the largest certified
     gap a converged pixel may have: a pixel whose bound exceeds it after the solve gets the exact finish, and one
-    still above it is ``max_steps``: ``converged`` means exactly a proven gap of at most ``max_gap``, whatever the
+    still above it is ``unproven``: ``converged`` means exactly a proven gap of at most ``max_gap``, whatever the
     residuals said (a pixel at ``max_iter`` whose bound is within it is converged) (1: no cap, no finish: the
     residual test or ``gap_tol``). It applies to dense problems whose 2G is positive definite, where the bound is
     second order in T's KKT residual (:func:`~stages.procam._demux_certificate.kkt_gap`); elsewhere (the
@@ -260,6 +261,9 @@ class DemuxADMM:
                     if any_clipped else np.zeros(data.shape[0], np.int32))
         result = outcome(np.asarray(done), finite)
         result = np.where((result == int(Result.converged)) & (censored > 0), np.int8(Result.censored), result)
+        if proven:  # not converged for want of a proof, not of iterations
+            result = np.where((result == int(Result.max_steps)) & (gap > self.max_gap), np.int8(Result.unproven),
+                              result)
         solution = Solution(transport, result.astype(np.int8),
                             {"iterations": np.asarray(iterations), "objective": objective, "gap_bound": gap,
                              "censored_offsets": censored})
@@ -284,7 +288,7 @@ class DemuxADMM:
     def _finish(self, problem: DemuxProblem, data, weight, clipped, transport, objective, gap, done):
         """The exact active-set finish, aimed at ``gap_tol``, on the finite pixels whose bound exceeds ``max_gap``;
         their objective, bound (float64, of the returned transport) and converged flag follow: converged where the
-        rounds end at or below ``max_gap`` (``max_steps`` above it)."""
+        rounds end at or below ``max_gap`` (``unproven`` above it)."""
         scope = np.flatnonzero(np.isfinite(transport).all(axis=1) & (gap > self.max_gap))
         if scope.size:
             value, bound = active_set_finish(problem, transport[scope], data[scope], gap[scope],

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from stages._solution import Result, SolverError
 from stages.procam._demux_certificate import certified_gap
 from stages.procam._demux_problem import DemuxProblem
 from stages.procam._demux_solver import DemuxADMM
@@ -112,6 +113,9 @@ def test_max_gap_is_what_converged_proves_and_where_the_finish_runs():
     assert (loose.converged & above).sum() >= 5 and (~above).sum() >= 5
     np.testing.assert_array_equal(capped.value, loose.value)
     np.testing.assert_array_equal(capped.converged, ~above)  # the residual test's verdict no longer counts
+    assert np.all(capped.result[above] == Result.unproven)  # not converged for want of a proof, not of iterations
+    with pytest.raises(SolverError, match=r"unproven \(its certified error bound"):
+        DemuxADMM(**short, finish_rounds=0, throw=True).solve(problem, data)
     # the finish touched the pixels above max_gap only, and took each to a bound of at most max_gap: all converged
     np.testing.assert_array_equal(finished.value[~above], loose.value[~above])
     assert np.all(finished.stats["gap_bound"][above] <= 1e-3) and finished.converged.all()
