@@ -239,9 +239,12 @@ def kept_hessian(problem: DemuxProblem, kept: np.ndarray) -> KeptHessian:
     so a pixel pays a Cholesky factor of its |R| × |R| core (C = A H Aᵀ's submatrix on R, C shared), not a K × K
     factorisation, and 2G_p is positive definite exactly where M is (Schur complement): ``applies`` where the factor
     of M − floor·I exists (:data:`WOODBURY_FLOOR`). Its smallest eigenvalue is at least λ_min(2G) · min(1, λ_min(M))
-    (2G_p = (2G)^½ (I − 2H^½A_RᵀA_RH^½) (2G)^½, whose middle factor has M's eigenvalues and ones) and
-    λ_min(M) ≥ 1/‖L⁻¹‖_F²: the dual ascent's safe step. Float64, host (pixels grouped by |R|, one batched
-    factorisation a group, pixel by pixel only where one of a group's fails). Dense problems only."""
+    (2G_p = (2G)^½ (I − 2H^½A_RᵀA_RH^½) (2G)^½, whose middle factor has M's eigenvalues and ones), with λ_min(M)
+    taken as that of M − floor·I (a batched eigvalsh of the |R| × |R| cores): the dual ascent's safe step. (It
+    replaced λ_min(M) ≥ 1/‖L⁻¹‖_F², 0.33–0.94 of it on the certificate tests' pixels, with which 10 steps left the
+    catalogue's NaN case at a median bound of 1.00e-4 where they now reach 9.2e-5, at no measurable cost.)
+    Float64, host (pixels grouped by |R|, one batched factorisation a group, pixel by pixel only where one of a
+    group's fails). Dense problems only."""
     kept = np.asarray(kept, bool)
     h, a = problem.inverse, problem.illumination
     removed = ~kept
@@ -267,7 +270,7 @@ def kept_hessian(problem: DemuxProblem, kept: np.ndarray) -> KeptHessian:
                     except np.linalg.LinAlgError:
                         applies[rows[i]], factor[i] = False, np.eye(r)
             whitening = np.linalg.inv(factor)
-            step[rows, 0] *= np.minimum(1.0, 1.0 / np.sum(whitening**2, axis=(1, 2)))
+            step[rows, 0] *= np.clip(np.linalg.eigvalsh(shifted)[:, 0], 0.0, 1.0)  # λ_min(M − floor I) ≤ λ_min(M)
             groups.append((rows, index, whitening))
     return KeptHessian(h, a, a @ h, tuple(groups), step, applies)
 
