@@ -172,7 +172,7 @@ class DemuxADMM:
     The defaults (tol 2e-3, two polish rounds, max_gap 1e-3 with 16 finish rounds) are the cheapest measured to
     meet #25's accuracy goals on every case of ``benchmarks/demux_catalogue.py`` (certified bound: median ≤ 1e-4,
     max ≤ 1e-3; narrowly for the medians of the 1e8 and NaN cases, 9.5e-5 and 9.2e-5) and the throughput
-    benchmark's (true gap p99 ≤ 1e-3): 1.3–2.3× the time of the earlier defaults (tol 5e-3, one polish round, no
+    benchmark's (true gap p99 ≤ 1e-3): 1.3–2.5× the time of the earlier defaults (tol 5e-3, one polish round, no
     finish), whose true gap's p99 was 1.3e-3 on the benchmark's stack and whose bound reached 4e-3–0.23
     (docs/results.md). Those remain a setting away for throughput: ``DemuxADMM(tol=5e-3, polish_rounds=1,
     max_gap=1)``.

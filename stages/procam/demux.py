@@ -116,7 +116,7 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
         frames included) for the pixels whose bound exceeds ``max_gap``; in [0, 20]; 0: none (then pixels above
         ``max_gap`` are left unconverged). Measured (``benchmarks/demux_catalogue.py``, 2048 px per case, this
         2-core machine, docs/results.md): at the defaults the finish runs on 0.4–7 % of the pixels and brings every
-        one to ``max_gap`` or below; the defaults take 1.3–2.3× the time of the earlier fast ones (tol 5e-3, one
+        one to ``max_gap`` or below; the defaults take 1.3–2.5× the time of the earlier fast ones (tol 5e-3, one
         polish round, no finish), whose bound reached 4e-3–0.23 and whose true gap's p99 was 1.3e-3 on the
         benchmark's stack. For the last bit of throughput where proven accuracy does not matter: ``tol: 5e-3,
         polish_rounds: 1, max_gap: 1, dual_steps: 0``.
