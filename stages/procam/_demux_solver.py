@@ -253,8 +253,7 @@ class DemuxADMM:
             gap, done = self._certify_partial(problem, data, weight, clipped, transport, gap, np.array(done))
         proven = self.max_gap < 1 and isinstance(problem, DemuxProblem) and problem.definite
         if self.finish_rounds and proven:
-            transport, objective, gap, done = self._finish(problem, data, weight, clipped, transport, objective,
-                                                           gap, np.array(done))
+            transport, objective, gap = self._finish(problem, data, weight, clipped, transport, objective, gap)
         if proven:  # converged means a proven gap of at most max_gap, whatever the residuals said
             done = gap <= self.max_gap
         finite = np.isfinite(transport).all(axis=-1) & np.isfinite(objective)
@@ -286,10 +285,10 @@ class DemuxADMM:
             done[scope] |= gap[scope] <= self.gap_tol
         return gap, done
 
-    def _finish(self, problem: DemuxProblem, data, weight, clipped, transport, objective, gap, done):
+    def _finish(self, problem: DemuxProblem, data, weight, clipped, transport, objective, gap):
         """The exact active-set finish, aimed at ``gap_tol``, on the finite pixels whose bound exceeds ``max_gap``;
-        their objective, bound (float64, of the returned transport) and converged flag follow: converged where the
-        rounds end at or below ``max_gap`` (``unproven`` above it)."""
+        their objective and bound (float64, of the returned transport) follow (the caller's converged rule, bound ≤
+        ``max_gap``, then reads that bound)."""
         scope = np.flatnonzero(np.isfinite(transport).all(axis=1) & (gap > self.max_gap))
         if scope.size:
             value, bound = active_set_finish(problem, transport[scope], data[scope], gap[scope],
@@ -298,8 +297,7 @@ class DemuxADMM:
             transport[scope], gap[scope] = value, bound.astype(gap.dtype)
             objective[scope] = problem.objective(value, np.where(weight[scope], data[scope], 0.0), weight[scope],
                                                  clipped[scope]).astype(objective.dtype)
-            done[scope] = bound <= self.max_gap  # whatever the residuals said
-        return transport, objective, gap, done
+        return transport, objective, gap
 
     def _run(self, ops, data, weight, clipped, *, masked: bool, slots: int):
         """Start, set aside the pixels certified at their warm start (gap bound ≤ ``gap_tol``: no iteration), stream
