@@ -58,13 +58,14 @@ def main() -> None:
     import jax
     import jax.numpy as jnp
 
-    from benchmarks.demux_throughput import _matrix, _pixels
+    from benchmarks._demux_sweep import matrix as _matrix
+    from benchmarks._demux_sweep import pixels as _pixels
     from stages.procam._demux_certificate import certified_gap
     from stages.procam._demux_problem import DemuxProblem
     from stages.procam._demux_solver import DemuxADMM
 
     k, p = 128, args.pixels
-    a = _matrix(k, kept=True)
+    a = _matrix(k, kept_only=True)
     problem = DemuxProblem.build(a)
     truth, _ = _pixels(k, p, seed=1)
     data = truth @ a.T + np.random.default_rng(3).normal(0, 2e-3, (p, a.shape[0]))

@@ -78,7 +78,10 @@ def _images(rng, a: np.ndarray, truth: np.ndarray, gain: float = 1000.0) -> np.n
 
 def catalogue(pixels: int = 2048, ks: tuple[int, ...] = (64, 128, 256), seed: int = 0) -> list[Case]:
     """The catalogue's cases, ``pixels`` each (seeded: the same problems on every call)."""
-    from benchmarks.demux_throughput import EXPOSURES_US, _delays, _kept, _offsets
+    from benchmarks._demux_sweep import EXPOSURES_US
+    from benchmarks._demux_sweep import delays as _delays
+    from benchmarks._demux_sweep import kept as _kept
+    from benchmarks._demux_sweep import offsets as _offsets
 
     rng = np.random.default_rng(seed)
     cases = []
@@ -198,7 +201,7 @@ def main() -> None:
         rows.extend(run_case(case, sample))
     import jax
 
-    from benchmarks.demux_throughput import device_line
+    from benchmarks._demux_sweep import device_line
 
     print(f"device: {device_line(jax)}")
     print(f"demux catalogue: {pixels} px per case, true gap on {sample} px against Clarabel at 1e-12; bound = "

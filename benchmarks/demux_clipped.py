@@ -35,13 +35,15 @@ def main() -> None:
     parser.add_argument("--share", type=float, default=0.1, help="share of pixels that are highlights")
     args = parser.parse_args()
 
-    from benchmarks.demux_throughput import _matrix, _offsets, _pixels
+    from benchmarks._demux_sweep import matrix as _matrix
+    from benchmarks._demux_sweep import offsets as _offsets
+    from benchmarks._demux_sweep import pixels as _pixels
     from stages.procam._demux_problem import DemuxProblem
     from stages.procam._demux_solver import DemuxADMM
     from stages.procam._demux_store import solve_pixels
 
     k = 128
-    matrix = _matrix(k, kept=True)
+    matrix = _matrix(k, kept_only=True)
     problem = DemuxProblem.build(matrix)
     truth, _ = _pixels(k, args.pixels, seed=1)
     rng = np.random.default_rng(2)

@@ -31,14 +31,16 @@ def main() -> None:
     import jax
 
     import stages.procam._demux_problem as demux_problem
+    from benchmarks._demux_sweep import device_line
+    from benchmarks._demux_sweep import matrix as _matrix
+    from benchmarks._demux_sweep import sample as _sample
     from benchmarks.demux_catalogue import reference
-    from benchmarks.demux_throughput import _matrix, _sample, device_line
     from stages.procam._demux_solver import DemuxADMM
 
     device = device_line(jax)
     print(f"device: {device}")
     k = 128
-    problem = demux_problem.DemuxProblem.build(_matrix(k, kept=True))
+    problem = demux_problem.DemuxProblem.build(_matrix(k, kept_only=True))
     largest = max(args.sizes)
     data, clipped = _sample(k, largest, 1, largest)  # the benchmark's pixels as the stage sees them, one row of them
     optimum = reference(problem, data[:200], None, clipped[:200])

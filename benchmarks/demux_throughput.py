@@ -30,114 +30,26 @@ import argparse
 import contextlib
 import json
 import os
-import resource
 import subprocess
 import sys
 import tempfile
 import time
 
+if __package__ in (None, ""):  # run as a script: the repository root on the path, for the shared sweep
+    sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-def _delays(k: int) -> list[float]:
-    """25 delays [µs], K/25.6 rows apart: K = 128 spans ±60 rows (±85 with the exposures), so every offset is
-    lit (an unlit offset is held only by α and β, and its pixels crawl to convergence)."""
-    step = 85.0 * k / 128
-    return [step * (i - 12) for i in range(25)]
+from benchmarks._demux_sweep import (
+    FAST,
+    UNCAPPED,
+    capture,
+    default_cvxpy_seconds,
+    device_line,
+    matrix,
+    peak_rss_gb,
+    sample,
+)
 
-
-EXPOSURES_US = [170.0, 510.0, 850.0]
-SPEED, LINE_TIME = 1 / 17, 17.0  # the default rig: v_p = 1 row per 17 µs, t_p = 17 µs
-
-
-#: the fast settings: the stage's defaults before #25's certified ones (tol 5e-3, one polish round, no finish, no
-#: max_gap), without the certificate's dual ascent; ``--tol 5e-3 --polish-rounds 1 --max-gap 1 --dual-steps 0`` runs
-#: the whole benchmark so
-FAST = {"tol": 5e-3, "polish_rounds": 1, "max_gap": 1.0, "dual_steps": 0}
-#: the accuracy-versus-time curve's ADMM alone: no finish, no cap on converged
-UNCAPPED = {"polish_rounds": 1, "max_gap": 1.0}
-
-
-def device_line(jax) -> str:
-    """What the solver ran on: JAX's first device and backend, JAX's version and the host's CPU cores (timings
-    compare only on the same)."""
-    return (f"{jax.devices()[0].device_kind} ({jax.default_backend()}), JAX {jax.__version__}, "
-            f"{os.cpu_count()} CPU cores")
-
-
-def _peak_rss_gb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20  # kB on Linux
-
-
-def _offsets(k: int):
-    import numpy as np
-
-    return np.arange(-k // 2, k // 2)
-
-
-def _kept(k: int):
-    """The frames the stage keeps: its default rule drops the 6 whose exposure edge cuts the epipolar row."""
-    import numpy as np
-
-    from stages.procam._illumination import epipolar_boundary
-
-    d, e = np.meshgrid(_delays(k), EXPOSURES_US, indexing="ij")
-    return ~epipolar_boundary(d.ravel(), e.ravel(), sync_offset=0.0, margin=LINE_TIME / 2)
-
-
-def _matrix(k: int, kept: bool = False):
-    import numpy as np
-
-    from stages.procam._illumination import plane_to_ray_illumination
-
-    d, e = np.meshgrid(_delays(k), EXPOSURES_US, indexing="ij")
-    a = plane_to_ray_illumination(d.ravel(), e.ravel(), _offsets(k), scan_speed=SPEED, line_time=LINE_TIME)
-    return a[_kept(k)] if kept else a
-
-
-def _sample(k: int, n: int, rows: int, cols: int, band: int = 64):
-    """The first n pixels of the stack's row 0, as the stage sees them: (images of kept frames, clipped flags:
-    a frame at 4095 counts is clipped, its light at least that, the one-sided penalty of the stage)."""
-    import numpy as np
-
-    _, images = _pixels(k, min(band, rows) * cols, seed=0)  # the first band: row 0, col 0, 1, … come first
-    counts = (images[:n] * 4095).astype(np.float32)[:, _kept(k)]
-    return counts / np.float32(4095), counts >= 4095
-
-
-def _pixels(k: int, n: int, seed: int):
-    """(truth (n, K), images (n, N) in [0, 1]) for n pixels."""
-    import numpy as np
-
-    rng = np.random.default_rng(seed)
-    o = _offsets(k)[None, :]
-    truth = (rng.uniform(0.2, 0.9, (n, 1)) * (o == 0)
-             + rng.uniform(0, 0.05, (n, 1)) * np.exp(-np.abs(o) / rng.uniform(1, 8, (n, 1)))
-             + rng.uniform(0, 0.1, (n, 1)) * (rng.random((n, 1)) < 0.3)
-             * np.exp(-(o - rng.uniform(-50, 50, (n, 1))) ** 2 / 8))
-    counts = rng.poisson(truth @ _matrix(k).T * 1000) + rng.normal(0, 2, (n, 25 * len(EXPOSURES_US)))
-    return truth, np.clip(counts, 0, 4095) / 4095
-
-
-def _capture(k: int, rows: int, cols: int, band: int = 64):  # _sample relies on band and seeding
-    """The lazy (delay, exposure, row, col) capture, one dask task per band of rows."""
-    import dask.array as da
-    import numpy as np
-    import xarray as xr
-
-    n_d, n_e = 25, len(EXPOSURES_US)
-
-    def band_of(block_id=None):
-        r0 = block_id[2] * band
-        n = min(band, rows - r0)
-        _, images = _pixels(k, n * cols, seed=r0)
-        return (images.T * 4095).astype(np.float32).reshape(n_d, n_e, n, cols)
-
-    chunks = ((n_d,), (n_e,), tuple(min(band, rows - r) for r in range(0, rows, band)), (cols,))
-    stack = da.map_blocks(band_of, dtype=np.float32, chunks=chunks)
-    return xr.Dataset({"image": (("delay", "exposure", "row", "col"), stack, {"units": "counts"})},
-                      coords={"delay": ("delay", _delays(k), {"units": "us"}),
-                              "exposure": ("exposure", EXPOSURES_US, {"units": "us"})},
-                      attrs={"selpath_kind": "plane_to_ray_capture", "scan_speed_px_per_us": SPEED,
-                             "line_time_us": LINE_TIME, "dark_level_counts": 0.0, "saturation_counts": 4095.0})
+__all__ = ["FAST", "UNCAPPED", "main", "measure"]
 
 
 def _options(args) -> dict:
@@ -172,7 +84,7 @@ def measure(mode: str, args) -> dict:
             else:
                 stack.enter_context(dask.config.set(scheduler="threads", num_workers=args.workers))
             if mode == "generate":
-                to_store(_capture(k, args.rows, args.cols), args.store, "plane_to_ray_capture")
+                to_store(capture(k, args.rows, args.cols), args.store, "plane_to_ray_capture")
             elif mode == "io":  # the floor under any solver: read the capture, write a transport like the stage's
                 images = open_store(args.store)["image"]
                 images.sum(("delay", "exposure")).compute()
@@ -188,7 +100,7 @@ def measure(mode: str, args) -> dict:
                 to_store(out, args.out or f"{tmp}/t.zarr", "plane_to_ray_transport")
             seconds = time.perf_counter() - start
             # with worker processes, this one's peak and each worker's, added: what the machine must hold at most
-            peak = _peak_rss_gb() + (sum(client.run(_peak_rss_gb).values()) if client is not None else 0.0)
+            peak = peak_rss_gb() + (sum(client.run(peak_rss_gb).values()) if client is not None else 0.0)
             result = {"seconds": seconds, "pixels": pixels, "peak_rss_gb": peak}
             if mode == "selpath":  # the stage's own output on the sample pixels, for the objective gap
                 from stages.procam._demux_problem import DemuxProblem
@@ -196,8 +108,8 @@ def measure(mode: str, args) -> dict:
                 stored = open_store(args.out or f"{tmp}/t.zarr")
                 n = min(args.sample, args.cols)
                 transport = stored["transport"].isel(row=0, col=slice(0, n)).values.T / 4095
-                images, clipped = _sample(k, n, args.rows, args.cols)
-                objective = DemuxProblem.build(_matrix(k, kept=True)).objective(transport, images, None, clipped)
+                images, clipped = sample(k, n, args.rows, args.cols)
+                objective = DemuxProblem.build(matrix(k, kept_only=True)).objective(transport, images, None, clipped)
                 bound = stored["gap_bound"].values
                 result |= {"objective": objective.tolist(),
                            "sample_bound": stored["gap_bound"].isel(row=0, col=slice(0, n)).values.tolist(),
@@ -218,36 +130,27 @@ def measure(mode: str, args) -> dict:
         from stages.procam._demux_solver import DemuxADMM
         from stages.procam._demux_store import solve_pixels
 
-        matrix = _matrix(k, kept=True)
-        problem = DemuxProblem.build(matrix)
-        sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))  # run as a script too
+        a = matrix(k, kept_only=True)
+        problem = DemuxProblem.build(a)
         from benchmarks.demux_catalogue import reference
 
-        sample, clipped = _sample(k, min(args.sample, args.cols), args.rows, args.cols)
+        images, clipped = sample(k, min(args.sample, args.cols), args.rows, args.cols)
         weight = (~clipped).astype(float)  # the timed peer masks clipped frames (as selpath did before #30)
-        args.sample = sample.shape[0]
+        args.sample = images.shape[0]
         # DPP: one compiled problem, y and the saturation mask w as parameters (y holds w·data)
-        t, y, w = cp.Variable(k), cp.Parameter(matrix.shape[0]), cp.Parameter(matrix.shape[0], nonneg=True)
-        qp = cp.Problem(cp.Minimize(cp.sum_squares(cp.multiply(w, matrix @ t) - y)
+        t, y, w = cp.Variable(k), cp.Parameter(a.shape[0]), cp.Parameter(a.shape[0], nonneg=True)
+        qp = cp.Problem(cp.Minimize(cp.sum_squares(cp.multiply(w, a @ t) - y)
                                     + problem.alpha * cp.sum_squares(cp.diff(t)) + problem.beta * cp.sum(t)), [t >= 0])
-        optimum = []
         start = time.perf_counter()
         for p in range(args.sample):
-            w.value, y.value = weight[p], weight[p] * sample[p]
+            w.value, y.value = weight[p], weight[p] * images[p]
             qp.solve(solver=cp.CLARABEL)
-            optimum.append(qp.value)
         clarabel_s = (time.perf_counter() - start) / args.sample
-        optimum = reference(problem, sample, None, clipped)  # the stage's objective, clipped frames one-sided
-        default_s = []
-        for p in range(min(args.sample, 20)):  # the thesis's way: a problem built and solved per pixel
-            start = time.perf_counter()
-            tp = cp.Variable(k)
-            cp.Problem(cp.Minimize(cp.sum_squares(matrix @ tp - sample[p]) + problem.alpha
-                                   * cp.sum_squares(cp.diff(tp)) + problem.beta * cp.sum(tp)), [tp >= 0]).solve()
-            default_s.append(time.perf_counter() - start)
+        optimum = reference(problem, images, None, clipped)  # the stage's objective, clipped frames one-sided
+        default_s = default_cvxpy_seconds(problem, images)  # the thesis's way: a problem built and solved per pixel
         # timing as the stage runs: two halves of 16384 pixels at once, in the stage's calls
         tiles = 16384 // args.sample + 1
-        halves = list(zip(np.array_split(np.tile(sample, (tiles, 1))[:16384], 2),
+        halves = list(zip(np.array_split(np.tile(images, (tiles, 1))[:16384], 2),
                           np.array_split(np.tile(clipped, (tiles, 1))[:16384], 2), strict=True))
 
         def timed(**options) -> float:
@@ -264,16 +167,16 @@ def measure(mode: str, args) -> dict:
         for max_iter in (10, 20, 40, 80, 160):
             for polish in (0, 20):
                 result = DemuxADMM(max_iter=max_iter, tol=1e-7, polish_iter=polish, **UNCAPPED).solve(
-                    problem, sample, clipped=clipped)
-                gap = (problem.objective(result.value, sample, None, clipped) - optimum) / np.abs(optimum)
+                    problem, images, clipped=clipped)
+                gap = (problem.objective(result.value, images, None, clipped) - optimum) / np.abs(optimum)
                 rows.append({"max_iter": max_iter, "polish": polish, "gap_median": float(np.median(gap)),
                              "gap_p90": float(np.percentile(gap, 90)), "gap_p99": float(np.percentile(gap, 99)),
                              "s_per_px": timed(max_iter=max_iter, tol=1e-7, polish_iter=polish, **UNCAPPED)})
         # the fast settings (the defaults before #25's certified ones, without the dual ascent), the defaults, and the
         # exact finish on every pixel above gap_tol
         for label, options in (("fast", FAST), ("defaults", {}), ("finish all", {"max_gap": 1e-4})):
-            result = DemuxADMM(**options).solve(problem, sample, clipped=clipped)
-            gap = (problem.objective(result.value, sample, None, clipped) - optimum) / np.abs(optimum)
+            result = DemuxADMM(**options).solve(problem, images, clipped=clipped)
+            gap = (problem.objective(result.value, images, None, clipped) - optimum) / np.abs(optimum)
             rows.append({"max_iter": label, "polish": "dflt",
                          "gap_median": float(np.median(gap)), "gap_p90": float(np.percentile(gap, 90)),
                          "gap_p99": float(np.percentile(gap, 99)),
@@ -285,7 +188,7 @@ def measure(mode: str, args) -> dict:
 
         return {"device": device_line(jax), "clarabel_s_per_px": clarabel_s,
                 "default_s_per_px": float(np.median(default_s)), "curve": rows, "optimum": optimum.tolist(),
-                "peak_rss_gb": _peak_rss_gb()}
+                "peak_rss_gb": peak_rss_gb()}
     raise ValueError(mode)
 
 
