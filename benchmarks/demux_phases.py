@@ -5,6 +5,7 @@ frames one-sided), one ``DemuxADMM.solve`` call of the stage's size (``pixels_pe
 16 384 pixels at K = 128) is timed whole, then again phase by phase: each of the solver's module-level kernels and
 host steps is wrapped here with a timer that waits for its result (``jax.block_until_ready``), so the phases add up
 to the wrapped call and "other" is the host bookkeeping between them. Compiles are excluded (a first call compiles).
+BLAS runs on one thread, as in a workflow's threaded compute (``pipeline.compute.dask_owns_the_threads``).
 
 Phases: ``start`` (the unconstrained warm start, clipped), ``start certificate`` (the cheap KKT bound that lets an
 already optimal pixel skip iterating), ``ADMM`` (the streaming batch and its compacted tail), ``polish +
@@ -103,6 +104,7 @@ def main() -> None:
                         help="the store-to-store step's I/O alone, µs/px (the throughput benchmark's measurement)")
     args = parser.parse_args()
     import jax
+    from threadpoolctl import threadpool_limits
 
     from benchmarks._demux_sweep import FAST, default_cvxpy_seconds, device_line, matrix, sample
     from stages.procam._demux_problem import DemuxProblem
@@ -118,8 +120,12 @@ def main() -> None:
     budget = cvxpy_s / 2000 * 1e6
     print(f"default CVXPY, per pixel: {cvxpy_s * 1e3:.1f} ms (median of 20): #25's 2000× leaves {budget:.2f} µs/px "
           f"for the whole step, {budget - args.io_us:.2f} µs/px after the I/O ({args.io_us:.1f} µs/px)")
-    results = {label: profile(DemuxADMM(**settings), problem, data, clipped, args.calls)
-               for label, settings in (("fast", FAST), ("defaults", {}))}
+    # BLAS on one thread, as the stage's tasks see it in a workflow (pipeline.compute.dask_owns_the_threads): else
+    # the host steps' OpenBLAS pool spins on the cores after each call, and the next call's start reads ~1.3 µs/px
+    # slower
+    with threadpool_limits(limits=1):
+        results = {label: profile(DemuxADMM(**settings), problem, data, clipped, args.calls)
+                   for label, settings in (("fast", FAST), ("defaults", {}))}
     labels = list(dict.fromkeys(label for label, _, _ in PHASES)) + ["other"]
     print(f"\nK = {k}, {pixels} px a call, float32, µs/px (one thread calling; XLA's own threads inside):")
     print(f"{'phase':<22}" + "".join(f"{name:>12}" for name in results))

@@ -62,7 +62,7 @@ def measure(mode: str, args) -> dict:
     import dask
     import numpy as np
 
-    from pipeline.compute import enable_compile_cache
+    from pipeline.compute import compute, enable_compile_cache
     from pipeline.store import open_store, to_store
 
     if args.compile_cache:  # as the command line runs it, in a folder of this benchmark's own
@@ -97,7 +97,9 @@ def measure(mode: str, args) -> dict:
             else:
                 out = demux_plane_to_ray(open_store(args.store), offsets=OffsetGrid(start=-k // 2, stop=k // 2 - 1),
                                          **_options(args))
-                to_store(out, args.out or f"{tmp}/t.zarr", "plane_to_ray_transport")
+                # written as a workflow's engine writes an output (pipeline.compute: one BLAS thread per dask thread)
+                compute([to_store(out, args.out or f"{tmp}/t.zarr", "plane_to_ray_transport", compute=False)],
+                        scheduler=args.scheduler, client=client, progress=False)
             seconds = time.perf_counter() - start
             # with worker processes, this one's peak and each worker's, added: what the machine must hold at most
             peak = peak_rss_gb() + (sum(client.run(peak_rss_gb).values()) if client is not None else 0.0)

@@ -52,3 +52,37 @@ def test_cluster_workers_start_with_the_malloc_settings_and_p2p_buffer():
     assert environ["MALLOC_MMAP_THRESHOLD_"] == str(WORKER_MALLOC["MALLOC_MMAP_THRESHOLD_"])
     assert "MALLOC_TRIM_THRESHOLD_" in environ
     assert buffer == P2P_BUFFER and memory == 10**9
+
+
+def _blas_threads() -> list[int]:
+    from threadpoolctl import threadpool_info
+
+    return [pool["num_threads"] for pool in threadpool_info() if pool["user_api"] == "blas"]
+
+
+@pytest.mark.parametrize(("scheduler", "workers", "inside"), [("threads", 2, 1), ("threads", 1, 2),
+                                                               ("synchronous", 2, 2)])
+def test_the_threaded_scheduler_runs_blas_on_one_thread_per_task(scheduler, workers, inside):
+    """Under the threaded scheduler with several threads, the tasks see BLAS pools of one thread (dask owns the
+    parallelism); with one thread, or the synchronous scheduler, BLAS keeps its own; and the limits in force
+    before the compute are back after it, also when a task fails."""
+    import dask
+    from threadpoolctl import threadpool_limits
+
+    from pipeline.compute import compute
+
+    if not _blas_threads():
+        pytest.skip("numpy reports no BLAS pool to threadpoolctl")
+    with threadpool_limits(limits=2, user_api="blas"), dask.config.set(num_workers=workers):
+        if set(_blas_threads()) != {2}:
+            pytest.skip("this machine's BLAS runs on one thread at most")
+        seen = compute([dask.delayed(_blas_threads)()], scheduler=scheduler, progress=False)[0]
+        assert set(seen) == {inside}
+        assert set(_blas_threads()) == {2}
+
+        def fail():
+            raise RuntimeError("a task failed")
+
+        with pytest.raises(RuntimeError, match="a task failed"):
+            compute([dask.delayed(fail)()], scheduler=scheduler, progress=False)
+        assert set(_blas_threads()) == {2}
