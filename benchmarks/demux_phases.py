@@ -1,11 +1,12 @@
 """Where a demultiplexing call's time goes, phase by phase, and what #25's speed goal leaves for each phase.
 
-On the throughput benchmark's K = 128 pixels (``benchmarks._demux_sweep.sample``: row 0 of its stack, clipped
-frames one-sided), one ``DemuxADMM.solve`` call of the stage's size (``pixels_per_call``: 16 streaming batches,
-16 384 pixels at K = 128) is timed whole, then again phase by phase: each of the solver's module-level kernels and
-host steps is wrapped here with a timer that waits for its result (``jax.block_until_ready``), so the phases add up
-to the wrapped call and "other" is the host bookkeeping between them. Compiles are excluded (a first call compiles).
-BLAS runs on one thread, as in a workflow's threaded compute (``pipeline.compute.dask_owns_the_threads``).
+On pixels drawn as the throughput benchmark's K = 128 stack's (``benchmarks._demux_sweep.sample``, seed 0: the same
+distribution, clipped frames one-sided), one ``DemuxADMM.solve`` call of the stage's size for a 64-row band of a
+1600-column sensor (``pixels_per_call``: 15 streaming batches of 1024, 15 360 pixels) is timed whole, then again
+phase by phase: each of the solver's module-level kernels and host steps is wrapped here with a timer that waits
+for its result (``jax.block_until_ready``), so the phases add up to the wrapped call and "other" is the host
+bookkeeping between them. Compiles are excluded (a first call compiles). BLAS runs on one thread, as in a
+workflow's compute (``pipeline.compute.blas_on_one_thread``).
 
 Phases: ``start`` (the unconstrained warm start, clipped), ``start certificate`` (the cheap KKT bound that lets an
 already optimal pixel skip iterating), ``ADMM`` (the streaming batch and its compacted tail), ``polish +
@@ -17,10 +18,10 @@ certificate, no dual ascent) and the defaults.
 The peer, in the same run: CVXPY's default solver with the problem built per pixel (the thesis's way;
 ``benchmarks._demux_sweep.default_cvxpy_seconds``). #25's goal, 2000× its throughput, is a budget of its median
 time / 2000 per pixel for the whole store-to-store step; the throughput benchmark measured the step's I/O alone at
-2.0 µs/px on a fast day (docs/results.md). The last lines say how many ADMM iterations of this call's own cost the
+2.0 µs/px (docs/results.md). The last lines say how many ADMM iterations of this call's own cost the
 budget would leave after the phases no method here can skip (the start, one certificate, the I/O).
 
-    python -m benchmarks.demux_phases [--pixels 16384] [--calls 2] [--io-us 2.0]
+    python -m benchmarks.demux_phases [--pixels 15360] [--calls 2] [--io-us 2.0]
 
 Last line: ``demux_phases: defaults_us_per_px=<a> fast_us_per_px=<b> budget_us_per_px=<c> us_per_iteration=<d>
 iterations_in_budget=<e>``
@@ -41,9 +42,9 @@ PHASES = (("start", "kernels", "start"), ("start certificate", "kernels", "gaps"
 
 
 @contextmanager
-def timed_phases(totals: dict):
-    """Wrap the solver's phases (:data:`PHASES`) with timers adding seconds to ``totals`` per label; restored on
-    exit."""
+def timed_phases(totals: dict, calls: dict | None = None):
+    """Wrap the solver's phases (:data:`PHASES`) with timers adding seconds to ``totals`` per label (and, with
+    ``calls``, counting the calls per wrapped attribute's name); restored on exit."""
     import jax
 
     import stages.procam._demux_kernels as kernels
@@ -52,8 +53,10 @@ def timed_phases(totals: dict):
     owners = {"kernels": kernels, "solver": DemuxADMM}
     saved = []
 
-    def timer(label, function):
+    def timer(label, name, function):
         def run(*args, **kwargs):
+            if calls is not None:
+                calls[name] = calls.get(name, 0) + 1
             start = time.perf_counter()
             result = jax.block_until_ready(function(*args, **kwargs))
             totals[label] = totals.get(label, 0.0) + time.perf_counter() - start
@@ -64,7 +67,7 @@ def timed_phases(totals: dict):
         for label, owner, name in PHASES:
             function = getattr(owners[owner], name)
             saved.append((owners[owner], name, function))
-            setattr(owners[owner], name, timer(label, function))
+            setattr(owners[owner], name, timer(label, name, function))
         yield totals
     finally:
         for owner, name, function in reversed(saved):
@@ -104,9 +107,9 @@ def main() -> None:
                         help="the store-to-store step's I/O alone, µs/px (the throughput benchmark's measurement)")
     args = parser.parse_args()
     import jax
-    from threadpoolctl import threadpool_limits
 
     from benchmarks._demux_sweep import FAST, default_cvxpy_seconds, device_line, matrix, sample
+    from pipeline.compute import blas_on_one_thread
     from stages.procam._demux_problem import DemuxProblem
     from stages.procam._demux_solver import DemuxADMM
     from stages.procam._demux_store import pixels_per_call
@@ -120,10 +123,10 @@ def main() -> None:
     budget = cvxpy_s / 2000 * 1e6
     print(f"default CVXPY, per pixel: {cvxpy_s * 1e3:.1f} ms (median of 20): #25's 2000× leaves {budget:.2f} µs/px "
           f"for the whole step, {budget - args.io_us:.2f} µs/px after the I/O ({args.io_us:.1f} µs/px)")
-    # BLAS on one thread, as the stage's tasks see it in a workflow (pipeline.compute.dask_owns_the_threads): else
+    # BLAS on one thread, as the stage's tasks see it in a workflow (pipeline.compute.blas_on_one_thread): else
     # the host steps' OpenBLAS pool spins on the cores after each call, and the next call's start reads ~1.3 µs/px
     # slower
-    with threadpool_limits(limits=1):
+    with blas_on_one_thread():
         results = {label: profile(DemuxADMM(**settings), problem, data, clipped, args.calls)
                    for label, settings in (("fast", FAST), ("defaults", {}))}
     labels = list(dict.fromkeys(label for label, _, _ in PHASES)) + ["other"]

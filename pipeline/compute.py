@@ -121,31 +121,31 @@ def local_cluster(n_workers: int, *, memory_limit: str | None = None) -> Iterato
 
 
 @contextmanager
-def dask_owns_the_threads(scheduler: str) -> Iterator[None]:
-    """While dask's threaded scheduler runs tasks on several threads, the BLAS and OpenMP pools those tasks call
-    into get one thread each (threadpoolctl; the limits before are restored on exit): dask owns the parallelism, as
-    :data:`WORKER_ENV` says for worker processes. Otherwise OpenBLAS wakes a pool per call, whose threads then
-    spin-wait on the cores the other tasks and XLA's own threads need: with them, ``benchmarks/demux_throughput.py``'s
-    K = 128 frame took 85.2–86.1 s store to store, with one thread 71.6–74.7 (the solver's host steps, its exact
-    finish and certificates, are small batched numpy); the tomography demo
-    took the same time either way (46.5, 48.8 against 46.3, 47.5 s) and the procam demo 73–78 against 70–71 s
-    (2026-11-27, this 2-core VM). XLA's threads are its own (not a BLAS pool) and stay. Set from the thread that
-    computes, once around the whole compute: the limits are process-wide, and tasks that set them themselves
-    would race each other."""
-    threads = dask.config.get("num_workers", None) or os.cpu_count() or 1
-    if scheduler != "threads" or threads < 2:
-        yield
-        return
+def blas_on_one_thread() -> Iterator[None]:
+    """The BLAS pool (numpy's OpenBLAS) at one thread while a local dask scheduler computes (threadpoolctl; the limit
+    before is restored on exit): dask and XLA own the parallelism, as :data:`WORKER_ENV` says for worker processes.
+    Otherwise OpenBLAS wakes a pool per call, whose threads then spin-wait on the cores that the other tasks and XLA's
+    own threads need: with them, ``benchmarks/demux_throughput.py``'s K = 128 frame took 85.2–86.1 s store to store,
+    with one thread 71.6–74.7 (the solver's host steps, its exact finish and certificates, are small batched numpy),
+    and a single thread calling the solver saw its next call's start 1.3 µs/px slower; the tomography demo took the
+    same time either way (46.5, 48.8 against 46.3, 47.5 s) and the procam demo 73–78 against 70–71 s (2026-11-27,
+    this 2-core VM). XLA's threads are its own (not a BLAS pool) and stay.
+
+    BLAS only: for OpenBLAS built on pthreads (numpy's and scipy's wheels) the limit is process-wide, so set here,
+    once around the whole compute from the thread that computes, it reaches every task (tasks that set it
+    themselves would race each other); OpenMP limits, and an OpenMP-built OpenBLAS's, are per thread and would not
+    reach dask's worker threads, so none is set. Two computes running at once from different threads would restore
+    the limit out of order: the engine computes one output at a time."""
     from threadpoolctl import threadpool_limits
 
-    with threadpool_limits(limits=1):
+    with threadpool_limits(limits=1, user_api="blas"):
         yield
 
 
 def compute(collections: Sequence[Any], *, scheduler: str, client: Any = None, progress: bool = True,
             description: str = "computing") -> tuple:
-    """Compute dask ``collections`` in one pass under ``scheduler`` (or on ``client``); under the threaded
-    scheduler with the BLAS and OpenMP pools at one thread each (:func:`dask_owns_the_threads`)."""
+    """Compute dask ``collections`` in one pass under ``scheduler`` (or on ``client``); on a local scheduler with
+    BLAS on one thread (:func:`blas_on_one_thread`)."""
     if not collections:
         return ()
     # dask 2026.8's joint optimisation of several collections that share layers can drop a shared key
@@ -159,7 +159,7 @@ def compute(collections: Sequence[Any], *, scheduler: str, client: Any = None, p
             distributed_progress(futures, notebook=False)
         return tuple(client.gather(futures))
     local = scheduler if scheduler in ("synchronous", "threads") else "threads"
-    with dask_owns_the_threads(local):
+    with blas_on_one_thread():
         if not progress:
             return dask.compute(*collections, scheduler=local, optimize_graph=optimize)
         # transient: a finished bar gives way to the engine's one line per output (what was written, how long)

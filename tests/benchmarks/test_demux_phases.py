@@ -17,10 +17,12 @@ def test_every_phase_is_timed_and_the_solver_is_restored():
     before = [getattr(kernels, name) for _, owner, name in PHASES if owner == "kernels"]
     finish, certify = DemuxADMM._finish, DemuxADMM._certify_partial
     totals: dict = {}
-    with timed_phases(totals):
+    calls: dict = {}
+    with timed_phases(totals, calls):
         # max_gap 0: every pixel above it gets the exact finish, so every phase runs
         DemuxADMM(max_gap=1e-12, gap_tol=0.0, finish_rounds=1).solve(problem, data, clipped=clipped)
     assert set(totals) == {label for label, _, _ in PHASES}
+    assert set(calls) == {name for _, _, name in PHASES}  # each wrapped function, also those that share a label
     assert all(seconds > 0 for seconds in totals.values())
     assert [getattr(kernels, name) for _, owner, name in PHASES if owner == "kernels"] == before
     assert (DemuxADMM._finish, DemuxADMM._certify_partial) == (finish, certify)
