@@ -59,12 +59,17 @@ def kept(k: int) -> np.ndarray:
     return ~epipolar_boundary(d.ravel(), e.ravel(), sync_offset=0.0, margin=LINE_TIME / 2)
 
 
-def matrix(k: int, kept_only: bool = False) -> np.ndarray:
-    """The sweep's (N, K) plane-to-ray illumination matrix (N = 75 frames, or the kept ones)."""
+def illumination(delays_us, exposures_us, offsets_rows) -> np.ndarray:
+    """The default rig's (N, K) plane-to-ray illumination of every (delay, exposure) pair, delays outer."""
     from stages.procam._illumination import plane_to_ray_illumination
 
-    d, e = np.meshgrid(delays(k), EXPOSURES_US, indexing="ij")
-    a = plane_to_ray_illumination(d.ravel(), e.ravel(), offsets(k), scan_speed=SPEED, line_time=LINE_TIME)
+    d, e = np.meshgrid(delays_us, exposures_us, indexing="ij")
+    return plane_to_ray_illumination(d.ravel(), e.ravel(), offsets_rows, scan_speed=SPEED, line_time=LINE_TIME)
+
+
+def matrix(k: int, kept_only: bool = False) -> np.ndarray:
+    """The sweep's (N, K) plane-to-ray illumination matrix (N = 75 frames, or the kept ones)."""
+    a = illumination(delays(k), EXPOSURES_US, offsets(k))
     return a[kept(k)] if kept_only else a
 
 

@@ -53,13 +53,6 @@ class Case:
     note: str = ""
 
 
-def _sweep(delays, exposures, offsets) -> np.ndarray:
-    from stages.procam._illumination import plane_to_ray_illumination
-
-    d, e = np.meshgrid(delays, exposures, indexing="ij")
-    return plane_to_ray_illumination(d.ravel(), e.ravel(), offsets, scan_speed=1 / 17, line_time=17.0)
-
-
 def _transport(rng, n: int, offsets: np.ndarray) -> np.ndarray:
     """A direct peak, a subsurface-like lobe, and for 30 % of pixels a displaced specular peak (the throughput
     benchmark's model)."""
@@ -80,6 +73,7 @@ def catalogue(pixels: int = 2048, ks: tuple[int, ...] = (64, 128, 256), seed: in
     """The catalogue's cases, ``pixels`` each (seeded: the same problems on every call)."""
     from benchmarks._demux_sweep import EXPOSURES_US
     from benchmarks._demux_sweep import delays as _delays
+    from benchmarks._demux_sweep import illumination as _sweep
     from benchmarks._demux_sweep import kept as _kept
     from benchmarks._demux_sweep import offsets as _offsets
 
