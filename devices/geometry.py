@@ -31,7 +31,7 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 
 from pipeline.errors import Problem, StageError
-from pipeline.schema import CAMERA_ATTRS, RIG_ATTRS, camera_attr_problems
+from pipeline.kinds import CAMERA_ATTRS, RIG_ATTRS, camera_attr_problems
 
 
 def rotation_z(angle_deg: float) -> np.ndarray:
@@ -242,7 +242,7 @@ class OrthographicCamera(Camera):
 
 
 #: the camera class of each model named in a store's ``camera_model`` attr
-#: (the keys of :data:`pipeline.schema.CAMERA_ATTRS`; a test keeps the two in step)
+#: (the keys of :data:`pipeline.kinds.CAMERA_ATTRS`; a test keeps the two in step)
 CAMERAS: dict[str, type[Camera]] = {cls.model: cls for cls in (PerspectiveCamera, OrthographicCamera)}
 #: a ``camera_model`` value, for typed configs
 CameraModel = Literal[tuple(CAMERA_ATTRS)]  # Literal[("a", "b")] is Literal["a", "b"]

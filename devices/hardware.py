@@ -21,7 +21,7 @@ from devices.manual import ManualLight, ManualSampleChanger
 from devices.opencv_camera import OpenCVCamera
 from devices.serial_stage import SerialRotaryStage
 from devices.tomography_acquire import TomographyRig
-from pipeline.schema import CAMERA_ATTRS, camera_attr_problems
+from pipeline.kinds import CAMERA_ATTRS, camera_attr_problems
 from pipeline.yaml_source import load_yaml_model
 
 
@@ -50,7 +50,7 @@ class GeometryConfig(_Model):
     """Rig geometry written into every capture (DESIGN §8); lengths in ``length_unit``.
 
     The fields are the attrs of :class:`devices.geometry.RigGeometry` (a test keeps them in step), and which a
-    camera model needs comes from their one declaration, :data:`pipeline.schema.CAMERA_ATTRS`; the principal
+    camera model needs comes from their one declaration, :data:`pipeline.kinds.CAMERA_ATTRS`; the principal
     point defaults to the sensor's centre.
     """
 

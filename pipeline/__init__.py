@@ -7,9 +7,10 @@ The public surface, for notebooks and plugins::
 
 from pipeline.engine import RunReport, build, run_workflow
 from pipeline.errors import ConfigError, DeviceError, Problem, SelpathError, SpecError, StageError, StoreError
+from pipeline.kinds import FORMAT_VERSION, KINDS
 from pipeline.provenance import read_provenance, write_provenance
 from pipeline.registry import Stage, StageRegistry, default_registry, stage
-from pipeline.schema import FORMAT_VERSION, KINDS, check_dataset
+from pipeline.schema import check_dataset
 from pipeline.spec import StorePath, Workflow, load_workflow
 from pipeline.store import create_capture, missing_frames, open_store, to_store, write_frame
 

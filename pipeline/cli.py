@@ -389,8 +389,8 @@ def inspect(
 
 def _describe_store(path: Path, ds, valid: bool | None, readable: bool) -> None:
     """Kind, dims, coordinates with units, attrs and each variable with units and valid share."""
+    from pipeline.kinds import KINDS
     from pipeline.quality import valid_shares
-    from pipeline.schema import KINDS
 
     kind = ds.attrs.get("selpath_kind")
     about = KINDS[kind].description if kind in KINDS else "unknown kind"

@@ -10,7 +10,8 @@ from collections.abc import Callable
 
 import xarray as xr
 
-from pipeline.schema import KINDS, with_metadata
+from pipeline.kinds import KINDS
+from pipeline.schema import with_metadata
 
 
 def _from_format_1(ds: xr.Dataset) -> xr.Dataset:

@@ -22,11 +22,11 @@ import pydantic
 
 from pipeline.constraints import describe
 from pipeline.errors import Problem, SpecError
+from pipeline.kinds import KINDS
 from pipeline.outputs import OutputPath, output_problems
 from pipeline.registry import Stage, StageRegistry, default_registry
 from pipeline.remote import is_url, local_path, url_problems
 from pipeline.report import ReportSpec, report_problems
-from pipeline.schema import KINDS
 from pipeline.yaml_source import Located, format_path, parse_yaml, pydantic_message, read_source
 
 

@@ -49,10 +49,11 @@ from pipeline.integrity import (
     write_manifest,
     written_frames,
 )
+from pipeline.kinds import FORMAT_VERSION, KINDS
 from pipeline.migrations import MIGRATIONS
 from pipeline.outputs import Staging
 from pipeline.provenance import jsonable, read_provenance
-from pipeline.schema import FORMAT_VERSION, KINDS, check_dataset, with_metadata
+from pipeline.schema import check_dataset, with_metadata
 
 
 class IncompleteCaptureWarning(UserWarning):

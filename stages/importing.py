@@ -33,9 +33,9 @@ import xarray as xr
 from pydantic import BaseModel, ConfigDict, Field
 
 from pipeline.errors import Problem, SelpathError, StageError
+from pipeline.kinds import LENGTH_UNITS
 from pipeline.provenance import hash_file
 from pipeline.registry import stage
-from pipeline.schema import LENGTH_UNITS
 from pipeline.spec import StorePath
 from pipeline.yaml_source import load_yaml_model
 

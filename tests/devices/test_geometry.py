@@ -16,7 +16,7 @@ from devices.geometry import (
 )
 from devices.hardware import GeometryConfig
 from pipeline import StageError
-from pipeline.schema import CAMERA_ATTRS, RIG_ATTRS
+from pipeline.kinds import CAMERA_ATTRS, RIG_ATTRS
 
 CAMERA_CASES = {
     "perspective": PerspectiveCamera(rows=7, cols=11, focal_length_px=40.0, camera_distance=80.0,

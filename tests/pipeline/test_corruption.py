@@ -17,8 +17,8 @@ from typer.testing import CliRunner
 from pipeline import SpecError, StoreError, load_workflow, open_store, run_workflow, to_store
 from pipeline.cli import app
 from pipeline.integrity import verify_store
+from pipeline.kinds import KINDS, LENGTH_UNITS
 from pipeline.provenance import write_provenance
-from pipeline.schema import KINDS, LENGTH_UNITS
 from pipeline.store import missing_frames
 from tests.devices.test_tomography_acquire import make_workflow
 

@@ -9,7 +9,8 @@ import pytest
 import zarr
 
 from pipeline import StoreError, open_store, to_store
-from pipeline.schema import FORMAT_VERSION, KINDS, metadata, with_metadata
+from pipeline.kinds import FORMAT_VERSION, KINDS
+from pipeline.schema import metadata, with_metadata
 from pipeline.store import IncompleteStoreWarning
 from tests.pipeline.test_corruption import minimal
 

@@ -25,7 +25,7 @@ from pipeline import (
     write_provenance,
 )
 from pipeline.integrity import write_manifest
-from pipeline.schema import FORMAT_VERSION
+from pipeline.kinds import FORMAT_VERSION
 from pipeline.store import IncompleteStoreWarning
 
 GEOMETRY = {"camera_model": "perspective", "focal_length_px": 1800.0, "principal_point_px": [800.0, 600.0],
