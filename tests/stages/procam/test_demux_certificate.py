@@ -200,8 +200,17 @@ def test_pixels_with_masked_and_clipped_frames_get_the_kkt_bound_and_it_bounds_t
     first_order = certified_gap(replace(problem, definite=False), solution.value, data, seen, clipped)
     loose = first_order > DemuxADMM.DEFAULT_GAP_TOL  # what the KKT bound is for (measured: 29 of 64 pixels)
     assert loose.sum() >= 16
-    # measured: the median 1334× lower there, and 52 % of those pixels certified to gap_tol
-    assert np.median(first_order[loose] / bound[loose]) >= 100
+    # Two kinds of loose pixel: those ADMM brought near the optimum (true gap ≤ gap_tol), where the first-order bound
+    # is loose and the KKT bound tight, and those it left far from it, where both are near the true gap. Their split
+    # varies with the CPU's float32 rounding (29 loose pixels on one machine, 28 on another, 17 of them near), so a
+    # median over all loose pixels fell on either side of it (1334× on one, 27× on the other): each is asserted alone.
+    # Measured on an AMD EPYC: near, the median 11 950× lower; far, the bound 3.1× the true gap at the median (at
+    # most 25×); 50 % of the loose pixels certified to gap_tol (52 % on the first machine)
+    true_gap = (value - optimum) / value
+    near = loose & (true_gap <= DemuxADMM.DEFAULT_GAP_TOL)
+    assert near.sum() >= 8 and (loose & ~near).sum() >= 4
+    assert np.median(first_order[near] / bound[near]) >= 100
+    assert np.median(bound[loose & ~near] / true_gap[loose & ~near]) <= 10
     assert np.mean(bound[loose] <= DemuxADMM.DEFAULT_GAP_TOL) >= 0.3
     # α = 0: 2G_p = 2A_EᵀA_E is positive definite exactly where the kept frames' rows have full rank; the first
     # pixel loses every frame that sees its first offset
