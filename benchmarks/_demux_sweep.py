@@ -53,7 +53,7 @@ def offsets(k: int) -> np.ndarray:
 
 def kept(k: int) -> np.ndarray:
     """The frames the stage keeps: its default rule drops the 6 whose exposure edge cuts the epipolar row."""
-    from stages.procam._illumination import epipolar_boundary
+    from selpath.stages.procam._illumination import epipolar_boundary
 
     d, e = np.meshgrid(delays(k), EXPOSURES_US, indexing="ij")
     return ~epipolar_boundary(d.ravel(), e.ravel(), sync_offset=0.0, margin=LINE_TIME / 2)
@@ -61,7 +61,7 @@ def kept(k: int) -> np.ndarray:
 
 def illumination(delays_us, exposures_us, offsets_rows) -> np.ndarray:
     """The default rig's (N, K) plane-to-ray illumination of every (delay, exposure) pair, delays outer."""
-    from stages.procam._illumination import plane_to_ray_illumination
+    from selpath.stages.procam._illumination import plane_to_ray_illumination
 
     d, e = np.meshgrid(delays_us, exposures_us, indexing="ij")
     return plane_to_ray_illumination(d.ravel(), e.ravel(), offsets_rows, scan_speed=SPEED, line_time=LINE_TIME)

@@ -32,8 +32,8 @@ def _peak_rss_gb() -> float:
 
 
 def _capture(args):
-    from stages.tomography.acquire import AngleSweep
-    from stages.tomography.simulate import simulate_parallel_capture
+    from selpath.stages.tomography.acquire import AngleSweep
+    from selpath.stages.tomography.simulate import simulate_parallel_capture
 
     return simulate_parallel_capture(angles=AngleSweep(start=0, stop=360, step=360 / args.angles),
                                      n_rows=args.rows, n_cols=args.cols, pixel_size=40.0 / args.cols * 1.2)
@@ -42,8 +42,7 @@ def _capture(args):
 def _read(store: str) -> float:
     """Seconds to open ``store`` and reduce every variable (every chunk read, decoded and verified)."""
     import dask
-
-    from pipeline.store import open_store
+    from selpath.pipeline.store import open_store
 
     start = time.perf_counter()
     ds = open_store(store)
@@ -54,9 +53,8 @@ def _read(store: str) -> float:
 def measure(mode: str, args) -> dict:
     import dask
     import numpy as np
-
-    from pipeline.store import to_store
-    from stages.tomography.calibrate import absorption
+    from selpath.pipeline.store import to_store
+    from selpath.stages.tomography.calibrate import absorption
 
     pixels = args.angles * args.rows * args.cols
     if mode == "simulate":

@@ -6,7 +6,7 @@ distribution, clipped frames one-sided), one ``DemuxADMM.solve`` call of the sta
 phase by phase: each of the solver's module-level kernels and host steps is wrapped here with a timer that waits
 for its result (``jax.block_until_ready``), so the phases add up to the wrapped call and "other" is the host
 bookkeeping between them. Compiles are excluded (a first call compiles). BLAS runs on one thread, as in a
-workflow's compute (``pipeline.compute.blas_on_one_thread``).
+workflow's compute (``selpath.pipeline.compute.blas_on_one_thread``).
 
 Phases: ``start`` (the unconstrained warm start, clipped), ``start certificate`` (the cheap KKT bound that lets an
 already optimal pixel skip iterating), ``ADMM`` (the streaming batch and its compacted tail), ``polish +
@@ -46,9 +46,8 @@ def timed_phases(totals: dict, calls: dict | None = None):
     """Wrap the solver's phases (:data:`PHASES`) with timers adding seconds to ``totals`` per label (and, with
     ``calls``, counting the calls per wrapped attribute's name); restored on exit."""
     import jax
-
-    import stages.procam._demux_kernels as kernels
-    from stages.procam._demux_solver import DemuxADMM
+    import selpath.stages.procam._demux_kernels as kernels
+    from selpath.stages.procam._demux_solver import DemuxADMM
 
     owners = {"kernels": kernels, "solver": DemuxADMM}
     saved = []
@@ -107,12 +106,12 @@ def main() -> None:
                         help="the store-to-store step's I/O alone, µs/px (the throughput benchmark's measurement)")
     args = parser.parse_args()
     import jax
+    from selpath.pipeline.compute import blas_on_one_thread
+    from selpath.stages.procam._demux_problem import DemuxProblem
+    from selpath.stages.procam._demux_solver import DemuxADMM
+    from selpath.stages.procam._demux_store import pixels_per_call
 
     from benchmarks._demux_sweep import FAST, default_cvxpy_seconds, device_line, matrix, sample
-    from pipeline.compute import blas_on_one_thread
-    from stages.procam._demux_problem import DemuxProblem
-    from stages.procam._demux_solver import DemuxADMM
-    from stages.procam._demux_store import pixels_per_call
 
     k = 128
     pixels = args.pixels or pixels_per_call(1600 * 64, k)

@@ -3,7 +3,8 @@ precision of its products (for a GPU session: see docs/results.md, "On a GPU").
 
 On the throughput benchmark's K = 128 sweep (``benchmarks.demux_throughput``'s pixels), ``DemuxADMM`` at its defaults
 solves P pixels in one call, for growing P (compiles excluded: the second of two calls); the stage calls it with
-``stages.procam._demux_store.pixels_per_call`` pixels (16 batches), so this shows what larger calls would give. On the
+``selpath.stages.procam._demux_store.pixels_per_call`` pixels (16 batches), so this shows what larger calls would give.
+On the
 first 200 pixels it also reports the objective gap against Clarabel's optimum and the certified bound, for the
 defaults, the exact finish on every pixel above gap_tol (``max_gap=1e-4``) and float64 and, with
 ``--default-precision``, for JAX's own default precision of float32
@@ -29,13 +30,13 @@ def main() -> None:
                         help="also solve with JAX's default precision of float32 products (TF32 on recent GPUs)")
     args = parser.parse_args()
     import jax
+    import selpath.stages.procam._demux_problem as demux_problem
+    from selpath.stages.procam._demux_solver import DemuxADMM
 
-    import stages.procam._demux_problem as demux_problem
     from benchmarks._demux_sweep import device_line
     from benchmarks._demux_sweep import matrix as _matrix
     from benchmarks._demux_sweep import sample as _sample
     from benchmarks.demux_catalogue import reference
-    from stages.procam._demux_solver import DemuxADMM
 
     device = device_line(jax)
     print(f"device: {device}")

@@ -61,24 +61,23 @@ def _options(args) -> dict:
 def measure(mode: str, args) -> dict:
     import dask
     import numpy as np
-
-    from pipeline.compute import compute, enable_compile_cache
-    from pipeline.store import open_store, to_store
+    from selpath.pipeline.compute import compute, enable_compile_cache
+    from selpath.pipeline.store import open_store, to_store
 
     if args.compile_cache:  # as the command line runs it, in a folder of this benchmark's own
         os.environ["SELPATH_COMPILE_CACHE"] = args.compile_cache
         enable_compile_cache()
     k = args.k
     if mode in ("selpath", "generate", "io"):
-        from stages.procam._demux_store import OffsetGrid
-        from stages.procam.demux import demux_plane_to_ray
+        from selpath.stages.procam._demux_store import OffsetGrid
+        from selpath.stages.procam.demux import demux_plane_to_ray
 
         pixels = args.rows * args.cols
         with contextlib.ExitStack() as stack:
             tmp = stack.enter_context(tempfile.TemporaryDirectory())
             start, client = time.perf_counter(), None
             if args.scheduler == "processes" and mode == "selpath":  # as `scheduler: processes` runs a workflow:
-                from pipeline.compute import local_cluster  # single-threaded worker processes (timed from here)
+                from selpath.pipeline.compute import local_cluster  # single-threaded worker processes (timed from here)
 
                 client = stack.enter_context(local_cluster(args.workers))
             else:
@@ -105,7 +104,7 @@ def measure(mode: str, args) -> dict:
             peak = peak_rss_gb() + (sum(client.run(peak_rss_gb).values()) if client is not None else 0.0)
             result = {"seconds": seconds, "pixels": pixels, "peak_rss_gb": peak}
             if mode == "selpath":  # the stage's own output on the sample pixels, for the objective gap
-                from stages.procam._demux_problem import DemuxProblem
+                from selpath.stages.procam._demux_problem import DemuxProblem
 
                 stored = open_store(args.out or f"{tmp}/t.zarr")
                 n = min(args.sample, args.cols)
@@ -127,10 +126,9 @@ def measure(mode: str, args) -> dict:
         from concurrent.futures import ThreadPoolExecutor
 
         import cvxpy as cp
-
-        from stages.procam._demux_problem import DemuxProblem
-        from stages.procam._demux_solver import DemuxADMM
-        from stages.procam._demux_store import solve_pixels
+        from selpath.stages.procam._demux_problem import DemuxProblem
+        from selpath.stages.procam._demux_solver import DemuxADMM
+        from selpath.stages.procam._demux_store import solve_pixels
 
         a = matrix(k, kept_only=True)
         problem = DemuxProblem.build(a)

@@ -12,14 +12,13 @@ import warnings
 
 import numpy as np
 import xarray as xr
-
-from devices.sim import tomography as tomo
-from devices.sim.scene import Scene
-from pipeline.quality import enforce
-from stages.tomography.calibrate import absorption
-from stages.tomography.hull import silhouettes, visual_hull
-from stages.tomography.paths import align_paths
-from stages.tomography.sinogram import bin_sinogram
+from selpath.devices.sim import tomography as tomo
+from selpath.devices.sim.scene import Scene
+from selpath.pipeline.quality import enforce
+from selpath.stages.tomography.calibrate import absorption
+from selpath.stages.tomography.hull import silhouettes, visual_hull
+from selpath.stages.tomography.paths import align_paths
+from selpath.stages.tomography.sinogram import bin_sinogram
 
 R = 10.0  # cylinder radius [mm]
 

@@ -4,8 +4,9 @@ A volume's slices share one (θ, X) grid, so one matrix R serves them all and R�
 sparse–dense product. Measured here at the accuracy benchmark's size (256² cells, 360 × 256 rays), per slice,
 forward (R σ) plus adjoint (Rᵀ y), warm (compiles excluded), for S slices at once:
 
-* ``walk``: :func:`stages.tomography._projector.forward` / ``adjoint`` (jitted, batched by ``vmap``), today's projector;
-* ``csr``: :func:`~stages.tomography._projector.system_matrix` with scipy (one thread);
+* ``walk``: :func:`selpath.stages.tomography._projector.forward` / ``adjoint`` (jitted, batched by ``vmap``), today's
+projector;
+* ``csr``: :func:`~selpath.stages.tomography._projector.system_matrix` with scipy (one thread);
 * ``bcsr``: the same matrix as a JAX ``BCSR`` passed to the jitted product as an argument (closed over as a constant,
   XLA spends minutes constant-folding its 40 M indices).
 
@@ -27,10 +28,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.experimental import sparse
-
-from stages.tomography._admm import TVADMM
-from stages.tomography._projector import (Geometry, MatrixProjector, WalkProjector, adjoint, forward,
-                                             system_matrix)
+from selpath.stages.tomography._admm import TVADMM
+from selpath.stages.tomography._projector import (
+    Geometry,
+    MatrixProjector,
+    WalkProjector,
+    adjoint,
+    forward,
+    system_matrix,
+)
 
 
 def best_of(fn, *args, repeats: int = 3) -> float:

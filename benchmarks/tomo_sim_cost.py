@@ -11,9 +11,10 @@ from __future__ import annotations
 import argparse
 import time
 
-import workflows
-from devices.sim.scene import Scene, load_scene
-from devices.sim.tomography import lit_frame
+from selpath.devices.sim.scene import Scene, load_scene
+from selpath.devices.sim.tomography import lit_frame
+
+from selpath import workflows
 
 SCENE = workflows.scene("cylinder-in-cylinder-s1")
 

@@ -9,7 +9,7 @@ inside the task that needs it. Two passes over the frames, each one lazy graph o
 ``--n-pixels``² cells (default 400, 0.08 mm). One graph would hold every angle's absorption (2.8 GB at full size)
 until the last silhouette is in; two passes render the frames twice instead (a stored capture is read twice). The
 volume is written to a zarr store on a ``LocalCluster`` of single-threaded worker processes (one XLA thread each,
-``pipeline.compute.local_cluster``) with ``--memory-limit`` each, first with 1 worker, then with 2, each a fresh
+``selpath.pipeline.compute.local_cluster``) with ``--memory-limit`` each, first with 1 worker, then with 2, each a fresh
 cluster. Printed: wall time, slices per second, each worker's peak RSS (``getrusage``), the 1 → 2 speed-up, and
 the volume's RMSE against the scene's truth on a sample of slices (a check that the graph computed the right thing).
 
@@ -38,17 +38,17 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 import yaml
+from selpath.pipeline.compute import local_cluster
+from selpath.stages.tomography.acquire import AngleSweep
+from selpath.stages.tomography.calibrate import absorption
+from selpath.stages.tomography.hull import silhouettes, visual_hull
+from selpath.stages.tomography.paths import align_paths
+from selpath.stages.tomography.phantom import phantom_truth
+from selpath.stages.tomography.reconstruct import fbp
+from selpath.stages.tomography.simulate import simulate_capture
+from selpath.stages.tomography.sinogram import bin_sinogram
 
-import workflows
-from pipeline.compute import local_cluster
-from stages.tomography.acquire import AngleSweep
-from stages.tomography.calibrate import absorption
-from stages.tomography.hull import silhouettes, visual_hull
-from stages.tomography.paths import align_paths
-from stages.tomography.phantom import phantom_truth
-from stages.tomography.reconstruct import fbp
-from stages.tomography.simulate import simulate_capture
-from stages.tomography.sinogram import bin_sinogram
+from selpath import workflows
 
 
 def scene_file(folder: Path, rows: int, cols: int) -> Path:

@@ -1,1 +1,1 @@
-"""Instruments: device protocols, serial drivers, the simulated rig (``devices.sim``) and acquisition sweeps."""
+"""Instruments: device protocols, serial drivers, the simulated rig (``selpath.devices.sim``) and acquisition sweeps."""

@@ -13,7 +13,7 @@ covers [r − ½, r + ½] × [c − ½, c + ½]; the principal point defaults to
 One camera class per model (:class:`PerspectiveCamera`, :class:`OrthographicCamera`) owns projection,
 back-projection, pixel rays and footprints; :class:`RigGeometry` holds the camera and the light. It is
 written into a capture's attrs by an acquisition and built back from them (:meth:`RigGeometry.from_attrs`,
-which checks them against the one declaration of the required attrs in :mod:`pipeline.schema`) by every
+which checks them against the one declaration of the required attrs in :mod:`selpath.pipeline.schema`) by every
 processing stage, the simulator and the phantom, so none of them can disagree on a convention.
 
 >>> camera = OrthographicCamera(rows=3, cols=5, pixel_size=0.5)
@@ -29,9 +29,8 @@ from dataclasses import asdict, dataclass, fields
 from typing import Any, ClassVar, Literal
 
 import numpy as np
-
-from pipeline.errors import Problem, StageError
-from pipeline.kinds import CAMERA_ATTRS, RIG_ATTRS, camera_attr_problems
+from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.kinds import CAMERA_ATTRS, RIG_ATTRS, camera_attr_problems
 
 
 def rotation_z(angle_deg: float) -> np.ndarray:
@@ -242,7 +241,7 @@ class OrthographicCamera(Camera):
 
 
 #: the camera class of each model named in a store's ``camera_model`` attr
-#: (the keys of :data:`pipeline.kinds.CAMERA_ATTRS`; a test keeps the two in step)
+#: (the keys of :data:`selpath.pipeline.kinds.CAMERA_ATTRS`; a test keeps the two in step)
 CAMERAS: dict[str, type[Camera]] = {cls.model: cls for cls in (PerspectiveCamera, OrthographicCamera)}
 #: a ``camera_model`` value, for typed configs
 CameraModel = Literal[tuple(CAMERA_ATTRS)]  # Literal[("a", "b")] is Literal["a", "b"]
@@ -273,7 +272,7 @@ class RigGeometry:
                    where: str = "") -> RigGeometry:
         """The geometry a cube's attrs describe, for a sensor of ``rows × cols`` (None: unknown).
 
-        Raises a :class:`~pipeline.errors.StageError` naming every missing or wrong attr (``where``: whose).
+        Raises a :class:`~selpath.pipeline.errors.StageError` naming every missing or wrong attr (``where``: whose).
         """
         problems = [f"attr {a!r} is missing; the rig geometry needs it ({what})" for a, what in RIG_ATTRS.items()
                     if a not in attrs] + camera_attr_problems(attrs, sensor_defaults=True)

@@ -15,14 +15,13 @@ import os
 from typing import Literal
 
 import pydantic
-
-from devices.geometry import CameraModel, RigGeometry
-from devices.manual import ManualLight, ManualSampleChanger
-from devices.opencv_camera import OpenCVCamera
-from devices.serial_stage import SerialRotaryStage
-from devices.tomography_acquire import TomographyRig
-from pipeline.kinds import CAMERA_ATTRS, camera_attr_problems
-from pipeline.yaml_source import load_yaml_model
+from selpath.devices.geometry import CameraModel, RigGeometry
+from selpath.devices.manual import ManualLight, ManualSampleChanger
+from selpath.devices.opencv_camera import OpenCVCamera
+from selpath.devices.serial_stage import SerialRotaryStage
+from selpath.devices.tomography_acquire import TomographyRig
+from selpath.pipeline.kinds import CAMERA_ATTRS, camera_attr_problems
+from selpath.pipeline.yaml_source import load_yaml_model
 
 
 class _Model(pydantic.BaseModel):
@@ -49,8 +48,8 @@ class CameraConfig(_Model):
 class GeometryConfig(_Model):
     """Rig geometry written into every capture (DESIGN §8); lengths in ``length_unit``.
 
-    The fields are the attrs of :class:`devices.geometry.RigGeometry` (a test keeps them in step), and which a
-    camera model needs comes from their one declaration, :data:`pipeline.kinds.CAMERA_ATTRS`; the principal
+    The fields are the attrs of :class:`selpath.devices.geometry.RigGeometry` (a test keeps them in step), and which a
+    camera model needs comes from their one declaration, :data:`selpath.pipeline.kinds.CAMERA_ATTRS`; the principal
     point defaults to the sensor's centre.
     """
 

@@ -1,7 +1,7 @@
 """Devices an operator works by hand: lights without a remote switch, swapping target and reference.
 
 Each asks the operator on the console and waits for Enter. Without a terminal (a batch job) they refuse
-with a :class:`~pipeline.errors.DeviceError` rather than hang.
+with a :class:`~selpath.pipeline.errors.DeviceError` rather than hang.
 """
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ from __future__ import annotations
 import sys
 from collections.abc import Callable
 
-from pipeline.errors import DeviceError
+from selpath.pipeline.errors import DeviceError
 
 
 def _console_prompt(message: str) -> None:

@@ -2,7 +2,7 @@
 sequences such as ``frames/img_%04d.png`` for dry runs).
 
 OpenCV already speaks to most cameras; this class only adds what a sweep needs: a fixed frame shape,
-float32 single-channel frames, and a :class:`~pipeline.errors.DeviceError` naming the source instead of
+float32 single-channel frames, and a :class:`~selpath.pipeline.errors.DeviceError` naming the source instead of
 OpenCV's silent ``(False, None)``.
 """
 
@@ -10,12 +10,11 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-
-from pipeline.errors import DeviceError
+from selpath.pipeline.errors import DeviceError
 
 
 class OpenCVCamera:
-    """:class:`~devices.protocols.Camera` over ``cv2.VideoCapture(source)``.
+    """:class:`~selpath.devices.protocols.Camera` over ``cv2.VideoCapture(source)``.
 
     Parameters
     ----------

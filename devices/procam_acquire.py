@@ -2,7 +2,8 @@
 
 ``acquire_plane_to_ray``: the white pattern, every (delay, exposure) → a ``(delay, exposure, row, col)``
 store. ``acquire_full_transport``: a vertical line at each position l_p (width l_w) × every (delay,
-exposure) → ``(delay, exposure, line, row, col)``. Like the tomography sweep (``devices.tomography_acquire``), the store
+exposure) → ``(delay, exposure, line, row, col)``. Like the tomography sweep (``selpath.devices.tomography_acquire``),
+the store
 is pre-allocated, each frame is a region write followed by its ``written__`` flag, and running the same
 sweep again captures only what is missing. A sweep the controller cannot do is refused before anything
 moves, naming the limit. Order: exposure (slowest), line, delay, so settings change as little as possible.
@@ -21,13 +22,12 @@ import dask.array as da
 import numpy as np
 import xarray as xr
 from rich.progress import Progress, TextColumn, TimeElapsedColumn
-
-from devices.patterns import checkerboard, gray_code_levels, vertical_line, white
-from devices.protocols import Camera, Projector, SyncController
-from pipeline.compute import BAR_COLUMNS, show_bars
-from pipeline.errors import DeviceError, Problem, SpecError
-from pipeline.locks import store_lock
-from pipeline.store import create_capture, missing_frames, open_store, write_frame
+from selpath.devices.patterns import checkerboard, gray_code_levels, vertical_line, white
+from selpath.devices.protocols import Camera, Projector, SyncController
+from selpath.pipeline.compute import BAR_COLUMNS, show_bars
+from selpath.pipeline.errors import DeviceError, Problem, SpecError
+from selpath.pipeline.locks import store_lock
+from selpath.pipeline.store import create_capture, missing_frames, open_store, write_frame
 
 #: camera rows per stored chunk of a capture
 CAPTURE_BAND_ROWS = 64
@@ -118,7 +118,8 @@ def sweep_frames(instruments: ProcamInstruments, store, template: xr.Dataset, ki
 
 
 def show_line(projector, position: float, width: float) -> None:
-    """A vertical line (``devices.patterns.vertical_line``) on ``projector``: drawn by the projector itself where
+    """A vertical line (``selpath.devices.patterns.vertical_line``) on ``projector``: drawn by the projector itself
+    where
     it can (``show_line``: one command instead of a pattern upload), else shown as a pattern."""
     if hasattr(projector, "show_line"):
         projector.show_line(position, width)
@@ -263,7 +264,7 @@ def acquire_plane_to_ray(instruments: ProcamInstruments, store: str | os.PathLik
 
 def _existing_hdr(store: str | os.PathLike) -> dict[str, Any] | None:
     """The HDR plan an existing capture at ``store`` recorded (its sweep is resumed as planned), else None."""
-    from pipeline.outputs import is_selpath_store
+    from selpath.pipeline.integrity import is_selpath_store
 
     if not is_selpath_store(store):
         return None
@@ -310,9 +311,9 @@ def acquire_checkerboards(instruments: ProcamInstruments, store: str | os.PathLi
 def acquire_gray_code(instruments: ProcamInstruments, store: str | os.PathLike, *, delay: float, exposure: float,
                       progress: bool = True, log: Callable[[str], None] = lambda _: None) -> xr.Dataset:
     """White, black, then every column and row bit of the projector's Gray code with its inverse
-    (:func:`devices.patterns.gray_code_levels`) into a ``gray_code_capture`` store, resumable, with the rolling
+    (:func:`selpath.devices.patterns.gray_code_levels`) into a ``gray_code_capture`` store, resumable, with the rolling
     shutter at ``delay``/``exposure``: an exposure of many rows lets every pixel see the projector rows around
-    its own, so the codes tell which row and column light it directly (``stages.procam.rectify``)."""
+    its own, so the codes tell which row and column light it directly (``selpath.stages.procam.rectify``)."""
     levels, column_bits, row_bits = gray_code_levels(instruments.projector.shape)
     coords = {"pattern": ("pattern", np.arange(len(levels)),
                           {"units": "1", "long_name": "pattern number: white, black, column bits, row bits"})}

@@ -18,13 +18,12 @@ from __future__ import annotations
 import os
 
 import pydantic
-
-from devices.hardware import CameraConfig
-from devices.opencv_camera import OpenCVCamera
-from devices.procam_acquire import ProcamInstruments
-from devices.serial_projector import SyncLineProjector
-from devices.serial_sync import SerialSyncController
-from pipeline.yaml_source import load_yaml_model
+from selpath.devices.hardware import CameraConfig
+from selpath.devices.opencv_camera import OpenCVCamera
+from selpath.devices.procam_acquire import ProcamInstruments
+from selpath.devices.serial_projector import SyncLineProjector
+from selpath.devices.serial_sync import SerialSyncController
+from selpath.pipeline.yaml_source import load_yaml_model
 
 
 class _Model(pydantic.BaseModel):

@@ -1,9 +1,10 @@
 """What an acquisition sweep needs from an instrument, as ``typing.Protocol``s.
 
-A sweep (``devices.tomography_acquire``) talks only to these protocols, so a real rig (``devices.serial_stage``,
-``devices.opencv_camera``, ``devices.manual``) and the simulated rig (``devices.sim.rig``) are
+A sweep (``selpath.devices.tomography_acquire``) talks only to these protocols, so a real rig
+(``selpath.devices.serial_stage``,
+``selpath.devices.opencv_camera``, ``selpath.devices.manual``) and the simulated rig (``selpath.devices.sim.rig``) are
 interchangeable: a sweep cannot tell one from the other. Every method either does what it says or
-raises :class:`~pipeline.errors.DeviceError` naming the port, the command and the reply.
+raises :class:`~selpath.pipeline.errors.DeviceError` naming the port, the command and the reply.
 
 Angles are in degrees, in the object frame of DESIGN §8 (stage angle φ turns the object
 counter-clockwise seen from +z). Sync times are in µs.

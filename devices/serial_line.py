@@ -5,9 +5,9 @@ One command per line, one reply per command. Every reply ends in ``*HH``, the XO
 transport only moves lines; what a reply means is the driver's, which says which lines answer its command
 (``answers``): a well-formed line that does not (a late reply to an earlier command, an unsolicited
 status line) is skipped, not taken for the answer, until the answer or the timeout comes. It raises typed errors:
-:class:`~pipeline.errors.DeviceTimeout` (no complete line in time, the partial bytes shown),
-:class:`~pipeline.errors.DeviceProtocolError` (bad checksum, not ASCII, or an ``ERR`` reply) and
-:class:`~pipeline.errors.DeviceDisconnected` (the port went away). Only :meth:`SerialLine.query`
+:class:`~selpath.pipeline.errors.DeviceTimeout` (no complete line in time, the partial bytes shown),
+:class:`~selpath.pipeline.errors.DeviceProtocolError` (bad checksum, not ASCII, or an ``ERR`` reply) and
+:class:`~selpath.pipeline.errors.DeviceDisconnected` (the port went away). Only :meth:`SerialLine.query`
 retries, and only for commands the caller declares idempotent.
 
 Any URL pyserial knows works: ``/dev/ttyUSB0``, ``socket://host:port``, ``loop://``, a pseudo-terminal.
@@ -27,7 +27,7 @@ except ImportError:  # Windows
 import time
 from collections.abc import Callable
 
-from pipeline.errors import DeviceDisconnected, DeviceError, DeviceProtocolError, DeviceTimeout
+from selpath.pipeline.errors import DeviceDisconnected, DeviceError, DeviceProtocolError, DeviceTimeout
 
 #: most well-formed lines that do not answer a command skipped while waiting for its answer
 MAX_STRAY_LINES = 16

@@ -15,9 +15,8 @@ import base64
 import zlib
 
 import numpy as np
-
-from devices.serial_line import SerialLine
-from pipeline.errors import DeviceError, DeviceProtocolError, DeviceTimeout
+from selpath.devices.serial_line import SerialLine
+from selpath.pipeline.errors import DeviceError, DeviceProtocolError, DeviceTimeout
 
 #: grey levels of the projector's video input: a pattern value p in [0, 1] is shown as round(255·p) / 255
 LEVELS = 255
@@ -45,11 +44,11 @@ def pattern_checksum(levels: np.ndarray) -> str:
 
 
 class SyncLineProjector:
-    """:class:`~devices.protocols.Projector` whose patterns go through the sync controller's line ``line``.
+    """:class:`~selpath.devices.protocols.Projector` whose patterns go through the sync controller's line ``line``.
 
     Patterns are kept by content: one already in a slot is shown without an upload; a new one goes into the
     slot used longest ago. ``show_line`` asks the controller to draw the line, the same as
-    ``show(devices.patterns.vertical_line(shape, centre, width))`` at 8 bits.
+    ``show(selpath.devices.patterns.vertical_line(shape, centre, width))`` at 8 bits.
     """
 
     def __init__(self, line: SerialLine, *, retries: int = 2):

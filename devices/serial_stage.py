@@ -10,8 +10,8 @@ after every move it reads the position back and refuses to report an angle the s
 
 from __future__ import annotations
 
-from devices.serial_line import SerialLine
-from pipeline.errors import DeviceError, DeviceProtocolError, DeviceTimeout
+from selpath.devices.serial_line import SerialLine
+from selpath.pipeline.errors import DeviceError, DeviceProtocolError, DeviceTimeout
 
 
 def _angle(text: str, *, port: str, command: str, reply: str) -> float:
@@ -35,7 +35,7 @@ def angular_distance(a: float, b: float) -> float:
 
 
 class SerialRotaryStage:
-    """:class:`~devices.protocols.RotaryStage` over ``serial.serial_for_url(url)``.
+    """:class:`~selpath.devices.protocols.RotaryStage` over ``serial.serial_for_url(url)``.
 
     Parameters
     ----------

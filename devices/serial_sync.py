@@ -9,9 +9,9 @@ with a delay or exposure other than the one in the store's coords.
 
 from __future__ import annotations
 
-from devices.protocols import SyncLimits, SyncStatus
-from devices.serial_line import SerialLine
-from pipeline.errors import DeviceError, DeviceProtocolError, DeviceTimeout
+from selpath.devices.protocols import SyncLimits, SyncStatus
+from selpath.devices.serial_line import SerialLine
+from selpath.pipeline.errors import DeviceError, DeviceProtocolError, DeviceTimeout
 
 
 def _numbers(body: str, count: int, *, port: str, command: str) -> list[float]:
@@ -27,7 +27,7 @@ def _numbers(body: str, count: int, *, port: str, command: str) -> list[float]:
 
 
 class SerialSyncController:
-    """:class:`~devices.protocols.SyncController` over ``serial.serial_for_url(url)``.
+    """:class:`~selpath.devices.protocols.SyncController` over ``serial.serial_for_url(url)``.
 
     Parameters
     ----------

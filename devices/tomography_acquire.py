@@ -1,9 +1,9 @@
 """Acquisition sweeps: drive a rig through its angles and write every frame into a store as it arrives.
 
-The store is pre-allocated (``pipeline.store.create_capture``) and each frame is a region write followed
+The store is pre-allocated (``selpath.pipeline.store.create_capture``) and each frame is a region write followed
 by its ``written__`` flag, so a sweep killed at any point keeps every finished frame, and running it
-again captures only the missing ones (``pipeline.store.missing_frames``). A sweep talks only to the
-protocols of :mod:`devices.protocols`: the simulated rig and hardware are driven by the same code.
+again captures only the missing ones (``selpath.pipeline.store.missing_frames``). A sweep talks only to the
+protocols of :mod:`selpath.devices.protocols`: the simulated rig and hardware are driven by the same code.
 
 Order, chosen to change samples once and lights as little as possible: the target at each missing
 angle (beam frame, then backlit frame), the dark frame, then the reference at each missing angle.
@@ -21,13 +21,12 @@ import dask.array as da
 import numpy as np
 import xarray as xr
 from rich.progress import Progress, TextColumn, TimeElapsedColumn
-
-from devices.protocols import Camera, LightSource, RotaryStage, SampleChanger
-from devices.serial_stage import angular_distance
-from pipeline.compute import BAR_COLUMNS, show_bars
-from pipeline.errors import DeviceError
-from pipeline.locks import store_lock
-from pipeline.store import create_capture, missing_frames, open_store, write_frame
+from selpath.devices.protocols import Camera, LightSource, RotaryStage, SampleChanger
+from selpath.devices.serial_stage import angular_distance
+from selpath.pipeline.compute import BAR_COLUMNS, show_bars
+from selpath.pipeline.errors import DeviceError
+from selpath.pipeline.locks import store_lock
+from selpath.pipeline.store import create_capture, missing_frames, open_store, write_frame
 
 KIND = "tomography_capture"
 
@@ -68,7 +67,7 @@ def acquire_tomography(rig: TomographyRig, store: str | os.PathLike, angles: Seq
                        progress: bool = True, log: Callable[[str], None] = lambda _: None) -> xr.Dataset:
     """Capture target, backlit, dark and reference frames into ``store``; resume if it holds part of the sweep.
 
-    Returns the store opened lazily. A device fault raises :class:`~pipeline.errors.DeviceError` after
+    Returns the store opened lazily. A device fault raises :class:`~selpath.pipeline.errors.DeviceError` after
     every frame captured so far is safely written; run the same sweep again to resume. The store is
     locked while the sweep runs: a second sweep into it is refused, naming this one.
     """

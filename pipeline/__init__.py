@@ -2,17 +2,18 @@
 
 The public surface, for notebooks and plugins::
 
-    from pipeline import open_store, stage, load_workflow, run_workflow
+    from selpath.pipeline import open_store, stage, load_workflow, run_workflow
 """
 
-from pipeline.engine import RunReport, build, run_workflow
-from pipeline.errors import ConfigError, DeviceError, Problem, SelpathError, SpecError, StageError, StoreError
-from pipeline.kinds import FORMAT_VERSION, KINDS
-from pipeline.provenance import read_provenance, write_provenance
-from pipeline.registry import Stage, StageRegistry, default_registry, stage
-from pipeline.schema import check_dataset
-from pipeline.spec import StorePath, Workflow, load_workflow
-from pipeline.store import create_capture, missing_frames, open_store, to_store, write_frame
+from selpath.pipeline.constraints import StorePath
+from selpath.pipeline.engine import RunReport, build, run_workflow
+from selpath.pipeline.errors import ConfigError, DeviceError, Problem, SelpathError, SpecError, StageError, StoreError
+from selpath.pipeline.kinds import FORMAT_VERSION, KINDS
+from selpath.pipeline.provenance import read_provenance, write_provenance
+from selpath.pipeline.registry import Stage, StageRegistry, default_registry, stage
+from selpath.pipeline.schema import check_dataset
+from selpath.pipeline.spec import Workflow, load_workflow
+from selpath.pipeline.store import create_capture, missing_frames, open_store, to_store, write_frame
 
 __all__ = [
     "FORMAT_VERSION",

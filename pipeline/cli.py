@@ -21,19 +21,19 @@ from rich.console import Console
 from rich.markup import escape
 from rich.padding import Padding
 from rich.table import Table
+from selpath.pipeline.compute import enable_compile_cache
+from selpath.pipeline.constraints import describe
+from selpath.pipeline.engine import RunReport, run_workflow
+from selpath.pipeline.errors import Problem, SelpathError, StoreError
+from selpath.pipeline.integrity import open_group, verify_store
+from selpath.pipeline.locks import store_lock
+from selpath.pipeline.provenance import archive_stores, read_provenance
+from selpath.pipeline.registry import default_registry, plain_text
+from selpath.pipeline.report import report_tables, summary_lines, write_html
+from selpath.pipeline.spec import load_workflow
+from selpath.pipeline.store import forget_frames, is_complete, missing_frames, open_store
 
-import workflows as shipped
-from pipeline.compute import enable_compile_cache
-from pipeline.constraints import describe
-from pipeline.engine import RunReport, run_workflow
-from pipeline.errors import Problem, SelpathError, StoreError
-from pipeline.integrity import open_group, verify_store
-from pipeline.locks import store_lock
-from pipeline.provenance import archive_stores, read_provenance
-from pipeline.registry import default_registry, plain_text
-from pipeline.report import report_tables, summary_lines, write_html
-from pipeline.spec import load_workflow
-from pipeline.store import forget_frames, is_complete, missing_frames, open_store
+from selpath import workflows as shipped
 
 
 class _Command(typer.core.TyperCommand):
@@ -190,7 +190,7 @@ def _write_report(workflow, result: RunReport, summary: list[str], tables: list)
 def schema() -> None:
     """Print the workflow file's JSON Schema, with every installed stage's settings, for YAML editors
     (``selpath schema > workflow.schema.json``; see the README)."""
-    from pipeline.workflow_schema import workflow_schema
+    from selpath.pipeline.workflow_schema import workflow_schema
 
     print(json.dumps(workflow_schema(), indent=1, ensure_ascii=False))
 
@@ -243,7 +243,7 @@ def import_(spec: Annotated[Path, typer.Argument(help="import spec (YAML): kind,
     with units (docs/format.md, "Importing captures"). Frames are copied one by one; nothing is written into
     the sources, and an existing store is never replaced.
     """
-    from pipeline.store import to_store
+    from selpath.pipeline.store import to_store
 
     with _guard():
         if store.exists():
@@ -274,7 +274,7 @@ def stages(
         for column in ("stage", "module", "what it does"):
             table.add_column(column, overflow="fold")
         for s in registry:
-            table.add_row(s.name, escape(s.func.__module__.removeprefix("stages.")), escape(plain_text(s.summary)))
+            table.add_row(s.name, escape(s.func.__module__.removeprefix("selpath.stages.")), escape(plain_text(s.summary)))
         console.print(table)
         return
     for s in [registry[name]] if name else list(registry):
@@ -389,8 +389,8 @@ def inspect(
 
 def _describe_store(path: Path, ds, valid: bool | None, readable: bool) -> None:
     """Kind, dims, coordinates with units, attrs and each variable with units and valid share."""
-    from pipeline.kinds import KINDS
-    from pipeline.quality import valid_shares
+    from selpath.pipeline.kinds import KINDS
+    from selpath.pipeline.quality import valid_shares
 
     kind = ds.attrs.get("selpath_kind")
     about = KINDS[kind].description if kind in KINDS else "unknown kind"

@@ -1,6 +1,6 @@
-"""Constrained setting types, and the memory check for settings that size arrays.
+"""Setting types (ranges, paths), and the memory check for settings that size arrays.
 
-Stage settings are validated by pydantic before anything runs (:mod:`pipeline.registry`); every float must
+Stage settings are validated by pydantic before anything runs (:mod:`selpath.pipeline.registry`); every float must
 be finite (``.nan`` and ``.inf`` are refused for all stages), and the annotations below add ranges. They are
 plain ``typing.Annotated`` types, so a plugin uses them the same way::
 
@@ -30,6 +30,16 @@ Positive = Annotated[float, pydantic.Field(gt=0)]
 NonNegative = Annotated[float, pydantic.Field(ge=0)]
 #: a share of something, in [0, 1]
 Fraction = Annotated[float, pydantic.Field(ge=0, le=1)]
+
+
+class PathMarker:
+    """Annotation metadata: this str setting is a filesystem path (or an fsspec URL), resolved against the workflow
+    file's folder when the workflow is validated (:mod:`selpath.pipeline.spec`)."""
+
+
+#: a setting that names a file or store: relative paths resolve against the workflow file's folder, and no output
+#: may be written over it
+StorePath = Annotated[str, PathMarker()]
 
 #: share of this machine's memory one array a setting sizes may take before validation refuses it
 MEMORY_SHARE = 0.5

@@ -7,9 +7,9 @@ unchanged workflow computes nothing, and changing one setting recomputes only th
 Provenance is written only after an output's data is complete, so an interrupted run is redone.
 
 Nothing a user owns is ever deleted: output paths are checked before anything runs
-(:func:`pipeline.spec.check_output_paths`), every output store is locked for the run
-(:mod:`pipeline.locks`), and each is written into a temporary sibling, given its manifest and provenance,
-and only then moved into place (:mod:`pipeline.outputs`).
+(:func:`selpath.pipeline.spec.check_output_paths`), every output store is locked for the run
+(:mod:`selpath.pipeline.locks`), and each is written into a temporary sibling, given its manifest and provenance,
+and only then moved into place (:mod:`selpath.pipeline.outputs`).
 """
 
 from __future__ import annotations
@@ -30,16 +30,15 @@ from typing import Any
 import xarray as xr
 import zarr
 from rich.markup import escape
-
-from pipeline.compute import compute, scheduler_session
-from pipeline.errors import Problem, SelpathError, StageError, StoreError
-from pipeline.integrity import BadChunk, verify_store, write_manifest
-from pipeline.locks import store_locks
-from pipeline.outputs import PNG_MARKER, Staging, check_png, png_path, tidy_staging
-from pipeline.provenance import read_provenance, write_provenance
-from pipeline.quality import ADVISE, FIX, LABEL, WHAT, below_floor, shares
-from pipeline.spec import OutputSpec, Ref, Step, Workflow, check_output_paths
-from pipeline.store import forget_frames, missing_frames, open_store, write_store
+from selpath.pipeline.compute import compute, scheduler_session
+from selpath.pipeline.errors import Problem, SelpathError, StageError, StoreError
+from selpath.pipeline.integrity import BadChunk, verify_store, write_manifest
+from selpath.pipeline.locks import store_locks
+from selpath.pipeline.outputs import PNG_MARKER, Staging, check_png, png_path, tidy_staging
+from selpath.pipeline.provenance import read_provenance, write_provenance
+from selpath.pipeline.quality import ADVISE, FIX, LABEL, WHAT, below_floor, shares
+from selpath.pipeline.spec import OutputSpec, Ref, Step, Workflow, check_output_paths
+from selpath.pipeline.store import forget_frames, missing_frames, open_store, write_store
 
 _PACKAGES = ("selpath", "xarray", "dask", "zarr", "numpy", "jax")
 
@@ -342,7 +341,7 @@ def run_workflow(workflow: Workflow, *, scheduler: str | None = None, progress: 
 
 def _write_output(graph: _Graph, name: str, out: OutputSpec, data: xr.Dataset, scheduler: str, client: Any,
                   progress: bool, description: str) -> None:
-    """Write one output into a staging sibling, check usable shares (:mod:`pipeline.quality`), add its manifest,
+    """Write one output into a staging sibling, check usable shares (:mod:`selpath.pipeline.quality`), add its manifest,
     provenance and (for figures) PNG, then move it into place.
 
     Checked: the output step's own shares; for a step with none (a figure), those of the unstored steps upstream,

@@ -3,11 +3,11 @@
 * Every numeric array is written with a ``crc32c`` codec after zstd (zarr v3's checksum codec), and
   every chunk is written even where it holds only the fill value (``write_empty_chunks``). A chunk whose
   bytes were changed or truncated fails to decode; :func:`checked` turns that failure into a
-  :class:`~pipeline.errors.StoreError` naming the store, the variable and the chunk index. A chunk that
+  :class:`~selpath.pipeline.errors.StoreError` naming the store, the variable and the chunk index. A chunk that
   is missing from a format-2 store that says it is complete is corruption too (found by listing the
   store, :func:`absent_chunks`).
 * The ``manifest`` in the store's ``_selpath`` group is written after all data, just before a store is
-  moved into place (:mod:`pipeline.outputs`): it says the store is complete and records the units of
+  moved into place (:mod:`selpath.pipeline.outputs`): it says the store is complete and records the units of
   every coordinate and variable, so a units attr edited afterwards is refused rather than carried into
   results 1000× wrong.
 * :func:`verify_store` reads every chunk and lists the bad ones (``selpath inspect --verify``).
@@ -16,6 +16,7 @@
 from __future__ import annotations
 
 import itertools
+import json
 import os
 import warnings
 from collections.abc import Iterable, Mapping
@@ -26,10 +27,9 @@ from typing import Any
 import numpy as np
 import xarray as xr
 import zarr
+from selpath.pipeline import remote
+from selpath.pipeline.errors import Problem, StoreError
 from zarr.codecs import Crc32cCodec, ZstdCodec
-
-from pipeline import remote
-from pipeline.errors import Problem, StoreError
 
 PROVENANCE_GROUP = "_selpath"
 MANIFEST = "manifest"
@@ -49,12 +49,24 @@ def consolidate(path: str | os.PathLike) -> None:
     """Copy the metadata of every node into the root ``zarr.json`` (zarr-python's consolidated metadata), so
     plain ``xr.open_zarr(path)`` opens the store at once, without its warning about missing consolidated
     metadata. Called last on every path that writes metadata (:func:`write_manifest`,
-    :func:`pipeline.provenance.write_provenance`); chunk writes (frames) change no metadata and leave it valid.
+    :func:`selpath.pipeline.provenance.write_provenance`); chunk writes (frames) change no metadata and leave it valid.
     zarr replaces ``zarr.json`` atomically, so a kill here leaves the old root metadata, never a torn one."""
     with warnings.catch_warnings():  # zarr warns that v3 has no consolidated metadata in its spec; selpath knows
         warnings.filterwarnings("ignore", message="Consolidated metadata is currently not part",
                                 category=UserWarning)
         zarr.consolidate_metadata(os.fspath(path))
+
+
+def is_selpath_store(path: str | os.PathLike) -> bool:
+    """True if ``path`` is a folder (or object-storage prefix) whose root ``zarr.json`` is a group carrying
+    ``selpath_format``."""
+    try:
+        where = os.fspath(path)
+        text = remote.read_text(where, "zarr.json") if remote.is_url(where) else (Path(where) / "zarr.json").read_text()
+        doc = json.loads(text) if text is not None else None
+    except (OSError, ValueError):
+        return False
+    return isinstance(doc, dict) and "selpath_format" in (doc.get("attributes") or {})
 
 
 def compressors() -> tuple:

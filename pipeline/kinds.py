@@ -4,7 +4,7 @@ A kind fixes, for each variable, its dims in order (an optional trailing ``chann
 ``units`` and ``long_name`` (:class:`Variable`), which dims need a coordinate with a ``units`` attr (and which units),
 and which attrs the store must carry (:class:`CubeKind`, :data:`KINDS`); with them the store format's version
 (:data:`FORMAT_VERSION`) and the rig attrs a tomography capture carries (:data:`RIG_ATTRS`, :data:`CAMERA_ATTRS`).
-The check of a dataset against its kind is :mod:`pipeline.schema`.
+The check of a dataset against its kind is :mod:`selpath.pipeline.schema`.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 #: Schema version written into every store as ``selpath_format``. Bump it (and add a migration in
-#: :data:`pipeline.migrations.MIGRATIONS`) whenever a kind's dims, units or required attrs change.
+#: :data:`selpath.pipeline.migrations.MIGRATIONS`) whenever a kind's dims, units or required attrs change.
 #: Format 2 (2026-11): every chunk carries a crc32c checksum and is written even when it holds only the fill
 #: value, and a manifest in ``_selpath`` records completion and units. Its cubes are those of format 1.
 #: Format 3 (2026-12): the hull is indexed by ``slice`` (a coordinate: the camera row), as sinograms and
@@ -74,7 +74,7 @@ class CubeKind:
 
 
 #: Rig-geometry attrs of a tomography capture (DESIGN §2, §8). This and :data:`CAMERA_ATTRS` are the one
-#: declaration of them: the store check (:mod:`pipeline.schema`), ``devices.geometry`` (which builds the cameras
+#: declaration of them: the store check (:mod:`selpath.pipeline.schema`), ``selpath.devices.geometry`` (which builds the cameras
 #: from attrs) and the hardware rig's config read them; ``pipeline`` imports neither of those (DESIGN §1).
 RIG_ATTRS = {
     "camera_model": "'perspective' or 'orthographic'",
@@ -104,7 +104,7 @@ def camera_attr_problems(attrs: Mapping, *, sensor_defaults: bool = False) -> li
 
 
 _FRAME = ("row", "col")
-#: the per-pixel solver's results beside a transport (:mod:`stages.procam._demux_store`)
+#: the per-pixel solver's results beside a transport (:mod:`selpath.stages.procam._demux_store`)
 _DEMUX_EXTRAS = {
     "iterations": Variable(_FRAME, required=False, units="1", long_name="ADMM iterations run for the pixel"),
     "converged": Variable(_FRAME, required=False, units=None,
@@ -140,7 +140,7 @@ _TRANSPORT_ATTRS = {
 _FLAGS = {"units": None, "long_name": "why a pixel is invalid (CF flags; 0: valid)"}
 _ABSORPTION = "total absorption A = log I_reference − log I_target"
 _SIGMA, _SIGMA_NAME = "1/{length}", "absorption coefficient σ"
-#: what a reconstruction holds beside σ (:mod:`stages.tomography.reconstruct`; ADMM's only with ``reconstruct_tv``)
+#: what a reconstruction holds beside σ (:mod:`selpath.stages.tomography.reconstruct`; ADMM's only with ``reconstruct_tv``)
 _RECONSTRUCTION_EXTRAS = {
     "reliable": Variable(("y", "x"), required=False, units=None,
                          long_name="cell every ray through which is observed or known"),

@@ -2,7 +2,7 @@
 
 The lock is ``.<name>.lock`` next to the store, held with ``fcntl.flock`` and holding the owner's pid,
 host, start time and command as JSON. The kernel drops a flock when its process dies, so a lock left by
-a killed run is simply taken over; a live owner gets a :class:`~pipeline.errors.StoreError` that names
+a killed run is simply taken over; a live owner gets a :class:`~selpath.pipeline.errors.StoreError` that names
 it. Within one process a lock already held is entered again (the engine locks an acquisition's store,
 then the acquisition locks it too). Written by hand: ``filelock`` locks the same way but records no
 owner to name in the error. Remote stores (``scheme://…``) are not locked. POSIX only.
@@ -19,7 +19,7 @@ from collections.abc import Iterable, Iterator
 from contextlib import ExitStack, contextmanager
 from pathlib import Path
 
-from pipeline.errors import Problem, StoreError
+from selpath.pipeline.errors import Problem, StoreError
 
 try:
     import fcntl

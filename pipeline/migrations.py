@@ -1,6 +1,6 @@
 """Migrations of stores written by older selpath versions (``selpath_format``), applied step by step on open.
 
-Each takes a Dataset of format n and returns it as format n + 1; :func:`pipeline.store.open_store` runs them in
+Each takes a Dataset of format n and returns it as format n + 1; :func:`selpath.pipeline.store.open_store` runs them in
 memory (the store on disk is never rewritten), so an archive is read, checked and migrated, never guessed.
 """
 
@@ -9,9 +9,8 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import xarray as xr
-
-from pipeline.kinds import KINDS
-from pipeline.schema import with_metadata
+from selpath.pipeline.kinds import KINDS
+from selpath.pipeline.schema import with_metadata
 
 
 def _from_format_1(ds: xr.Dataset) -> xr.Dataset:

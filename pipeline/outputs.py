@@ -12,7 +12,7 @@ A store is written into a temporary sibling (``.<name>.partial-<token>``) and mo
 once its data, manifest and provenance are complete (:class:`Staging`), so a crash never leaves a
 half-written store under the final name: either the old store or the new one is there. Stores on object
 storage (``scheme://…``) cannot be renamed; they are written in place and their manifest, written last,
-marks them complete (see :mod:`pipeline.integrity`). A ``figure`` output also writes ``<stem>.png``;
+marks them complete (see :mod:`selpath.pipeline.integrity`). A ``figure`` output also writes ``<stem>.png``;
 a PNG there that selpath did not write (no ``selpath_store`` text chunk) is never replaced. An existing
 selpath store is replaced only for the workflow output that wrote it (its provenance names both), or where
 the output says ``replace: true`` (then atomically, as above); a store with no provenance (``to_store``, or
@@ -30,9 +30,11 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
-from pipeline import remote
-from pipeline.errors import Problem, StoreError
-from pipeline.remote import is_url
+from selpath.pipeline import remote
+from selpath.pipeline.errors import Problem, StoreError
+from selpath.pipeline.integrity import is_selpath_store, read_manifest
+from selpath.pipeline.provenance import read_provenance
+from selpath.pipeline.remote import is_url
 
 STORE_SUFFIX = ".zarr"
 _PARTIAL = ".partial-"
@@ -42,20 +44,8 @@ PNG_MARKER = "selpath_store"
 
 
 def is_remote(path: str | os.PathLike) -> bool:
-    """On object storage (an fsspec URL other than ``file://``): :func:`pipeline.remote.is_url`."""
+    """On object storage (an fsspec URL other than ``file://``): :func:`selpath.pipeline.remote.is_url`."""
     return is_url(path)
-
-
-def is_selpath_store(path: str | os.PathLike) -> bool:
-    """True if ``path`` is a folder (or object-storage prefix) whose root ``zarr.json`` is a group carrying
-    ``selpath_format``."""
-    try:
-        where = os.fspath(path)
-        text = remote.read_text(where, "zarr.json") if is_url(where) else (Path(where) / "zarr.json").read_text()
-        doc = json.loads(text) if text is not None else None
-    except (OSError, ValueError):
-        return False
-    return isinstance(doc, dict) and "selpath_format" in (doc.get("attributes") or {})
 
 
 def _garbled_root(path: Path) -> bool:
@@ -167,8 +157,6 @@ def _ownership(out: OutputPath, path: Path | str, names: list[str] | None = None
     """An existing selpath store is replaced only by the workflow output that wrote it; an acquisition resumes
     only a capture (its own sweep is checked when it starts). ``names``: the store's top-level entries (None:
     listed here, for a local folder)."""
-    from pipeline.provenance import read_provenance  # here: provenance reads stores, which write via outputs
-
     try:
         provenance = read_provenance(path)
     except StoreError as exc:  # a garbled record: no proof of who wrote the store, so it is kept
@@ -190,8 +178,6 @@ def _ownership(out: OutputPath, path: Path | str, names: list[str] | None = None
     if out.self_written:
         return [] if capture else [(f"output {out.name!r}: {path} is a selpath store but not a capture to resume",
                                     "choose another path")]
-    from pipeline.integrity import read_manifest
-
     # Outputs land through a staging sibling, so a store at the final path without a manifest was not left half
     # written by a run: it was made by hand (xarray's to_zarr with selpath's attrs) or by an old selpath. Either
     # way it may be someone's only copy, so it is kept like the others.

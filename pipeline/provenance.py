@@ -17,10 +17,9 @@ from typing import Any
 
 import numpy as np
 import zarr
-
-from pipeline import remote
-from pipeline.errors import StoreError
-from pipeline.integrity import PROVENANCE_GROUP, consolidate, open_group, unreadable_record
+from selpath.pipeline import remote
+from selpath.pipeline.errors import StoreError
+from selpath.pipeline.integrity import PROVENANCE_GROUP, consolidate, is_selpath_store, open_group, unreadable_record
 
 
 def jsonable(value: Any) -> Any:
@@ -82,10 +81,10 @@ def hash_file(digest, file: Path, name: str) -> None:
 def store_identity(path: str | os.PathLike) -> dict[str, Any]:
     """What identifies a store's content for a step that reads it, wherever the store lies: the provenance hash
     of a store a workflow wrote (the same computation gives the same data; its chunks carry checksums, so a
-    changed byte is found when read), else (:func:`pipeline.store.to_store` or other writers) the SHA-256 of
+    changed byte is found when read), else (:func:`selpath.pipeline.store.to_store` or other writers) the SHA-256 of
     its content (:func:`content_digest`). Never its path or modification times: a moved or copied archive keeps
     its identity. A remote store (``scheme://…``) that no workflow wrote is identified by its objects' keys, sizes
-    and ETags (:func:`pipeline.remote.object_identity`: one listing, no bytes read)."""
+    and ETags (:func:`selpath.pipeline.remote.object_identity`: one listing, no bytes read)."""
     where = os.fspath(path)
     prov = read_provenance(where)
     if prov and "step_hash" in prov:
@@ -100,8 +99,6 @@ def archive_stores(folder: str | os.PathLike) -> list[dict[str, Any]]:
     its provenance says: path relative to the folder, kind, workflow, output, stage, creation time and whether a
     workflow or another writer made it (``problem``: why its provenance record cannot be read, else None). Reads
     metadata only."""
-    from pipeline.outputs import is_selpath_store
-
     root = Path(folder)
     found: list[dict[str, Any]] = []
 

@@ -7,7 +7,7 @@ change in the variable's attrs. The share stays in the stage's store, where anyo
 
 The engine computes these shares in the same pass that writes an output, for the output's own step and
 every step upstream of it that was not read back from a store, and refuses to move the output into place
-when one is below its floor: a :class:`~pipeline.errors.StageError` names the step, the share, the floor,
+when one is below its floor: a :class:`~selpath.pipeline.errors.StageError` names the step, the share, the floor,
 the cause and the fix. In a notebook, :func:`enforce` does the same on any result.
 """
 
@@ -19,8 +19,7 @@ from collections.abc import Mapping
 import dask
 import numpy as np
 import xarray as xr
-
-from pipeline.errors import Problem, StageError
+from selpath.pipeline.errors import Problem, StageError
 
 FLOOR = "selpath_floor"
 WHAT = "selpath_usable"

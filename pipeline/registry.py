@@ -26,8 +26,7 @@ from typing import Any
 
 import pydantic
 import xarray as xr
-
-from pipeline.errors import SelpathError
+from selpath.pipeline.errors import SelpathError
 
 ENTRY_POINT_GROUP = "selpath.stages"
 _MARK = "__selpath_stage__"

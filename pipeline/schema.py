@@ -1,16 +1,16 @@
-"""The schema check run whenever a store is opened or written, against the kinds of :mod:`pipeline.kinds`.
+"""The schema check run whenever a store is opened or written, against the kinds of :mod:`selpath.pipeline.kinds`.
 
 :func:`check_dataset` returns *every* way a dataset breaks its kind at once; callers raise them together as one
-:class:`~pipeline.errors.StoreError`. :func:`metadata` and :func:`with_metadata` give a dataset the ``units`` and
+:class:`~selpath.pipeline.errors.StoreError`. :func:`metadata` and :func:`with_metadata` give a dataset the ``units``
+and
 ``long_name`` its kind fixes; :func:`describe_kinds` is the Markdown table of docs/format.md.
 """
 
 from __future__ import annotations
 
 import xarray as xr
-
-from pipeline.errors import Problem
-from pipeline.kinds import CHANNEL_DIM, KINDS
+from selpath.pipeline.errors import Problem
+from selpath.pipeline.kinds import CHANNEL_DIM, KINDS
 
 # Dims a kind may add after its own (sinograms and reconstructions are batched over slices).
 _EXTRA_LEADING_OK = {"sinogram": ("slice",), "reconstruction": ("slice",)}

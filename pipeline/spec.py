@@ -2,8 +2,9 @@
 
 A workflow is YAML read with the safe loader (it can name registered stages only, never code).
 :func:`load_workflow` checks the *whole* file before anything runs and raises one
-:class:`~pipeline.errors.SpecError` listing every problem with its ``file:line``, its path in the
-file (``steps[2].with.n_theta``) and a fix. Relative paths in settings typed :data:`StorePath` are
+:class:`~selpath.pipeline.errors.SpecError` listing every problem with its ``file:line``, its path in the
+file (``steps[2].with.n_theta``) and a fix. Relative paths in settings typed
+:data:`~selpath.pipeline.constraints.StorePath` are
 resolved against the workflow file's folder, so a workflow runs the same from any working directory.
 """
 
@@ -16,26 +17,17 @@ import os
 import re
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Any
 
 import pydantic
-
-from pipeline.constraints import describe
-from pipeline.errors import Problem, SpecError
-from pipeline.kinds import KINDS
-from pipeline.outputs import OutputPath, output_problems
-from pipeline.registry import Stage, StageRegistry, default_registry
-from pipeline.remote import is_url, local_path, url_problems
-from pipeline.report import ReportSpec, report_problems
-from pipeline.yaml_source import Located, format_path, parse_yaml, pydantic_message, read_source
-
-
-class _PathMarker:
-    """Annotation metadata: this str setting is a filesystem path, resolved against the workflow's folder."""
-
-
-#: Type of a stage setting that names a file or store (relative paths resolve against the workflow file).
-StorePath = Annotated[str, _PathMarker()]
+from selpath.pipeline.constraints import PathMarker, describe
+from selpath.pipeline.errors import Problem, SpecError
+from selpath.pipeline.kinds import KINDS
+from selpath.pipeline.outputs import OutputPath, output_problems
+from selpath.pipeline.registry import Stage, StageRegistry, default_registry
+from selpath.pipeline.remote import is_url, local_path, url_problems
+from selpath.pipeline.report_spec import ReportSpec, report_problems
+from selpath.pipeline.yaml_source import Located, format_path, parse_yaml, pydantic_message, read_source
 
 REF = re.compile(r"^\$(?P<step>[A-Za-z_][A-Za-z0-9_-]*)(?:\.(?P<variable>[A-Za-z_][A-Za-z0-9_]*))?$")
 SCHEDULERS = ("synchronous", "threads", "processes")
@@ -173,7 +165,7 @@ def load_workflow(path_or_text: str | os.PathLike, registry: StageRegistry | Non
 
 
 def output_path_problems(workflow: Workflow) -> list[tuple[tuple, str, str]]:
-    """Every output store that breaks the rules of :mod:`pipeline.outputs` (a path ending in ``.zarr``, absent
+    """Every output store that breaks the rules of :mod:`selpath.pipeline.outputs` (a path ending in ``.zarr``, absent
     or a selpath store, never the folder of another output, an input, the workflow file, its folder or the
     working folder), as ``(location in the file, message, fix)``."""
     writers = {}
@@ -242,7 +234,7 @@ def _suggest(name: str, choices: list[str]) -> str:
 
 
 def is_path_setting(model: type[pydantic.BaseModel], name: str) -> bool:
-    return any(isinstance(m, _PathMarker) for m in model.model_fields[name].metadata)
+    return any(isinstance(m, PathMarker) for m in model.model_fields[name].metadata)
 
 
 def _check_steps(spec: WorkflowFile, raw: dict, registry: StageRegistry, located: Located,

@@ -7,15 +7,15 @@ Layout of a store (zarr v3 group; see ``docs/format.md``):
 * for stores filled frame by frame, one boolean variable ``written__<var>`` per data variable over its
   frame dims, set *after* the frame's pixels land, so a kill at any point loses at most the frame in
   flight and :func:`missing_frames` says exactly which frames to capture again;
-* a child group ``_selpath`` whose attrs hold the manifest (complete, units; :mod:`pipeline.integrity`)
+* a child group ``_selpath`` whose attrs hold the manifest (complete, units; :mod:`selpath.pipeline.integrity`)
   and the provenance. Appends and region writes rewrite the root group's attrs (xarray #8755) but never
   touch a child group, and ``xr.open_zarr`` ignores it.
 
 Every chunk carries a crc32c checksum; reading a corrupt one raises a StoreError naming store, variable
 and chunk. Whole stores are written into a temporary sibling and moved into place when complete
-(:mod:`pipeline.outputs`). Strings are written as zarr's variable-length UTF-8, never numpy's fixed-width
+(:mod:`selpath.pipeline.outputs`). Strings are written as zarr's variable-length UTF-8, never numpy's fixed-width
 ``<U`` (zarr v3 has no specification for it and warns). The root ``zarr.json`` carries consolidated metadata,
-rewritten whenever the manifest or provenance is (:func:`pipeline.integrity.consolidate`), so plain
+rewritten whenever the manifest or provenance is (:func:`selpath.pipeline.integrity.consolidate`), so plain
 ``xr.open_zarr(path)`` opens a store quietly; selpath itself always reads each node's own metadata.
 """
 
@@ -33,10 +33,9 @@ import numpy as np
 import xarray as xr
 import zarr
 from dask.base import tokenize
-
-from pipeline import remote
-from pipeline.errors import Problem, StoreError
-from pipeline.integrity import (
+from selpath.pipeline import remote
+from selpath.pipeline.errors import Problem, StoreError
+from selpath.pipeline.integrity import (
     CHECKSUMMED_FORMAT,
     WRITTEN_PREFIX,
     BadChunk,
@@ -49,11 +48,11 @@ from pipeline.integrity import (
     write_manifest,
     written_frames,
 )
-from pipeline.kinds import FORMAT_VERSION, KINDS
-from pipeline.migrations import MIGRATIONS
-from pipeline.outputs import Staging
-from pipeline.provenance import jsonable, read_provenance
-from pipeline.schema import check_dataset, with_metadata
+from selpath.pipeline.kinds import FORMAT_VERSION, KINDS
+from selpath.pipeline.migrations import MIGRATIONS
+from selpath.pipeline.outputs import Staging
+from selpath.pipeline.provenance import jsonable, read_provenance
+from selpath.pipeline.schema import check_dataset, with_metadata
 
 
 class IncompleteCaptureWarning(UserWarning):
@@ -90,7 +89,7 @@ def processing_chunks(shape: tuple[int, ...], disk: tuple[int, ...], itemsize: i
 
 
 def _open_raw(path: str | os.PathLike) -> xr.Dataset:
-    """The store's cube, each data variable a dask array read through :class:`~pipeline.integrity.CheckedArray`
+    """The store's cube, each data variable a dask array read through :class:`~selpath.pipeline.integrity.CheckedArray`
     in processing chunks (whole on-disk chunks), so a corrupt chunk raises a StoreError naming it."""
     where = os.fspath(path)
     if not (remote.exists(where) if remote.is_url(where) else Path(where).exists()):
@@ -239,7 +238,7 @@ def _portable_strings(ds: xr.Dataset) -> xr.Dataset:
 def _writable(ds: xr.Dataset) -> xr.Dataset:
     """A copy whose dask chunks zarr can take (regular but for the last), stale encodings dropped, strings
     variable-length (:func:`_portable_strings`) and numeric data and coordinates compressed and checksummed
-    (:func:`pipeline.integrity.compressors`)."""
+    (:func:`selpath.pipeline.integrity.compressors`)."""
     ds = _portable_strings(ds.copy())
     for name, var in ds.variables.items():
         ds[name].encoding = {"compressors": compressors()} if var.dtype.kind in "fiub" else {}
@@ -427,7 +426,7 @@ def _is_frame_variable(group: zarr.Group, name: str) -> bool:
 
 
 def forget_frames(path: str | os.PathLike, bad: Iterable[BadChunk]) -> int:
-    """Mark the frames holding ``bad`` chunks (from :func:`~pipeline.integrity.verify_store`) as not captured,
+    """Mark the frames holding ``bad`` chunks (from :func:`~selpath.pipeline.integrity.verify_store`) as not captured,
     so the acquisition captures them again when it next runs. Returns how many frames were marked.
 
     Only a frame can be captured again: a bad chunk of a coordinate, of a ``written__`` flag or of metadata

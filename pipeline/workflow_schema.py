@@ -2,7 +2,7 @@
 
 A YAML editor that reads JSON Schema (VS Code's YAML extension, JetBrains IDEs) then completes stage names and
 their settings and marks a wrong name, type or range as you type. The schema is built from the same pydantic
-models that :func:`pipeline.spec.load_workflow` validates with, so the two cannot disagree on a setting; the
+models that :func:`selpath.pipeline.spec.load_workflow` validates with, so the two cannot disagree on a setting; the
 checks that need the files (stores, scenes, ``$step`` wiring) stay ``selpath validate``'s.
 """
 
@@ -11,9 +11,8 @@ from __future__ import annotations
 from typing import Any
 
 from pydantic.json_schema import models_json_schema
-
-from pipeline.registry import StageRegistry, default_registry
-from pipeline.spec import WorkflowFile
+from selpath.pipeline.registry import StageRegistry, default_registry
+from selpath.pipeline.spec import WorkflowFile
 
 #: a data input: ``$step`` or ``$step.variable``
 INPUT = {"type": "string", "pattern": r"^\$[A-Za-z_][A-Za-z0-9_-]*(\.[A-Za-z_][A-Za-z0-9_]*)?$",

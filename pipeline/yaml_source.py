@@ -1,6 +1,6 @@
 """YAML files with locations: safe reading within budgets, and every problem at ``file:line``.
 
-Workflows (:mod:`pipeline.spec`), scenes and rig files are read here: UTF-8 text only, PyYAML's safe
+Workflows (:mod:`selpath.pipeline.spec`), scenes and rig files are read here: UTF-8 text only, PyYAML's safe
 loader, a document whose aliases would expand past :data:`MAX_NODES` (a "billion laughs") or nest past
 :data:`MAX_DEPTH` refused before anything walks it, and a map from each path in the document to its line,
 so a pydantic error becomes ``scene.yaml:12: camera.rows: …``.
@@ -14,8 +14,7 @@ from typing import Any, TypeVar
 
 import pydantic
 import yaml
-
-from pipeline.errors import ConfigError, Problem, SpecError
+from selpath.pipeline.errors import ConfigError, Problem, SpecError
 
 #: Largest document accepted, counting every node as often as aliases repeat it. A workflow has hundreds; nested
 #: aliases ("billion laughs") expand a few hundred bytes into billions, which no check may walk.

@@ -1,13 +1,13 @@
 """Built-in stages: pure functions on labelled arrays, one module per concern.
 
-Each is a plain function usable in a notebook (``stages.tomography.calibrate.absorption(capture)``) and
-registered for workflows through the ``selpath.stages`` entry-point group. ``stages.tomography`` holds
-chapter 4, ``stages.procam`` chapter 5; what a user catches or reads from either is exported here:
+Each is a plain function usable in a notebook (``selpath.stages.tomography.calibrate.absorption(capture)``) and
+registered for workflows through the ``selpath.stages`` entry-point group. ``selpath.stages.tomography`` holds
+chapter 4, ``selpath.stages.procam`` chapter 5; what a user catches or reads from either is exported here:
 the solvers' :class:`Solution`, :class:`Result` codes and :class:`SolverError`, and the
 :class:`UnsortedSweepWarning` a stage gives when it sorts a sweep.
 """
 
-from stages._common import UnsortedSweepWarning
-from stages._solution import Result, Solution, SolverError
+from selpath.stages._common import UnsortedSweepWarning
+from selpath.stages._solution import Result, Solution, SolverError
 
 __all__ = ["Result", "Solution", "SolverError", "UnsortedSweepWarning"]

@@ -1,6 +1,7 @@
 """What the stages of both instruments share: required variables, sorted sweeps and the solver settings' types.
 
-Kept small on purpose: a helper lands here only when both ``stages.tomography`` and ``stages.procam`` use it.
+Kept small on purpose: a helper lands here only when both ``selpath.stages.tomography`` and ``selpath.stages.procam``
+use it.
 """
 
 from __future__ import annotations
@@ -13,8 +14,7 @@ from typing import Annotated, Literal
 import numpy as np
 import pydantic
 import xarray as xr
-
-from pipeline.errors import Problem, SelpathError, StageError
+from selpath.pipeline.errors import Problem, SelpathError, StageError
 
 #: the float precision of a solver's arithmetic (a stage setting)
 Dtype = Literal["float32", "float64"]

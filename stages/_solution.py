@@ -4,8 +4,8 @@ Modelled on optimistix's ``Solution(value, result, stats)`` and its ``RESULTS`` 
 did not converge is data, not an exception, unless the solver was built with ``throw=True``; then
 :func:`raise_if_failed` names the codes and how many items (slices, pixels) ended with each.
 
-Used by both instruments' solvers (:class:`stages.tomography._admm.TVADMM`,
-:class:`stages.procam._demux_solver.DemuxADMM`); it imports neither.
+Used by both instruments' solvers (:class:`selpath.stages.tomography._admm.TVADMM`,
+:class:`selpath.stages.procam._demux_solver.DemuxADMM`); it imports neither.
 """
 
 from __future__ import annotations
@@ -14,8 +14,7 @@ import enum
 from typing import Any, NamedTuple
 
 import numpy as np
-
-from pipeline.errors import Problem, SelpathError
+from selpath.pipeline.errors import Problem, SelpathError
 
 
 class Result(enum.IntEnum):

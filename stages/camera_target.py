@@ -14,11 +14,10 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import xarray as xr
-
-from pipeline.errors import Problem, StageError
-from pipeline.registry import stage
-from pipeline.schema import with_metadata
-from stages._common import require_variables
+from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.registry import stage
+from selpath.pipeline.schema import with_metadata
+from selpath.stages._common import require_variables
 
 #: distortion the tomography rig's pinhole model tolerates: the largest shift of a pixel inside the sensor [px]
 MAX_DISTORTION_PX = 0.5

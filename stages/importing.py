@@ -31,13 +31,12 @@ import numpy as np
 import pydantic
 import xarray as xr
 from pydantic import BaseModel, ConfigDict, Field
-
-from pipeline.errors import Problem, SelpathError, StageError
-from pipeline.kinds import LENGTH_UNITS
-from pipeline.provenance import hash_file
-from pipeline.registry import stage
-from pipeline.spec import StorePath
-from pipeline.yaml_source import load_yaml_model
+from selpath.pipeline.constraints import StorePath
+from selpath.pipeline.errors import Problem, SelpathError, StageError
+from selpath.pipeline.kinds import LENGTH_UNITS
+from selpath.pipeline.provenance import hash_file
+from selpath.pipeline.registry import stage
+from selpath.pipeline.yaml_source import load_yaml_model
 
 #: file suffixes read as one image per file (a folder or glob of them is a stack, in natural name order)
 IMAGE_SUFFIXES = (".tif", ".tiff", ".png")

@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import xarray as xr
-
-from pipeline.errors import StoreError
-from pipeline.provenance import store_identity
-from pipeline.registry import stage
-from pipeline.spec import StorePath
-from pipeline.store import open_store
+from selpath.pipeline.constraints import StorePath
+from selpath.pipeline.errors import StoreError
+from selpath.pipeline.provenance import store_identity
+from selpath.pipeline.registry import stage
+from selpath.pipeline.store import open_store
 
 
 def _precheck(settings) -> list[str]:

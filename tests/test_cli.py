@@ -6,10 +6,9 @@ import re
 
 import numpy as np
 import pytest
+from selpath.pipeline import FORMAT_VERSION
+from selpath.pipeline.cli import app
 from typer.testing import CliRunner
-
-from pipeline import FORMAT_VERSION
-from pipeline.cli import app
 
 runner = CliRunner()
 
@@ -43,7 +42,7 @@ def test_run_then_inspect(small_workflow):
     assert "workflow: small-absorption" in shown.output
     assert "angle (angle) float64 [degree]: " in shown.output  # coordinates with units and range
     # each variable with its units and valid share, against a count of the store's own finite values
-    from pipeline.store import open_store
+    from selpath.pipeline.store import open_store
 
     ds = open_store(store)
     finite = float(np.isfinite(ds["absorption"]).mean())
@@ -62,7 +61,7 @@ def test_stages_lists_settings_with_units():
     assert "``" not in listed.output and ":func:" not in listed.output  # docstring markup rendered as text
     assert "capture  required" in listed.output  # inputs too
     short = runner.invoke(app, ["stages"], env={"COLUMNS": "200"})
-    from pipeline.registry import default_registry
+    from selpath.pipeline.registry import default_registry
 
     assert all(s.name in short.output for s in default_registry())
     assert len(short.output.splitlines()) < 2 * len(default_registry().names()) + 10  # one line per stage
@@ -136,8 +135,8 @@ def _every_figure_loads(page):
 def _every_store_carries_its_kinds_metadata(folder):
     """Each store the shipped demo writes opens (its units checked against its kind), every variable its kind
     declares has the kind's units and long name, and no other variable borrowed a coordinate's."""
-    from pipeline.schema import metadata
-    from pipeline.store import open_store
+    from selpath.pipeline.schema import metadata
+    from selpath.pipeline.store import open_store
 
     stores = sorted(folder.glob("*.zarr"))
     assert len(stores) >= 20
@@ -163,7 +162,7 @@ def test_help_is_rendered_not_raw(command):
 def test_errors_keep_bracketed_text_and_never_show_a_traceback(tmp_path, monkeypatch):
     """Rich markup ate `[degree]` in errors ("expected one of  (fix…)"); an unexpected exception printed a
     traceback. Both now reach the user as one plain message."""
-    import pipeline.cli
+    import selpath.pipeline.cli as cli
 
     store = tmp_path / "x.zarr"
     shown = runner.invoke(app, ["inspect", str(store)])
@@ -172,7 +171,7 @@ def test_errors_keep_bracketed_text_and_never_show_a_traceback(tmp_path, monkeyp
     def broken(*args, **kwargs):
         raise ValueError("units must be one of [degree] or [rad]")
 
-    monkeypatch.setattr(pipeline.cli, "load_workflow", broken)
+    monkeypatch.setattr(cli, "load_workflow", broken)
     result = runner.invoke(app, ["validate", str(tmp_path / "wf.yaml")])
     assert result.exit_code == 3 and "Traceback" not in result.output
     assert "unexpected ValueError: units must be one of [degree] or [rad] (this is a bug" in result.output.replace(
@@ -191,9 +190,9 @@ def test_paths_with_brackets_print_as_they_are(tmp_path, workflow_text):
 
 
 def test_a_report_never_replaces_a_file_selpath_did_not_write(tmp_path, small_workflow):
-    from pipeline import StoreError, load_workflow
-    from pipeline.engine import RunReport
-    from pipeline.report import write_html
+    from selpath.pipeline import StoreError, load_workflow
+    from selpath.pipeline.engine import RunReport
+    from selpath.pipeline.report import write_html
 
     page = tmp_path / "report.html"
     page.write_text("my own notes")
@@ -207,7 +206,7 @@ def test_a_report_never_replaces_a_file_selpath_did_not_write(tmp_path, small_wo
 
 
 def test_shipped_workflows_are_listed_and_copied_with_their_scenes(tmp_path):
-    import workflows
+    from selpath import workflows
 
     listed = runner.invoke(app, ["workflows"], env={"COLUMNS": "300"})
     assert listed.exit_code == 0 and all(name in listed.output for name in workflows.names())
@@ -241,7 +240,7 @@ def test_version_short_stage_list_and_plural(small_workflow):
     shown = runner.invoke(app, ["--version"])
     assert shown.exit_code == 0 and shown.output.strip() == f"selpath {version('selpath')}"
     listed = runner.invoke(app, ["stages"], env={"COLUMNS": "300"})
-    from pipeline.registry import default_registry
+    from selpath.pipeline.registry import default_registry
 
     names = [s.name for s in default_registry()]
     rows = [line for line in listed.output.splitlines() if any(f"│ {n} " in line for n in names)]

@@ -1,6 +1,6 @@
 """A fake device firmware on a pseudo-terminal: the line loop and the faults every serial device can show.
 
-Device firmwares (:mod:`devices.sim.stage_firmware`, :mod:`devices.sim.sync_firmware`) subclass
+Device firmwares (:mod:`selpath.devices.sim.stage_firmware`, :mod:`selpath.devices.sim.sync_firmware`) subclass
 :class:`FakeFirmware` and implement :meth:`FakeFirmware.execute`. The driver under test opens
 :attr:`FakeFirmware.port` (a real ``/dev/pts/N``) with pyserial, so the whole serial path runs. Faults are
 scheduled by command number (0-based, in the order the firmware receives them):
@@ -28,7 +28,7 @@ import time
 import tty
 from collections.abc import Mapping
 
-from devices.serial_line import frame_reply
+from selpath.devices.serial_line import frame_reply
 
 LINE_FAULTS = ("silent", "garble", "partial", "noise", "disconnect", "lost-reply", "stray", "late")
 

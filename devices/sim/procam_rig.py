@@ -1,5 +1,6 @@
 """The simulated projector–camera rig: sync controller, projector and rolling-shutter camera on top of the
-transport simulator (``devices.sim.procam_transport``), behind the protocols of :mod:`devices.protocols`.
+transport simulator (``selpath.devices.sim.procam_transport``), behind the protocols of
+:mod:`selpath.devices.protocols`.
 
 The camera renders what the rig's state says: the delay and exposure the controller holds (plus the
 rig's true sync offset, which only a calibration reveals) and the pattern on the projector. Like the
@@ -12,12 +13,11 @@ from __future__ import annotations
 import time
 
 import numpy as np
-
-from devices.protocols import SyncLimits
-from devices.sim.procam_scene import ProcamScene
-from devices.sim.procam_transport import render_frame
-from devices.sim.sync_firmware import DEFAULT_LIMITS, SimSyncController
-from pipeline.errors import DeviceError
+from selpath.devices.protocols import SyncLimits
+from selpath.devices.sim.procam_scene import ProcamScene
+from selpath.devices.sim.procam_transport import render_frame
+from selpath.devices.sim.sync_firmware import DEFAULT_LIMITS, SimSyncController
+from selpath.pipeline.errors import DeviceError
 
 
 class SimProjector:
@@ -75,8 +75,8 @@ class SimRollingShutterCamera:
 
 
 def simulated_procam_rig(scene: ProcamScene, limits: SyncLimits = DEFAULT_LIMITS):
-    """A :class:`~devices.procam_acquire.ProcamInstruments` of simulated devices showing ``scene``."""
-    from devices.procam_acquire import ProcamInstruments
+    """A :class:`~selpath.devices.procam_acquire.ProcamInstruments` of simulated devices showing ``scene``."""
+    from selpath.devices.procam_acquire import ProcamInstruments
 
     rig = scene.rig
     sync = SimSyncController(limits)
@@ -96,7 +96,7 @@ class FakeProcamHardware:
     rig file's ``sync.url`` names; ``camera`` stands in for the OpenCV camera. A context manager."""
 
     def __init__(self, scene: ProcamScene, faults=None, *, limits: SyncLimits = DEFAULT_LIMITS, slots: int = 8):
-        from devices.sim.sync_firmware import FakeSyncFirmware
+        from selpath.devices.sim.sync_firmware import FakeSyncFirmware
 
         rig = scene.rig
         self.projector = SimProjector((rig.projector_rows, rig.projector_cols))

@@ -4,7 +4,7 @@ A scene is a list of objects painted over a background in camera-image coordinat
 image's width and height, so one scene renders at any sensor size). Each object has an albedo, a
 disparity (where its direct correspondence lies in the projector) and the light-transport **effects** it
 shows; the ground-truth transport of a pixel is assembled from *only the effects its object names*
-(``devices.sim.procam_transport``), each as separable lobes in offset space:
+(``selpath.devices.sim.procam_transport``), each as separable lobes in offset space:
 
 ``subsurface``               an isotropic exponential lobe at the direct correspondence (candle, milk, soap),
                              optionally with an absorbing layer below the surface (a vein: :class:`Absorber`);
@@ -30,9 +30,8 @@ from typing import Annotated, Literal
 
 import numpy as np
 import pydantic
-
-from devices.sim.scene import Angle, Pixels, quantity, saturation_above_dark
-from pipeline.yaml_source import load_yaml_model
+from selpath.devices.sim.scene import Angle, Pixels, quantity, saturation_above_dark
+from selpath.pipeline.yaml_source import load_yaml_model
 
 Micros = quantity({"us": 1.0, "ms": 1e3, "s": 1e6}, "170 us", "a duration")
 Fraction = Annotated[float, pydantic.Field(ge=0.0, le=1.0)]

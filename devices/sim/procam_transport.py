@@ -2,7 +2,7 @@
 formed by integrating the raster scan and the rolling shutter over time (§5.2.2, §5.3.1).
 
 **Ground truth.** Each pixel's transport is a sum of separable *lobes* in offset space, one or more per
-effect its object names (``devices.sim.procam_scene``): weight · k_u(du) · k_v(dv), with du in projector
+effect its object names (``selpath.devices.sim.procam_scene``): weight · k_u(du) · k_v(dv), with du in projector
 columns from the pixel's direct correspondence u_d and dv = projector row − camera row. Kernels are
 integrated over each unit offset cell, so a lobe's mass on the integer grid is exactly its weight (hat:
 linear interpolation of a delta; gauss; exp: a Laplace lobe). Only the named effects' code runs.
@@ -32,8 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.special import ndtr
-
-from devices.sim.procam_scene import Effects, ProcamRig, ProcamScene
+from selpath.devices.sim.procam_scene import Effects, ProcamRig, ProcamScene
 
 #: rows rendered at a time (bounded memory at any sensor width)
 TILE_ROWS = 64
@@ -56,7 +55,7 @@ class Lobe:
     shape_u: str  # "hat" | "gauss" | "exp"
     shape_v: str
     #: (low, high, share): the share of the vertical kernel's mass at |dv − centre| in [low, high] that is absorbed
-    #: (an absorber below the surface, :class:`~devices.sim.procam_scene.Absorber`); None: nothing absorbed
+    #: (an absorber below the surface, :class:`~selpath.devices.sim.procam_scene.Absorber`); None: nothing absorbed
     absorbed_v: tuple[float, float, float] | None = None
 
 

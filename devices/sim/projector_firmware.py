@@ -14,9 +14,8 @@ import base64
 import binascii
 
 import numpy as np
-
-from devices.patterns import vertical_line
-from devices.serial_projector import LEVELS, pattern_checksum
+from selpath.devices.patterns import vertical_line
+from selpath.devices.serial_projector import LEVELS, pattern_checksum
 
 
 class PatternMemory:

@@ -1,4 +1,4 @@
-"""The simulated tomography rig: the protocols of :mod:`devices.protocols` on top of the scene simulator.
+"""The simulated tomography rig: the protocols of :mod:`selpath.devices.protocols` on top of the scene simulator.
 
 The camera renders what the rig's state says it sees: the stage's reported angle, which lights are on
 and which sample is loaded. A sweep drives it exactly as it drives hardware. Frames are deterministic
@@ -11,12 +11,11 @@ from __future__ import annotations
 import time
 
 import numpy as np
-
-from devices.protocols import RotaryStage
-from devices.sim.scene import Scene
-from devices.sim.tomography import SAMPLES, ExitPoints, exit_points, lit_frame, silhouette
-from devices.tomography_acquire import TomographyRig
-from pipeline.errors import DeviceError
+from selpath.devices.protocols import RotaryStage
+from selpath.devices.sim.scene import Scene
+from selpath.devices.sim.tomography import SAMPLES, ExitPoints, exit_points, lit_frame, silhouette
+from selpath.devices.tomography_acquire import TomographyRig
+from selpath.pipeline.errors import DeviceError
 
 
 class SimRotaryStage:
@@ -103,7 +102,7 @@ class SimCamera:
 
 
 def simulated_rig(scene: Scene) -> TomographyRig:
-    """A :class:`~devices.tomography_acquire.TomographyRig` of simulated devices showing ``scene``."""
+    """A :class:`~selpath.devices.tomography_acquire.TomographyRig` of simulated devices showing ``scene``."""
     stage = SimRotaryStage()
     beam, backlight, samples = SimLight("beam"), SimLight("backlight"), SimSampleChanger()
     camera = SimCamera(scene, stage, beam, backlight, samples)

@@ -13,7 +13,7 @@ firmware receives them) and reproduce what real hardware does:
 ``lost-move``   perform the MOVE, then lose its reply (the host must ask where the stage is).
 
 Use it as a context manager; it runs in a daemon thread. Also usable by hand:
-``python -m devices.sim.stage_firmware`` prints a port a real driver can open.
+``python -m selpath.devices.sim.stage_firmware`` prints a port a real driver can open.
 """
 
 from __future__ import annotations
@@ -21,8 +21,8 @@ from __future__ import annotations
 import time
 from collections.abc import Mapping
 
-from devices.serial_line import checksum
-from devices.sim.firmware import LINE_FAULTS, FakeFirmware, serve_by_hand
+from selpath.devices.serial_line import checksum
+from selpath.devices.sim.firmware import LINE_FAULTS, FakeFirmware, serve_by_hand
 
 FAULTS = (*LINE_FAULTS, "slip", "lost-move")
 

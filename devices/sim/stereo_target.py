@@ -1,7 +1,7 @@
 """A pinhole projector–camera pair filming a planar checkerboard target: what a geometric calibration of the rig
-(``stages.procam.stereo``) is fed, with the truth it must find.
+(``selpath.stages.procam.stereo``) is fed, with the truth it must find.
 
-The transport simulator (``devices.sim.procam_transport``) works in offset space and has no 3-D geometry; a
+The transport simulator (``selpath.devices.sim.procam_transport``) works in offset space and has no 3-D geometry; a
 calibration needs one. Here camera and projector are pinholes without distortion (OpenCV's convention: x right, y
 down, z forward; the camera at the origin, the projector at ``R·X + t`` in its own frame), and the target is a
 checkerboard of ``squares`` on the plane z = 0 of its own frame, posed by (rvec, tvec) in the camera's. A camera
@@ -18,9 +18,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import pydantic
-
-from devices.sim.scene import Angle, Length
-from pipeline.yaml_source import load_yaml_model
+from selpath.devices.sim.scene import Angle, Length
+from selpath.pipeline.yaml_source import load_yaml_model
 
 
 def rotation(roll_deg: float = 0.0, pitch_deg: float = 0.0, yaw_deg: float = 0.0) -> np.ndarray:
@@ -234,11 +233,10 @@ def capture_target(scene: StereoTargetScene, store, *, progress: bool = True, lo
     import dask.array as da
     import xarray as xr
     from rich.progress import Progress, TextColumn, TimeElapsedColumn
-
-    from devices.patterns import gray_code_levels
-    from pipeline.compute import BAR_COLUMNS, show_bars
-    from pipeline.locks import store_lock
-    from pipeline.store import create_capture, missing_frames, open_store, write_frame
+    from selpath.devices.patterns import gray_code_levels
+    from selpath.pipeline.compute import BAR_COLUMNS, show_bars
+    from selpath.pipeline.locks import store_lock
+    from selpath.pipeline.store import create_capture, missing_frames, open_store, write_frame
 
     rig, board = scene.rig(), scene.board()
     poses = scene.target_poses()

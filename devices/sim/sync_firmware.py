@@ -2,27 +2,28 @@
 directly) and :class:`FakeSyncFirmware`, the same state machine speaking the protocol of ``docs/devices.md``
 on a pseudo-terminal for the serial driver's tests.
 
-The line faults of :mod:`devices.sim.firmware` apply, plus one of the device's own:
+The line faults of :mod:`selpath.devices.sim.firmware` apply, plus one of the device's own:
 
 ``drift``  apply a ``DELAY``/``EXPO`` three steps off the value asked for (within the limits), but answer as
            if it were exact (a controller whose counter clock is off); only the read-back catches it.
-``corrupt`` store a pattern ``ROW`` with one byte flipped but answer ``OK`` (:mod:`devices.sim.projector_firmware`);
+``corrupt`` store a pattern ``ROW`` with one byte flipped but answer ``OK``
+(:mod:`selpath.devices.sim.projector_firmware`);
            only the slot's checksum catches it.
 
 With a ``screen`` (e.g. the simulated projector) the firmware also drives the projector: the pattern commands
-of :mod:`devices.sim.projector_firmware`.
+of :mod:`selpath.devices.sim.projector_firmware`.
 
-``python -m devices.sim.sync_firmware`` prints a port a real driver can open.
+``python -m selpath.devices.sim.sync_firmware`` prints a port a real driver can open.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 
-from devices.protocols import SyncLimits, SyncStatus
-from devices.sim.firmware import FakeFirmware, serve_by_hand
-from devices.sim.projector_firmware import PatternMemory
-from pipeline.errors import DeviceError
+from selpath.devices.protocols import SyncLimits, SyncStatus
+from selpath.devices.sim.firmware import FakeFirmware, serve_by_hand
+from selpath.devices.sim.projector_firmware import PatternMemory
+from selpath.pipeline.errors import DeviceError
 
 #: the limits of the simulated controller: ±10 ms delay, 10 µs … 20 ms exposure (one 50 Hz frame), 1 µs step
 DEFAULT_LIMITS = SyncLimits(delay_min=-10_000.0, delay_max=10_000.0, exposure_min=10.0, exposure_max=20_000.0,

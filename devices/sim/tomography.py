@@ -1,6 +1,6 @@
 """Frames of a tomography scene: straight paths (shortest-path model, §4.2.3) or Monte Carlo (§4.4.4).
 
-Light model, in the object frame at stage angle φ (conventions in :mod:`devices.geometry`):
+Light model, in the object frame at stage angle φ (conventions in :mod:`selpath.devices.geometry`):
 
 * The light's central ray enters the object at ``p_l`` (first crossing of the object's surface), where
   the thin skin diffuses it (Lambertian, transmittance T). A **beam** enters at one point; a **sheet**
@@ -33,10 +33,9 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
-
-from devices.geometry import Camera, RigGeometry, to_lab, to_object
-from devices.sim.scene import Scene
-from devices.sim.shapes import Solid, segment_length_inside
+from selpath.devices.geometry import Camera, RigGeometry, to_lab, to_object
+from selpath.devices.sim.scene import Scene
+from selpath.devices.sim.shapes import Solid, segment_length_inside
 
 SAMPLES = ("target", "reference")
 

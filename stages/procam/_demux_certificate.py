@@ -2,10 +2,10 @@
 
 :func:`certified_gap` is the float64 reference (the first-order bound from T's own gradients with a dual search,
 :func:`best_dual_value`, and for every pixel of a dense problem the second-order :func:`kkt_gap`, through
-:func:`kept_hessian` where frames are masked or clipped: :func:`kkt_bound`); :mod:`stages.procam._demux_kernels`
+:func:`kept_hessian` where frames are masked or clipped: :func:`kkt_bound`); :mod:`selpath.stages.procam._demux_kernels`
 evaluates the same bounds in the solver's dtype with these functions (written for numpy or ``jax.numpy`` through
 ``xp``; there the second-order one for fully observed, unclipped pixels only, the solver adding :func:`kkt_bound` on
-the host for the others). The problems themselves are in :mod:`stages.procam._demux_problem`.
+the host for the others). The problems themselves are in :mod:`selpath.stages.procam._demux_problem`.
 """
 
 from __future__ import annotations
@@ -13,8 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
-from stages.procam._demux_problem import DemuxProblem, SeparableDemuxProblem, _dtd_np, _residual, _smoothness
+from selpath.stages.procam._demux_problem import DemuxProblem, SeparableDemuxProblem, _dtd_np, _residual, _smoothness
 
 #: golden-section steps of the dual search in :func:`best_dual_value` (the interval shrinks 0.618× per step)
 DUAL_SEARCH_STEPS = 16

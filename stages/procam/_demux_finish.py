@@ -1,7 +1,7 @@
 """An exact finish for the demultiplexing ADMM: primal–dual active-set rounds with float64 free-set solves (#25).
 
 ADMM's answer is accurate in the objective (~1e-4) but not in its KKT conditions, so its certified bound (weak
-duality from T's own gradients, :func:`stages.procam._demux_certificate.certified_gap`) stays ~1e-2. Where the
+duality from T's own gradients, :func:`selpath.stages.procam._demux_certificate.certified_gap`) stays ~1e-2. Where the
 active set is right, the free offsets' KKT system G_FF T_F = (Aᵀy − β/2)_F solved exactly gives the optimum,
 and the bound falls to rounding. This finish (Hintermüller, Ito & Kunisch's primal–dual active-set method) starts
 from ADMM's support and, each round, frees the offsets where λ_i − κT_i ≤ 0 (λ = ∇f, κ = :data:`KAPPA`), holds
@@ -14,7 +14,7 @@ ill-conditioned to settle (max 0.44 after 5 rounds), so the solves here are floa
 LAPACK solve over the pixels grouped by free-set size (each group one (m, n, n) solve; no library batches
 factorisations of differently masked submatrices of one matrix, and JAX would compile one kernel per size).
 
-Scope: dense problems (:class:`~stages.procam._demux_problem.DemuxProblem`), every finite pixel. A pixel whose
+Scope: dense problems (:class:`~selpath.stages.procam._demux_problem.DemuxProblem`), every finite pixel. A pixel whose
 frames all act has the shared Hessian 2G; one with masked frames, or clipped frames (the one-sided penalty
 max(0, y − AT)², which acts while AT is below the clip level: each round also re-decides which clipped frames
 act, a semismooth Newton step), builds its free block from A's free columns.
@@ -23,10 +23,9 @@ act, a semismooth Newton step), builds its free block from A's free columns.
 from __future__ import annotations
 
 import numpy as np
-
-from stages.procam._demux_certificate import DUAL_STEPS, certified_gap
-from stages.procam._demux_problem import DemuxProblem
-from stages.procam._illumination import difference_operator
+from selpath.stages.procam._demux_certificate import DUAL_STEPS, certified_gap
+from selpath.stages.procam._demux_problem import DemuxProblem
+from selpath.stages.procam._illumination import difference_operator
 
 #: the active-set rule's weight on T against λ: large, so an offset with light stays free whatever its gradient
 KAPPA = 1e3

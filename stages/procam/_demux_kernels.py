@@ -1,8 +1,8 @@
-"""The jitted kernels of :class:`stages.procam._demux_solver.DemuxADMM` (the method is described there).
+"""The jitted kernels of :class:`selpath.stages.procam._demux_solver.DemuxADMM` (the method is described there).
 
 JAX needs pure functions, so the iteration lives here as functions of few arguments: the problem's
-operators (a :class:`~stages.procam._demux_problem.DenseOperators` or
-:class:`~stages.procam._demux_problem.KroneckerOperators` pytree: its type picks the code path), the stopping
+operators (a :class:`~selpath.stages.procam._demux_problem.DenseOperators` or
+:class:`~selpath.stages.procam._demux_problem.KroneckerOperators` pytree: its type picks the code path), the stopping
 limits (:class:`Limits`), the per-pixel rows (:class:`Rows`) and the iterates (:class:`State`,
 :class:`Batch`), with the few static settings (``check_every``, ``masked``, batch sizes) as keywords.
 """
@@ -14,9 +14,8 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-
-from stages.procam._demux_certificate import DUAL_SEARCH_STEPS, KKT_HELD, best_dual_value, kkt_gap
-from stages.procam._demux_problem import DenseOperators
+from selpath.stages.procam._demux_certificate import DUAL_SEARCH_STEPS, KKT_HELD, best_dual_value, kkt_gap
+from selpath.stages.procam._demux_problem import DenseOperators
 
 
 class Limits(NamedTuple):
@@ -302,7 +301,8 @@ def gaps(ops, pool: Rows, z, *, chunk: int, masked: bool):
 
 def certified_gap(ops, rows: Rows, t, *, masked: bool, steps: int = DUAL_SEARCH_STEPS, shares=KKT_HELD,
                   dual_steps: int = 0):
-    """:func:`stages.procam._demux_certificate.certified_gap` (the methods and their proofs are there: the first-order
+    """:func:`selpath.stages.procam._demux_certificate.certified_gap` (the methods and their proofs are there: the
+    first-order
     bound, and for dense problems on fully observed, unclipped pixels the smaller KKT bound) on the scaled data,
     in the solver's dtype, with ``steps`` of the dual search and the KKT bound's ``shares``: about as much as two
     to four iterations; and ``dual_steps`` of the KKT bound's dual ascent, one K × K product each. Where no frame

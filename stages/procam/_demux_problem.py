@@ -1,5 +1,6 @@
 """The shared part of every pixel's demultiplexing problem (§5.2.2, §5.3.1): the illumination, the
-regularisation and the factorised ADMM T-update, built once per sweep in float64 (:mod:`stages.procam._demux_solver`
+regularisation and the factorised ADMM T-update, built once per sweep in float64
+(:mod:`selpath.stages.procam._demux_solver`
 solves with them).
 
 Plane-to-ray transport (:class:`DemuxProblem`) has one dense (N frames × K offsets) illumination A, so
@@ -15,7 +16,7 @@ of shared matrices. The smoothness α acts along dv only (the thesis's ∂T/∂v
 Each problem hands the solver its operators by name (:meth:`DemuxProblem.operators`): a small pytree
 (:class:`DenseOperators`, :class:`KroneckerOperators`) of JAX arrays in the solver's dtype with ``forward``,
 ``adjoint``, ``update``, ``inverse``, ``gram2`` and ``smoothness`` on flat (P, K) iterates, so the jitted
-kernels of :mod:`stages.procam._demux_kernels` dispatch on its type, never on a string.
+kernels of :mod:`selpath.stages.procam._demux_kernels` dispatch on its type, never on a string.
 
 Defaults live here once (:data:`DEFAULT_ALPHA`, :data:`DEFAULT_BETA`, :data:`DEFAULT_RHO_FACTOR`); the stages
 take theirs from them. α (smoothness along the offset) and β (sparsity) are not tomography's TV weight λ;
@@ -37,8 +38,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-from stages.procam._illumination import difference_operator
+from selpath.stages.procam._illumination import difference_operator
 
 #: smoothness weight α of the thesis (§5.2.2), on images scaled to [0, 1]
 DEFAULT_ALPHA = 0.01
@@ -60,7 +60,7 @@ class DemuxProblem:
     update: np.ndarray  # (2G + ρI)⁻¹, (K, K)
     inverse: np.ndarray  # (2G)⁺, (K, K): the warm start's unconstrained solve
     #: 2G is positive definite (its smallest eigenvalue above 1e-12 of its largest): then (2G)⁺ = (2G)⁻¹ and the
-    #: KKT bound of :func:`stages.procam._demux_certificate.kkt_gap` holds
+    #: KKT bound of :func:`selpath.stages.procam._demux_certificate.kkt_gap` holds
     definite: bool = False
     #: λ_min(2G) where 2G is positive definite (else 0): the step of the KKT bound's dual ascent, whose gradient
     #: (2G)⁻¹δ − T is 1/λ_min(2G)-Lipschitz in the multipliers

@@ -11,7 +11,7 @@ y, so the problem stays a convex QP and T is never pulled below what the clipped
 No library solves millions of small QPs that share a Hessian as one matrix–matrix product per iteration
 (CVXPY/Clarabel factorise each problem; optimistix has no bound constraints and the softplus detour was slow,
 DESIGN §6), so this is a batched ADMM in plain JAX (kernels in
-:mod:`stages.procam._demux_kernels`):
+:mod:`selpath.stages.procam._demux_kernels`):
 
 * splitting T = Z with Z ≥ 0 carrying the L1 term: the T-update is (2G + ρI)⁻¹(2Aᵀỹ + ρ(Z − U)) with
   G = AᵀA + αDᵀD, one shared K × K inverse, so a tile of P pixels costs one (P × K)·(K × K) product per
@@ -19,7 +19,8 @@ DESIGN §6), so this is a batched ADMM in plain JAX (kernels in
 * a warm start at the unconstrained minimiser, clipped at 0, and Goldstein et al.'s fast ADMM with restart
   (Nesterov momentum per pixel while the combined residual falls): measured against plain and
   over-relaxed ADMM, 4–10× fewer iterations to a 1e-4 objective gap; ρ = ``rho_factor`` · λ_max(2G), a
-  setting of the problem, whose factorisation depends on it (:data:`stages.procam._demux_problem.DEFAULT_RHO_FACTOR`);
+  setting of the problem, whose factorisation depends on it
+  (:data:`selpath.stages.procam._demux_problem.DEFAULT_RHO_FACTOR`);
 * masked and clipped frames by majorisation: a masked observation is replaced by the current prediction (ỹ = w y +
   (1 − w) A Z), a clipped one by max(y, A Z), whose fixed points are exactly the optima of the problem with masked
   frames left out and clipped ones as one-sided penalties, so tiles with neither keep the cheapest path and the
@@ -31,12 +32,12 @@ DESIGN §6), so this is a batched ADMM in plain JAX (kernels in
   largest objective gap of the solver tests' float32 solves from 1.7e-5 to 1.6e-6, and the benchmark's median
   from 6.4e-5 to 5.3e-5, for about 9 % more time per pixel; two rounds are the default since they thin the tail
   the finish must take, docs/results.md);
-* a certificate beside the answer: :func:`~stages.procam._demux_kernels.certified_gap` bounds each pixel's
+* a certificate beside the answer: :func:`~selpath.stages.procam._demux_kernels.certified_gap` bounds each pixel's
   relative objective gap from weak duality (in the solver's dtype, at the end: about four iterations' cost, 0.8
   µs/px at K = 128; at the warm start a cheaper form that is exact at an optimum, 0.5 µs/px; the float64
-  reference is :func:`~stages.procam._demux_certificate.certified_gap`). A bound, never an estimate: the smaller
+  reference is :func:`~selpath.stages.procam._demux_certificate.certified_gap`). A bound, never an estimate: the smaller
   of a first-order one (every pixel) and, for a fully observed, unclipped pixel of a dense problem, the Lagrangian
-  one of :func:`~stages.procam._demux_certificate.kkt_gap`, second order in the KKT residual, whose multipliers
+  one of :func:`~selpath.stages.procam._demux_certificate.kkt_gap`, second order in the KKT residual, whose multipliers
   then climb the dual for ``dual_steps`` (one K × K product each; +21–31 % of a call's time at 10): on float32
   solves stopped at ``tol`` it is then 0.9–2.8× the true gap at the median on ``benchmarks/demux_catalogue.py``'s
   cases (without the ascent 1–15×, the first-order one alone 10–200×), but far above it where T's support is off
@@ -44,17 +45,17 @@ DESIGN §6), so this is a batched ADMM in plain JAX (kernels in
   pixel with masked or clipped frames gets the Lagrangian one after the solve, on the host in float64, with its
   own Hessian by Woodbury from the shared one (:meth:`DemuxADMM._certify_partial`);
 * an exact finish (``finish_rounds``) on the pixels whose bound still exceeds ``max_gap``: primal–dual
-  active-set rounds with float64 solves on each pixel's free offsets (:mod:`stages.procam._demux_finish`), taken
+  active-set rounds with float64 solves on each pixel's free offsets (:mod:`selpath.stages.procam._demux_finish`), taken
   towards ``gap_tol``; on that tail alone (0.4–7 % of the pixels at the defaults) it costs 3–23 % of a call, where
   on every pixel above ``gap_tol`` (``max_gap=gap_tol``) it costs 2–8× ADMM's time
   (``benchmarks/demux_catalogue.py``).
 
 The full transport (§5.3.1) uses the same iteration with the Kronecker-factored operators of
-:class:`~stages.procam._demux_problem.SeparableDemuxProblem` (A = L_u ⊗ L, never formed): the kernels apply
-whatever operators the problem hands them (:meth:`~stages.procam._demux_problem.DemuxProblem.operators`).
+:class:`~selpath.stages.procam._demux_problem.SeparableDemuxProblem` (A = L_u ⊗ L, never formed): the kernels apply
+whatever operators the problem hands them (:meth:`~selpath.stages.procam._demux_problem.DemuxProblem.operators`).
 
 :class:`DemuxADMM` is the solver: immutable settings, ``solve(problem, data, weight, clipped)`` returning a
-:class:`stages._solution.Solution` with, per pixel, the transport, a result code (converged when its primal
+:class:`selpath.stages._solution.Solution` with, per pixel, the transport, a result code (converged when its primal
 and dual residuals met ``tol`` relative, checked every ``check_every`` iterations, or when its certified gap bound
 is at most ``gap_tol``, checked at the warm start, where a pixel so certified is not iterated at all, and after
 the polish; on dense problems with a positive definite 2G instead exactly where its bound is at most ``max_gap``;
@@ -64,7 +65,7 @@ but some offset's light was seen only clipped (:func:`censored_offsets`); ``unpr
 and ``stats`` (``iterations`` to convergence, ``max_iter`` if never; ``objective``; ``gap_bound``, the certified
 bound; ``censored_offsets``). A call's
 pixels stream through one batch whose rows are written out and refilled as their pixels converge or reach
-``max_iter`` (:func:`~stages.procam._demux_kernels.stream`), and the batch's tail is compacted into smaller
+``max_iter`` (:func:`~selpath.stages.procam._demux_kernels.stream`), and the batch's tail is compacted into smaller
 batches (:meth:`DemuxADMM._iterate_tail`), so a call costs about its pixels' mean iterations, not its slowest
 pixel's. A pixel stops at the check where it meets ``tol``: it is not iterated further while slower pixels
 finish (an earlier version did, for free accuracy at the same recorded iterations).
@@ -78,13 +79,12 @@ from typing import ClassVar, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-from stages._solution import Result, Solution, outcome, raise_if_failed
-from stages.procam import _demux_kernels as kernels
-from stages.procam._demux_certificate import DUAL_STEPS, kkt_bound
-from stages.procam._demux_finish import active_set_finish
-from stages.procam._demux_kernels import MIN_BATCH, Batch, Limits, Rows, State, alive, compact_at
-from stages.procam._demux_problem import DemuxProblem, SeparableDemuxProblem
+from selpath.stages._solution import Result, Solution, outcome, raise_if_failed
+from selpath.stages.procam import _demux_kernels as kernels
+from selpath.stages.procam._demux_certificate import DUAL_STEPS, kkt_bound
+from selpath.stages.procam._demux_finish import active_set_finish
+from selpath.stages.procam._demux_kernels import MIN_BATCH, Batch, Limits, Rows, State, alive, compact_at
+from selpath.stages.procam._demux_problem import DemuxProblem, SeparableDemuxProblem
 
 __all__ = ["CENSORED_SHARE", "MIN_BATCH", "DemuxADMM", "batch_slots", "censored_offsets", "observed"]
 
@@ -153,20 +153,21 @@ class DemuxADMM:
     still above it is ``unproven``: ``converged`` means exactly a proven gap of at most ``max_gap``, whatever the
     residuals said (a pixel at ``max_iter`` whose bound is within it is converged) (1: no cap, no finish: the
     residual test or ``gap_tol``). It applies to dense problems whose 2G is positive definite, where the bound is
-    second order in T's KKT residual (:func:`~stages.procam._demux_certificate.kkt_gap`); elsewhere (the
+    second order in T's KKT residual (:func:`~selpath.stages.procam._demux_certificate.kkt_gap`); elsewhere (the
     Kronecker problem, α = 0 with rank-deficient A) only the first-order bound exists, which an answer short of
     the exact optimum rarely meets: there neither the cap nor the finish runs, and ``converged`` keeps its
     residual meaning;
     ``dual_steps``: projected accelerated gradient steps on the multipliers of the final certificate's KKT bound
-    (its dual ascent, :func:`~stages.procam._demux_certificate.kkt_gap`: one K × K product per pixel each; 0: the
+    (its dual ascent, :func:`~selpath.stages.procam._demux_certificate.kkt_gap`: one K × K product per pixel each; 0:
+    the
     fixed multipliers alone, a bound up to 7× looser at the median and 18× at the p99 on the catalogue);
-    ``finish_rounds``: exact active-set rounds (float64 free-set solves, :mod:`stages.procam._demux_finish`) on
+    ``finish_rounds``: exact active-set rounds (float64 free-set solves, :mod:`selpath.stages.procam._demux_finish`) on
     the pixels whose bound exceeds ``max_gap`` after the polish (where ``max_gap`` applies; masked and clipped
     frames included), each taken towards ``gap_tol`` (0: none; a pixel of a finished call certified by the
     solver's float32 bound may read up to ~1 % above it in float64);
     ``slots``: rows of the streaming batch (None: :func:`batch_slots`);
     ``dtype``: ``float32`` or ``float64`` arithmetic (float64 needs ``jax.enable_x64``); ``throw``: raise
-    :class:`stages._solution.SolverError` when a pixel did not converge (default: keep going, the result
+    :class:`selpath.stages._solution.SolverError` when a pixel did not converge (default: keep going, the result
     codes say which).
 
     The defaults (tol 2e-3, two polish rounds, max_gap 1e-3 with 16 finish rounds) are the cheapest measured to
@@ -274,7 +275,7 @@ class DemuxADMM:
     def _certify_partial(self, problem: DemuxProblem, data, weight, clipped, transport, gap, done):
         """The KKT bound, in float64 on the host, of the finite pixels with masked or clipped frames whose bound
         exceeds ``gap_tol`` (the solver's kernels give those the first-order bound only: their Hessian is their own,
-        here by Woodbury from the shared one, :func:`~stages.procam._demux_certificate.kkt_bound`); each such
+        here by Woodbury from the shared one, :func:`~selpath.stages.procam._demux_certificate.kkt_bound`); each such
         pixel keeps the smaller bound, and is converged where it is at most ``gap_tol``."""
         partial = ~(weight & ~clipped).all(axis=1)
         scope = np.flatnonzero(partial & (gap > self.gap_tol) & np.isfinite(transport).all(axis=1))
@@ -301,7 +302,7 @@ class DemuxADMM:
 
     def _run(self, ops, data, weight, clipped, *, masked: bool, slots: int):
         """Start, set aside the pixels certified at their warm start (gap bound ≤ ``gap_tol``: no iteration), stream
-        the others through a batch of ``slots`` (:func:`~stages.procam._demux_kernels.stream`), compact its tail
+        the others through a batch of ``slots`` (:func:`~selpath.stages.procam._demux_kernels.stream`), compact its tail
         (:meth:`_iterate_tail`), finish: (transport, iterations, converged, objective, gap bound, the warm start
         as :class:`_Start`). A pixel is
         converged where its residuals met ``tol`` or where its final certified bound is at most ``gap_tol``."""

@@ -1,5 +1,6 @@
-"""From a capture to a transport store: what ``demux_plane_to_ray`` (:mod:`stages.procam.demux`) and ``demux_full``
-(:mod:`stages.procam.demux_full`) share.
+"""From a capture to a transport store: what ``demux_plane_to_ray`` (:mod:`selpath.stages.procam.demux`) and
+``demux_full``
+(:mod:`selpath.stages.procam.demux_full`) share.
 
 The rig's timing (v_p, t_p, the sync offset: the capture's attrs or a scan calibration), the counts that scale the
 images to [0, 1], the frames kept and the offset grid of a delay–exposure sweep, the per-band solve (raw frames →
@@ -18,15 +19,14 @@ import jax
 import numpy as np
 import pydantic
 import xarray as xr
-
-from pipeline.errors import Problem, StageError
-from pipeline.quality import usable_share
-from pipeline.schema import with_metadata
-from stages._solution import Solution, raise_if_failed
-from stages._sweeps import Sweep
-from stages.procam._demux_problem import DemuxProblem, SeparableDemuxProblem
-from stages.procam._demux_solver import DemuxADMM, batch_slots, observed
-from stages.procam._illumination import epipolar_boundary, plane_to_ray_illumination
+from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.quality import usable_share
+from selpath.pipeline.schema import with_metadata
+from selpath.stages._solution import Solution, raise_if_failed
+from selpath.stages._sweeps import Sweep
+from selpath.stages.procam._demux_problem import DemuxProblem, SeparableDemuxProblem
+from selpath.stages.procam._demux_solver import DemuxADMM, batch_slots, observed
+from selpath.stages.procam._illumination import epipolar_boundary, plane_to_ray_illumination
 
 #: streaming batches per solver call: a call's pool (data, warm starts, results: ~8 (P × K) arrays, 64 MB at
 #: K = 128) is bounded while the batch's tail (its last, slowest pixels) is paid once per 16 batches of pixels

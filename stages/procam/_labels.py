@@ -13,9 +13,8 @@ from typing import Literal
 
 import numpy as np
 import xarray as xr
-
-from pipeline.errors import Problem, StageError
-from stages._common import file_identity
+from selpath.pipeline.errors import Problem, StageError
+from selpath.stages._common import file_identity
 
 #: where the truth comes from: the simulated scene's objects, or a label image file
 Labels = Literal["scene", "image"]
@@ -32,8 +31,8 @@ def label_map(profiles: xr.Dataset, labels: str, image: str, classes: tuple[str,
     shape = (profiles.sizes["row"], profiles.sizes["col"])
     labels, image = (image, "") if labels == "image" else (labels, image)
     if labels == "scene":
-        from devices.sim.procam_transport import Tile
-        from stages.procam.multiplexing import simulated_scene
+        from selpath.devices.sim.procam_transport import Tile
+        from selpath.stages.procam.multiplexing import simulated_scene
 
         scene = simulated_scene(profiles, where)
         tile = Tile.of(scene, 0, scene.rig.camera_rows)

@@ -3,7 +3,7 @@
 ``acquire_plane_to_ray`` and ``acquire_full_transport`` drive the simulated rig (``rig: sim``, a scene from
 ``workflows/scenes/``) through a delay–exposure sweep, frame by frame and resumably, like
 ``acquire_tomography``. ``acquire_scan_calibration`` films a white target with the camera in global-shutter
-mode at several exposures and delays, for :func:`stages.procam.calibrate.calibrate_scan_speed`.
+mode at several exposures and delays, for :func:`selpath.stages.procam.calibrate.calibrate_scan_speed`.
 """
 
 from __future__ import annotations
@@ -15,24 +15,22 @@ from typing import Annotated, Any, ClassVar, Literal
 import numpy as np
 import pydantic
 import xarray as xr
-
-from devices.patterns import white
-from devices.procam_acquire import ProcamInstruments, capture_template, checkerboard_shifts, sweep_frames
-from devices.procam_acquire import acquire_checkerboards as checkerboard_sweep
-from devices.procam_acquire import acquire_full_transport as full_sweep
-from devices.procam_acquire import acquire_gray_code as gray_code_stack
-from devices.procam_acquire import acquire_plane_to_ray as plane_sweep
-from devices.procam_hardware import load_procam_hardware, procam_hardware_rig
-from devices.sim.procam_rig import simulated_procam_rig
-from devices.sim.procam_scene import ProcamRig, ProcamScene, load_procam_scene
-from devices.sim.stereo_target import capture_target, load_stereo_target
-from devices.sim.sync_firmware import DEFAULT_LIMITS
-from pipeline.constraints import Count, Positive, memory_problems
-from pipeline.errors import SelpathError
-from pipeline.registry import stage
-from pipeline.spec import StorePath
-from stages._common import file_identity, read_file, sweep_log
-from stages._sweeps import Sweep
+from selpath.devices.patterns import white
+from selpath.devices.procam_acquire import ProcamInstruments, capture_template, checkerboard_shifts, sweep_frames
+from selpath.devices.procam_acquire import acquire_checkerboards as checkerboard_sweep
+from selpath.devices.procam_acquire import acquire_full_transport as full_sweep
+from selpath.devices.procam_acquire import acquire_gray_code as gray_code_stack
+from selpath.devices.procam_acquire import acquire_plane_to_ray as plane_sweep
+from selpath.devices.procam_hardware import load_procam_hardware, procam_hardware_rig
+from selpath.devices.sim.procam_rig import simulated_procam_rig
+from selpath.devices.sim.procam_scene import ProcamRig, ProcamScene, load_procam_scene
+from selpath.devices.sim.stereo_target import capture_target, load_stereo_target
+from selpath.devices.sim.sync_firmware import DEFAULT_LIMITS
+from selpath.pipeline.constraints import Count, Positive, StorePath, memory_problems
+from selpath.pipeline.errors import SelpathError
+from selpath.pipeline.registry import stage
+from selpath.stages._common import file_identity, read_file, sweep_log
+from selpath.stages._sweeps import Sweep
 
 
 class TimeSweep(Sweep):
@@ -65,7 +63,7 @@ Exposures = Annotated[tuple[Positive, ...], pydantic.Field(min_length=1)]
 SensorSize = tuple[Count, Count]
 
 
-#: changes to a scene's rig: ``devices.sim.procam_scene.ProcamRig`` fields and their values
+#: changes to a scene's rig: ``selpath.devices.sim.procam_scene.ProcamRig`` fields and their values
 RigChanges = dict[str, Any]
 
 
@@ -182,7 +180,7 @@ _SHARED_DOCS = """    sensor : [rows, cols] or None
     rig_changes : dict or None
         Changes to the scene's rig, checked as the scene file is: ``intensity`` (counts of a white pixel lit for
         a whole line time: a dimmer projector), ``dark_level`` and ``saturation_level`` [counts], ``noise``
-        {gain, read_std, seed}, ``jitter``, … (``devices.sim.procam_scene.ProcamRig``; docs/devices.md).
+        {gain, read_std, seed}, ``jitter``, … (``selpath.devices.sim.procam_scene.ProcamRig``; docs/devices.md).
     progress : bool
         Show a progress bar.
     """
@@ -464,7 +462,7 @@ def _target_identity(settings) -> dict:
 def acquire_stereo_target(*, store: StorePath, scene: StorePath, progress: bool = True) -> xr.Dataset:
     """A checkerboard target at several poses under white, black and Gray codes, filmed by a simulated pinhole pair.
 
-    The pair and the target are ``scene``'s (``devices.sim.stereo_target``); frames are written one by one and a
+    The pair and the target are ``scene``'s (``selpath.devices.sim.stereo_target``); frames are written one by one and a
     rerun resumes: what ``calibrate_procam_stereo`` calibrates the pair from.
 
     Parameters

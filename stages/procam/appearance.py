@@ -5,10 +5,11 @@ surface, and takes that dependence from the delay sweep. Here it is fitted: the 
 function of the distance d between where light enters and where it leaves is modelled as
 R(d) = (1 − f)·δ(d) + f·L_w(d), L_w the Laplace (exponential) lobe of width w integrated over unit cells, and f and w
 (with an amplitude) are fitted by least squares to the mean delay profile of the material's pixels *through the
-sweep's own illumination matrix* (:func:`stages.procam._illumination.plane_to_ray_illumination`), so the exposure's
+sweep's own illumination matrix* (:func:`selpath.stages.procam._illumination.plane_to_ray_illumination`), so the
+exposure's
 blur and the sweep's finite range are modelled, not fitted away. Standard errors come from the fit's Jacobian.
 
-**The render.** A mesh (``stages.procam._mesh``: a generated teapot, or a sphere) is rasterised orthographically
+**The render.** A mesh (``selpath.stages.procam._mesh``: a generated teapot, or a sphere) is rasterised orthographically
 and lit by a directional light: the Lambertian image is the irradiance E = max(n·l, 0). The subsurface image
 spreads the share f of the irradiance over the surface by R, in screen space: (1 − f)·E + f·(k ⊗ k) ∗ E inside the
 silhouette, with k the fitted 1-D lobe in render pixels (``scale`` capture pixels per render pixel). Taking the 2-D
@@ -30,15 +31,13 @@ import pydantic
 import xarray as xr
 from scipy.ndimage import convolve1d
 from scipy.optimize import least_squares
-
-from pipeline.constraints import Count, Fraction, NonNegative, Positive
-from pipeline.errors import Problem, StageError
-from pipeline.registry import stage
-from pipeline.spec import StorePath
-from stages.procam._illumination import plane_to_ray_illumination
-from stages.procam._mesh import MESHES, rasterise, rotate
-from stages.procam._labels import Labels, label_identity, label_map, label_precheck
-from stages.procam.materials import profile_frames
+from selpath.pipeline.constraints import Count, Fraction, NonNegative, Positive, StorePath
+from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.registry import stage
+from selpath.stages.procam._illumination import plane_to_ray_illumination
+from selpath.stages.procam._labels import Labels, label_identity, label_map, label_precheck
+from selpath.stages.procam._mesh import MESHES, rasterise, rotate
+from selpath.stages.procam.materials import profile_frames
 
 
 def laplace_cells(offsets: np.ndarray, width: float) -> np.ndarray:

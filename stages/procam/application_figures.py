@@ -1,9 +1,9 @@
 """Projector–camera application figures as stages (§5.4.3–5.4.6): Fig. 42 a line relit from a multiplexed stack
 against the line projected alone, Fig. 45 short-range renders, Fig. 46 transport-matrix slices, Fig. 48
-direct/global separation (the §5.4.7–5.4.10 figures are in :mod:`stages.procam.material_figures`).
+direct/global separation (the §5.4.7–5.4.10 figures are in :mod:`selpath.stages.procam.material_figures`).
 
 Each renders lazily into a ``figure`` cube (RGBA), saved by the engine as ``<store>.png``, with a one-paragraph
-``caption`` attr; how is :mod:`stages._figures`.
+``caption`` attr; how is :mod:`selpath.stages._figures`.
 """
 
 from __future__ import annotations
@@ -13,12 +13,11 @@ from typing import Annotated
 import numpy as np
 import pydantic
 import xarray as xr
-
-from pipeline.constraints import Fraction, Positive
-from pipeline.errors import Problem, StageError
-from pipeline.registry import stage
-from stages._figures import as_figure, image_colorbar, panels, pixel_axes, rgba
-from stages.procam.figures import display_top
+from selpath.pipeline.constraints import Fraction, Positive
+from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.registry import stage
+from selpath.stages._figures import as_figure, image_colorbar, panels, pixel_axes, rgba
+from selpath.stages.procam.figures import display_top
 
 #: the separation figure's size [in]: four images in a row
 SEPARATION_SIZE = (9.0, 2.6)

@@ -19,12 +19,11 @@ from typing import Annotated
 import numpy as np
 import pydantic
 import xarray as xr
-
-from pipeline.constraints import Fraction
-from pipeline.errors import Problem, StageError
-from pipeline.registry import stage
-from stages._common import require_variables
-from stages.procam.figures import Pixels, pixel_at
+from selpath.pipeline.constraints import Fraction
+from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.registry import stage
+from selpath.stages._common import require_variables
+from selpath.stages.procam.figures import Pixels, pixel_at
 
 
 def extent(profile: xr.DataArray, floor: float) -> xr.DataArray:

@@ -10,10 +10,9 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 import xarray as xr
-
-from pipeline.constraints import NonNegative
-from pipeline.errors import Problem, StageError
-from pipeline.registry import stage
+from selpath.pipeline.constraints import NonNegative
+from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.registry import stage
 
 
 def row_profile_statistics(profile: np.ndarray) -> tuple[float, float]:

@@ -1,12 +1,15 @@
 """Demultiplexing a delay–exposure stack into plane-to-ray transport T(offset, row, col) (§5.2.2).
 
-Lazy over bands of camera rows (dask, one task per band), JAX inside each band (``stages.procam._demux_solver``). The
-illumination matrix (``stages.procam._illumination``) is built once from the sweep, v_p, t_p and the sync offset —
+Lazy over bands of camera rows (dask, one task per band), JAX inside each band
+(``selpath.stages.procam._demux_solver``). The
+illumination matrix (``selpath.stages.procam._illumination``) is built once from the sweep, v_p, t_p and the sync
+offset —
 from a ``scan_calibration`` store when one is wired in — and shared by every pixel. Frames at the epipolar
-boundary are dropped by the rule of :func:`stages.procam._illumination.epipolar_boundary`; non-finite observations
+boundary are dropped by the rule of :func:`selpath.stages.procam._illumination.epipolar_boundary`; non-finite
+observations
 are masked per pixel, and clipped ones (at or above ``saturation_counts``) kept as lower bounds on the light: where
 an offset's light was seen only clipped, the pixel is ``censored`` and T there is a lower bound (the solver's
-one-sided penalty, :mod:`stages.procam._demux_solver`). T is in the capture's counts: the image of a row lit for
+one-sided penalty, :mod:`selpath.stages.procam._demux_solver`). T is in the capture's counts: the image of a row lit for
 its whole line time t_p, so Σ_o T(o) w(o; t_d, t_e) reproduces a frame.
 """
 
@@ -14,14 +17,13 @@ from __future__ import annotations
 
 import numpy as np
 import xarray as xr
-
-from pipeline.constraints import Count, Index, NonNegative, Positive
-from pipeline.errors import Problem, StageError
-from pipeline.registry import stage
-from stages._common import Dtype, DualSteps, FinishRounds, GapTol, MaxGap, MaxIter
-from stages.procam._demux_problem import DEFAULT_ALPHA, DEFAULT_BETA, DemuxProblem
-from stages.procam._demux_solver import DemuxADMM
-from stages.procam._demux_store import (
+from selpath.pipeline.constraints import Count, Index, NonNegative, Positive
+from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.registry import stage
+from selpath.stages._common import Dtype, DualSteps, FinishRounds, GapTol, MaxGap, MaxIter
+from selpath.stages.procam._demux_problem import DEFAULT_ALPHA, DEFAULT_BETA, DemuxProblem
+from selpath.stages.procam._demux_solver import DemuxADMM
+from selpath.stages.procam._demux_store import (
     OffsetGrid,
     describe_transport,
     levels_of,

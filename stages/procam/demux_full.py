@@ -1,8 +1,9 @@
 """Demultiplexing a line sweep into full transport T(du, dv, row, col) (§5.3.1).
 
-The same per-pixel problem as plane-to-ray (:mod:`stages.procam.demux`, whose machinery it shares through
-:mod:`stages.procam._demux_store`) over u-cells × offsets, with the separable illumination L_u ⊗ L of Eq. 38
-(:class:`stages.procam._demux_problem.SeparableDemuxProblem`: A is never formed). Lazy over bands of camera rows;
+The same per-pixel problem as plane-to-ray (:mod:`selpath.stages.procam.demux`, whose machinery it shares through
+:mod:`selpath.stages.procam._demux_store`) over u-cells × offsets, with the separable illumination L_u ⊗ L of Eq. 38
+(:class:`selpath.stages.procam._demux_problem.SeparableDemuxProblem`: A is never formed). Lazy over bands of camera
+rows;
 each pixel's answer is re-indexed from its direct correspondence u₀, so du = 0 is the direct light.
 """
 
@@ -10,14 +11,13 @@ from __future__ import annotations
 
 import numpy as np
 import xarray as xr
-
-from pipeline.constraints import Count, Index, NonNegative, Positive
-from pipeline.errors import Problem, StageError
-from pipeline.registry import stage
-from stages._common import Dtype, GapTol, MaxIter
-from stages.procam._demux_problem import DEFAULT_ALPHA, DEFAULT_BETA, SeparableDemuxProblem
-from stages.procam._demux_solver import DemuxADMM
-from stages.procam._demux_store import (
+from selpath.pipeline.constraints import Count, Index, NonNegative, Positive
+from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.registry import stage
+from selpath.stages._common import Dtype, GapTol, MaxIter
+from selpath.stages.procam._demux_problem import DEFAULT_ALPHA, DEFAULT_BETA, SeparableDemuxProblem
+from selpath.stages.procam._demux_solver import DemuxADMM
+from selpath.stages.procam._demux_store import (
     OffsetGrid,
     describe_transport,
     levels_of,
@@ -27,7 +27,7 @@ from stages.procam._demux_store import (
     transport_attrs,
     transport_template,
 )
-from stages.procam._illumination import line_cells, line_illumination
+from selpath.stages.procam._illumination import line_cells, line_illumination
 
 #: bytes of full transport one dask task may hold (the default rows_per_tile of demux_full follows from it)
 FULL_TILE_BYTES = 64 * 2**20

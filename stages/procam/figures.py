@@ -1,9 +1,9 @@
 """Projector–camera figures as stages (§5.4): Fig. 38 delay profiles, Fig. 40 relighting, Fig. 47 regular and
 sharpened epipolar images, Fig. 39 2-D profiles and Fig. 41 relighting from full transport (the applications'
-figures are in :mod:`stages.procam.application_figures`).
+figures are in :mod:`selpath.stages.procam.application_figures`).
 
 Each renders lazily into a ``figure`` cube (RGBA), saved by the engine as ``<store>.png``, with a one-paragraph
-``caption`` attr; how is :mod:`stages._figures`.
+``caption`` attr; how is :mod:`selpath.stages._figures`.
 """
 
 from __future__ import annotations
@@ -15,12 +15,11 @@ import numpy as np
 import pydantic
 import xarray as xr
 from matplotlib.colors import Normalize, PowerNorm
-
-from pipeline.constraints import Count, Fraction, Index, Positive
-from pipeline.errors import Problem, StageError
-from pipeline.registry import stage
-from stages._figures import as_figure, image_colorbar, panels, pixel_axes, rgba, shared_colorbar
-from stages.procam.relight import checkerboard_relight, epipolar_image, relight
+from selpath.pipeline.constraints import Count, Fraction, Index, Positive
+from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.registry import stage
+from selpath.stages._figures import as_figure, image_colorbar, panels, pixel_axes, rgba, shared_colorbar
+from selpath.stages.procam.relight import checkerboard_relight, epipolar_image, relight
 
 #: named pixels, name → [x, y] in image fractions, each in [0, 1]; at least one
 Pixels = Annotated[dict[str, tuple[Fraction, Fraction]], pydantic.Field(min_length=1)]

@@ -3,19 +3,17 @@ Fig. 49 vein imaging at the chosen delay, Fig. 50 appearance capture, Figs. 51â€
 material atlas.
 
 Each renders lazily into a ``figure`` cube (RGBA), saved by the engine as ``<store>.png``, with a one-paragraph
-``caption`` attr; how is :mod:`stages._figures`.
+``caption`` attr; how is :mod:`selpath.stages._figures`.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import xarray as xr
-
-from pipeline.registry import stage
-from stages._common import require_variables
-from stages._figures import as_figure, panels, pixel_axes, rgba
-from stages.procam.figures import display_top
-
+from selpath.pipeline.registry import stage
+from selpath.stages._common import require_variables
+from selpath.stages._figures import as_figure, panels, pixel_axes, rgba
+from selpath.stages.procam.figures import display_top
 
 #: the material figure's size [in]: regular image, mean profiles, label map, confusion matrix
 MATERIAL_SIZE = (12.0, 3.0)

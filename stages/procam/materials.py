@@ -28,14 +28,12 @@ import dask.array as da
 import numpy as np
 import pydantic
 import xarray as xr
-
-from pipeline.constraints import Count, Index, Positive
-from pipeline.errors import Problem, StageError
-from pipeline.quality import usable_share
-from pipeline.registry import stage
-from pipeline.spec import StorePath
-from stages._common import require_variables
-from stages.procam._labels import Labels, label_identity, label_map, label_precheck
+from selpath.pipeline.constraints import Count, Index, Positive, StorePath
+from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.quality import usable_share
+from selpath.pipeline.registry import stage
+from selpath.stages._common import require_variables
+from selpath.stages.procam._labels import Labels, label_identity, label_map, label_precheck
 
 #: bits of the profiles' ``flags``
 SATURATED, NONFINITE, NO_LIGHT = 1, 2, 4
@@ -220,8 +218,8 @@ def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scen
         A new pixel whose standardised profile lies farther from every class's mean than this quantile of the
         training pixels' distances from their own class's mean is flagged unlike every trained class [1].
     """
-    import skops.io
     import sklearn
+    import skops.io
 
     require_variables(profiles, ("profile", "area", "flags"), "train_material_classifier")
     codes, names = label_map(profiles, labels, label_image, classes, "profiles")

@@ -7,7 +7,7 @@ over 10-px steps: a box of 5 lines, here cyclic) and lengthens its exposure (850
 Harwit & Sloane's S-matrix lights (n + 1)/2 lines per capture. The stage's demultiplexing adds a smoothness
 prior, which this study leaves out: it measures what the codes themselves give.
 
-**Noise model** (the simulator's, ``devices.sim.procam_scene`` ``noise``): a capture of mean signal s counts has
+**Noise model** (the simulator's, ``selpath.devices.sim.procam_scene`` ``noise``): a capture of mean signal s counts has
 shot noise of variance g·s (g counts per photo-electron; Poisson in electrons) and read noise of variance r²,
 independent between captures (quantisation adds 1/12 count², included in r² here). The decoded lines then have
 
@@ -31,16 +31,15 @@ import numpy as np
 import pydantic
 import scipy.linalg
 import xarray as xr
-
-from devices.patterns import checkerboard
-from devices.sim.procam_scene import ProcamScene
-from devices.sim.procam_transport import on_camera_rows, render_frame, seen_rows
-from pipeline.constraints import Count, Fraction, Index, NonNegative, Positive
-from pipeline.errors import Problem, StageError
-from pipeline.registry import stage
-from stages._common import require_variables
-from stages.procam.acquire import exposure_window
-from stages.procam.relight import relight, relight_full
+from selpath.devices.patterns import checkerboard
+from selpath.devices.sim.procam_scene import ProcamScene
+from selpath.devices.sim.procam_transport import on_camera_rows, render_frame, seen_rows
+from selpath.pipeline.constraints import Count, Fraction, Index, NonNegative, Positive
+from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.registry import stage
+from selpath.stages._common import require_variables
+from selpath.stages.procam.acquire import exposure_window
+from selpath.stages.procam.relight import relight, relight_full
 
 
 def s_matrix(n: int) -> np.ndarray:
@@ -275,7 +274,7 @@ def full_relighting_snr(capture: xr.Dataset, transport: xr.Dataset, /, *, square
                         lit_fraction: Fraction = 0.05) -> xr.Dataset:
     """The scene relit from full transport under a checkerboard and floodlit, SNR against the truth (Fig. 43).
 
-    Relit with :func:`stages.procam.relight.relight_full`; the truth is the simulator's noiseless render of the
+    Relit with :func:`selpath.stages.procam.relight.relight_full`; the truth is the simulator's noiseless render of the
     same projector patterns (global shutter over the whole scan). The checkerboard's squares are whole u-cells
     starting on a cell edge, so a transport recovered exactly relights exactly: what remains is noise and the
     demultiplexing's bias. SNR [dB] as in :func:`line_relighting_snr`, over each image's lit pixels. Run it on a

@@ -30,13 +30,12 @@ import warnings
 
 import numpy as np
 import xarray as xr
-
-from pipeline.constraints import Fraction, Index, Positive
-from pipeline.errors import Problem, StageError
-from pipeline.quality import usable_share
-from pipeline.registry import stage
-from pipeline.schema import with_metadata
-from stages._common import require_variables
+from selpath.pipeline.constraints import Fraction, Index, Positive
+from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.quality import usable_share
+from selpath.pipeline.registry import stage
+from selpath.pipeline.schema import with_metadata
+from selpath.stages._common import require_variables
 
 #: below this share of decoded pixels a correspondence map means nothing
 DECODED_FLOOR = 0.05

@@ -1,14 +1,13 @@
 """What plane-to-ray and full transport are for (§5.4.1, §5.4.2): relighting under any row pattern, epipolar and
 non-epipolar images (Eq. 35–36) from ``T(offset, row, col)``, and relighting under any 2-D pattern from full
-``T(du, dv, row, col)``. Lazy (xarray/dask); :mod:`stages.procam.figures` draws them.
+``T(du, dv, row, col)``. Lazy (xarray/dask); :mod:`selpath.stages.procam.figures` draws them.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import xarray as xr
-
-from devices.patterns import checkerboard
+from selpath.devices.patterns import checkerboard
 
 
 def relight(transport: xr.DataArray, row_pattern: np.ndarray) -> xr.DataArray:

@@ -23,12 +23,11 @@ from __future__ import annotations
 
 import numpy as np
 import xarray as xr
-
-from pipeline.constraints import Fraction, NonNegative, Positive
-from pipeline.errors import Problem, StageError
-from pipeline.quality import usable_share
-from pipeline.registry import stage
-from stages._common import require_variables
+from selpath.pipeline.constraints import Fraction, NonNegative, Positive
+from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.quality import usable_share
+from selpath.pipeline.registry import stage
+from selpath.stages._common import require_variables
 
 #: bits of the separation's ``flags``
 SATURATED, NONFINITE = 1, 2
@@ -42,7 +41,7 @@ def checkerboard_coverage(square: tuple[int, int], shifts: np.ndarray) -> tuple[
     """Over one period of a checkerboard of ``square`` = (rows, cols) projector pixels, whether each phase is lit
     by some shift and dark under some shift: ``(ever_lit, ever_dark)``, each (2·rows, 2·cols) boolean.
 
-    A shift (r, c) moves the board by r rows and c columns (``devices.patterns.checkerboard``): phase (y, x) is
+    A shift (r, c) moves the board by r rows and c columns (``selpath.devices.patterns.checkerboard``): phase (y, x) is
     lit when ``((y + r) // rows + (x + c) // cols)`` is odd.
     """
     rows, cols = square
@@ -114,7 +113,7 @@ def separate_direct_global(capture: xr.Dataset, /, *, black_level: Fraction | No
     ----------
     capture : xr.Dataset
         ``image`` [counts] over (shift, row, col), with coordinates ``shift_row`` and ``shift_col`` along ``shift``
-        (the board's shift [projector px], as ``devices.patterns.checkerboard`` takes it), attr ``square_px``
+        (the board's shift [projector px], as ``selpath.devices.patterns.checkerboard`` takes it), attr ``square_px``
         ([rows, cols] of a square, projector px), ``saturation_counts`` and ``dark_level_counts`` (required of a
         checkerboard_capture store) and, where known, ``black_level``.
     black_level : float or None

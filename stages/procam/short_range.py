@@ -5,7 +5,7 @@ exposes: offsets o with |o·τ − t_d| < (t_e + t_p)/2 (τ = 1/v_p); a sweep li
 the transport within |o| < v_p·(T_dmax + (t_e + t_p)/2), and a floodlit render from it holds only the light that
 travelled that far between epipolar planes. Shorter ranges
 need fewer captures: 2·⌊T_dmax / step⌋ + 1 delays per line, against pixel-to-pixel scanning's one capture per
-block of rows the scan crosses in one step (:func:`devices.procam_acquire.plan_sweep`).
+block of rows the scan crosses in one step (:func:`selpath.devices.procam_acquire.plan_sweep`).
 
 From any recovered transport (plane-to-ray ``T(offset, row, col)`` or full ``T(du, dv, row, col)``) the stage
 renders the floodlit image each T_dmax would give, the share of the transport's energy it keeps, and the captures
@@ -21,12 +21,11 @@ from typing import Annotated
 import numpy as np
 import pydantic
 import xarray as xr
-
-from devices.procam_acquire import plan_sweep
-from pipeline.constraints import Count, NonNegative, Positive
-from pipeline.errors import Problem, StageError
-from pipeline.registry import stage
-from stages._common import require_variables
+from selpath.devices.procam_acquire import plan_sweep
+from selpath.pipeline.constraints import Count, NonNegative, Positive
+from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.registry import stage
+from selpath.stages._common import require_variables
 
 
 @stage("short_range_images")

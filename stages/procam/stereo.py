@@ -2,7 +2,8 @@
 
 The method of Moreno and Taubin ("Simple, accurate, and robust projector-camera calibration", 2012): at each pose of
 a planar checkerboard the camera finds the board's inner corners (``cv2.findChessboardCornersSB``); the Gray codes
-filmed at the same pose say which projector pixel lights each camera pixel (``stages.procam.rectify``, sub-pixel);
+filmed at the same pose say which projector pixel lights each camera pixel (``selpath.stages.procam.rectify``,
+sub-pixel);
 a homography fitted to the decoded pixels around each corner carries the corner into the projector, which thereby
 "sees" the board too. Then ``cv2.calibrateCamera`` for each device, ``cv2.stereoCalibrate`` for their relative pose,
 and ``cv2.stereoRectify`` for the rotations that make their rows epipolar. Two measures of the rows, both over the
@@ -20,21 +21,21 @@ import warnings
 import cv2
 import numpy as np
 import xarray as xr
-
-from pipeline.constraints import Count, Fraction, Positive
-from pipeline.errors import Problem, StageError
-from pipeline.registry import stage
-from pipeline.schema import with_metadata
-from stages._common import require_variables
-from stages.camera_target import board_points, camera_corners
-from stages.procam.rectify import _decode_band, check_code_count, paired_camera_row, resolved_drop
+from selpath.pipeline.constraints import Count, Fraction, Positive
+from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.registry import stage
+from selpath.pipeline.schema import with_metadata
+from selpath.stages._common import require_variables
+from selpath.stages.camera_target import board_points, camera_corners
+from selpath.stages.procam.rectify import _decode_band, check_code_count, paired_camera_row, resolved_drop
 
 #: decoded pixels a corner's local homography needs (it has 8 degrees of freedom)
 MIN_HOMOGRAPHY_PIXELS = 12
 
 
 def euler_angles(r: np.ndarray) -> tuple[float, float, float]:
-    """(roll, pitch, yaw) [degree] of R = Rz(roll)·Ry(yaw)·Rx(pitch) (``devices.sim.stereo_target.rotation``)."""
+    """(roll, pitch, yaw) [degree] of R = Rz(roll)·Ry(yaw)·Rx(pitch)
+    (``selpath.devices.sim.stereo_target.rotation``)."""
     roll = np.degrees(np.arctan2(r[1, 0], r[0, 0]))
     yaw = np.degrees(np.arcsin(np.clip(-r[2, 0], -1.0, 1.0)))
     pitch = np.degrees(np.arctan2(r[2, 1], r[2, 2]))

@@ -9,7 +9,8 @@ choice to further study.
 
 :func:`choose_delay` chooses it from a plane-to-ray transport T(offset, row, col): for each candidate t_d it forms
 the frame an ideal rig would record, I(t_d) = Σ_o w(o; t_d, t_e)·T(o) (the illumination weights of the
-demultiplexing, :mod:`stages.procam._illumination`), and measures the **Weber contrast** of the structure against its
+demultiplexing, :mod:`selpath.stages.procam._illumination`), and measures the **Weber contrast** of the structure
+against its
 surround, C = |μ_surround − μ_structure| / μ_surround (region means over labelled pixels), and picks the delay of
 the highest C. Only delays whose frames hold no direct light are candidates: the exposure window plus the line time
 must stay clear of the pixel's own row, |t_d| ≥ (t_e + t_p)/2 (the thesis's t_d ≥ t_e/2, with the line time's half,
@@ -21,15 +22,13 @@ from __future__ import annotations
 
 import numpy as np
 import xarray as xr
-
-from pipeline.constraints import Fraction, Positive
-from pipeline.errors import Problem, StageError
-from pipeline.registry import stage
-from pipeline.spec import StorePath
-from stages._common import require_variables
-from stages.procam._illumination import plane_to_ray_illumination
-from stages.procam.acquire import TimeSweep
-from stages.procam._labels import Labels, label_identity, label_map, label_precheck
+from selpath.pipeline.constraints import Fraction, Positive, StorePath
+from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.registry import stage
+from selpath.stages._common import require_variables
+from selpath.stages.procam._illumination import plane_to_ray_illumination
+from selpath.stages.procam._labels import Labels, label_identity, label_map, label_precheck
+from selpath.stages.procam.acquire import TimeSweep
 
 #: the three images of Fig. 49
 VIEWS = ("regular", "far-range indirect", "chosen delay")
@@ -56,7 +55,8 @@ def choose_delay(transport: xr.Dataset, /, *, delays: TimeSweep = TimeSweep(star
     indirect image (all light from beyond the direct band, |o| ≥ v_p·(t_e + t_p)/2) and the frame at the chosen
     delay; ``contrast`` over delay (NaN where a delay is not a candidate) and ``contrast_of`` over view; attrs
     ``chosen_delay_us`` (the true delay: the transport's offsets are true ones) and ``commanded_delay_us`` (what to
-    set on this rig's controller: chosen minus the calibrated sync offset t_o). Refused: no candidate delay clear of direct light, a structure or surround with no pixel.
+    set on this rig's controller: chosen minus the calibrated sync offset t_o). Refused: no candidate delay clear of
+    direct light, a structure or surround with no pixel.
 
     Parameters
     ----------

@@ -4,7 +4,8 @@ Problem, per slice::
 
     min_σ  ½‖M (R σ − A)‖²  +  λ ‖∇σ‖_{2,1}  +  ι_[0, σ_max](σ)
 
-M masks the observed rays, R is :mod:`stages.tomography._projector`, ∇ forward differences (isotropic TV, Eq. 30) and
+M masks the observed rays, R is :mod:`selpath.stages.tomography._projector`, ∇ forward differences (isotropic TV, Eq.
+30) and
 σ_max the per-cell bound of Eq. 26–28 (0 outside the object's support). ADMM splits z₁ = D σ (TV) and
 z₂ = K σ (box). Both splits are scaled to the projector: K = ‖M R‖ and D = (K/‖∇‖)·∇, so the three terms
 of the σ-update matrix RᵀMR + ρ(DᵀD + K²I) have the same norm and one penalty ρ (dimensionless, default
@@ -13,17 +14,17 @@ equal cost). The σ-update is solved by a few warm-started conjugate-gradient st
 ``CG`` takes one inner product over its whole operand, so the slices of a batch would share step lengths), the
 z-updates are exact (isotropic shrinkage, clipping). Slices are solved in batches (:meth:`TVADMM.solve_batch`):
 each product is one for the batch, through the sparse system matrix where it fits in memory
-(:class:`~stages.tomography._projector.MatrixProjector`, 100× the matrix-free walk per slice in batches of 32 at
-256²/360, ``benchmarks/tomo_projector.py``; :class:`~stages.tomography._projector.HostProjector`, scipy on host
+(:class:`~selpath.stages.tomography._projector.MatrixProjector`, 100× the matrix-free walk per slice in batches of 32 at
+256²/360, ``benchmarks/tomo_projector.py``; :class:`~selpath.stages.tomography._projector.HostProjector`, scipy on host
 threads, for small batches: 14× the walk for one slice), while every slice keeps its own scaling, stopping test
 and count. The reported iterate is z₂/K, which lies in the box at every iteration by construction. Stops when
 Boyd's relative primal and dual residuals fall below ``tol`` (the dual one relative to the larger of ρ‖Dᵀu₁ + Ku₂‖
 and ‖RᵀMA‖: on clean data the former tends to 0), or at ``max_iter``; the result code
-(:class:`stages._solution.Result`) says which.
+(:class:`selpath.stages._solution.Result`) says which.
 
 ``TVADMM`` is the only home of the reconstruction's defaults (λ, ρ, tol, the caps): ``reconstruct_tv`` and
 ``light_angle_study`` take theirs from its ``DEFAULT_*`` constants. λ here (``tv_weight``, TV weight of Eq. 20)
-and ρ (relative to ‖MR‖²) are not the demultiplexing's α, β and ``rho_factor`` (:mod:`stages.procam`).
+and ρ (relative to ‖MR‖²) are not the demultiplexing's α, β and ``rho_factor`` (:mod:`selpath.stages.procam`).
 """
 
 from __future__ import annotations
@@ -36,11 +37,9 @@ from typing import ClassVar
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-from stages._solution import Solution, outcome, raise_if_failed
-from pipeline.constraints import machine_memory
-from stages.tomography._projector import (Geometry, HostProjector, MatrixProjector, WalkProjector,
-                                             operator_norm)
+from selpath.pipeline.constraints import machine_memory
+from selpath.stages._solution import Solution, outcome, raise_if_failed
+from selpath.stages.tomography._projector import Geometry, HostProjector, MatrixProjector, WalkProjector, operator_norm
 
 _GRADIENT_NORM = np.sqrt(8.0)  # ‖∇‖₂ of 2D forward differences (Neumann boundary)
 
@@ -96,10 +95,10 @@ class TVADMM:
     :meth:`solve` (one slice, the matrix-free walk) and :meth:`solve_batch` (S slices through the projector it is
     given) are pure, so ``jax.jit`` them freely; nothing can raise inside a jitted function, so ``throw`` acts in
     :meth:`solve_slices` (the batched, host-side entry point, which picks the projector), which raises
-    :class:`stages._solution.SolverError` when ``throw`` is set and a slice did not converge.
+    :class:`selpath.stages._solution.SolverError` when ``throw`` is set and a slice did not converge.
 
     The :class:`Solution` of one slice: ``value`` σ (n, n) inside [0, σ_max]; ``result`` a scalar
-    :class:`stages._solution.Result` code (``converged``, ``max_steps``, ``nonfinite``); ``stats``:
+    :class:`selpath.stages._solution.Result` code (``converged``, ``max_steps``, ``nonfinite``); ``stats``:
     ``iterations`` (int), and per iteration (max_iter,) ``objective`` ½‖M(Rσ−A)‖² + λ TV(σ) of each reported
     iterate, relative ``primal_residual`` and ``dual_residual``, NaN after the stop. Batched: a leading slice
     axis everywhere.
@@ -212,7 +211,7 @@ class TVADMM:
         """Every slice of (S, θ, X) sinograms at once, as numpy: through the sparse system matrix
         (:func:`projector_for`: built once per geometry and dtype and kept for the next call) where it fits in
         :data:`MATRIX_SHARE` of this machine's memory, else the matrix-free walk (the same iterates to rounding);
-        raises :class:`stages._solution.SolverError` if ``throw`` is set and a slice did not converge."""
+        raises :class:`selpath.stages._solution.SolverError` if ``throw`` is set and a slice did not converge."""
         dtype = jnp.dtype(sinograms.dtype).name
         projector = projector_for(self.geometry, dtype, sinograms.shape[0])
         solve = _batched(replace(self, throw=False))  # one compile per solver, projector, dtype and batch shape
@@ -240,7 +239,8 @@ _MATRICES: dict = {}
 def projector_for(geometry: Geometry, dtype: str, slices: int) -> WalkProjector | MatrixProjector | HostProjector:
     """The projector :meth:`TVADMM.solve_slices` uses for a batch of ``slices``: the sparse system matrix where its
     build fits (as :class:`MatrixProjector` from :data:`DEVICE_BATCH` slices on, else :class:`HostProjector`), else
-    the walk; float64 always in JAX. Each is built once per (geometry, dtype, kind), under a lock so that concurrent slice chunks build it
+    the walk; float64 always in JAX. Each is built once per (geometry, dtype, kind), under a lock so that concurrent
+    slice chunks build it
     once, and kept for the process's life: the compiled solves hold it anyway (a rebuilt one would compile again),
     and a process meets few geometries (0.65 GB each at 256²/360)."""
     total = machine_memory()

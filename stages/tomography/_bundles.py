@@ -1,4 +1,4 @@
-"""The path-bundle model of tomography through scattering (#27): what :mod:`stages.tomography.scattering`'s
+"""The path-bundle model of tomography through scattering (#27): what :mod:`selpath.stages.tomography.scattering`'s
 ``reconstruct_scattering`` fits.
 
 A sinogram bin (or a ray) is a bundle of paths by which light reaches its pixels, drawn from photon walks connected
@@ -18,12 +18,11 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.optimize
 import scipy.sparse
-
-from devices.geometry import RigGeometry, to_lab
-from stages._solution import Solution, outcome
-from stages.tomography._admm import gradient
-from stages.tomography._projector import Geometry
-from stages.tomography._walks import beam_entry, exit_weights, random_walks, surface_seen, walk_body
+from selpath.devices.geometry import RigGeometry, to_lab
+from selpath.stages._solution import Solution, outcome
+from selpath.stages.tomography._admm import gradient
+from selpath.stages.tomography._projector import Geometry
+from selpath.stages.tomography._walks import beam_entry, exit_weights, random_walks, surface_seen, walk_body
 
 
 @dataclass(frozen=True)
@@ -126,7 +125,7 @@ def forward(image: jnp.ndarray, bundles: Bundles, geometry: Geometry) -> jnp.nda
 
 
 def smooth_total_variation(image: jnp.ndarray, eps: float) -> jnp.ndarray:
-    """Σ (√(|∇σ|² + ε²) − ε) with :func:`stages.tomography._admm.gradient`'s differences: the isotropic TV of
+    """Σ (√(|∇σ|² + ε²) − ε) with :func:`selpath.stages.tomography._admm.gradient`'s differences: the isotropic TV of
     ``reconstruct_tv`` within ε per cell, and differentiable at 0."""
     return (jnp.sqrt((gradient(image) ** 2).sum(axis=-3) + eps**2) - eps).sum()
 
@@ -139,7 +138,8 @@ def trace_bundles(geometry: RigGeometry, polygon: np.ndarray, row: int, angles: 
 
     Per angle, ``photons`` walks from where the light's ray enters the contour, each connected from every vertex it
     flew from to the surface point that each pixel of the row with a ray sees (next-event estimation,
-    :func:`stages.tomography._walks.exit_weights`, over the pixel's footprint): a path (the walk up to the vertex,
+    :func:`selpath.stages.tomography._walks.exit_weights`, over the pixel's footprint): a path (the walk up to the
+    vertex,
     then straight to the point) and the light it brings. Each group holds ``paths_per_group`` paths drawn with
     replacement from all the connections to its pixels, over all angles, in proportion to their light (a reservoir:
     a pixel's light at a later angle takes over each path with the chance of its share of the group's light so far):

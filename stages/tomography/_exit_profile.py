@@ -1,5 +1,5 @@
 """The reference frames' exit profile and the walks that model it: what
-:func:`stages.tomography.scattering_estimate.estimate_scattering` fits σ_s with.
+:func:`selpath.stages.tomography.scattering_estimate.estimate_scattering` fits σ_s with.
 
 The frames' light around the beam's slice is binned by each pixel's distance from the light's entry point
 (:func:`exit_profile`); walks traced at σ_0 are binned by the pixel that sees their exit and reweighted to candidates
@@ -12,10 +12,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-
-from devices.geometry import RigGeometry, to_lab
-from devices.sim.shapes import Prism
-from stages.tomography._walks import Walks, beam_entry, random_walks, surface_seen, walk_weights
+from selpath.devices.geometry import RigGeometry, to_lab
+from selpath.devices.sim.shapes import Prism
+from selpath.stages.tomography._walks import Walks, beam_entry, random_walks, surface_seen, walk_weights
 
 #: pixels that see the hull more obliquely than this (from its normal) are not compared: their areas are the hull's
 #: least certain [degree]. On the workflow's σ_s = 3 capture, 72° gives 2.71 [2.49, ∞]; 80° closes the interval but

@@ -1,9 +1,10 @@
-"""Photon random walks in a hull's slice: the Monte Carlo of :mod:`stages.tomography.scattering` and
-:mod:`stages.tomography.scattering_estimate`.
+"""Photon random walks in a hull's slice: the Monte Carlo of :mod:`selpath.stages.tomography.scattering` and
+:mod:`selpath.stages.tomography.scattering_estimate`.
 
 The object is the slice's contour extruded in z (a prism), filled with an isotropic scatterer of coefficient σ_s
 and no absorption: the reference object of the capture. A walk is launched through the skin where the light's ray
-enters the contour (Lambertian about the inward normal, as :mod:`devices.sim.tomography` launches its photons) and
+enters the contour (Lambertian about the inward normal, as :mod:`selpath.devices.sim.tomography` launches its photons)
+and
 scattered isotropically until it leaves.
 
 A walk's probability density at σ_s, given its directions, is σ_s^k · exp(−σ_s · L) for its k scatterings and the
@@ -22,11 +23,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from selpath.devices.geometry import RigGeometry, to_object, to_object_xy
+from selpath.devices.sim.shapes import Prism, convex_polygon
+from selpath.devices.sim.tomography import cosine_hemisphere, isotropic
 from skimage.measure import approximate_polygon
-
-from devices.geometry import RigGeometry, to_object, to_object_xy
-from devices.sim.shapes import Prism, convex_polygon
-from devices.sim.tomography import cosine_hemisphere, isotropic
 
 #: a contour is simplified for walking to within this share of a camera pixel at the axis [1]: far below the
 #: hull's own error (about a pixel), and a 360-vertex contour clips ~3× faster with the ~100 vertices left

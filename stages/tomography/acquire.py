@@ -15,16 +15,14 @@ from typing import ClassVar, Literal
 import numpy as np
 import pydantic
 import xarray as xr
-
-from devices.hardware import hardware_rig, load_hardware
-from devices.sim.rig import simulated_rig
-from devices.sim.scene import load_scene
-from devices.tomography_acquire import acquire_tomography as sweep
-from pipeline.constraints import memory_problems
-from pipeline.registry import stage
-from pipeline.spec import StorePath
-from stages._common import read_file, sweep_log
-from stages._sweeps import Sweep
+from selpath.devices.hardware import hardware_rig, load_hardware
+from selpath.devices.sim.rig import simulated_rig
+from selpath.devices.sim.scene import load_scene
+from selpath.devices.tomography_acquire import acquire_tomography as sweep
+from selpath.pipeline.constraints import StorePath, memory_problems
+from selpath.pipeline.registry import stage
+from selpath.stages._common import read_file, sweep_log
+from selpath.stages._sweeps import Sweep
 
 
 class AngleSweep(Sweep):

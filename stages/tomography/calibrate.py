@@ -8,7 +8,7 @@ absorbing inclusion and the skin's BTDF cancels. (Eq. 3 as printed, ``log I_o âˆ
 Pixels where the log is meaningless are never silently NaN/inf: each output carries a ``flags``
 variable (CF ``flag_masks``/``flag_meanings``) whose bits say why, and flagged pixels hold NaN.
 When the capture has ``backlit`` frames, pixels off the object (outside the silhouette of the backlit
-frame at that angle, :func:`stages.tomography.hull.object_masks`) are flagged ``background`` (bit 64):
+frame at that angle, :func:`selpath.stages.tomography.hull.object_masks`) are flagged ``background`` (bit 64):
 there target and reference are both the dark level, and their log difference is the sensor's noise.
 All stages are elementwise xarray operations on dask arrays, hence lazy and tile-parallel (the
 silhouettes one task per angle chunk, on whole frames).
@@ -18,14 +18,13 @@ from __future__ import annotations
 
 import numpy as np
 import xarray as xr
-
-from devices.geometry import saturation_counts
-from pipeline.constraints import Fraction, NonNegative, Positive
-from pipeline.errors import Problem, StageError
-from pipeline.quality import usable_share
-from pipeline.registry import stage
-from stages._common import require_variables, sorted_sweep
-from stages.tomography.hull import SILHOUETTE_FLOOR, object_masks
+from selpath.devices.geometry import saturation_counts
+from selpath.pipeline.constraints import Fraction, NonNegative, Positive
+from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.quality import usable_share
+from selpath.pipeline.registry import stage
+from selpath.stages._common import require_variables, sorted_sweep
+from selpath.stages.tomography.hull import SILHOUETTE_FLOOR, object_masks
 
 #: bits of ``flags``; target bits are shifted by 0, reference bits by 3; BACKGROUND: not on the object
 SATURATED, NO_SIGNAL, NONFINITE = 1, 2, 4
@@ -153,7 +152,7 @@ def frame_peak(frames: xr.DataArray, background: xr.DataArray, *, subtracted: bo
     return corrected.where((raw < level) & np.isfinite(corrected)).max(dim=pixel_dims)
 
 
-#: floors of the usable shares (:mod:`pipeline.quality`): a beam rig's reference lights much of the frame
+#: floors of the usable shares (:mod:`selpath.pipeline.quality`): a beam rig's reference lights much of the frame
 #: (86 % of pixels are valid in the demo), so under 0.1 % with signal is a wrong scale or a dark capture
 SIGNAL_FLOOR, USABLE_FLOOR, DARK_FLOOR = 0.001, 0.05, 0.05
 
@@ -189,7 +188,7 @@ def _checked_pair(capture: xr.Dataset, stage_name: str, saturation_level: float 
                   min_signal_relative: float, *, absorption: bool, flag_background: bool = True,
                   silhouette_threshold: float | None = None) -> tuple[xr.DataArray, xr.DataArray, dict, dict]:
     """Absorption (or transmittance) and flags of dark-subtracted target and reference, lazily per tile, the
-    usable shares of the input (:mod:`pipeline.quality`) and the object's shares (plain 0-d variables)."""
+    usable shares of the input (:mod:`selpath.pipeline.quality`) and the object's shares (plain 0-d variables)."""
     capture = sorted_sweep(capture, "angle", stage_name)
     background_name = capture.attrs.get("background_subtracted") or ("dark" if "dark" in capture else None)
     require_variables(capture, ("target", "reference") + ((background_name,) if background_name else ()), stage_name)
@@ -292,7 +291,7 @@ _PAIR_DOCS = """Parameters
     Besides the result and ``flags``, the shares ``signal_fraction`` (the object's pixels whose reference has
     usable signal; floor 0.1 %), ``usable_fraction`` (of those, pixels whose target is usable too; floor 5 %)
     and ``dark_fraction`` (dark pixels â‰¥ 0 counts; floor 5 %): below a floor the workflow stops, naming the
-    cause (:mod:`pipeline.quality`). The object's pixels are those not flagged background (every pixel
+    cause (:mod:`selpath.pipeline.quality`). The object's pixels are those not flagged background (every pixel
     without backlit frames). Two informative 0-d variables, never checked against a floor, say what a
     summary of the object needs: ``object_valid_fraction`` (the object's pixels that are valid) and
     ``background_fraction`` (pixels flagged background). A repeated angle is refused and unsorted angles are

@@ -10,10 +10,9 @@ from __future__ import annotations
 
 import numpy as np
 import xarray as xr
-
-from pipeline.errors import Problem, StageError
-from pipeline.registry import stage
-from stages._common import require_variables
+from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.registry import stage
+from selpath.stages._common import require_variables
 
 
 @stage("reconstruction_error")

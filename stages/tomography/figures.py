@@ -1,8 +1,9 @@
 """Tomography figures of what was captured and binned, as stages: capture, sinogram, coverage. The figures of
-reconstructions (the images, the solver's convergence, volumes) are in :mod:`stages.tomography.reconstruction_figures`.
+reconstructions (the images, the solver's convergence, volumes) are in
+:mod:`selpath.stages.tomography.reconstruction_figures`.
 
 Each renders lazily into a ``figure`` cube (RGBA), saved by the engine as ``<store>.png``, with a one-paragraph
-``caption`` attr; how is :mod:`stages._figures`.
+``caption`` attr; how is :mod:`selpath.stages._figures`.
 """
 
 from __future__ import annotations
@@ -10,12 +11,11 @@ from __future__ import annotations
 import numpy as np
 import xarray as xr
 from matplotlib import colormaps
-
-from pipeline.constraints import Index
-from pipeline.registry import stage
-from stages._common import require_variables
-from stages._figures import as_figure, image_colorbar, panels, pixel_axes, rgba, slice_name
-from stages.tomography.sinogram import coverage_model, optimal_light_angle
+from selpath.pipeline.constraints import Index
+from selpath.pipeline.registry import stage
+from selpath.stages._common import require_variables
+from selpath.stages._figures import as_figure, image_colorbar, panels, pixel_axes, rgba, slice_name
+from selpath.stages.tomography.sinogram import coverage_model, optimal_light_angle
 
 #: sizes [in] of the figures that are not of the standard size
 CAPTURE_SIZE = (9.0, 2.2)

@@ -15,17 +15,16 @@ import numpy as np
 import xarray as xr
 from scipy.optimize import linprog
 from scipy.spatial import ConvexHull, HalfspaceIntersection
+from selpath.devices.geometry import Camera, RigGeometry, geometry_attrs, to_object_xy
+from selpath.pipeline.constraints import Index, Positive
+from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.quality import usable_share
+from selpath.pipeline.registry import stage
+from selpath.pipeline.schema import with_metadata
+from selpath.stages._common import require_variables, sorted_sweep
 from skimage.filters import threshold_otsu
 from skimage.measure import label
 from skimage.morphology import remove_small_holes, remove_small_objects
-
-from devices.geometry import Camera, RigGeometry, geometry_attrs, to_object_xy
-from pipeline.constraints import Index, Positive
-from pipeline.errors import Problem, StageError
-from pipeline.quality import usable_share
-from pipeline.registry import stage
-from pipeline.schema import with_metadata
-from stages._common import require_variables, sorted_sweep
 
 
 def _silhouette_kernel(backlit: np.ndarray, dark: np.ndarray, *, threshold: float | None, min_size: int
@@ -258,7 +257,7 @@ def visual_hull(silhouettes: xr.Dataset, /) -> xr.Dataset:
 
 def slice_heights(camera: Camera, rows: np.ndarray, unit: str, dim: str = "slice") -> tuple[str, np.ndarray, dict]:
     """The ``z`` coordinate (along ``dim``) of slices seen in camera ``rows``: the height [``unit``, the rig's
-    length unit] where each row sees the rotation axis (:meth:`~devices.geometry.Camera.axis_height`); z grows
+    length unit] where each row sees the rotation axis (:meth:`~selpath.devices.geometry.Camera.axis_height`); z grows
     upward, so it falls as the row grows."""
     return (dim, camera.axis_height(rows), {"units": unit, "long_name": "slice height z at the rotation axis"})
 

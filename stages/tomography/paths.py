@@ -15,15 +15,14 @@ from __future__ import annotations
 
 import numpy as np
 import xarray as xr
-
-from devices.geometry import RigGeometry, geometry_attrs, to_object_xy
-from devices.sim.shapes import convex_polygon
-from pipeline.constraints import Fraction
-from pipeline.errors import Problem, StageError
-from pipeline.quality import usable_share
-from pipeline.registry import stage
-from stages._common import require_variables
-from stages.tomography.hull import contours, slice_heights
+from selpath.devices.geometry import RigGeometry, geometry_attrs, to_object_xy
+from selpath.devices.sim.shapes import convex_polygon
+from selpath.pipeline.constraints import Fraction
+from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.quality import usable_share
+from selpath.pipeline.registry import stage
+from selpath.stages._common import require_variables
+from selpath.stages.tomography.hull import contours, slice_heights
 
 #: why a pixel gave no ray (``reason`` variable; 0: a ray)
 REASONS = {

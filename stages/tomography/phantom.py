@@ -20,20 +20,18 @@ import dask.array as da
 import numpy as np
 import pydantic
 import xarray as xr
-
-from devices.geometry import to_object
-from devices.sim import tomography as tomo
-from devices.sim.scene import Scene, load_scene
-from pipeline.constraints import Count, Index, NonNegative, Positive, memory_problems
-from pipeline.errors import Problem, StageError
-from pipeline.registry import stage
-from pipeline.schema import in_length
-from pipeline.spec import StorePath
-from stages._common import read_file
-from stages.tomography.acquire import AngleSweep
-from stages.tomography.paths import sinogram_coordinates
-from stages.tomography.reconstruct import ome_attrs
-from stages.tomography.sinogram import Bins, bin_index
+from selpath.devices.geometry import to_object
+from selpath.devices.sim import tomography as tomo
+from selpath.devices.sim.scene import Scene, load_scene
+from selpath.pipeline.constraints import Count, Index, NonNegative, Positive, StorePath, memory_problems
+from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.registry import stage
+from selpath.pipeline.schema import in_length
+from selpath.stages._common import read_file
+from selpath.stages.tomography.acquire import AngleSweep
+from selpath.stages.tomography.paths import sinogram_coordinates
+from selpath.stages.tomography.reconstruct import ome_attrs
+from selpath.stages.tomography.sinogram import Bins, bin_index
 
 #: θ_l, the light's angle to the camera axis [degree]
 LightAngle = Annotated[float, pydantic.Field(ge=0, le=180)]
@@ -89,7 +87,7 @@ def observed_mask(scene: Scene, angles_deg: np.ndarray, theta_deg: np.ndarray, x
     """Bins of the (θ, X) grid that the rig sees: entry-to-exit chords of the slice z = 0 over every angle.
 
     ``theta_deg`` and ``x`` are a sinogram's grid (X evenly over [−x_extent, x_extent]); chords are binned by the
-    rule of :func:`~stages.tomography.sinogram.bin_index`, as ``bin_sinogram`` bins measured rays."""
+    rule of :func:`~selpath.stages.tomography.sinogram.bin_index`, as ``bin_sinogram`` bins measured rays."""
     flat = scene.model_copy(update={"camera": scene.camera.model_copy(update={"rows": 1,
                                                                                "principal_point": None})})
     seen = np.zeros((len(theta_deg), len(x)), dtype=bool)

@@ -22,18 +22,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import xarray as xr
-
-from devices.geometry import geometry_attrs
-from pipeline.constraints import Count, NonNegative, Positive, memory_problems
-from pipeline.errors import Problem, StageError
-from pipeline.registry import stage
-from pipeline.schema import in_length
-from stages._common import Dtype, MaxIter, require_variables
-from stages.tomography._admm import TVADMM
-from stages.tomography._filters import ramp_filter
-from stages.tomography._projector import Geometry, any_nearest, backproject
-from stages.tomography.hull import contours
-from stages.tomography.sinogram import observed_share, support_function
+from selpath.devices.geometry import geometry_attrs
+from selpath.pipeline.constraints import Count, NonNegative, Positive, memory_problems
+from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.registry import stage
+from selpath.pipeline.schema import in_length
+from selpath.stages._common import Dtype, MaxIter, require_variables
+from selpath.stages.tomography._admm import TVADMM
+from selpath.stages.tomography._filters import ramp_filter
+from selpath.stages.tomography._projector import Geometry, any_nearest, backproject
+from selpath.stages.tomography.hull import contours
+from selpath.stages.tomography.sinogram import observed_share, support_function
 
 
 def image_problems(n_pixels: int | None) -> list[str]:
@@ -62,7 +61,8 @@ def support_mask(vertices: np.ndarray | None, geometry: Geometry) -> np.ndarray:
     Row by row: a cell at height y is inside where every edge a → b has (b − a) × (p − a) ≥ −1e-12, which for
     fixed y bounds x from one side (edges running down bound it below, up above; level edges keep or drop the
     row), so a row is one interval [lo, hi]: O(n·edges + n²), not O(n²·edges). (Not the simulator's Cyrus–Beck
-    clipping, :meth:`~devices.sim.shapes.Polygon.interval`: it has no tolerance, and a hull's vertices lie on the
+    clipping, :meth:`~selpath.devices.sim.shapes.Polygon.interval`: it has no tolerance, and a hull's vertices lie on
+    the
     pixel grid, so cells on its edges are common; clipped, 4 such cells a slice dropped out of the support.)"""
     centres = geometry.centres
     if vertices is None or len(vertices) < 3:
@@ -245,7 +245,7 @@ def _template(inputs: xr.Dataset, geometry: Geometry, variables: dict[str, tuple
 
 #: slices per reconstruction task, at least (larger slice chunks of the input are kept): FBP back-projects a batch in
 #: one compiled loop, the optimisation solves it as one batch (with the system matrix from
-#: :data:`stages.tomography._admm.DEVICE_BATCH` slices on)
+#: :data:`selpath.stages.tomography._admm.DEVICE_BATCH` slices on)
 SLICE_BATCH = 16
 
 

@@ -1,9 +1,9 @@
 """Tomography figures of reconstructions, as stages: the images beside the truth and their errors, the solver's
 convergence, and sections of a volume. The figures of what was captured and binned are in
-:mod:`stages.tomography.figures`.
+:mod:`selpath.stages.tomography.figures`.
 
 Each renders lazily into a ``figure`` cube (RGBA), saved by the engine as ``<store>.png``, with a one-paragraph
-``caption`` attr; how is :mod:`stages._figures`.
+``caption`` attr; how is :mod:`selpath.stages._figures`.
 """
 
 from __future__ import annotations
@@ -11,13 +11,12 @@ from __future__ import annotations
 import numpy as np
 import xarray as xr
 from matplotlib.patches import Rectangle
-
-from pipeline.constraints import Index
-from pipeline.errors import Problem, StageError
-from pipeline.registry import stage
-from pipeline.schema import in_length
-from stages._common import require_variables
-from stages._figures import as_figure, panels, pixel_axes, rgba, shared_colorbar, slice_name
+from selpath.pipeline.constraints import Index
+from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.registry import stage
+from selpath.pipeline.schema import in_length
+from selpath.stages._common import require_variables
+from selpath.stages._figures import as_figure, panels, pixel_axes, rgba, shared_colorbar, slice_name
 
 #: inches per column of the reconstruction figure, and its height with and without the truth's row of errors
 RECONSTRUCTION_COLUMN, RECONSTRUCTION_HEIGHT, RECONSTRUCTION_HEIGHT_NO_TRUTH = 3.0, 6.0, 3.2

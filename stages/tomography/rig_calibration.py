@@ -3,7 +3,7 @@ seen, and the light's angle θ_l. No calibration target is needed; both come fro
 must show, so a wrong value shows as a contradiction in the data.
 
 **Rotation-axis column** (``axis_column``, the principal point's column: the camera is aimed at the axis,
-:mod:`devices.geometry`). Each backlit silhouette's outer edge in a camera row is a ray tangent to the object's
+:mod:`selpath.devices.geometry`). Each backlit silhouette's outer edge in a camera row is a ray tangent to the object's
 slice, i.e. a sample ``h = H(ψ)`` of the slice's support function H (the largest ``n(ψ)·p`` over the slice, n the
 tangent's outward normal in the object frame). Over a turn the left edges and the right edges sample the same H;
 seen from a wrong axis column they disagree by twice the error (in length at the axis). The fit minimises, per
@@ -43,15 +43,14 @@ import numpy as np
 import xarray as xr
 from scipy.ndimage import map_coordinates
 from scipy.optimize import least_squares
-
-from devices.geometry import Camera, RigGeometry, geometry_attrs, to_object_xy
-from devices.sim.shapes import convex_polygon
-from pipeline.constraints import Count, NonNegative, Positive
-from pipeline.errors import Problem, StageError
-from pipeline.registry import stage
-from stages._common import require_variables, sorted_sweep
-from stages.tomography.calibrate import absorption as absorption_stage
-from stages.tomography.hull import backlight_levels, intersect_half_planes, tangent_half_planes
+from selpath.devices.geometry import Camera, RigGeometry, geometry_attrs, to_object_xy
+from selpath.devices.sim.shapes import convex_polygon
+from selpath.pipeline.constraints import Count, NonNegative, Positive
+from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.registry import stage
+from selpath.stages._common import require_variables, sorted_sweep
+from selpath.stages.tomography.calibrate import absorption as absorption_stage
+from selpath.stages.tomography.hull import backlight_levels, intersect_half_planes, tangent_half_planes
 
 #: sweeps must cover a full turn (within this, degree) for the axis and light fits to pair opposite views
 FULL_TURN_TOLERANCE = 1e-6
@@ -65,7 +64,7 @@ def silhouette_edges(signal: np.ndarray) -> np.ndarray:
     (angle, row, 2).
 
     ``signal``: backlit counts above dark, (angle, row, col). Per frame the object's and the lit plane's levels are
-    the means of Otsu's two classes (:func:`stages.tomography.hull.backlight_levels`); a pixel is object below
+    the means of Otsu's two classes (:func:`selpath.stages.tomography.hull.backlight_levels`); a pixel is object below
     halfway between them. A pixel's signal between the two levels is the share of it the object hides (area
     coverage), so the edge lies that share inside the outermost object pixel and its lit neighbour together: the
     pixel's edge on an all-or-nothing sensor, sub-pixel on a real one. A row whose object is absent, is not one run
@@ -102,7 +101,7 @@ def _with_axis(camera: Camera, column: float) -> Camera:
 
 def _support_samples(edges, angles_deg, side: float, camera: Camera):
     """(ψ, h) of the finite sub-pixel edges of one side (−1 left, +1 right) over the angles: each tangent's outward
-    normal angle ψ in the object frame and its offset h = H(ψ) (:func:`stages.tomography.hull.tangent_half_planes`)."""
+    normal angle ψ in the object frame and its offset h = H(ψ) (:func:`selpath.stages.tomography.hull.tangent_half_planes`)."""
     none = np.full_like(edges, np.nan)
     normals, offsets = tangent_half_planes(*((edges, none) if side < 0 else (none, edges)), angles_deg, camera)
     return np.arctan2(normals[:, 1], normals[:, 0]), offsets

@@ -9,7 +9,8 @@ docs/results.md). Here each sinogram bin is a **bundle of paths**:
   scattering coefficient σ_s, isotropic phase function, Lambertian launch through the skin), exactly as in the
   reference object, which has the same σ_s and no absorber: its frames are the sum over these paths' exits.
 * Each walk is connected, from every vertex it flew from, to the surface point each pixel of the slice's row sees
-  (next-event estimation: the chance that its next flight leaves there, :func:`stages.tomography._walks.exit_weights`),
+  (next-event estimation: the chance that its next flight leaves there,
+  :func:`selpath.stages.tomography._walks.exit_weights`),
   so every walk tells every pixel by which paths, and how much of, its light arrives; a sinogram bin draws
   ``paths_per_bin`` paths from the connections to its rays' pixels, in proportion to their light. A walk's own exit
   would reach one pixel, and the slice's row only by chance (at σ_s = 3, 2 walks in 1 000): each bin gets the same
@@ -25,7 +26,7 @@ the hull) by L-BFGS-B (scipy; the paths' integrals through a sparse path matrix 
 absorption and TV with JAX's exact gradients): the data term of ``reconstruct_tv`` on the same binned sinogram,
 so λ means what it means there; TV_ε = Σ (√(|∇σ|² + ε²) − ε), a smooth TV. With σ_s = 0 there is nothing to walk
 around: the stage is ``reconstruct_tv``, at its cost. The model's pieces (the bundles, their integrals and the fit)
-are in :mod:`stages.tomography._bundles`.
+are in :mod:`selpath.stages.tomography._bundles`.
 
 Known bias: behind a strong absorber, where few of a bin's paths dodge it, −log of a drawn bundle's mean reads high
 (the rare dodgers are what a finite bundle from a finite pool of walks misses), so σ there reads low. Measured on
@@ -41,9 +42,10 @@ freed of the bias above (drawn by importance around the fit, docs/results.md) mo
 data at the true σ, yet change by only 0.005–0.06 between a fifth of the true σ and the truth: the data say that the
 absorber is dark, not how dark, and σ inside is left to the prior (TV shrinks it).
 
-σ_s need not be known: :func:`stages.tomography.scattering_estimate.estimate_scattering` fits it, with a bootstrap
+σ_s need not be known: :func:`selpath.stages.tomography.scattering_estimate.estimate_scattering` fits it, with a
+bootstrap
 interval, to how the reference frames spread the beam's light with the distance from its entry point, on the same
-walks (:mod:`stages.tomography._walks`), and ``reconstruct_scattering`` takes its store in place of the setting.
+walks (:mod:`selpath.stages.tomography._walks`), and ``reconstruct_scattering`` takes its store in place of the setting.
 """
 
 from __future__ import annotations
@@ -52,31 +54,30 @@ import dask
 import dask.array as da
 import numpy as np
 import xarray as xr
-
-from devices.geometry import RigGeometry
-from pipeline.constraints import Count, Index, NonNegative, Positive, memory_problems
-from pipeline.errors import Problem, StageError
-from pipeline.registry import stage
-from stages._common import MaxIter, require_variables
-from stages._solution import Result
-from stages.tomography._admm import TVADMM
-from stages.tomography._bundles import fit_slice, trace_bundles
-from stages.tomography._projector import Geometry
-from stages.tomography.hull import contours
-from stages.tomography.reconstruct import (
+from selpath.devices.geometry import RigGeometry
+from selpath.pipeline.constraints import Count, Index, NonNegative, Positive, memory_problems
+from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.registry import stage
+from selpath.stages._common import MaxIter, require_variables
+from selpath.stages._solution import Result
+from selpath.stages.tomography._admm import TVADMM
+from selpath.stages.tomography._bundles import fit_slice, trace_bundles
+from selpath.stages.tomography._projector import Geometry
+from selpath.stages.tomography.hull import contours
+from selpath.stages.tomography.reconstruct import (
     check_inputs,
     grid_geometry,
     reconstruct_tv,
     reconstruction_store,
     support_mask,
 )
-from stages.tomography.sinogram import bin_index
+from selpath.stages.tomography.sinogram import bin_index
 
-#: the TV smoothing ε of :func:`stages.tomography._bundles.smooth_total_variation`, relative to the data's σ scale
+#: the TV smoothing ε of :func:`selpath.stages.tomography._bundles.smooth_total_variation`, relative to the data's σ scale
 #: (the largest observed absorption over the image's width, the σ a uniform object across the grid would need) [1]
 TV_SMOOTHING = 1e-3
 
-#: bytes per path sample held while fitting, at the peak of building :func:`stages.tomography._bundles.path_matrix`:
+#: bytes per path sample held while fitting, at the peak of building :func:`selpath.stages.tomography._bundles.path_matrix`:
 #: the sample (points, length, owner: 32) and its four (cell, weight) pairs in int32/float64 with the build's
 #: temporaries (~80); the matrix kept is ~2 entries per sample (24). Measured: 15.5 M samples of the scattering
 #: workflow's slice at σ_s = 1, 1.7 GB
@@ -133,7 +134,7 @@ def reconstruct_scattering(rays: xr.Dataset, sinogram: xr.Dataset, hull: xr.Data
     reaches its rays' pixels, drawn from photon walks traced from each view's entry point in the hull with scattering
     coefficient σ_s and connected to the pixels (next-event estimation); the fit is L-BFGS-B on ½‖A(σ) − a‖² over
     observed bins + λ TV, 0 ≤ σ ≤ σ_max, σ = 0 outside the hull. With σ_s = 0 this is
-    :func:`stages.tomography.reconstruct.reconstruct_tv` (its defaults, ``tv_weight`` and ``n_pixels``).
+    :func:`selpath.stages.tomography.reconstruct.reconstruct_tv` (its defaults, ``tv_weight`` and ``n_pixels``).
 
     Parameters
     ----------
@@ -147,7 +148,8 @@ def reconstruct_scattering(rays: xr.Dataset, sinogram: xr.Dataset, hull: xr.Data
         The ``hull`` store (``visual_hull``): the contour each slice's walks stay inside, and the rig geometry (the
         camera and the light) in its attrs.
     scattering : xr.Dataset or None
-        A ``scattering_estimate`` store (:func:`stages.tomography.scattering_estimate.estimate_scattering`) whose
+        A ``scattering_estimate`` store (:func:`selpath.stages.tomography.scattering_estimate.estimate_scattering`)
+        whose
         ``sigma_s`` to use (read when the graph is built), in place of ``sigma_s``.
     sigma_s : float or None
         Scattering coefficient of the medium [1/length unit]; 0: the shortest-path model (``reconstruct_tv``). Give

@@ -3,9 +3,11 @@
 The reference object (the target's medium without the inclusions) spreads the beam's light around its entry point,
 and how fast that light falls with the distance is set by σ_s. This stage bins the reference frames by each pixel's
 distance from the entry point and fits photon walks in the hull's slice to that profile, with a bootstrap interval
-over the views, so that a user need not know σ_s: :func:`stages.tomography.scattering.reconstruct_scattering` takes
-its store in place of its ``sigma_s`` setting. The profile and its fit are in :mod:`stages.tomography._exit_profile`,
-the walks in :mod:`stages.tomography._walks`.
+over the views, so that a user need not know σ_s: :func:`selpath.stages.tomography.scattering.reconstruct_scattering`
+takes
+its store in place of its ``sigma_s`` setting. The profile and its fit are in
+:mod:`selpath.stages.tomography._exit_profile`,
+the walks in :mod:`selpath.stages.tomography._walks`.
 """
 
 from __future__ import annotations
@@ -17,14 +19,13 @@ import dask.array as da
 import numpy as np
 import pydantic
 import xarray as xr
-
-from devices.geometry import RigGeometry, geometry_attrs, saturation_counts
-from pipeline.constraints import Count, Index, Positive
-from pipeline.errors import Problem, StageError
-from pipeline.registry import stage
-from pipeline.schema import with_metadata
-from stages._common import require_variables
-from stages.tomography._exit_profile import (
+from selpath.devices.geometry import RigGeometry, geometry_attrs, saturation_counts
+from selpath.pipeline.constraints import Count, Index, Positive
+from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.registry import stage
+from selpath.pipeline.schema import with_metadata
+from selpath.stages._common import require_variables
+from selpath.stages.tomography._exit_profile import (
     CANDIDATES,
     REACH_OCTAVES,
     candidate_counts,
@@ -32,8 +33,8 @@ from stages.tomography._exit_profile import (
     fit_profile,
     trusted_candidates,
 )
-from stages.tomography._walks import walk_body
-from stages.tomography.hull import contours
+from selpath.stages.tomography._walks import walk_body
+from selpath.stages.tomography.hull import contours
 
 
 def _estimate_sigma_s(raw, dark, vertices, count, *, geometry: RigGeometry, angles: np.ndarray, rows: np.ndarray,

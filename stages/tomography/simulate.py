@@ -9,17 +9,15 @@ import numpy as np
 import pydantic
 import xarray as xr
 from dask.base import tokenize
-
-from devices.geometry import OrthographicCamera
-from devices.sim import tomography as tomo
-from devices.sim.parallel_light import Rod, render
-from devices.sim.scene import load_scene, scene_identity
-from pipeline.constraints import Count, Index, NonNegative, Positive, memory_problems
-from pipeline.errors import Problem, StageError
-from pipeline.registry import stage
-from pipeline.spec import StorePath
-from stages._common import read_file
-from stages.tomography.acquire import AngleSweep
+from selpath.devices.geometry import OrthographicCamera
+from selpath.devices.sim import tomography as tomo
+from selpath.devices.sim.parallel_light import Rod, render
+from selpath.devices.sim.scene import load_scene, scene_identity
+from selpath.pipeline.constraints import Count, Index, NonNegative, Positive, StorePath, memory_problems
+from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.registry import stage
+from selpath.stages._common import read_file
+from selpath.stages.tomography.acquire import AngleSweep
 
 _FRAME_BYTES_PER_CHUNK = 64 * 2**20
 
@@ -37,7 +35,7 @@ class RodSpec(pydantic.BaseModel):
 _DEFAULT_RODS = (RodSpec(x=6.0, y=3.0, radius=2.0, sigma=0.15),)
 
 
-#: peak bytes :func:`devices.sim.parallel_light.render` allocates per float32 frame it renders, without and with
+#: peak bytes :func:`selpath.devices.sim.parallel_light.render` allocates per float32 frame it renders, without and with
 #: noise (tracemalloc, 256 × 1024 and 64 × 512 frames, 1 and 4 angles: 5.0–5.3 and 13.0–13.1; every call renders
 #: target, reference and backlit in float64 before the cast, and the noise in float64 beside them)
 RENDER_FRAMES = {False: 5.3, True: 13.1}
@@ -149,7 +147,7 @@ def simulate_parallel_capture(
             "light_angle_deg": 0.0,
             "length_unit": "mm",
             "saturation_counts": saturation_level,
-            "simulator": "devices.sim.parallel_light",
+            "simulator": "selpath.devices.sim.parallel_light",
         },
     )
 
@@ -160,7 +158,7 @@ def simulate_parallel_capture(
 #: such frames (64 MiB) took a worker past a 4 GB limit (benchmarks/tomo_volume.py)
 SCENE_CHUNK_BYTES = 8 * 2**20
 
-#: peak bytes of working arrays per pixel and angle that :func:`devices.sim.tomography.render_rows` holds beside
+#: peak bytes of working arrays per pixel and angle that :func:`selpath.devices.sim.tomography.render_rows` holds beside
 #: its float32 output (3 frames): the pixels' rays, exit points and normals in float64, about 20 float64 values
 RENDER_BYTES_PER_PIXEL = 160
 
@@ -230,4 +228,4 @@ def simulate_capture(*, scene: StorePath, angles: AngleSweep = AngleSweep(),  # 
         coords={"angle": ("angle", angle_values, {"units": "degree", "long_name": "stage angle φ"})},
         attrs={"selpath_kind": "tomography_capture", **geometry, "saturation_counts": spec.sensor.saturation_level,
                "rig": "simulated", "scene": spec.scene, "effects": list(spec.effects.names()),
-               "simulator": "devices.sim.tomography.render_rows"})
+               "simulator": "selpath.devices.sim.tomography.render_rows"})

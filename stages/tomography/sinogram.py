@@ -9,7 +9,6 @@ share of the object's sinogram is observed, and sets it beside the thesis's clos
 from __future__ import annotations
 
 import warnings
-
 from typing import Annotated
 
 import dask
@@ -17,15 +16,14 @@ import dask.array as da
 import numpy as np
 import pydantic
 import xarray as xr
-
-from devices.geometry import RigGeometry, geometry_attrs
-from pipeline.constraints import Positive, memory_problems
-from pipeline.errors import Problem, StageError
-from pipeline.quality import usable_share
-from pipeline.registry import stage
-from pipeline.schema import with_metadata
-from stages._common import require_variables
-from stages.tomography.hull import contours
+from selpath.devices.geometry import RigGeometry, geometry_attrs
+from selpath.pipeline.constraints import Positive, memory_problems
+from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.quality import usable_share
+from selpath.pipeline.registry import stage
+from selpath.pipeline.schema import with_metadata
+from selpath.stages._common import require_variables
+from selpath.stages.tomography.hull import contours
 
 #: bins of a grid whose step is span / (bins − 1): at least 2
 Bins = Annotated[int, pydantic.Field(ge=2)]
@@ -269,7 +267,7 @@ OBSERVED_FLOOR = 0.05
 
 
 def observed_share(observed: xr.DataArray) -> xr.DataArray:
-    """The share of sinogram bins holding a ray, as a usable share (:mod:`pipeline.quality`)."""
+    """The share of sinogram bins holding a ray, as a usable share (:mod:`selpath.pipeline.quality`)."""
     return usable_share(observed.mean(), floor=OBSERVED_FLOOR, what="sinogram bins holding a ray",
                         fix="too few views or rays for a reconstruction: capture more angles, check the earlier "
                         "steps' shares, or bin coarser (n_theta, n_x)")

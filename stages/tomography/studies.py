@@ -1,7 +1,8 @@
 """Experiments of §4.4 as stages: one setting swept, every reconstruction and its error against the truth.
 
 ``light_angle_study`` is §4.4.1 (Fig. 18, Table 1): for each θ_l the rig's sinogram of a scene
-(:func:`stages.tomography.phantom.simulate_sinogram`: exact line integrals, the observed mask θ_l gives), FBP and
+(:func:`selpath.stages.tomography.phantom.simulate_sinogram`: exact line integrals, the observed mask θ_l gives), FBP
+and
 the constrained optimisation, and their RMSE and largest absolute error against the scene's true σ.
 Lazy like the stages it wires (the sinograms themselves are cheap and made at once).
 """
@@ -13,15 +14,13 @@ from typing import Annotated
 import numpy as np
 import pydantic
 import xarray as xr
-
-from devices.sim.scene import scene_identity
-from pipeline.constraints import Count, NonNegative, Positive, memory_problems
-from pipeline.registry import stage
-from pipeline.spec import StorePath
-from stages._common import MaxIter
-from stages.tomography._admm import TVADMM
-from stages.tomography.acquire import AngleSweep
-from stages.tomography.phantom import (
+from selpath.devices.sim.scene import scene_identity
+from selpath.pipeline.constraints import Count, NonNegative, Positive, StorePath, memory_problems
+from selpath.pipeline.registry import stage
+from selpath.stages._common import MaxIter
+from selpath.stages.tomography._admm import TVADMM
+from selpath.stages.tomography.acquire import AngleSweep
+from selpath.stages.tomography.phantom import (
     LightAngle,
     _precheck,
     phantom_truth,
@@ -29,8 +28,8 @@ from stages.tomography.phantom import (
     simulate_sinogram,
     truth_problems,
 )
-from stages.tomography.reconstruct import fbp, reconstruct_tv
-from stages.tomography.sinogram import Bins
+from selpath.stages.tomography.reconstruct import fbp, reconstruct_tv
+from selpath.stages.tomography.sinogram import Bins
 
 
 def _study_precheck(settings) -> list[str]:

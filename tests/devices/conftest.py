@@ -28,7 +28,7 @@ def kill_mid_sweep():
     ``at_least`` frames are flagged written (or after 120 s), and return how many were written by then."""
 
     def kill(workflow: Path, store: Path, flag: str, at_least: int) -> int:
-        process = subprocess.Popen([sys.executable, "-m", "pipeline.cli", "run", str(workflow), "--no-progress"],
+        process = subprocess.Popen([sys.executable, "-m", "selpath", "run", str(workflow), "--no-progress"],
                                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         deadline = time.monotonic() + 120
         while written_frames(store, flag) < at_least and process.poll() is None and time.monotonic() < deadline:

@@ -6,17 +6,16 @@ from dataclasses import fields
 
 import numpy as np
 import pytest
-
-from devices.geometry import (
+from selpath.devices.geometry import (
     CAMERAS,
     GEOMETRY_ATTRS,
     OrthographicCamera,
     PerspectiveCamera,
     RigGeometry,
 )
-from devices.hardware import GeometryConfig
-from pipeline import StageError
-from pipeline.kinds import CAMERA_ATTRS, RIG_ATTRS
+from selpath.devices.hardware import GeometryConfig
+from selpath.pipeline import StageError
+from selpath.pipeline.kinds import CAMERA_ATTRS, RIG_ATTRS
 
 CAMERA_CASES = {
     "perspective": PerspectiveCamera(rows=7, cols=11, focal_length_px=40.0, camera_distance=80.0,
@@ -135,9 +134,8 @@ def test_the_perspective_camera_subtends_the_closed_form_angle():
 
 def test_an_unknown_light_kind_is_refused_not_taken_for_a_beam():
     import pytest
-
-    from devices.geometry import OrthographicCamera, RigGeometry
-    from pipeline.errors import StageError
+    from selpath.devices.geometry import OrthographicCamera, RigGeometry
+    from selpath.pipeline.errors import StageError
 
     attrs = RigGeometry(OrthographicCamera(rows=4, cols=4, pixel_size=0.1), 30.0).attrs() | {"light_kind": "Sheet"}
     with pytest.raises(StageError, match="light_kind is 'Sheet'; expected 'beam' or 'sheet'"):

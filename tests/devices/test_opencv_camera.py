@@ -5,9 +5,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
-
-from devices.opencv_camera import OpenCVCamera
-from pipeline.errors import DeviceError
+from selpath.devices.opencv_camera import OpenCVCamera
+from selpath.pipeline.errors import DeviceError
 
 
 def test_frames_come_back_in_order_as_float32_grey(tmp_path):

@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from devices.sim.parallel_light import Rod, column_x, line_integrals
-from stages.tomography.acquire import AngleSweep
-from stages.tomography.calibrate import absorption
-from stages.tomography.simulate import RodSpec, simulate_parallel_capture
+from selpath.devices.sim.parallel_light import Rod, column_x, line_integrals
+from selpath.stages.tomography.acquire import AngleSweep
+from selpath.stages.tomography.calibrate import absorption
+from selpath.stages.tomography.simulate import RodSpec, simulate_parallel_capture
 
 RODS = (Rod(6.0, 3.0, 4.0, 0.05), Rod(-5.0, -7.0, 2.5, 0.2))
 
@@ -59,7 +58,8 @@ def test_noise_is_independent_of_chunking(monkeypatch):
     kwargs = dict(angles=AngleSweep(start=0, stop=50, step=5), n_rows=3, n_cols=16, noise_std=3.0, seed=7)
     whole = simulate_parallel_capture(**kwargs)
     assert whole["target"].data.numblocks[0] == 1
-    monkeypatch.setattr("stages.tomography.simulate._FRAME_BYTES_PER_CHUNK", 3 * 16 * 4 * 3)  # three frames a chunk
+    # three frames a chunk
+    monkeypatch.setattr("selpath.stages.tomography.simulate._FRAME_BYTES_PER_CHUNK", 3 * 16 * 4 * 3)
     pieces = simulate_parallel_capture(**kwargs)
     assert pieces["target"].data.chunks[0] == (3, 3, 3, 1)
     whole, pieces = whole.compute(), pieces.compute()

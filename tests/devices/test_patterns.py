@@ -4,8 +4,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
-from devices import patterns
+from selpath.devices import patterns
 
 
 def supersampled_line(n: int, centre: float, width: float, factor: int = 1000) -> np.ndarray:

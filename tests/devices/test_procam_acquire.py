@@ -8,16 +8,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 import xarray as xr
-
-from devices.procam_acquire import acquire_full_transport, acquire_plane_to_ray, plan_sweep
-from devices.sim.procam_rig import simulated_procam_rig
-from devices.sim.procam_scene import ProcamScene
-from devices.sim.procam_transport import render_frame
-from pipeline.engine import run_workflow
-from pipeline.errors import SpecError
-from pipeline.provenance import read_provenance
-from pipeline.spec import load_workflow
-from pipeline.store import missing_frames, open_store
+from selpath.devices.procam_acquire import acquire_full_transport, acquire_plane_to_ray, plan_sweep
+from selpath.devices.sim.procam_rig import simulated_procam_rig
+from selpath.devices.sim.procam_scene import ProcamScene
+from selpath.devices.sim.procam_transport import render_frame
+from selpath.pipeline.engine import run_workflow
+from selpath.pipeline.errors import SpecError
+from selpath.pipeline.provenance import read_provenance
+from selpath.pipeline.spec import load_workflow
+from selpath.pipeline.store import missing_frames, open_store
 
 SCENE = """\
 scene: tiny-candle
@@ -87,8 +86,8 @@ def test_frames_are_the_simulator_frames_at_the_commanded_settings(tmp_path):
 def test_rig_changes_reach_the_frames_and_the_record_and_bad_ones_name_the_field(tmp_path):
     """``rig_changes`` (here a dimmer projector and a dark level) change what the rig renders, the capture records
     the scene as simulated, and an unknown or invalid field is refused with its name."""
-    from stages.procam.acquire import _scene
-    from stages.procam.multiplexing import simulated_scene
+    from selpath.stages.procam.acquire import _scene
+    from selpath.stages.procam.multiplexing import simulated_scene
 
     path = tmp_path / "scene.yaml"
     path.write_text(SCENE.replace("FRAME", "0 us"))
@@ -169,8 +168,8 @@ outputs:
 
 
 def test_calibration_without_a_visible_band_names_the_frames_and_the_fix():
-    from pipeline.errors import StageError
-    from stages.procam.calibrate import calibrate_scan_speed
+    from selpath.pipeline.errors import StageError
+    from selpath.stages.procam.calibrate import calibrate_scan_speed
 
     dark = xr.Dataset({"image": (("delay", "exposure", "row", "col"), np.zeros((2, 2, 8, 4)))},
                       coords={"delay": [0.0, 170.0], "exposure": [170.0, 340.0]}, attrs={"line_time_us": 17.0})
@@ -183,11 +182,11 @@ def test_checkerboard_frames_are_the_simulators_and_a_lost_frame_is_captured_aga
     """§5.4.6 stacks: each frame is the simulator's render of its shifted board (rectangular squares, so a swapped
     row/column shift shows) at the mode's window (floodlit: global shutter over the whole scan; epipolar: rolling
     shutter at t_d = 0, t_e = t_p); a frame marked lost is captured again, alone, and comes back identical."""
-    from devices import patterns
-    from devices.procam_acquire import acquire_checkerboards, checkerboard_shifts
-    from pipeline.integrity import BadChunk
-    from pipeline.store import forget_frames
-    from stages.procam.acquire import exposure_window
+    from selpath.devices import patterns
+    from selpath.devices.procam_acquire import acquire_checkerboards, checkerboard_shifts
+    from selpath.pipeline.integrity import BadChunk
+    from selpath.pipeline.store import forget_frames
+    from selpath.stages.procam.acquire import exposure_window
 
     scene = small_scene()
     square = (6, 10)

@@ -12,20 +12,20 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import selpath.devices.procam_hardware as procam_hardware
 import xarray as xr
 import yaml
+from selpath.devices.procam_acquire import acquire_full_transport, acquire_plane_to_ray
+from selpath.devices.procam_hardware import load_procam_hardware, procam_hardware_rig
+from selpath.devices.protocols import SyncLimits
+from selpath.devices.sim.procam_rig import FakeProcamHardware, simulated_procam_rig
+from selpath.devices.sim.procam_scene import ProcamScene
+from selpath.pipeline.engine import run_workflow
+from selpath.pipeline.errors import DeviceDisconnected, SpecError
+from selpath.pipeline.provenance import read_provenance
+from selpath.pipeline.spec import load_workflow
+from selpath.pipeline.store import missing_frames, open_store
 
-import devices.procam_hardware as procam_hardware
-from devices.procam_acquire import acquire_full_transport, acquire_plane_to_ray
-from devices.procam_hardware import load_procam_hardware, procam_hardware_rig
-from devices.protocols import SyncLimits
-from devices.sim.procam_rig import FakeProcamHardware, simulated_procam_rig
-from devices.sim.procam_scene import ProcamScene
-from pipeline.engine import run_workflow
-from pipeline.errors import DeviceDisconnected, SpecError
-from pipeline.provenance import read_provenance
-from pipeline.spec import load_workflow
-from pipeline.store import missing_frames, open_store
 from tests.devices.conftest import written_frames
 
 SCENE = {
@@ -186,11 +186,11 @@ def test_a_hardware_workflow_is_checked_before_anything_moves(tmp_path, change, 
 
 KILLED_RUN = """\
 import sys
-import devices.procam_hardware as procam_hardware
-from devices.sim.procam_rig import FakeProcamHardware
-from devices.sim.procam_scene import ProcamScene
-from pipeline.engine import run_workflow
-from pipeline.spec import load_workflow
+import selpath.devices.procam_hardware as procam_hardware
+from selpath.devices.sim.procam_rig import FakeProcamHardware
+from selpath.devices.sim.procam_scene import ProcamScene
+from selpath.pipeline.engine import run_workflow
+from selpath.pipeline.spec import load_workflow
 import json, os
 folder = sys.argv[1]
 scene = ProcamScene.model_validate(json.loads(open(os.path.join(folder, "scene.json")).read()))
@@ -246,8 +246,8 @@ def test_gray_codes_through_the_controllers_slots_equal_the_simulated_rigs(tmp_p
     """Gray codes through the controller's 8 slots (20 frames here, 44 on a 1280 × 720 projector): every pattern is
     uploaded once (none repeats), verified and shown, the frames equal the simulated rig's, and they decode to each
     pixel's projector column (within the scene's sensor noise)."""
-    from devices.procam_acquire import acquire_gray_code
-    from stages.procam.rectify import decode_gray_code
+    from selpath.devices.procam_acquire import acquire_gray_code
+    from selpath.stages.procam.rectify import decode_gray_code
 
     want = acquire_gray_code(simulated_procam_rig(scene()), tmp_path / "sim.zarr", delay=0.0, exposure=289.0,
                              progress=False).load()
@@ -273,7 +273,7 @@ def test_epipolar_checkerboards_on_hardware_equal_the_simulated_rigs_and_floodli
     equal the simulated rig's; a hardware
     workflow asking for floodlit boards (a global shutter the OpenCV camera lacks) fails validation, and the
     acquisition stage at t_d = 0, t_e = t_p runs through the serial path."""
-    from devices.procam_acquire import acquire_checkerboards, checkerboard_shifts
+    from selpath.devices.procam_acquire import acquire_checkerboards, checkerboard_shifts
 
     shifts = checkerboard_shifts((4, 4), 2)
     want = acquire_checkerboards(simulated_procam_rig(scene()), tmp_path / "sim.zarr", (4, 4), shifts,

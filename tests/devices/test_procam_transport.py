@@ -7,10 +7,9 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
-from devices import patterns
-from devices.sim import procam_transport as tr
-from devices.sim.procam_scene import ProcamScene
+from selpath.devices import patterns
+from selpath.devices.sim import procam_transport as tr
+from selpath.devices.sim.procam_scene import ProcamScene
 
 SMALL = {"camera_rows": 80, "camera_cols": 96, "projector_rows": 48, "projector_cols": 96, "bits": None}
 

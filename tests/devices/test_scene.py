@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import pytest
+from selpath.devices.sim.scene import load_scene
+from selpath.pipeline.errors import ConfigError
 
-import workflows
-from devices.sim.scene import load_scene
-from pipeline.errors import ConfigError
+from selpath import workflows
 
 SCENES = sorted((workflows.folder() / "scenes").glob("*.yaml"))
 
@@ -71,7 +71,7 @@ def test_inclusion_outside_the_object_is_refused():
 
 
 def test_the_shipped_target_scene_loads_with_a_projector_whose_rows_span_the_cameras():
-    from devices.sim.stereo_target import load_stereo_target
+    from selpath.devices.sim.stereo_target import load_stereo_target
 
     scene = load_stereo_target(next(p for p in SCENES if p.stem == "stereo-target"))
     camera, projector = scene.camera, scene.projector
@@ -83,7 +83,7 @@ def test_the_shipped_target_scene_loads_with_a_projector_whose_rows_span_the_cam
 
 
 def test_the_shipped_projector_camera_scenes_of_chapter_5_load():
-    from devices.sim.procam_scene import load_procam_scene
+    from selpath.devices.sim.procam_scene import load_procam_scene
 
     scenes = {p.stem: load_procam_scene(p) for p in SCENES if p.stem in PROCAM_SCENES}
     assert set(scenes) == PROCAM_SCENES

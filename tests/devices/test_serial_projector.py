@@ -6,12 +6,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from selpath.devices.patterns import checkerboard, vertical_line
+from selpath.devices.serial_line import SerialLine
+from selpath.devices.serial_projector import SyncLineProjector, quantise
+from selpath.devices.sim.procam_rig import FakeProcamHardware
+from selpath.pipeline.errors import DeviceError
 
-from devices.patterns import checkerboard, vertical_line
-from devices.serial_line import SerialLine
-from devices.serial_projector import SyncLineProjector, quantise
-from devices.sim.procam_rig import FakeProcamHardware
-from pipeline.errors import DeviceError
 from tests.devices.test_procam_hardware import scene
 
 
@@ -91,7 +91,7 @@ def test_line_faults_on_pattern_commands_are_resolved(fault, at):
 
 
 def test_a_projector_that_shows_something_else_is_caught_by_the_read_back(monkeypatch):
-    from devices.sim.projector_firmware import PatternMemory
+    from selpath.devices.sim.projector_firmware import PatternMemory
 
     real = PatternMemory._show
 

@@ -5,15 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import xarray as xr
-
-from devices.serial_line import SerialLine, frame_reply
-from devices.serial_stage import SerialRotaryStage
-from devices.sim.rig import SimCamera, SimLight, SimSampleChanger, simulated_rig
-from devices.sim.scene import Scene
-from devices.sim.stage_firmware import FakeStageFirmware
-from devices.tomography_acquire import TomographyRig, acquire_tomography
-from pipeline.errors import DeviceDisconnected, DeviceError, DeviceProtocolError, DeviceTimeout
-from pipeline.store import missing_frames, open_store
+from selpath.devices.serial_line import SerialLine, frame_reply
+from selpath.devices.serial_stage import SerialRotaryStage
+from selpath.devices.sim.rig import SimCamera, SimLight, SimSampleChanger, simulated_rig
+from selpath.devices.sim.scene import Scene
+from selpath.devices.sim.stage_firmware import FakeStageFirmware
+from selpath.devices.tomography_acquire import TomographyRig, acquire_tomography
+from selpath.pipeline.errors import DeviceDisconnected, DeviceError, DeviceProtocolError, DeviceTimeout
+from selpath.pipeline.store import missing_frames, open_store
 
 FAST = dict(timeout_s=0.2, move_timeout_s=0.5)
 

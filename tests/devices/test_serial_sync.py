@@ -3,11 +3,10 @@
 from __future__ import annotations
 
 import pytest
-
-from devices.protocols import SyncController, SyncLimits
-from devices.serial_sync import SerialSyncController
-from devices.sim.sync_firmware import DEFAULT_LIMITS, FakeSyncFirmware
-from pipeline.errors import DeviceDisconnected, DeviceError, DeviceProtocolError, DeviceTimeout
+from selpath.devices.protocols import SyncController, SyncLimits
+from selpath.devices.serial_sync import SerialSyncController
+from selpath.devices.sim.sync_firmware import DEFAULT_LIMITS, FakeSyncFirmware
+from selpath.pipeline.errors import DeviceDisconnected, DeviceError, DeviceProtocolError, DeviceTimeout
 
 
 def driver(fw: FakeSyncFirmware) -> SerialSyncController:

@@ -8,16 +8,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 import xarray as xr
+from selpath.devices.sim.rig import simulated_rig
+from selpath.devices.sim.scene import load_scene
+from selpath.devices.tomography_acquire import acquire_tomography
+from selpath.pipeline.engine import run_workflow
+from selpath.pipeline.errors import DeviceError, StoreError
+from selpath.pipeline.provenance import read_provenance
+from selpath.pipeline.spec import load_workflow
+from selpath.pipeline.store import missing_frames, open_store
 
-import workflows
-from devices.sim.rig import simulated_rig
-from devices.sim.scene import load_scene
-from devices.tomography_acquire import acquire_tomography
-from pipeline.engine import run_workflow
-from pipeline.errors import DeviceError, StoreError
-from pipeline.provenance import read_provenance
-from pipeline.spec import load_workflow
-from pipeline.store import missing_frames, open_store
+from selpath import workflows
 
 SCENE = """\
 scene: tiny-bin

@@ -5,10 +5,9 @@ from __future__ import annotations
 import matplotlib.path
 import numpy as np
 import pytest
+import selpath.devices.sim.tomography as tomo
 from scipy.ndimage import binary_erosion
-
-import devices.sim.tomography as tomo
-from devices.sim.scene import Scene
+from selpath.devices.sim.scene import Scene
 
 R = 10.0  # mm, radius of the object
 DISK = {"kind": "cylinder", "radius": "2.5 mm", "centre": ["3 mm", "2 mm"]}

@@ -10,17 +10,17 @@ import re
 import numpy as np
 import pytest
 import xarray as xr
+from selpath.pipeline import StageError, load_workflow, run_workflow, to_store
+from selpath.pipeline.quality import enforce
+from selpath.stages._common import UnsortedSweepWarning
+from selpath.stages.tomography.acquire import AngleSweep
+from selpath.stages.tomography.calibrate import absorption
+from selpath.stages.tomography.hull import silhouettes, visual_hull
+from selpath.stages.tomography.paths import align_paths
+from selpath.stages.tomography.reconstruct import fbp, reconstruct_tv
+from selpath.stages.tomography.simulate import simulate_parallel_capture
+from selpath.stages.tomography.sinogram import bin_sinogram
 
-from pipeline import StageError, load_workflow, run_workflow, to_store
-from pipeline.quality import enforce
-from stages._common import UnsortedSweepWarning
-from stages.tomography.acquire import AngleSweep
-from stages.tomography.calibrate import absorption
-from stages.tomography.hull import silhouettes, visual_hull
-from stages.tomography.paths import align_paths
-from stages.tomography.reconstruct import fbp, reconstruct_tv
-from stages.tomography.simulate import simulate_parallel_capture
-from stages.tomography.sinogram import bin_sinogram
 from tests.stages.tomography.test_tomography_processing import capture as simulated
 from tests.stages.tomography.test_tomography_processing import cylinder_camera, make_scene
 

@@ -4,10 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-
-from stages.procam._demux_problem import DemuxProblem
-from stages.procam._demux_solver import DemuxADMM
-from stages.procam._illumination import plane_to_ray_illumination
+from selpath.stages.procam._demux_problem import DemuxProblem
+from selpath.stages.procam._demux_solver import DemuxADMM
+from selpath.stages.procam._illumination import plane_to_ray_illumination
 
 OFFSETS = np.arange(-32, 33)
 
@@ -110,8 +109,8 @@ def test_separable_full_transport_with_nan_and_saturated_frames_at_extreme_scale
     """The Kronecker (full-transport) solver on a rank-deficient sweep (N = 30 < K = 6 × 33) with NaN
     frames, a fully masked pixel and data scaled by 1e±8 in float32: finite, non-negative, converged with
     honest flags, and the same objective (÷ scale²) as the unscaled solve to 1e-3 relative."""
-    from stages.procam._demux_problem import SeparableDemuxProblem
-    from stages.procam._illumination import line_cells, line_illumination
+    from selpath.stages.procam._demux_problem import SeparableDemuxProblem
+    from selpath.stages.procam._illumination import line_cells, line_illumination
 
     cells, step = line_cells(np.arange(0.0, 9.0, 2.0), 4.0)
     a_u = line_illumination(np.arange(0.0, 9.0, 2.0), 4.0, cells, step)
@@ -143,7 +142,7 @@ def test_clipped_frames_at_extreme_scales_in_float32(scale):
     direct peak is, and clean ones, at 1e-8, 1 and 1e8 with β scaled alike. Finite, non-negative; every clipped
     frame explained at its level or above (within the 3 % pull of α and β); the censored flags and objectives
     (÷ scale²) the same at every scale."""
-    from stages._solution import Result
+    from selpath.stages._solution import Result
 
     a = matrix(np.arange(-340.0, 341.0, 85.0), [170.0, 510.0])
     truth, data = pixels(a, np.random.default_rng(5), n=16)
@@ -186,7 +185,7 @@ def test_exactly_optimal_pixels_stop_at_once_and_are_converged():
     assert np.all(result.value == 0) and np.all(result.stats["gap_bound"] == 0)
     # and a tight residual tolerance no longer leaves near-exact optima flagged unconverged: converged is the
     # residual test or a certified bound ≤ gap_tol, checked here against the float64 reference certificate
-    from stages.procam._demux_certificate import certified_gap
+    from selpath.stages.procam._demux_certificate import certified_gap
 
     _, clean = pixels(a, np.random.default_rng(8), n=32)
     tight = DemuxADMM(tol=1e-9, max_iter=300, polish_iter=20).solve(DemuxProblem.build(a, beta=0.01), clean)

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import xarray as xr
-
-from stages.tomography.calibrate import absorption
+from selpath.stages.tomography.calibrate import absorption
 
 
 def test_float32_dynamic_range_1e_minus_8_to_1e8():

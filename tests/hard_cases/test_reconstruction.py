@@ -9,8 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import xarray as xr
-
-from stages.tomography.reconstruct import fbp, reconstruct_tv
+from selpath.stages.tomography.reconstruct import fbp, reconstruct_tv
 
 N_THETA, N_X, L = 36, 32, 1.0
 
@@ -63,7 +62,7 @@ def test_all_zero_absorption_reconstructs_zero():
 def test_extreme_tv_weights():
     """λ = 1e-12 and 1e3: finite, in the box, honest flags, and the TV falls as λ grows. (At λ = 1e3 the
     minimiser is flat, but ADMM with a fixed ρ approaches it slowly; the flag says whether it got there.)"""
-    from stages.tomography._admm import total_variation
+    from selpath.stages.tomography._admm import total_variation
 
     tv = []
     for tv_weight in (1e-12, 1e3):

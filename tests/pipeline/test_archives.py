@@ -12,10 +12,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from pipeline import StoreError, load_workflow, open_store, run_workflow, to_store
-from pipeline.integrity import verify_store
-from pipeline.provenance import content_digest, read_provenance, store_identity
+from selpath.pipeline import StoreError, load_workflow, open_store, run_workflow, to_store
+from selpath.pipeline.integrity import verify_store
+from selpath.pipeline.provenance import content_digest, read_provenance, store_identity
 
 REPROCESS = """\
 workflow: reprocess
@@ -206,10 +205,9 @@ def test_read_only_inputs_are_read_and_never_written(archive):
 def test_inspect_lists_an_archives_stores_with_their_provenance(archive, monkeypatch):
     """``selpath inspect FOLDER`` (a folder that is not a store): one row per store under it, with its kind and
     the workflow and output that wrote it, and stores written outside a workflow said to be so."""
+    from selpath.pipeline.cli import app
+    from selpath.pipeline.provenance import archive_stores
     from typer.testing import CliRunner
-
-    from pipeline.cli import app
-    from pipeline.provenance import archive_stores
 
     rows = {r["store"]: r for r in archive_stores(archive)}
     assert set(rows) == {"archive/foreign.zarr", "out/absorption.zarr", "out/capture.zarr", "results/again.zarr",
@@ -218,7 +216,7 @@ def test_inspect_lists_an_archives_stores_with_their_provenance(archive, monkeyp
     assert rows["archive/foreign.zarr"]["workflow"] is None
     from rich.console import Console
 
-    monkeypatch.setattr("pipeline.cli.console", Console(width=250))  # one line per store
+    monkeypatch.setattr("selpath.pipeline.cli.console", Console(width=250))  # one line per store
     result = CliRunner().invoke(app, ["inspect", str(archive)])
     assert result.exit_code == 0, result.output
     assert "5 store(s)" in result.output and "outside a workflow" in result.output
@@ -244,7 +242,7 @@ def _unprivileged() -> list[str] | None:
     if os.geteuid() != 0 or setpriv is None:
         return None
     prefix = [setpriv, "--reuid=65534", "--regid=65534", "--clear-groups"]
-    probe = subprocess.run([*prefix, sys.executable, "-c", "import pipeline.cli, stages"], capture_output=True,
+    probe = subprocess.run([*prefix, sys.executable, "-c", "import selpath.pipeline.cli, selpath.stages"], capture_output=True,
                            cwd="/", env={"HOME": "/tmp", "PATH": os.environ.get("PATH", "")})
     return prefix if probe.returncode == 0 else None
 

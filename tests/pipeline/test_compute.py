@@ -10,7 +10,7 @@ import sys
 import pytest
 
 SCRIPT = """
-from pipeline.compute import enable_compile_cache
+from selpath.pipeline.compute import enable_compile_cache
 folder = enable_compile_cache()
 import jax, jax.numpy as jnp
 jax.jit(lambda x: jnp.cumsum(x * 2.0 + 1.0))(jnp.ones(7)).block_until_ready()
@@ -35,7 +35,7 @@ def test_cluster_workers_start_with_the_malloc_settings_and_p2p_buffer():
     """The malloc settings reach the worker processes before they start (glibc reads them at start, so they must go
     through distributed's pre-spawn environment, not ``env``), beside distributed's own trim threshold, and the
     workers see the smaller p2p buffer and their memory limit."""
-    from pipeline.compute import P2P_BUFFER, WORKER_MALLOC, local_cluster
+    from selpath.pipeline.compute import P2P_BUFFER, WORKER_MALLOC, local_cluster
 
     def settings():
         import dask
@@ -58,7 +58,7 @@ BLAS_SCRIPT = """
 import json, sys
 import dask, numpy
 from threadpoolctl import threadpool_info, threadpool_limits
-from pipeline.compute import compute
+from selpath.pipeline.compute import compute
 
 def blas():
     return {p["filepath"]: p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"}

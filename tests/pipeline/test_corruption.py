@@ -12,14 +12,14 @@ import numpy as np
 import pytest
 import xarray as xr
 import zarr
+from selpath.pipeline import SpecError, StoreError, load_workflow, open_store, run_workflow, to_store
+from selpath.pipeline.cli import app
+from selpath.pipeline.integrity import verify_store
+from selpath.pipeline.kinds import KINDS, LENGTH_UNITS
+from selpath.pipeline.provenance import write_provenance
+from selpath.pipeline.store import missing_frames
 from typer.testing import CliRunner
 
-from pipeline import SpecError, StoreError, load_workflow, open_store, run_workflow, to_store
-from pipeline.cli import app
-from pipeline.integrity import verify_store
-from pipeline.kinds import KINDS, LENGTH_UNITS
-from pipeline.provenance import write_provenance
-from pipeline.store import missing_frames
 from tests.devices.test_tomography_acquire import make_workflow
 
 runner = CliRunner()

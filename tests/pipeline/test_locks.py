@@ -11,13 +11,12 @@ import textwrap
 import time
 
 import pytest
-
-from pipeline import StoreError, load_workflow, open_store, run_workflow
-from pipeline.locks import lock_path, store_lock
+from selpath.pipeline import StoreError, load_workflow, open_store, run_workflow
+from selpath.pipeline.locks import lock_path, store_lock
 
 HOLD = textwrap.dedent("""\
     import sys, time
-    from pipeline.locks import store_lock
+    from selpath.pipeline.locks import store_lock
     with store_lock(sys.argv[1], purpose="holding it for a test"):
         print("locked", flush=True)
         time.sleep(60)
@@ -66,7 +65,7 @@ def test_a_lock_is_reentrant_within_a_process(tmp_path):
 def test_two_runs_of_one_workflow_at_once_never_crash_or_corrupt(small_workflow):
     """The reported race: two `selpath run` into one folder crashed with tracebacks and once left the capture
     unreadable. Now one of them runs, the other finds the lock (clear error) or finds everything done."""
-    command = [sys.executable, "-m", "pipeline.cli", "run", str(small_workflow), "--no-progress"]
+    command = [sys.executable, "-m", "selpath", "run", str(small_workflow), "--no-progress"]
     env = {**os.environ, "COLUMNS": "200"}
     runs = [subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
             for _ in range(2)]

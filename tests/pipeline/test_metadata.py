@@ -7,11 +7,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import zarr
+from selpath.pipeline import StoreError, open_store, to_store
+from selpath.pipeline.kinds import FORMAT_VERSION, KINDS
+from selpath.pipeline.schema import metadata, with_metadata
+from selpath.pipeline.store import IncompleteStoreWarning
 
-from pipeline import StoreError, open_store, to_store
-from pipeline.kinds import FORMAT_VERSION, KINDS
-from pipeline.schema import metadata, with_metadata
-from pipeline.store import IncompleteStoreWarning
 from tests.pipeline.test_corruption import minimal
 
 

@@ -8,14 +8,14 @@ import dask.array as da
 import numpy as np
 import pytest
 import xarray as xr
+from selpath.pipeline import SpecError, StageRegistry, load_workflow, open_store, read_provenance, run_workflow, stage
+from selpath.pipeline.cli import app
+from selpath.pipeline.outputs import Staging, tidy_staging
+from selpath.pipeline.registry import default_registry
+from selpath.pipeline.store import to_store
 from typer.testing import CliRunner
 
-import workflows
-from pipeline import SpecError, StageRegistry, load_workflow, open_store, read_provenance, run_workflow, stage
-from pipeline.cli import app
-from pipeline.outputs import Staging, tidy_staging
-from pipeline.registry import default_registry
-from pipeline.store import to_store
+from selpath import workflows
 
 runner = CliRunner()
 
@@ -167,7 +167,7 @@ def test_a_commit_replaces_only_selpath_stores(tmp_path):
     final = tmp_path / "x.zarr"
     final.mkdir()
     (final / "keep.txt").write_text("mine")
-    from pipeline.errors import StoreError
+    from selpath.pipeline.errors import StoreError
     staging = Staging(final)
     os.makedirs(staging.path)
     with pytest.raises(StoreError, match="not a selpath store appeared at this path"):
@@ -177,8 +177,7 @@ def test_a_commit_replaces_only_selpath_stores(tmp_path):
 
 def test_a_figure_png_selpath_did_not_write_is_never_replaced(tmp_path):
     import matplotlib.image
-
-    from pipeline import StoreError
+    from selpath.pipeline import StoreError
 
     (tmp_path / "out").mkdir()
     matplotlib.image.imsave(tmp_path / "out" / "fig.png", np.zeros((2, 2, 3)))  # the user's own picture
@@ -224,7 +223,7 @@ def test_to_store_does_not_replace_a_workflows_output_unless_told(tmp_path):
     """The Python API's to_store replaced any selpath store at its path, a workflow's finished output included.
     Now it refuses one, naming the output and workflow; ``replace=True`` replaces it (atomically), and a store
     to_store wrote itself is still rewritten in place of the old one."""
-    from pipeline import StoreError
+    from selpath.pipeline import StoreError
 
     path = _wf(tmp_path / "a", "  capture: {from: capture, store: out/capture.zarr}")
     run_workflow(load_workflow(path), progress=False)

@@ -9,9 +9,8 @@ import dask.array as da
 import numpy as np
 import pytest
 import xarray as xr
-
-from pipeline import StageError, StageRegistry, load_workflow, open_store, read_provenance, run_workflow, stage
-from pipeline.quality import enforce, usable_share
+from selpath.pipeline import StageError, StageRegistry, load_workflow, open_store, read_provenance, run_workflow, stage
+from selpath.pipeline.quality import enforce, usable_share
 
 COORDS = {"y": ("y", [0.0, 1.0], {"units": "mm"}), "x": ("x", np.arange(4.0), {"units": "mm"})}
 

@@ -6,9 +6,8 @@ from importlib.metadata import EntryPoint
 
 import pytest
 import xarray as xr
-
-from pipeline import SelpathError, StageRegistry, stage
-from pipeline.registry import default_registry
+from selpath.pipeline import SelpathError, StageRegistry, stage
+from selpath.pipeline.registry import default_registry
 
 
 def test_builtin_stages_come_through_the_entry_point_group():
@@ -25,12 +24,13 @@ def _fake_entry_points(monkeypatch, tmp_path, module: str, source: str):
     (tmp_path / f"{module}.py").write_text(source)
     monkeypatch.syspath_prepend(str(tmp_path))
     fake = [EntryPoint(name="fake", value=module, group="selpath.stages")]
-    monkeypatch.setattr("pipeline.registry.entry_points", lambda group: fake if group == "selpath.stages" else [])
+    monkeypatch.setattr("selpath.pipeline.registry.entry_points",
+                        lambda group: fake if group == "selpath.stages" else [])
 
 
 def test_a_plugin_registers_through_the_same_group(monkeypatch, tmp_path):
     _fake_entry_points(monkeypatch, tmp_path, "selpath_fake_plugin", (
-        "import xarray as xr\nfrom pipeline import stage\n"
+        "import xarray as xr\nfrom selpath import stage\n"
         "@stage('brighten')\n"
         "def brighten(frames: xr.DataArray, /, *, gain: float = 2.0) -> xr.DataArray:\n"
         "    return frames * gain\n"))
@@ -53,7 +53,7 @@ def test_duplicate_names_are_refused_naming_both():
 
     registry = StageRegistry(default_registry())
     with pytest.raises(SelpathError, match=r"stage 'absorption' is registered twice: by "
-                                           r"stages.tomography.calibrate:absorption and by .*impostor"):
+                                           r"selpath.stages.tomography.calibrate:absorption and by .*impostor"):
         registry.add(impostor.__selpath_stage__)
 
 
@@ -80,7 +80,7 @@ def test_signatures_must_be_explicit_and_typed():
 def test_every_installed_stage_documents_every_input_and_setting():
     """`selpath stages NAME` and the workflow schema show each parameter's description: none may be blank (a
     grouped numpydoc entry, ``alpha, beta : float``, documents each name)."""
-    from pipeline.registry import _param_docs, default_registry
+    from selpath.pipeline.registry import _param_docs, default_registry
 
     blank = [f"{s.name}.{n}" for s in default_registry() for n in (*s.inputs, *s.params.model_fields)
              if not s.param_docs.get(n)]

@@ -7,8 +7,7 @@ import re
 import numpy as np
 import pytest
 import xarray as xr
-
-from pipeline import FORMAT_VERSION, SpecError, load_workflow, to_store
+from selpath.pipeline import FORMAT_VERSION, SpecError, load_workflow, to_store
 
 
 def _load(tmp_path, text):

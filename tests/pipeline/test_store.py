@@ -13,8 +13,7 @@ import zarr
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
-
-from pipeline import (
+from selpath.pipeline import (
     StoreError,
     create_capture,
     missing_frames,
@@ -24,9 +23,9 @@ from pipeline import (
     write_frame,
     write_provenance,
 )
-from pipeline.integrity import write_manifest
-from pipeline.kinds import FORMAT_VERSION
-from pipeline.store import IncompleteStoreWarning
+from selpath.pipeline.integrity import write_manifest
+from selpath.pipeline.kinds import FORMAT_VERSION
+from selpath.pipeline.store import IncompleteStoreWarning
 
 GEOMETRY = {"camera_model": "perspective", "focal_length_px": 1800.0, "principal_point_px": [800.0, 600.0],
             "camera_distance": 300.0, "light_distance": 250.0, "light_angle_deg": 45.0, "length_unit": "mm"}
@@ -63,7 +62,7 @@ def test_round_trip_is_identical(tmp_path_factory, data, channel):
 
 
 def test_opening_a_store_and_building_on_it_computes_nothing(tmp_path, no_compute):
-    from stages.tomography.calibrate import absorption
+    from selpath.stages.tomography.calibrate import absorption
 
     to_store(capture().assign_attrs(saturation_level=1e9), tmp_path / "s.zarr", "tomography_capture")  # numpy
     opened = open_store(tmp_path / "s.zarr")
@@ -168,7 +167,7 @@ def test_region_written_capture_reports_missing_frames_and_resumes(tmp_path):
 def test_opening_an_unfinished_capture_for_processing_warns_with_the_count(tmp_path):
     """Unwritten frames read as NaN; without the flags nothing else would tell (a demultiplexing that masks
     NaN frames would silently run on fewer frames)."""
-    from pipeline.store import IncompleteCaptureWarning
+    from selpath.pipeline.store import IncompleteCaptureWarning
 
     path = tmp_path / "cap.zarr"
     create_capture(path, capture(n_angles=5, lazy=True), "tomography_capture")
@@ -206,7 +205,7 @@ def test_provenance_survives_region_writes(tmp_path):
 def test_format_doc_lists_every_kind_as_the_code_does():
     from pathlib import Path
 
-    from pipeline.schema import describe_kinds
+    from selpath.pipeline.schema import describe_kinds
 
     doc = (Path(__file__).resolve().parents[2] / "docs" / "format.md").read_text()
     assert describe_kinds() in doc, "docs/format.md is out of date: paste pipeline.schema.describe_kinds()"

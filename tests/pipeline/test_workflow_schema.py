@@ -9,11 +9,11 @@ import json
 import jsonschema
 import pytest
 import yaml
+from selpath.pipeline.cli import app
+from selpath.pipeline.workflow_schema import workflow_schema
 from typer.testing import CliRunner
 
-import workflows
-from pipeline.cli import app
-from pipeline.workflow_schema import workflow_schema
+from selpath import workflows
 
 
 @pytest.fixture(scope="module")
@@ -52,7 +52,7 @@ def test_a_wrong_step_is_caught_where_validate_catches_it(validator, workflow_te
 
 
 def test_every_registered_stage_and_setting_is_in_the_schema():
-    from pipeline.registry import default_registry
+    from selpath.pipeline.registry import default_registry
 
     schema = workflow_schema()
     branches = {b["if"]["properties"]["stage"]["const"]: b["then"]["properties"]["with"]

@@ -6,10 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import xarray as xr
-
-from devices.sim.stereo_target import StereoTargetScene, capture_target
-from pipeline.errors import StageError
-from stages.camera_target import apply_camera_calibration, calibrate_camera, distortion_shift
+from selpath.devices.sim.stereo_target import StereoTargetScene, capture_target
+from selpath.pipeline.errors import StageError
+from selpath.stages.camera_target import apply_camera_calibration, calibrate_camera, distortion_shift
 
 CAMERA = {"width": 320, "height": 240, "focal_px": 400, "principal_px": [161.3, 118.2]}
 

@@ -7,11 +7,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import xarray as xr
-
-from pipeline.errors import StageError
-from pipeline.registry import default_registry
-from stages._figures import as_figure, panels, rgba, shape_of
-from stages.tomography.reconstruction_figures import object_window, reconstruction_figure, reconstruction_size
+from selpath.pipeline.errors import StageError
+from selpath.pipeline.registry import default_registry
+from selpath.stages._figures import as_figure, panels, rgba, shape_of
+from selpath.stages.tomography.reconstruction_figures import object_window, reconstruction_figure, reconstruction_size
 
 MM = {"units": "mm"}
 

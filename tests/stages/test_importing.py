@@ -9,11 +9,11 @@ import pytest
 import tifffile
 import xarray as xr
 import yaml
+from selpath.pipeline import ConfigError, StageError, load_workflow, open_store, run_workflow
+from selpath.pipeline.cli import app
+from selpath.stages.importing import import_capture, read_frames
 from typer.testing import CliRunner
 
-from pipeline import ConfigError, StageError, load_workflow, open_store, run_workflow
-from pipeline.cli import app
-from stages.importing import import_capture, read_frames
 from tests.devices.test_tomography_acquire import make_workflow
 
 runner = CliRunner()
@@ -71,14 +71,14 @@ def test_a_tomography_capture_from_four_file_formats_imports_as_the_rig_wrote_it
                         "  - {id: absorption, stage: absorption, with: {capture: $capture}}\n"
                         "outputs:\n  absorption: {from: absorption, store: out/absorption.zarr}\n")
     run_workflow(load_workflow(workflow), progress=False)
-    from stages.tomography.calibrate import absorption
+    from selpath.stages.tomography.calibrate import absorption
 
     expected = absorption(original)
     xr.testing.assert_allclose(open_store(tmp_path / "out" / "absorption.zarr")["absorption"].load(),
                                expected["absorption"].load())
     # the rays traced through the imported geometry (no light_distance) are those of the rig's own store
-    from stages.tomography.hull import silhouettes, visual_hull
-    from stages.tomography.paths import align_paths
+    from selpath.stages.tomography.hull import silhouettes, visual_hull
+    from selpath.stages.tomography.paths import align_paths
 
     def rays(capture):
         return align_paths(absorption(capture), visual_hull(silhouettes(capture))).compute()
@@ -208,7 +208,7 @@ def test_a_multi_page_tiff_is_read_page_by_page(original, tmp_path):
 def test_a_symlinked_spec_is_identified_by_the_frames_it_reads(original, tmp_path):
     """Review finding: the identity hashed frames beside the link while the import read those beside its target,
     so changed frames were never seen and a re-run reused a stale import."""
-    from stages.importing import spec_identity
+    from selpath.stages.importing import spec_identity
 
     real = tmp_path / "real"
     real.mkdir()
@@ -223,7 +223,7 @@ def test_a_symlinked_spec_is_identified_by_the_frames_it_reads(original, tmp_pat
 def test_an_uncompressed_npz_member_is_memory_mapped_and_a_compressed_one_still_reads(tmp_path):
     """``np.savez`` members are mapped in place (frames read one by one, like a ``.npy``), C or Fortran order;
     ``np.savez_compressed`` ones are inflated whole (the zip cannot be read in pieces); both give the same frames."""
-    from stages.importing import _npz_stored_member
+    from selpath.stages.importing import _npz_stored_member
 
     rng = np.random.default_rng(2)
     frames = rng.integers(0, 4095, (4, 3, 5)).astype(np.uint16)

@@ -1,7 +1,7 @@
 """Every stage setting is range-checked when a workflow is validated, before anything runs.
 
 Mutator pattern: a valid workflow (``SMALL_WORKFLOW`` or a shipped ``workflows/*.yaml``) with one field
-broken must fail :func:`pipeline.load_workflow` with the exact message. Sizes that would not fit in memory
+broken must fail :func:`selpath.pipeline.load_workflow` with the exact message. Sizes that would not fit in memory
 are checked against a machine of 16 GiB (``machine_memory`` patched), so the messages do not depend on the
 machine the tests run on. The last tests walk every registered stage: a new int or float setting needs a
 lower bound, or a place in :data:`SIGNED` with the reason it may be negative.
@@ -17,16 +17,16 @@ from pathlib import Path
 
 import pydantic
 import pytest
+import selpath.pipeline.constraints as constraints
 from annotated_types import Ge, Gt
+from selpath.pipeline import SpecError, load_workflow
+from selpath.pipeline.registry import default_registry
+from selpath.stages._sweeps import sweep_count
+from selpath.stages.procam._demux_store import OffsetGrid
+from selpath.stages.procam.acquire import PixelSweep, TimeSweep
+from selpath.stages.tomography.acquire import AngleSweep
 
-import pipeline.constraints
-import workflows
-from pipeline import SpecError, load_workflow
-from pipeline.registry import default_registry
-from stages._sweeps import sweep_count
-from stages.procam._demux_store import OffsetGrid
-from stages.procam.acquire import PixelSweep, TimeSweep
-from stages.tomography.acquire import AngleSweep
+from selpath import workflows
 
 WORKFLOWS = workflows.folder()
 GIB = 2**30
@@ -34,7 +34,7 @@ GIB = 2**30
 
 @pytest.fixture(autouse=True)
 def machine_of_16_gib(monkeypatch):
-    monkeypatch.setattr(pipeline.constraints, "machine_memory", lambda: 16 * GIB)
+    monkeypatch.setattr(constraints, "machine_memory", lambda: 16 * GIB)
 
 
 def _shipped(name: str) -> str:
@@ -58,7 +58,8 @@ def assert_refused(tmp_path: Path, text: str, message: str) -> None:
 
 
 def test_the_unbroken_workflows_validate(tmp_path, workflow_text):
-    """Every shipped workflow but those that read another's output (``workflows.AFTER``: test_cli covers them)."""
+    """Every shipped workflow but those that read another's output (``selpath.workflows.AFTER``: test_cli covers
+    them)."""
     shutil.copytree(WORKFLOWS / "scenes", tmp_path / "scenes")
     shipped = (p.read_text() for p in sorted(WORKFLOWS.glob("*.yaml")) if p.stem not in workflows.AFTER)
     for text in (workflow_text, *shipped):
@@ -124,7 +125,7 @@ def test_small_workflow_mutations_are_refused(tmp_path, workflow_text, old, new,
 
 
 def test_memory_message_names_this_machines_memory(tmp_path, workflow_text, monkeypatch):
-    monkeypatch.setattr(pipeline.constraints, "machine_memory", lambda: 256 * GIB)
+    monkeypatch.setattr(constraints, "machine_memory", lambda: 256 * GIB)
     old, new, message = HUGE_FRAME
     assert_refused(tmp_path, _mutated(workflow_text, old, new), message.replace("(16.0 GiB)", "(256.0 GiB)"))
 
@@ -361,7 +362,7 @@ def test_every_numeric_setting_has_a_lower_bound_or_is_signed():
 
 
 def test_walker_finds_an_unconstrained_setting():
-    from pipeline.registry import _build_stage
+    from selpath.pipeline.registry import _build_stage
 
     def plugin(*, passes: int = 1, sigma: float | None = None, sizes: tuple[int, int] = (1, 1)):
         """A stage whose author forgot the ranges."""

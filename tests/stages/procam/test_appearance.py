@@ -5,13 +5,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from selpath.devices.sim.procam_scene import ProcamScene
+from selpath.pipeline import StageError
+from selpath.stages.procam._mesh import rasterise, sphere
+from selpath.stages.procam.appearance import fit_scattering_profile, render_appearance, shade
 
-from pipeline import StageError
-from stages.procam._mesh import rasterise, sphere
-from stages.procam.appearance import fit_scattering_profile, render_appearance, shade
-from devices.sim.procam_scene import ProcamScene
-from tests.stages.procam.test_materials import SWEEP, materials
 from tests.stages.procam.test_demux import capture_of
+from tests.stages.procam.test_materials import SWEEP, materials
 
 
 def test_the_fit_recovers_the_simulators_lobe():
@@ -62,7 +62,7 @@ def test_the_rasteriser_draws_a_sphere_as_the_analytic_one():
 def test_every_part_of_the_teapot_faces_outwards():
     """Vertex normals point away from each part's axis or centreline: a tube wound the other way is lit from the
     mirrored side (found in review)."""
-    from stages.procam._mesh import lathe, tube, vertex_normals
+    from selpath.stages.procam._mesh import lathe, tube, vertex_normals
 
     s = np.linspace(0, 1, 12)
     centre = np.stack([s, s**2, 0 * s], -1)

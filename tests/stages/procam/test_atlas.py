@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 import scipy.stats
 import xarray as xr
+from selpath.devices.sim import procam_transport as tr
+from selpath.devices.sim.procam_scene import ProcamScene
+from selpath.pipeline import StageError
+from selpath.stages.procam.atlas import material_atlas
 
-import workflows
-from devices.sim import procam_transport as tr
-from devices.sim.procam_scene import ProcamScene
-from pipeline import StageError
-from stages.procam.atlas import material_atlas
+from selpath import workflows
 
 DU = DV = np.arange(-20, 21)
 
@@ -80,9 +80,9 @@ def test_the_shipped_atlas_orders_its_materials_by_their_scattering(tmp_path):
     group's mean), and materials that differ only in albedo agree within 0.4 px."""
     import shutil
 
-    from pipeline import load_workflow
-    from pipeline.engine import run_workflow
-    from pipeline.store import open_store
+    from selpath.pipeline import load_workflow
+    from selpath.pipeline.engine import run_workflow
+    from selpath.pipeline.store import open_store
 
     shutil.copy(workflows.path("procam-atlas"), tmp_path / "procam-atlas.yaml")
     shutil.copytree(workflows.folder() / "scenes", tmp_path / "scenes")

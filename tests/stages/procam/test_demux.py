@@ -7,15 +7,14 @@ import pytest
 import xarray as xr
 from hypothesis import given
 from hypothesis import strategies as st
-
-from devices.sim import procam_transport as tr
-from devices.sim.procam_scene import ProcamScene
-from pipeline.errors import StageError
-from stages.procam._demux_problem import DemuxProblem
-from stages.procam._demux_solver import DemuxADMM, batch_slots
-from stages.procam._demux_store import POOL_BATCHES, pixels_per_call, solve_pixels
-from stages.procam._illumination import plane_to_ray_illumination
-from stages.procam.demux import demux_plane_to_ray
+from selpath.devices.sim import procam_transport as tr
+from selpath.devices.sim.procam_scene import ProcamScene
+from selpath.pipeline.errors import StageError
+from selpath.stages.procam._demux_problem import DemuxProblem
+from selpath.stages.procam._demux_solver import DemuxADMM, batch_slots
+from selpath.stages.procam._demux_store import POOL_BATCHES, pixels_per_call, solve_pixels
+from selpath.stages.procam._illumination import plane_to_ray_illumination
+from selpath.stages.procam.demux import demux_plane_to_ray
 
 RIG = {"camera_rows": 40, "camera_cols": 48, "projector_rows": 40, "projector_cols": 48, "bits": None}
 OBJECTS = [

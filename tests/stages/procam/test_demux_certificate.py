@@ -9,9 +9,9 @@ from dataclasses import replace
 import jax
 import numpy as np
 import pytest
+from selpath.stages.procam._demux_problem import DemuxProblem
+from selpath.stages.procam._demux_solver import DemuxADMM
 
-from stages.procam._demux_problem import DemuxProblem
-from stages.procam._demux_solver import DemuxADMM
 from tests.stages.procam.test_demux_solver import CASES, cvxpy_optimum, sparse_transport, sweep_matrix
 
 
@@ -25,7 +25,7 @@ def test_the_certified_gap_bounds_the_true_gap_and_is_tight_at_an_optimum(case):
     rng = np.random.default_rng(1)
     data = sparse_transport(rng, 12, offsets) @ problem.illumination.T + rng.normal(0, 0.01, (12, problem.frames))
     _, optimum = cvxpy_optimum(problem, data)
-    from stages.procam._demux_certificate import certified_gap
+    from selpath.stages.procam._demux_certificate import certified_gap
 
     for solver in (DemuxADMM(), DemuxADMM(max_iter=5)):
         solution = solver.solve(problem, data)
@@ -49,7 +49,7 @@ def test_the_certified_gap_bounds_the_true_gap_and_is_tight_at_an_optimum(case):
 def test_an_exact_answer_is_certified_at_once_and_a_wrong_zero_is_not():
     """All-zero data: T = 0 is optimal and certified (bound 0). T = 0 for data with light, the float32 failure
     this certificate exists for, has a bound of 1: nothing certifies it."""
-    from stages.procam._demux_certificate import certified_gap
+    from selpath.stages.procam._demux_certificate import certified_gap
 
     delays, exposures, offsets = CASES["well-posed"]
     problem = DemuxProblem.build(sweep_matrix(delays, exposures, offsets), alpha=0.01, beta=0.01)
@@ -62,7 +62,7 @@ def test_an_exact_answer_is_certified_at_once_and_a_wrong_zero_is_not():
 def test_the_bound_reads_a_weight_as_observed_or_not():
     """Review finding: a fractional weight (0.5) made the public certified_gap bound another objective than the
     QP's and read 0 where f ≫ f*. A weight says only whether a frame is observed, as in the solver."""
-    from stages.procam._demux_certificate import certified_gap
+    from selpath.stages.procam._demux_certificate import certified_gap
 
     delays, exposures, offsets = CASES["well-posed"]
     a = sweep_matrix(delays, exposures, offsets)
@@ -80,7 +80,7 @@ def test_the_kkt_bound_is_the_lagrangian_gap_and_far_tighter_than_the_first_orde
     (to 1e-9 of f), for λ ≥ 0 of its rule at arbitrary T ≥ 0; the solver's bound is never below the true gap
     (Clarabel's optimum), and on float32 default solves of the well-posed sweep its median is ≥ 10× below the
     first-order bound's (measured on the catalogue: 5.8e-3 → 1.0e-4 at K = 64, 8.2e-3 → 3.5e-4 at K = 128)."""
-    from stages.procam._demux_certificate import KKT_HELD, certified_gap, kkt_gap
+    from selpath.stages.procam._demux_certificate import KKT_HELD, certified_gap, kkt_gap
 
     delays, exposures, offsets = CASES["well-posed"]
     problem = DemuxProblem.build(sweep_matrix(delays, exposures, offsets), alpha=0.01, beta=0.01)
@@ -125,8 +125,8 @@ def test_the_kkt_bound_with_masked_and_clipped_frames_is_the_gap_to_a_tangent_qu
     f(T) − g(λ), g(λ) = min_T' q(T') − λᵀT', where q is f with each clipped frame's one-sided term replaced by its
     tangent at T and the masked frames left out (q ≤ f, equal at T), found here by a dense solve of each pixel's
     2G_p built from its kept rows, to 1e-9 of f, at arbitrary T ≥ 0 and for λ ≥ 0 of its rule."""
-    from stages.procam._demux_certificate import KKT_HELD, kept_hessian, kkt_bound
-    from stages.procam._illumination import difference_operator
+    from selpath.stages.procam._demux_certificate import KKT_HELD, kept_hessian, kkt_bound
+    from selpath.stages.procam._illumination import difference_operator
 
     problem = DemuxProblem.build(sweep_matrix(*CASES["well-posed"]), alpha=0.01, beta=0.01)
     rng = np.random.default_rng(11)
@@ -183,8 +183,9 @@ def test_pixels_with_masked_and_clipped_frames_get_the_kkt_bound_and_it_bounds_t
     (on the catalogue's NaN case, 2048 px: median 1.4e-2 → 7.4e-4); the Woodbury route calls 2G_p positive
     definite exactly where it is (α = 0: where the kept frames' rows have full rank), and elsewhere gives no
     second-order bound (1), not a wrong one."""
+    from selpath.stages.procam._demux_certificate import certified_gap, kept_hessian, kkt_bound
+
     from benchmarks.demux_catalogue import reference
-    from stages.procam._demux_certificate import certified_gap, kept_hessian, kkt_bound
 
     problem = DemuxProblem.build(sweep_matrix(*CASES["well-posed"]), alpha=0.01, beta=0.01)
     rng = np.random.default_rng(12)
@@ -233,8 +234,9 @@ def test_the_dual_ascent_takes_the_kkt_bound_to_the_true_gap(case):
     steps (well-posed, rank-deficient, wide exposures), 1.02 / 1.49 / 6.2 with 10, within 5e-5 of 1 with 100, and
     with 1000 within 3.2e-6 at the worst pixel. With a tenth of the frames NaN the pixels' own Hessians (Woodbury)
     and steps (a lower bound on λ_min(2G_p)) do the same: 1.42, 1.13, 1 + 1.4e-6, worst 3.7e-7 off."""
+    from selpath.stages.procam._demux_certificate import kkt_bound
+
     from benchmarks.demux_catalogue import reference
-    from stages.procam._demux_certificate import kkt_bound
 
     delays, exposures, offsets = CASES["well-posed" if case == "NaN frames" else case]
     problem = DemuxProblem.build(sweep_matrix(delays, exposures, offsets), alpha=0.01, beta=0.01)

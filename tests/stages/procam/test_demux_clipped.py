@@ -7,11 +7,11 @@ import cvxpy as cp
 import jax
 import numpy as np
 import pytest
+from selpath.stages._solution import Result
+from selpath.stages.procam._demux_certificate import certified_gap
+from selpath.stages.procam._demux_problem import DemuxProblem
+from selpath.stages.procam._demux_solver import DemuxADMM, censored_offsets
 
-from stages._solution import Result
-from stages.procam._demux_certificate import certified_gap
-from stages.procam._demux_problem import DemuxProblem
-from stages.procam._demux_solver import DemuxADMM, censored_offsets
 from tests.stages.procam.test_demux_solver import sparse_transport, sweep_matrix
 
 # the thesis's sweep in miniature: delays every 2 rows, exposures of 1, 3 and 5 rows, offsets −8…8
@@ -133,7 +133,7 @@ def test_clip_free_pixels_reach_their_own_optimum_beside_clipped_ones():
 @pytest.mark.slow  # 8–11 s: in the slow job, so the default job keeps its 8-minute budget
 def test_the_full_transports_factored_problem_treats_clipped_frames_as_its_dense_equivalent():
     """A = L_u ⊗ L never formed: objective, certificate, censoring and solution match the dense problem's."""
-    from stages.procam._demux_problem import SeparableDemuxProblem
+    from selpath.stages.procam._demux_problem import SeparableDemuxProblem
 
     rng = np.random.default_rng(13)
     frame = sweep_matrix(DELAYS, EXPOSURES, OFFSETS)

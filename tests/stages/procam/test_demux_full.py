@@ -8,18 +8,17 @@ import jax
 import numpy as np
 import pytest
 import xarray as xr
-
-from devices.patterns import vertical_line
-from devices.sim import procam_transport as tr
-from devices.sim.procam_scene import ProcamScene
-from pipeline.errors import StageError
-from stages.procam._demux_problem import SeparableDemuxProblem
-from stages.procam._demux_solver import DemuxADMM
-from stages.procam._demux_store import OffsetGrid
-from stages.procam._illumination import box_overlap, line_cells, line_illumination, plane_to_ray_illumination
-from stages.procam.demux_full import demux_full
-from stages.procam.figures import profile_2d_figure, relighting_full_figure
-from stages.procam.relight import cell_average, checkerboard_relight, relight_full
+from selpath.devices.patterns import vertical_line
+from selpath.devices.sim import procam_transport as tr
+from selpath.devices.sim.procam_scene import ProcamScene
+from selpath.pipeline.errors import StageError
+from selpath.stages.procam._demux_problem import SeparableDemuxProblem
+from selpath.stages.procam._demux_solver import DemuxADMM
+from selpath.stages.procam._demux_store import OffsetGrid
+from selpath.stages.procam._illumination import box_overlap, line_cells, line_illumination, plane_to_ray_illumination
+from selpath.stages.procam.demux_full import demux_full
+from selpath.stages.procam.figures import profile_2d_figure, relighting_full_figure
+from selpath.stages.procam.relight import cell_average, checkerboard_relight, relight_full
 
 RIG = {"camera_rows": 16, "camera_cols": 24, "projector_rows": 16, "projector_cols": 24, "bits": None}
 OBJECTS = [
@@ -233,7 +232,7 @@ def test_relighting_snr_renders_the_same_board_and_measures_the_error_on_lit_pix
     relighting_full_figure relights (8 px squares: the two separable halves rendered here independently, and
     white), and its SNR is 10·log10(Σ truth² / Σ error²) over the pixels lit at 5 % of the brightest,
     recomputed here; on the noise-free sweep only the prior's bias is left (measured 15.4 and 26.4 dB)."""
-    from stages.procam.multiplexing import full_relighting_snr
+    from selpath.stages.procam.multiplexing import full_relighting_snr
 
     s, capture, out = noise_free
     study = full_relighting_snr(capture.assign_attrs(simulated_scene=s.model_dump(mode="json")), out)

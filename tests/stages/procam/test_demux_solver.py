@@ -11,11 +11,10 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
-from stages._solution import Result, SolverError
-from stages.procam._demux_problem import DemuxProblem
-from stages.procam._demux_solver import MIN_BATCH, DemuxADMM
-from stages.procam._illumination import epipolar_boundary, plane_to_ray_illumination
+from selpath.stages._solution import Result, SolverError
+from selpath.stages.procam._demux_problem import DemuxProblem
+from selpath.stages.procam._demux_solver import MIN_BATCH, DemuxADMM
+from selpath.stages.procam._illumination import epipolar_boundary, plane_to_ray_illumination
 
 
 def cvxpy_optimum(problem: DemuxProblem, data: np.ndarray,
@@ -194,9 +193,9 @@ def test_float32_does_not_settle_at_zero_where_the_pseudo_inverse_start_is_round
     32 lines over 36 u-cells): (2G)⁺ along the directions only α holds reaches 1.6e10, so in float32 both
     warm starts were rounding noise of size 1e5 and ADMM returned T = 0 for every pixel, flagged converged.
     Now float32 reaches float64's objective within 1 % (measured 0.1 %)."""
-    from stages.procam._demux_problem import SeparableDemuxProblem
-    from stages.procam._demux_store import sweep_offsets
-    from stages.procam._illumination import line_cells, line_illumination
+    from selpath.stages.procam._demux_problem import SeparableDemuxProblem
+    from selpath.stages.procam._demux_store import sweep_offsets
+    from selpath.stages.procam._illumination import line_cells, line_illumination
 
     lines = np.arange(5.0, 316.0, 10.0)
     cells, step = line_cells(lines, 50.0)
@@ -222,7 +221,7 @@ def test_float32_does_not_settle_at_zero_where_the_pseudo_inverse_start_is_round
     # certifies T = 0
     f32, f64 = problem.objective(single.value, data), problem.objective(double.value, data)
     assert np.all(single.stats["gap_bound"] >= (f32 - f64) / f32 - 1e-6)
-    from stages.procam._demux_certificate import certified_gap
+    from selpath.stages.procam._demux_certificate import certified_gap
 
     assert np.all(certified_gap(problem, np.zeros_like(single.value), data) > 0.99)
 
@@ -263,7 +262,7 @@ def test_every_operator_product_asks_for_full_precision(kind):
     """JAX's default float32 product is TF32 on Ampere/Hopper GPUs (relative error ~5e-4, far above gap_tol 1e-4):
     every product the solver's kernels apply (forward, adjoint, the T-update, the pseudo-inverse, 2G) carries
     Precision.HIGHEST. On a CPU both precisions give the same numbers, so the jaxpr is what a CPU test can check."""
-    from stages.procam._demux_problem import SeparableDemuxProblem
+    from selpath.stages.procam._demux_problem import SeparableDemuxProblem
 
     if kind == "dense":
         problem = DemuxProblem.build(sweep_matrix(*CASES["well-posed"]))
@@ -279,7 +278,7 @@ def test_every_operator_product_asks_for_full_precision(kind):
         assert precisions, name
         assert all(p == highest for p in precisions), (name, precisions)
     # and every product in the jitted kernels a solve runs (a product written there directly would show here)
-    from stages.procam import _demux_kernels as kernels
+    from selpath.stages.procam import _demux_kernels as kernels
 
     data = np.random.default_rng(1).uniform(0, 1, (8, problem.frames)).astype(np.float32)
     weight, clipped = np.ones(data.shape, np.float32), np.zeros(data.shape, np.float32)

@@ -4,17 +4,17 @@ figure stage, on dask-backed captures, under a dask scheduler that fails on the 
 from __future__ import annotations
 
 import pytest
-
-from stages.procam.demux import demux_plane_to_ray
-from stages.procam.demux_full import demux_full
-from stages.procam.figures import (
+from selpath.stages.procam.demux import demux_plane_to_ray
+from selpath.stages.procam.demux_full import demux_full
+from selpath.stages.procam.figures import (
     delay_profile_figure,
     epipolar_figure,
     profile_2d_figure,
     relighting_figure,
     relighting_full_figure,
 )
-from stages.procam.relight import checkerboard_relight, epipolar_image, non_epipolar_image, relight
+from selpath.stages.procam.relight import checkerboard_relight, epipolar_image, non_epipolar_image, relight
+
 from tests.stages.procam import test_demux, test_demux_full
 
 

@@ -7,15 +7,19 @@ import numpy as np
 import pytest
 import scipy.stats
 import xarray as xr
+from selpath.devices.sim.procam_scene import ProcamScene, load_procam_scene
+from selpath.pipeline import StageError
+from selpath.pipeline.quality import enforce
+from selpath.pipeline.store import open_store, to_store
+from selpath.stages.procam.materials import (
+    classify_materials,
+    delay_profiles,
+    train_material_classifier,
+    wilson_interval,
+)
+from selpath.stages.procam.multiplexing import noiseless
 
-import workflows
-from devices.sim.procam_scene import ProcamScene, load_procam_scene
-from pipeline import StageError
-from pipeline.quality import enforce
-from pipeline.store import open_store, to_store
-from stages.procam.materials import (classify_materials, delay_profiles, train_material_classifier,
-                                     wilson_interval)
-from stages.procam.multiplexing import noiseless
+from selpath import workflows
 from tests.stages.procam.test_demux import capture_of
 
 #: the materials capture's sweep: ±340 µs every 17 µs (one camera row per step) at t_e = 170 µs
@@ -230,9 +234,9 @@ def test_the_two_material_workflows_train_store_and_apply_a_classifier(tmp_path)
     ≥ 90 % per class; the classification names the model it used by its sha256, and the figure is drawn."""
     import shutil
 
-    from pipeline import load_workflow
-    from pipeline.engine import run_workflow
-    from pipeline.provenance import read_provenance
+    from selpath.pipeline import load_workflow
+    from selpath.pipeline.engine import run_workflow
+    from selpath.pipeline.provenance import read_provenance
 
     for name in ("procam-materials", "procam-materials-apply"):
         shutil.copy(workflows.path(name), tmp_path / f"{name}.yaml")

@@ -5,9 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import xarray as xr
-
-from pipeline import StageError
-from stages.procam.multiplexing import (
+from selpath.pipeline import StageError
+from selpath.stages.procam.multiplexing import (
     box_code,
     measured_variance,
     multiplexing_gain_study,
@@ -76,8 +75,9 @@ def test_a_line_relit_from_the_true_transport_is_the_truth_and_single_captures_m
     lights); the single-line captures' measured SNR is within 1 dB of the noise model's (Var = (g·k·x + r²)/k²,
     no clipping: the dark level keeps noise above 0); 50 scans gain between 10·log10(50) = 17 dB (shot-limited)
     and 20·log10(50) = 34 dB (read-limited: one readout for 50 scans' light)."""
-    from devices.sim import procam_transport as tr
-    from stages.procam.multiplexing import line_relighting_snr
+    from selpath.devices.sim import procam_transport as tr
+    from selpath.stages.procam.multiplexing import line_relighting_snr
+
     from tests.stages.procam.test_demux import scene
 
     s = scene(intensity=5.0, dark_level=20.0, noise={"gain": 1.0, "read_std": 3.0})
@@ -100,7 +100,7 @@ def test_a_line_relit_from_the_true_transport_is_the_truth_and_single_captures_m
 
 
 def test_only_a_capture_of_the_simulated_rig_has_a_truth():
-    from stages.procam.multiplexing import line_relighting_snr
+    from selpath.stages.procam.multiplexing import line_relighting_snr
 
     bare = xr.Dataset({"image": (("delay", "exposure", "row", "col"), np.zeros((1, 1, 4, 4)))})
     with pytest.raises(StageError, match="records no simulated scene"):
@@ -110,8 +110,9 @@ def test_only_a_capture_of_the_simulated_rig_has_a_truth():
 def test_projector_patterns_rectify_onto_the_camera_rows_asked_for():
     """A camera-row pattern becomes a projector pattern whose rectification is that pattern, for projectors
     taller and shorter than the sensor; a pattern that splits camera rows sharing a projector row is refused."""
-    from devices.sim.procam_transport import on_camera_rows
-    from stages.procam.multiplexing import line_pattern, projector_pattern
+    from selpath.devices.sim.procam_transport import on_camera_rows
+    from selpath.stages.procam.multiplexing import line_pattern, projector_pattern
+
     from tests.stages.procam.test_demux import scene
 
     for projector_rows in (97, 40, 13):

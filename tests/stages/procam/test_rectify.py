@@ -9,15 +9,14 @@ import cv2
 import numpy as np
 import pytest
 import xarray as xr
-
-from devices.patterns import gray_code_levels
-from devices.procam_acquire import acquire_gray_code
-from devices.sim.procam_rig import simulated_procam_rig
-from devices.sim.procam_scene import ProcamScene
-from devices.sim.procam_transport import seen_rows
-from pipeline.errors import StageError
-from stages.procam.acquire import gray_code_window
-from stages.procam.rectify import decode_gray_code, epipolar_alignment, rectify_transport, row_offsets
+from selpath.devices.patterns import gray_code_levels
+from selpath.devices.procam_acquire import acquire_gray_code
+from selpath.devices.sim.procam_rig import simulated_procam_rig
+from selpath.devices.sim.procam_scene import ProcamScene
+from selpath.devices.sim.procam_transport import seen_rows
+from selpath.pipeline.errors import StageError
+from selpath.stages.procam.acquire import gray_code_window
+from selpath.stages.procam.rectify import decode_gray_code, epipolar_alignment, rectify_transport, row_offsets
 
 RIG = {"camera_rows": 40, "camera_cols": 48, "projector_rows": 40, "projector_cols": 48}
 CANDLE = {"name": "candle", "region": {"kind": "rectangle", "x": [0.1, 0.45], "y": [0.2, 0.8]}, "albedo": 0.9,
@@ -100,7 +99,8 @@ def test_a_planted_misalignment_is_measured_warned_of_and_rectified_out_of_the_t
     """The projector rolled 1.5° and shifted 0.6 rows (with a scattering candle and sensor noise): the fit recovers
     both within 3 standard errors (and 0.02 rows, 0.05°), warns with the numbers, and the demultiplexed transport's
     direct peak moves from a median |offset| of about 0.6 rows to under 0.1 after rectification (goal 0.25)."""
-    from stages.procam.demux import demux_plane_to_ray
+    from selpath.stages.procam.demux import demux_plane_to_ray
+
     from tests.stages.procam.test_demux import capture_of
 
     s = scene(misalignment={"roll": "1.5 deg", "shift": "0.6 px"}, noise={"gain": 1.0, "read_std": 2.0})
@@ -163,7 +163,7 @@ def test_bad_input_is_named(tmp_path):
 
 def test_offsets_are_shifted_as_numpy_interp_does_pixel_by_pixel():
     """The vectorised re-indexing against ``np.interp`` per pixel (uneven grid, NaN outside it)."""
-    from stages.procam.rectify import _shift_offsets
+    from selpath.stages.procam.rectify import _shift_offsets
 
     rng = np.random.default_rng(3)
     offsets = np.array([-3.0, -2.0, -1.0, 0.0, 1.0, 2.5, 4.0])
@@ -177,7 +177,7 @@ def test_the_fit_trims_one_sided_outliers_and_refuses_degenerate_pixel_sets():
     """Review finding: trimming around 0 instead of around the bulk dropped every pixel once one-sided outliers pulled
     the first fit (then a raw LinAlgError). Now 30 % of pixels 4–5 rows off leave the fit exact; pixels all in one
     row or one column are refused with the reason."""
-    from stages.procam.rectify import fit_misalignment
+    from selpath.stages.procam.rectify import fit_misalignment
 
     rng = np.random.default_rng(1)
     s, c = np.mgrid[:40, :48]

@@ -5,11 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import xarray as xr
-
-from devices import patterns
-from devices.sim import procam_transport as tr
-from devices.sim.procam_scene import ProcamScene
-from stages.procam.relight import epipolar_image, non_epipolar_image, relight
+from selpath.devices import patterns
+from selpath.devices.sim import procam_transport as tr
+from selpath.devices.sim.procam_scene import ProcamScene
+from selpath.stages.procam.relight import epipolar_image, non_epipolar_image, relight
 
 RIG = {"camera_rows": 40, "camera_cols": 48, "projector_rows": 40, "projector_cols": 48, "bits": None}
 OBJECTS = [{"name": "candle", "region": {"kind": "rectangle", "x": [0.1, 0.5], "y": [0.2, 0.8]}, "albedo": 0.9,

@@ -6,13 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import xarray as xr
-
-from devices import patterns
-from devices.sim import procam_transport as tr
-from devices.sim.procam_scene import ProcamScene
-from pipeline import StageError
-from pipeline.quality import enforce
-from stages.procam.separate import SATURATED, separate_direct_global, shift_problems
+from selpath.devices import patterns
+from selpath.devices.sim import procam_transport as tr
+from selpath.devices.sim.procam_scene import ProcamScene
+from selpath.pipeline import StageError
+from selpath.pipeline.quality import enforce
+from selpath.stages.procam.separate import SATURATED, separate_direct_global, shift_problems
 
 
 def stack(frames: np.ndarray, shifts, square=(4, 4), **attrs) -> xr.Dataset:
@@ -134,7 +133,7 @@ def test_nayar_keeps_a_specular_interreflection_that_the_epipolar_separation_rem
 def test_the_dark_level_is_subtracted_and_a_missing_frame_is_flagged():
     """Frames on a 64-count sensor offset: L_g = 2·(min − dark), not 2·min; saturation is judged on raw counts; a
     NaN frame flags its pixel nonfinite."""
-    from stages.procam.separate import NONFINITE
+    from selpath.stages.procam.separate import NONFINITE
 
     frames = np.full((2, 2, 3), 100.0)
     frames[0] += 30.0

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import xarray as xr
+from selpath.devices.sim import procam_transport as tr
+from selpath.pipeline import StageError
+from selpath.stages.procam.demux import demux_plane_to_ray
+from selpath.stages.procam.short_range import short_range_images
 
-from devices.sim import procam_transport as tr
-from pipeline import StageError
-from stages.procam.demux import demux_plane_to_ray
-from stages.procam.short_range import short_range_images
 from tests.stages.procam.test_demux import capture_of, scene
 
 RANGES = (0.0, 68.0, 136.0, 272.0)  # µs: 0, 4, 8 and 16 rows at v_p = 1/17 rows/µs
@@ -64,7 +64,7 @@ def test_transport_matrix_slices_place_each_offset_at_its_projector_row():
     """Fig. 46's matrix M[s, v] = T(v − s, s, col) for plane-to-ray transport (and T(du = 0, ·) for full): on the
     simulator's truth the direct light sits on the diagonal and every other entry is the truth's own offset cell;
     offsets that would leave the projector are 0, and the matrix holds the column's whole transport."""
-    from stages.procam.application_figures import column_slice, transport_matrix
+    from selpath.stages.procam.application_figures import column_slice, transport_matrix
 
     s = scene()
     truth = truth_transport(s)

@@ -8,12 +8,11 @@ import warnings
 import cv2
 import numpy as np
 import pytest
-
-from devices.patterns import gray_code_levels
-from devices.sim.stereo_target import StereoTargetScene, capture_target, trace
-from pipeline.errors import StageError
-from stages.procam.rectify import _decode_band
-from stages.procam.stereo import calibrate_procam_stereo, camera_corners, euler_angles, projector_corners
+from selpath.devices.patterns import gray_code_levels
+from selpath.devices.sim.stereo_target import StereoTargetScene, capture_target, trace
+from selpath.pipeline.errors import StageError
+from selpath.stages.procam.rectify import _decode_band
+from selpath.stages.procam.stereo import calibrate_procam_stereo, camera_corners, euler_angles, projector_corners
 
 
 def scene(**changes) -> StereoTargetScene:
@@ -24,7 +23,7 @@ def scene(**changes) -> StereoTargetScene:
 
 
 def test_euler_angles_invert_the_simulators_rotation():
-    from devices.sim.stereo_target import rotation
+    from selpath.devices.sim.stereo_target import rotation
 
     for angles in [(0.8, -2.0, 9.5), (-30.0, 10.0, -20.0), (0.0, 0.0, 0.0)]:
         roll, pitch, yaw = angles

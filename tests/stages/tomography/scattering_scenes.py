@@ -12,10 +12,10 @@ def monte_carlo_capture(seed: int, step: float = 12.0, photons: int = 100_000, s
     ``samples`` every ``step`` degrees with the given scattering seed, backlit and dark frames, unclipped; and the
     scene's path."""
     import xarray as xr
+    from selpath.devices.sim import tomography as tomo
+    from selpath.devices.sim.scene import load_scene
 
-    import workflows
-    from devices.sim import tomography as tomo
-    from devices.sim.scene import load_scene
+    from selpath import workflows
 
     path = workflows.scene("cylinder-in-cylinder-s1")
     scene = load_scene(path)
@@ -40,11 +40,11 @@ def monte_carlo_capture(seed: int, step: float = 12.0, photons: int = 100_000, s
 def scattering_capture(seed: int, step: float = 12.0, photons: int = 100_000):
     """:func:`monte_carlo_capture` at σ_s = 1 through absorption, hull, rays and a sinogram of one θ bin per view
     and 32 X bins; with the truth on the reconstruction grid, and the capture."""
-    from stages.tomography.calibrate import absorption
-    from stages.tomography.hull import silhouettes, visual_hull
-    from stages.tomography.paths import align_paths
-    from stages.tomography.phantom import phantom_truth
-    from stages.tomography.sinogram import bin_sinogram
+    from selpath.stages.tomography.calibrate import absorption
+    from selpath.stages.tomography.hull import silhouettes, visual_hull
+    from selpath.stages.tomography.paths import align_paths
+    from selpath.stages.tomography.phantom import phantom_truth
+    from selpath.stages.tomography.sinogram import bin_sinogram
 
     cap, path = monte_carlo_capture(seed, step, photons)
     hull = visual_hull(silhouettes(cap)).compute()

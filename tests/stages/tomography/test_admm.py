@@ -1,6 +1,6 @@
 """TVADMM against an independent optimum: CVXPY (Clarabel) on the same problem, and its result codes.
 
-The problem is exactly the one ``TVADMM`` states (``stages.tomography._admm``)::
+The problem is exactly the one ``TVADMM`` states (``selpath.stages.tomography._admm``)::
 
     min_σ  ½‖M (R σ − A)‖²  +  λ Σ_ij √((∇_y σ)²_ij + (∇_x σ)²_ij)   subject to  0 ≤ σ ≤ σ_max
 
@@ -17,10 +17,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.sparse as sps
-
-from stages._solution import Result, SolverError
-from stages.tomography._admm import TVADMM, total_variation
-from stages.tomography._projector import Geometry, forward
+from selpath.stages._solution import Result, SolverError
+from selpath.stages.tomography._admm import TVADMM, total_variation
+from selpath.stages.tomography._projector import Geometry, forward
 
 N = 12
 THETA = np.array([0.0, 30.0, 75.0, 110.0, 150.0])  # five angles: far too few for FBP, TV and the box carry it
@@ -112,12 +111,13 @@ def test_capped_solve_is_data_unless_throw():
 @pytest.mark.slow  # default job over its 8 minutes: run in the slow job
 @pytest.mark.parametrize("device", [False, True])
 def test_a_batch_of_slices_is_each_slice_solved_alone(device, monkeypatch):
-    """solve_slices (one batch, the sparse system matrix as JAX's BCSR, which float64 always takes) gives each slice what
+    """solve_slices (one batch, the sparse system matrix as JAX's BCSR, which float64 always takes) gives each slice
+    what
     TVADMM.solve gives it alone (the matrix-free walk): σ to 1e-9 of its peak in float64, the same iterations and
     result, although the slices stop at different iterations (a converged slice is held while the others go on) and
     one sees no ray at all."""
-    from stages.tomography import _admm
-    from stages.tomography._projector import HostProjector, MatrixProjector
+    from selpath.stages.tomography import _admm
+    from selpath.stages.tomography._projector import HostProjector, MatrixProjector
 
     monkeypatch.setattr(_admm, "DEVICE_BATCH", 1 if device else 10**6)
     geometry, first, observed, upper = problem("joseph", 2)

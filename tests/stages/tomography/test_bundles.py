@@ -6,10 +6,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
-from devices.sim.shapes import Prism, convex_polygon
-from stages._solution import Result
-from stages.tomography._bundles import (
+from selpath.devices.sim.shapes import Prism, convex_polygon
+from selpath.stages._solution import Result
+from selpath.stages.tomography._bundles import (
     Bundles,
     fit_slice,
     forward,
@@ -19,8 +18,8 @@ from stages.tomography._bundles import (
     slice_objective,
     smooth_total_variation,
 )
-from stages.tomography._projector import Geometry
-from stages.tomography._walks import random_walks
+from selpath.stages.tomography._projector import Geometry
+from selpath.stages.tomography._walks import random_walks
 
 SQUARE = convex_polygon([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])
 GEOMETRY = Geometry.from_grids(np.arange(4) * 45.0, np.linspace(-1.2, 1.2, 48), 48, 1.2)

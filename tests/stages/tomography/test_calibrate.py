@@ -9,9 +9,8 @@ import pytest
 import xarray as xr
 from hypothesis import given, settings
 from hypothesis import strategies as st
-
-from pipeline import StageError
-from stages.tomography.calibrate import (
+from selpath.pipeline import StageError
+from selpath.stages.tomography.calibrate import (
     BACKGROUND,
     FLAG_MASKS,
     NO_SIGNAL,
@@ -191,7 +190,7 @@ def test_a_failed_backlight_stops_the_run_instead_of_flagging_noise(disc_capture
     """A backlight that never came on (backlit = dark + noise): Otsu still splits the noise, which would flag about
     half of every frame background, the object included, while every other share reads 100 %. The silhouette share
     (classes more than 2 noise widths apart) is 0 and the quality check refuses it, naming the fix."""
-    from pipeline.quality import enforce
+    from selpath.pipeline.quality import enforce
 
     capture, _, _ = disc_capture
     assert float(absorption(capture, min_signal=1.0)["silhouette_fraction"]) == 1.0
@@ -251,8 +250,9 @@ def test_flag_meanings_list_the_background_bit():
 def test_the_background_bit_drops_no_ray():
     """Rays come from pixels whose camera ray meets the hull, which the silhouettes bound: the pixels the bit
     flags (off the silhouette) already gave no ray (reason 1). Noisy background, perspective camera."""
-    from stages.tomography.hull import silhouettes, visual_hull
-    from stages.tomography.paths import align_paths
+    from selpath.stages.tomography.hull import silhouettes, visual_hull
+    from selpath.stages.tomography.paths import align_paths
+
     from tests.stages.tomography.test_tomography_processing import capture as simulated
     from tests.stages.tomography.test_tomography_processing import make_scene
 

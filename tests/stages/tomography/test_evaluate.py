@@ -5,9 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import xarray as xr
-
-from pipeline.errors import StageError
-from stages.tomography.evaluate import reconstruction_error
+from selpath.pipeline.errors import StageError
+from selpath.stages.tomography.evaluate import reconstruction_error
 
 
 def cube(sigma: np.ndarray, extent: float = 1.0) -> xr.Dataset:

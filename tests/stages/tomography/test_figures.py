@@ -8,11 +8,11 @@ import subprocess
 import sys
 
 import numpy as np
+from selpath.stages._figures import DPI, SIZE_IN
+from selpath.stages.tomography.figures import capture_figure, coverage_figure, sinogram_figure
+from selpath.stages.tomography.reconstruct import fbp, reconstruct_tv
+from selpath.stages.tomography.reconstruction_figures import convergence_figure, reconstruction_figure
 
-from stages._figures import DPI, SIZE_IN
-from stages.tomography.figures import capture_figure, coverage_figure, sinogram_figure
-from stages.tomography.reconstruct import fbp, reconstruct_tv
-from stages.tomography.reconstruction_figures import convergence_figure, reconstruction_figure
 from tests.stages.tomography.test_reconstruct import sinogram
 from tests.stages.tomography.test_tomography_processing import lazy_chain
 
@@ -33,8 +33,9 @@ def test_figure_stages_stay_lazy_and_draw_rgba_images(no_compute):
 
 def test_importing_the_figure_stages_keeps_the_backend_and_pyplot_state():
     code = ("import matplotlib; matplotlib.use('svg'); import matplotlib.pyplot as plt\n"
-            "import stages.tomography.figures, stages.tomography.reconstruction_figures, stages.procam.figures\n"
-            "import stages._figures as f\n"
+            "import selpath.stages.tomography.figures, selpath.stages.tomography.reconstruction_figures\n"
+            "import selpath.stages.procam.figures\n"
+            "import selpath.stages._figures as f\n"
             "f.rgba(f.panels(1, 2)[0])\n"
             "print(matplotlib.get_backend(), len(plt.get_fignums()))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()

@@ -11,16 +11,22 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import xarray as xr
+from selpath.stages.tomography._filters import ramp_response
+from selpath.stages.tomography._projector import Geometry, adjoint, backproject, forward, system_matrix
+from selpath.stages.tomography.acquire import AngleSweep
+from selpath.stages.tomography.phantom import simulate_sinogram, truth_raster
+from selpath.stages.tomography.reconstruct import (
+    _fill_missing,
+    fbp,
+    reconstruct_tv,
+    reliable_cells,
+    support_mask,
+    upper_bound,
+)
 from skimage.data import shepp_logan_phantom
 from skimage.transform import radon, resize
 
-import workflows
-from stages.tomography._filters import ramp_response
-from stages.tomography._projector import Geometry, adjoint, backproject, forward, system_matrix
-from stages.tomography.acquire import AngleSweep
-from stages.tomography.phantom import simulate_sinogram, truth_raster
-from stages.tomography.reconstruct import (_fill_missing, fbp, reconstruct_tv, reliable_cells, support_mask,
-                                           upper_bound)
+from selpath import workflows
 
 L = 1.0
 DISKS = (((0.2, -0.1), 0.3, 0.2), ((-0.4, 0.3), 0.2, 0.1), ((0.0, 0.0), 0.8, 0.05))
@@ -170,7 +176,7 @@ def test_simulated_sinogram_is_exact_and_truth_matches_it():
     data = simulate_sinogram(scene=scene, light_angle_deg=60.0, n_theta=60, n_x=64, angles=AngleSweep(step=3.0))
     assert 0.5 < float(data["observed"].mean()) < 1.0
     g = Geometry.from_grids(data["theta"].values, data["x"].values, 128, float(data.x_extent))
-    from devices.sim.scene import load_scene
+    from selpath.devices.sim.scene import load_scene
 
     raster = truth_raster(load_scene(scene), 128, float(data.x_extent))
     projected = np.asarray(forward(g, jnp.asarray(raster, jnp.float32)))
@@ -226,7 +232,8 @@ def test_linear_fill_equals_numpy_interp_row_by_row():
 
 def test_batched_backprojection_and_reliability_equal_brute_force():
     """The compiled, batched pixel-driven back-projection equals a numpy loop of ``np.interp`` per angle on the
-    sinogram padded with a zero bin each side (float64, 1e-9), and the reliable cells equal the definition: the nearest bin known at every θ (exactly, on a grid where
+    sinogram padded with a zero bin each side (float64, 1e-9), and the reliable cells equal the definition: the nearest
+    bin known at every θ (exactly, on a grid where
     cell centres fall on half-bins, the ties)."""
     g = Geometry.from_grids(np.arange(0.0, 180.0, 7.5), np.linspace(-L, L, 33), 32, L)
     rng = np.random.default_rng(5)

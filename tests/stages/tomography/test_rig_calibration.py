@@ -9,17 +9,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import xarray as xr
-
-from devices.sim import tomography as tomo
-from devices.sim.scene import Scene
-from pipeline import StageError
-from stages.tomography.calibrate import absorption
-from stages.tomography.hull import silhouettes, visual_hull
-from stages.tomography.paths import align_paths
-from stages.tomography.phantom import truth_raster
-from stages.tomography.reconstruct import fbp
-from stages.tomography.rig_calibration import apply_rig_calibration, calibrate_rig, silhouette_edges
-from stages.tomography.sinogram import bin_sinogram
+from selpath.devices.sim import tomography as tomo
+from selpath.devices.sim.scene import Scene
+from selpath.pipeline import StageError
+from selpath.stages.tomography.calibrate import absorption
+from selpath.stages.tomography.hull import silhouettes, visual_hull
+from selpath.stages.tomography.paths import align_paths
+from selpath.stages.tomography.phantom import truth_raster
+from selpath.stages.tomography.reconstruct import fbp
+from selpath.stages.tomography.rig_calibration import apply_rig_calibration, calibrate_rig, silhouette_edges
+from selpath.stages.tomography.sinogram import bin_sinogram
 
 ROWS, COLS = 16, 200
 STICK = {"shape": {"kind": "polygon", "vertices": [["6 mm", "2 mm"], ["12 mm", "2 mm"], ["12 mm", "4 mm"],

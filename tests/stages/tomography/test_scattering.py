@@ -7,14 +7,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from selpath.pipeline.schema import check_dataset, with_metadata
 
-from pipeline.schema import check_dataset, with_metadata
 from tests.stages.tomography.scattering_scenes import scattering_capture
 
 
 def test_at_sigma_s_zero_the_stage_is_the_shortest_path_reconstruction(seed0):
-    from stages.tomography.reconstruct import reconstruct_tv
-    from stages.tomography.scattering import reconstruct_scattering
+    from selpath.stages.tomography.reconstruct import reconstruct_tv
+    from selpath.stages.tomography.scattering import reconstruct_scattering
 
     rays, sinogram, hull, _, _ = seed0
     ours = reconstruct_scattering(rays, sinogram, hull, sigma_s=0.0, tv_weight=0.05).compute()
@@ -23,8 +23,8 @@ def test_at_sigma_s_zero_the_stage_is_the_shortest_path_reconstruction(seed0):
 
 
 def test_building_the_reconstruction_computes_nothing_and_bad_rays_are_named(seed0, no_compute):
-    from pipeline import StageError
-    from stages.tomography.scattering import reconstruct_scattering
+    from selpath.pipeline import StageError
+    from selpath.stages.tomography.scattering import reconstruct_scattering
 
     rays, sinogram, hull, _, _ = seed0
     out = reconstruct_scattering(rays.chunk({"angle": 5}), sinogram, hull, sigma_s=1.0)
@@ -35,7 +35,7 @@ def test_building_the_reconstruction_computes_nothing_and_bad_rays_are_named(see
 
 
 def test_a_slice_with_no_observed_bin_is_nan_and_unconverged_not_zero(seed0):
-    from stages.tomography.scattering import reconstruct_scattering
+    from selpath.stages.tomography.scattering import reconstruct_scattering
 
     rays, sinogram, hull, _, _ = seed0
     empty = sinogram.assign(observed=sinogram["observed"] & False)
@@ -53,12 +53,13 @@ def test_the_bundles_absorption_is_the_simulators_own_at_the_true_sigma(seed0):
     (measured: at most 0.08, most within 0.04; three seeds of the model spread ±0.05; the simulator's 100 k photons
     a frame are noisy too). On the 32-grid of the reconstructions the same disc blurred by bilinear interpolation
     reads up to 0.07 higher: a coarse grid's absorber needs less σ to absorb as much."""
-    import workflows
-    from devices.geometry import RigGeometry
-    from stages.tomography._bundles import forward, trace_bundles
-    from stages.tomography.hull import contours
-    from stages.tomography.phantom import phantom_truth
-    from stages.tomography.reconstruct import grid_geometry
+    from selpath.devices.geometry import RigGeometry
+    from selpath.stages.tomography._bundles import forward, trace_bundles
+    from selpath.stages.tomography.hull import contours
+    from selpath.stages.tomography.phantom import phantom_truth
+    from selpath.stages.tomography.reconstruct import grid_geometry
+
+    from selpath import workflows
 
     rays, sinogram, hull, _, cap = seed0
     row = int(sinogram["slice"].values[0])
@@ -92,8 +93,8 @@ def test_the_bundle_model_recovers_the_absorber_the_shortest_path_model_halves(s
     sampling the RMSE falls 4.6×: docs/results.md). Measured (λ = 0.03 for both, the bundles' other settings their
     defaults): seed 0 4.20 → 8.65, RMSE 0.915 → 0.366; seed 1 4.70 → 9.56, RMSE 0.854 → 0.467 (before next-event
     estimation, 20 000 walks a view whose own exits landed in a band of rows: 8.10, 0.544; 9.25, 0.369)."""
-    from stages.tomography.reconstruct import reconstruct_tv
-    from stages.tomography.scattering import reconstruct_scattering
+    from selpath.stages.tomography.reconstruct import reconstruct_tv
+    from selpath.stages.tomography.scattering import reconstruct_scattering
 
     rays, sinogram, hull, truth, _ = seed0 if seed == 0 else scattering_capture(seed)
     inside = truth > 5
@@ -113,9 +114,8 @@ def test_the_bundle_model_recovers_the_absorber_the_shortest_path_model_halves(s
 
 def test_the_reconstruction_takes_sigma_s_from_an_estimate_and_refuses_an_ambiguous_or_failed_one(seed0):
     import xarray as xr
-
-    from pipeline import StageError
-    from stages.tomography.scattering import reconstruct_scattering
+    from selpath.pipeline import StageError
+    from selpath.stages.tomography.scattering import reconstruct_scattering
 
     rays, sinogram, hull, _, _ = seed0
     estimate = xr.Dataset({"sigma_s": ((), 1.25)})

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from selpath.pipeline.schema import check_dataset, with_metadata
 
-from pipeline.schema import check_dataset, with_metadata
 from tests.stages.tomography.scattering_scenes import monte_carlo_capture
 
 
@@ -14,7 +14,7 @@ def test_the_profile_misfit_takes_away_the_monte_carlo_share_of_the_residual():
     """Modelled bin counts drawn as Poisson(λ_b) against a measured profile c·λ_b (the right shape): Σ r² alone
     averages (1 − 1/B) Σ 1/λ_b, the noise of the log counts; the misfit, with the walks' variance 1/n_b taken away,
     averages 0 (within 4 standard errors over 4000 draws); a wrong shape stays above it."""
-    from stages.tomography._exit_profile import profile_misfit
+    from selpath.stages.tomography._exit_profile import profile_misfit
 
     rng = np.random.default_rng(7)
     lam = np.geomspace(30.0, 400.0, 10)
@@ -32,7 +32,7 @@ def test_the_profile_misfit_takes_away_the_monte_carlo_share_of_the_residual():
 def test_the_curves_minimum_is_the_parabolas_in_log_sigma():
     """A misfit that is a parabola in log σ_s, sampled on a log grid, gives its vertex exactly (1e-9); a minimum at
     the grid's end gives the end; no finite value gives NaN."""
-    from stages.tomography._exit_profile import curve_minimum
+    from selpath.stages.tomography._exit_profile import curve_minimum
 
     grid = 2.0 * 2.0 ** np.linspace(-0.5, 0.5, 41)
     assert curve_minimum(3.0 * np.log(grid / 2.3) ** 2 + 1.0, grid) == pytest.approx(2.3, rel=1e-9)
@@ -42,7 +42,7 @@ def test_the_curves_minimum_is_the_parabolas_in_log_sigma():
 
 @pytest.fixture(scope="module")
 def reference_s2():
-    from stages.tomography.hull import silhouettes, visual_hull
+    from selpath.stages.tomography.hull import silhouettes, visual_hull
 
     cap, _ = monte_carlo_capture(0, step=10.0, photons=200_000, sigma_s=2.0, samples=("reference",))
     return cap, visual_hull(silhouettes(cap)).compute()
@@ -56,7 +56,7 @@ def test_the_estimate_recovers_the_scenes_sigma_s_within_its_stated_uncertainty(
     Measured: σ_s = 1: 1.016 [0.978, 1.048]; σ_s = 2: 1.93 [1.82, 2.02]. (At σ_s = 3 and above the profile no
     longer tells σ_s apart from larger values: the workflow's σ_s = 3 capture gives 2.71 [2.49, ∞], docs/results.md.)
     """
-    from stages.tomography.scattering_estimate import estimate_scattering
+    from selpath.stages.tomography.scattering_estimate import estimate_scattering
 
     truth, width = (1.0, 0.25) if case == "sigma_s=1" else (2.0, 0.25)
     cap, hull = (seed0[4], seed0[2]) if truth == 1.0 else request.getfixturevalue("reference_s2")
@@ -74,8 +74,8 @@ def test_the_estimate_recovers_the_scenes_sigma_s_within_its_stated_uncertainty(
 
 
 def test_building_the_estimate_computes_nothing_and_a_light_sheet_is_refused(seed0, no_compute):
-    from pipeline import StageError
-    from stages.tomography.scattering_estimate import estimate_scattering
+    from selpath.pipeline import StageError
+    from selpath.stages.tomography.scattering_estimate import estimate_scattering
 
     cap, hull = seed0[4], seed0[2]
     out = estimate_scattering(cap, hull, photons=200)
@@ -85,7 +85,7 @@ def test_building_the_estimate_computes_nothing_and_a_light_sheet_is_refused(see
 
 
 def test_reference_frames_without_a_finite_pixel_give_no_estimate_not_a_confident_one(seed0):
-    from stages.tomography.scattering_estimate import estimate_scattering
+    from selpath.stages.tomography.scattering_estimate import estimate_scattering
 
     cap, hull = seed0[4], seed0[2]
     blind = estimate_scattering(cap.assign(reference=cap["reference"] * np.nan), hull, photons=200).compute()

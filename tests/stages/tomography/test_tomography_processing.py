@@ -6,16 +6,15 @@ import numpy as np
 import pytest
 import xarray as xr
 from scipy.spatial.distance import directed_hausdorff
-
-from devices.sim import tomography as tomo
-from devices.sim.scene import Scene
-from pipeline import FORMAT_VERSION, StageError, open_store
-from pipeline.integrity import write_manifest
-from stages.tomography.calibrate import absorption
-from stages.tomography.hull import hull_polygons, silhouettes, visual_hull
-from stages.tomography.paths import REASONS, align_paths
-from stages.tomography.reconstruct import fbp, reconstruct_tv
-from stages.tomography.sinogram import bin_sinogram, coverage, coverage_model, optimal_light_angle
+from selpath.devices.sim import tomography as tomo
+from selpath.devices.sim.scene import Scene
+from selpath.pipeline import FORMAT_VERSION, StageError, open_store
+from selpath.pipeline.integrity import write_manifest
+from selpath.stages.tomography.calibrate import absorption
+from selpath.stages.tomography.hull import hull_polygons, silhouettes, visual_hull
+from selpath.stages.tomography.paths import REASONS, align_paths
+from selpath.stages.tomography.reconstruct import fbp, reconstruct_tv
+from selpath.stages.tomography.sinogram import bin_sinogram, coverage, coverage_model, optimal_light_angle
 
 R = 10.0
 
@@ -250,7 +249,7 @@ def test_bins_finer_than_the_views_are_warned_of_and_leave_a_checkerboard():
 def test_a_dimensionless_length_unit_runs_the_chain_with_sigma_per_that_unit(tmp_path):
     """Renders in scene units (object radius 1) had no length_unit to state. With "1" every stage runs; lengths
     carry "1" and σ too (not "1/1"); the numbers are those of the same rig labelled in mm."""
-    from pipeline import to_store
+    from selpath.pipeline import to_store
 
     scene = make_scene({"kind": "cylinder", "radius": f"{R} mm"}, cylinder_camera(None, 64), 60.0,
                        inclusions=[{"shape": {"kind": "cylinder", "radius": "3 mm"}, "sigma": "0.05 /mm"}])
@@ -289,7 +288,7 @@ def _filled_by_hand(observed: np.ndarray) -> float:
 @pytest.mark.parametrize("seed", range(4))
 def test_filled_fraction_counts_the_holes_between_observed_bins(seed):
     """Against the definition evaluated bin by bin, on random masks (dense and sparse), the θ wrap included."""
-    from stages.tomography.sinogram import filled_share
+    from selpath.stages.tomography.sinogram import filled_share
 
     rng = np.random.default_rng(seed)
     observed = rng.random((2, 7, 9)) < (0.3, 0.6, 0.8, 0.95)[seed]
@@ -306,7 +305,7 @@ def test_default_bins_follow_the_capture_and_fill_it():
     warning for each and the capture's counts in the advice."""
     import warnings
 
-    from pipeline.quality import ADVISE, FIX
+    from selpath.pipeline.quality import ADVISE, FIX
 
     cols = 160
     scene = make_scene({"kind": "cylinder", "radius": f"{R} mm"}, cylinder_camera(30.0, cols), 45.0)

@@ -10,20 +10,20 @@ from pathlib import Path
 import numpy as np
 import pytest
 import xarray as xr
+from selpath.devices.sim.scene import Scene, load_scene
+from selpath.pipeline import StageError
+from selpath.stages.tomography.acquire import AngleSweep
+from selpath.stages.tomography.calibrate import absorption
+from selpath.stages.tomography.evaluate import reconstruction_error
+from selpath.stages.tomography.hull import silhouettes, visual_hull
+from selpath.stages.tomography.paths import align_paths
+from selpath.stages.tomography.phantom import phantom_truth
+from selpath.stages.tomography.reconstruct import fbp, ome_attrs, reconstruct_tv
+from selpath.stages.tomography.reconstruction_figures import upright, volume_figure
+from selpath.stages.tomography.simulate import simulate_capture
+from selpath.stages.tomography.sinogram import bin_sinogram
 
-import workflows
-from devices.sim.scene import Scene, load_scene
-from pipeline import StageError
-from stages.tomography.acquire import AngleSweep
-from stages.tomography.calibrate import absorption
-from stages.tomography.evaluate import reconstruction_error
-from stages.tomography.reconstruction_figures import upright, volume_figure
-from stages.tomography.hull import silhouettes, visual_hull
-from stages.tomography.paths import align_paths
-from stages.tomography.phantom import phantom_truth
-from stages.tomography.reconstruct import fbp, ome_attrs, reconstruct_tv
-from stages.tomography.simulate import simulate_capture
-from stages.tomography.sinogram import bin_sinogram
+from selpath import workflows
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_tomography_processing import capture  # noqa: E402  (the in-memory simulated capture)
@@ -156,16 +156,16 @@ def test_a_lazily_simulated_capture_is_the_rigs_under_any_chunking(tmp_path):
 @pytest.mark.parametrize("rows_per_chunk", [None, 5], ids=["frames", "bands"])
 def test_no_task_of_the_volume_chain_holds_a_whole_capture(monkeypatch, tmp_path, rows_per_chunk):
     """Memory bounded by tile: with 4-frame render chunks, 1-KiB hull blocks and binning tasks, one-slice
-    reconstruction batches and dask's rechunk intermediates at most 16 KiB (``array.chunk-size``, 128 MiB by default: the same proportions as a full capture's), no task's
+    reconstruction batches and dask's rechunk intermediates at most 16 KiB (``array.chunk-size``, 128 MiB by default:
+    the same proportions as a full capture's), no task's
     result holds more than 8 render chunks' bytes (the paths' 4 float64 fields of a chunk: 8×) or the hull's
     contours of every slice (which each path task reads), and either is under a quarter of one frame kind."""
     import dask
+    import selpath.stages.tomography.hull as hull_module
+    import selpath.stages.tomography.reconstruct as reconstruct_module
+    import selpath.stages.tomography.simulate as simulate_module
+    import selpath.stages.tomography.sinogram as sinogram_module
     from dask.callbacks import Callback
-
-    import stages.tomography.hull as hull_module
-    import stages.tomography.reconstruct as reconstruct_module
-    import stages.tomography.simulate as simulate_module
-    import stages.tomography.sinogram as sinogram_module
 
     scene = small_grape(cols=96)
     path = tmp_path / "small-grape.yaml"
@@ -207,9 +207,8 @@ def test_the_volume_workflow_recovers_the_grape_and_3d_viewers_can_open_it(tmp_p
     an independent OME-Zarr 0.5 validator (ome-zarr-models)."""
     import zarr
     from ome_zarr_models.v05.image import Image
-
-    from pipeline import load_workflow, open_store
-    from pipeline.engine import run_workflow
+    from selpath.pipeline import load_workflow, open_store
+    from selpath.pipeline.engine import run_workflow
 
     shutil.copy(workflows.path("tomography-volume"), tmp_path / "tomography-volume.yaml")
     shutil.copytree(workflows.folder() / "scenes", tmp_path / "scenes")

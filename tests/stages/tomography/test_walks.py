@@ -4,10 +4,9 @@
 from __future__ import annotations
 
 import numpy as np
-
-from devices.geometry import OrthographicCamera, RigGeometry
-from devices.sim.shapes import Ellipse, Prism
-from stages.tomography._walks import beam_entry, exit_weights, random_walks, walk_body, walk_weights
+from selpath.devices.geometry import OrthographicCamera, RigGeometry
+from selpath.devices.sim.shapes import Ellipse, Prism
+from selpath.stages.tomography._walks import beam_entry, exit_weights, random_walks, walk_body, walk_weights
 
 CIRCLE = Prism(Ellipse((0.0, 0.0), (1.0, 1.0), 0.0))
 ENTRY, NORMAL = np.array([-1.0, 0.0, 0.0]), np.array([-1.0, 0.0, 0.0])
