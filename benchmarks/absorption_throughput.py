@@ -42,6 +42,7 @@ def _capture(args):
 def _read(store: str) -> float:
     """Seconds to open ``store`` and reduce every variable (every chunk read, decoded and verified)."""
     import dask
+
     from selpath.pipeline.store import open_store
 
     start = time.perf_counter()
@@ -53,6 +54,7 @@ def _read(store: str) -> float:
 def measure(mode: str, args) -> dict:
     import dask
     import numpy as np
+
     from selpath.pipeline.store import to_store
     from selpath.stages.tomography.calibrate import absorption
 

@@ -35,13 +35,12 @@ def main() -> None:
     parser.add_argument("--share", type=float, default=0.1, help="share of pixels that are highlights")
     args = parser.parse_args()
 
-    from selpath.stages.procam._demux_problem import DemuxProblem
-    from selpath.stages.procam._demux_solver import DemuxADMM
-    from selpath.stages.procam._demux_store import solve_pixels
-
     from benchmarks._demux_sweep import matrix as _matrix
     from benchmarks._demux_sweep import offsets as _offsets
     from benchmarks._demux_sweep import pixels as _pixels
+    from selpath.stages.procam._demux_problem import DemuxProblem
+    from selpath.stages.procam._demux_solver import DemuxADMM
+    from selpath.stages.procam._demux_store import solve_pixels
 
     k = 128
     matrix = _matrix(k, kept_only=True)

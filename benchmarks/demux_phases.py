@@ -46,6 +46,7 @@ def timed_phases(totals: dict, calls: dict | None = None):
     """Wrap the solver's phases (:data:`PHASES`) with timers adding seconds to ``totals`` per label (and, with
     ``calls``, counting the calls per wrapped attribute's name); restored on exit."""
     import jax
+
     import selpath.stages.procam._demux_kernels as kernels
     from selpath.stages.procam._demux_solver import DemuxADMM
 
@@ -106,12 +107,12 @@ def main() -> None:
                         help="the store-to-store step's I/O alone, µs/px (the throughput benchmark's measurement)")
     args = parser.parse_args()
     import jax
+
+    from benchmarks._demux_sweep import FAST, default_cvxpy_seconds, device_line, matrix, sample
     from selpath.pipeline.compute import blas_on_one_thread
     from selpath.stages.procam._demux_problem import DemuxProblem
     from selpath.stages.procam._demux_solver import DemuxADMM
     from selpath.stages.procam._demux_store import pixels_per_call
-
-    from benchmarks._demux_sweep import FAST, default_cvxpy_seconds, device_line, matrix, sample
 
     k = 128
     pixels = args.pixels or pixels_per_call(1600 * 64, k)

@@ -30,13 +30,13 @@ def main() -> None:
                         help="also solve with JAX's default precision of float32 products (TF32 on recent GPUs)")
     args = parser.parse_args()
     import jax
-    import selpath.stages.procam._demux_problem as demux_problem
-    from selpath.stages.procam._demux_solver import DemuxADMM
 
+    import selpath.stages.procam._demux_problem as demux_problem
     from benchmarks._demux_sweep import device_line
     from benchmarks._demux_sweep import matrix as _matrix
     from benchmarks._demux_sweep import sample as _sample
     from benchmarks.demux_catalogue import reference
+    from selpath.stages.procam._demux_solver import DemuxADMM
 
     device = device_line(jax)
     print(f"device: {device}")

@@ -61,6 +61,7 @@ def _options(args) -> dict:
 def measure(mode: str, args) -> dict:
     import dask
     import numpy as np
+
     from selpath.pipeline.compute import compute, enable_compile_cache
     from selpath.pipeline.store import open_store, to_store
 
@@ -126,6 +127,7 @@ def measure(mode: str, args) -> dict:
         from concurrent.futures import ThreadPoolExecutor
 
         import cvxpy as cp
+
         from selpath.stages.procam._demux_problem import DemuxProblem
         from selpath.stages.procam._demux_solver import DemuxADMM
         from selpath.stages.procam._demux_store import solve_pixels

@@ -44,6 +44,7 @@ def main() -> None:
     os.environ.update(AWS_ACCESS_KEY_ID="bench", AWS_SECRET_ACCESS_KEY="bench", AWS_DEFAULT_REGION="us-east-1",
                       AWS_ENDPOINT_URL=f"http://{host}:{port}")
     import s3fs
+
     from selpath.pipeline.store import open_store, to_store
 
     fs = s3fs.S3FileSystem()

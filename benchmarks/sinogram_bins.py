@@ -12,6 +12,7 @@ import warnings
 
 import numpy as np
 import xarray as xr
+
 from selpath.devices.sim import tomography as tomo
 from selpath.devices.sim.scene import Scene
 from selpath.pipeline.quality import enforce

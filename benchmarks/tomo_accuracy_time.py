@@ -28,13 +28,13 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from selpath import workflows
 from selpath.devices.sim.scene import load_scene
 from selpath.stages.tomography._admm import TVADMM, projector_for
 from selpath.stages.tomography._projector import Geometry, operator_norm
 from selpath.stages.tomography.phantom import observed_mask, scene_radon, truth_raster
 from selpath.stages.tomography.reconstruct import fbp_slice, known_zero, support_mask, upper_bound
-
-from selpath import workflows
 
 ROOT = Path(__file__).resolve().parent
 SCENE = workflows.scene("phantom-cylinder")

@@ -28,6 +28,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.experimental import sparse
+
 from selpath.stages.tomography._admm import TVADMM
 from selpath.stages.tomography._projector import (
     Geometry,

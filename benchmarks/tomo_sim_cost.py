@@ -11,10 +11,9 @@ from __future__ import annotations
 import argparse
 import time
 
+from selpath import workflows
 from selpath.devices.sim.scene import Scene, load_scene
 from selpath.devices.sim.tomography import lit_frame
-
-from selpath import workflows
 
 SCENE = workflows.scene("cylinder-in-cylinder-s1")
 

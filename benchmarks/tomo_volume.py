@@ -38,6 +38,8 @@ from pathlib import Path
 import numpy as np
 import xarray as xr
 import yaml
+
+from selpath import workflows
 from selpath.pipeline.compute import local_cluster
 from selpath.stages.tomography.acquire import AngleSweep
 from selpath.stages.tomography.calibrate import absorption
@@ -47,8 +49,6 @@ from selpath.stages.tomography.phantom import phantom_truth
 from selpath.stages.tomography.reconstruct import fbp
 from selpath.stages.tomography.simulate import simulate_capture
 from selpath.stages.tomography.sinogram import bin_sinogram
-
-from selpath import workflows
 
 
 def scene_file(folder: Path, rows: int, cols: int) -> Path:

@@ -13,7 +13,8 @@ covers [r − ½, r + ½] × [c − ½, c + ½]; the principal point defaults to
 One camera class per model (:class:`PerspectiveCamera`, :class:`OrthographicCamera`) owns projection,
 back-projection, pixel rays and footprints; :class:`RigGeometry` holds the camera and the light. It is
 written into a capture's attrs by an acquisition and built back from them (:meth:`RigGeometry.from_attrs`,
-which checks them against the one declaration of the required attrs in :mod:`selpath.pipeline.schema`) by every
+which checks them against the one declaration of the required attrs, :data:`RIG_ATTRS` and :data:`CAMERA_ATTRS`
+below) by every
 processing stage, the simulator and the phantom, so none of them can disagree on a convention.
 
 >>> camera = OrthographicCamera(rows=3, cols=5, pixel_size=0.5)
@@ -29,8 +30,37 @@ from dataclasses import asdict, dataclass, fields
 from typing import Any, ClassVar, Literal
 
 import numpy as np
+
 from selpath.pipeline.errors import Problem, StageError
-from selpath.pipeline.kinds import CAMERA_ATTRS, RIG_ATTRS, camera_attr_problems
+
+#: Rig-geometry attrs of a tomography capture (DESIGN §2, §8). This and :data:`CAMERA_ATTRS` are the one
+#: declaration of them: the tomography kinds require them (``selpath.stages.tomography``), :class:`RigGeometry`
+#: builds the cameras from them and the hardware rig's config reads them.
+RIG_ATTRS = {
+    "camera_model": "'perspective' or 'orthographic'",
+    "light_angle_deg": "light angle θ_l between the beam and the camera axis, degree",
+    "length_unit": "unit of every length attr and of sinogram x: 'm', 'cm', 'mm', 'um', 'px' or '1' (dimensionless)",
+}
+#: Further attrs each camera model needs. ``principal_point_px`` is in every perspective store; a camera built
+#: from a config (``sensor_defaults``) may leave it out: it defaults to the sensor's centre.
+CAMERA_ATTRS: dict[str, tuple[str, ...]] = {
+    # light_distance (D_l) is not required: a beam is a line, and where its source sits on it changes no ray
+    "perspective": ("focal_length_px", "principal_point_px", "camera_distance"),
+    "orthographic": ("pixel_size",),
+}
+SENSOR_DEFAULTS = frozenset({"principal_point_px"})
+
+
+def camera_attr_problems(attrs: Mapping, *, sensor_defaults: bool = False) -> list[str]:
+    """What the attrs of a camera model (``attrs['camera_model']``; none given: nothing to check) lack."""
+    model = attrs.get("camera_model")
+    if model is None:
+        return []
+    if model not in CAMERA_ATTRS:
+        return [f"attr camera_model is {model!r}; expected {' or '.join(map(repr, CAMERA_ATTRS))}"]
+    skip = SENSOR_DEFAULTS if sensor_defaults else frozenset()
+    return [f"attr {a!r} is required for a {model} camera" for a in CAMERA_ATTRS[model]
+            if a not in attrs and a not in skip]
 
 
 def rotation_z(angle_deg: float) -> np.ndarray:
@@ -241,7 +271,7 @@ class OrthographicCamera(Camera):
 
 
 #: the camera class of each model named in a store's ``camera_model`` attr
-#: (the keys of :data:`selpath.pipeline.kinds.CAMERA_ATTRS`; a test keeps the two in step)
+#: (the keys of :data:`CAMERA_ATTRS`; a test keeps the two in step)
 CAMERAS: dict[str, type[Camera]] = {cls.model: cls for cls in (PerspectiveCamera, OrthographicCamera)}
 #: a ``camera_model`` value, for typed configs
 CameraModel = Literal[tuple(CAMERA_ATTRS)]  # Literal[("a", "b")] is Literal["a", "b"]

@@ -15,12 +15,12 @@ import os
 from typing import Literal
 
 import pydantic
-from selpath.devices.geometry import CameraModel, RigGeometry
+
+from selpath.devices.geometry import CAMERA_ATTRS, CameraModel, RigGeometry, camera_attr_problems
 from selpath.devices.manual import ManualLight, ManualSampleChanger
 from selpath.devices.opencv_camera import OpenCVCamera
 from selpath.devices.serial_stage import SerialRotaryStage
 from selpath.devices.tomography_acquire import TomographyRig
-from selpath.pipeline.kinds import CAMERA_ATTRS, camera_attr_problems
 from selpath.pipeline.yaml_source import load_yaml_model
 
 
@@ -49,7 +49,7 @@ class GeometryConfig(_Model):
     """Rig geometry written into every capture (DESIGN §8); lengths in ``length_unit``.
 
     The fields are the attrs of :class:`selpath.devices.geometry.RigGeometry` (a test keeps them in step), and which a
-    camera model needs comes from their one declaration, :data:`selpath.pipeline.kinds.CAMERA_ATTRS`; the principal
+    camera model needs comes from their one declaration, :data:`selpath.devices.geometry.CAMERA_ATTRS`; the principal
     point defaults to the sensor's centre.
     """
 

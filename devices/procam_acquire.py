@@ -22,6 +22,7 @@ import dask.array as da
 import numpy as np
 import xarray as xr
 from rich.progress import Progress, TextColumn, TimeElapsedColumn
+
 from selpath.devices.patterns import checkerboard, gray_code_levels, vertical_line, white
 from selpath.devices.protocols import Camera, Projector, SyncController
 from selpath.pipeline.compute import BAR_COLUMNS, show_bars

@@ -18,6 +18,7 @@ from __future__ import annotations
 import os
 
 import pydantic
+
 from selpath.devices.hardware import CameraConfig
 from selpath.devices.opencv_camera import OpenCVCamera
 from selpath.devices.procam_acquire import ProcamInstruments

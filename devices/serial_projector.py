@@ -15,6 +15,7 @@ import base64
 import zlib
 
 import numpy as np
+
 from selpath.devices.serial_line import SerialLine
 from selpath.pipeline.errors import DeviceError, DeviceProtocolError, DeviceTimeout
 

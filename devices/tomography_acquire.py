@@ -21,6 +21,7 @@ import dask.array as da
 import numpy as np
 import xarray as xr
 from rich.progress import Progress, TextColumn, TimeElapsedColumn
+
 from selpath.devices.protocols import Camera, LightSource, RotaryStage, SampleChanger
 from selpath.devices.serial_stage import angular_distance
 from selpath.pipeline.compute import BAR_COLUMNS, show_bars

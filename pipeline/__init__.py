@@ -2,22 +2,21 @@
 
 The public surface, for notebooks and plugins::
 
-    from selpath.pipeline import open_store, stage, load_workflow, run_workflow
+    from selpath.pipeline import open_store, stage, load_workflow, run_workflow  # or: import selpath
 """
 
 from selpath.pipeline.constraints import StorePath
 from selpath.pipeline.engine import RunReport, build, run_workflow
 from selpath.pipeline.errors import ConfigError, DeviceError, Problem, SelpathError, SpecError, StageError, StoreError
-from selpath.pipeline.kinds import FORMAT_VERSION, KINDS
+from selpath.pipeline.kinds import FORMAT_VERSION, CubeKind, Variable
 from selpath.pipeline.provenance import read_provenance, write_provenance
 from selpath.pipeline.registry import Stage, StageRegistry, default_registry, stage
-from selpath.pipeline.schema import check_dataset
 from selpath.pipeline.spec import Workflow, load_workflow
 from selpath.pipeline.store import create_capture, missing_frames, open_store, to_store, write_frame
 
 __all__ = [
     "FORMAT_VERSION",
-    "KINDS",
+    "CubeKind",
     "ConfigError",
     "DeviceError",
     "Problem",
@@ -29,9 +28,9 @@ __all__ = [
     "StageRegistry",
     "StoreError",
     "StorePath",
+    "Variable",
     "Workflow",
     "build",
-    "check_dataset",
     "create_capture",
     "default_registry",
     "load_workflow",

@@ -1,4 +1,4 @@
-"""The ``selpath`` command line: run, validate, stages, schema, inspect, workflows, demo."""
+"""The ``selpath`` command line: run, validate, stages, kinds, schema, inspect, import, workflows, demo."""
 
 from __future__ import annotations
 
@@ -21,19 +21,20 @@ from rich.console import Console
 from rich.markup import escape
 from rich.padding import Padding
 from rich.table import Table
+
+from selpath import workflows as shipped
 from selpath.pipeline.compute import enable_compile_cache
 from selpath.pipeline.constraints import describe
 from selpath.pipeline.engine import RunReport, run_workflow
 from selpath.pipeline.errors import Problem, SelpathError, StoreError
 from selpath.pipeline.integrity import open_group, verify_store
+from selpath.pipeline.kinds import describe_kinds
 from selpath.pipeline.locks import store_lock
 from selpath.pipeline.provenance import archive_stores, read_provenance
 from selpath.pipeline.registry import default_registry, plain_text
 from selpath.pipeline.report import report_tables, summary_lines, write_html
 from selpath.pipeline.spec import load_workflow
 from selpath.pipeline.store import forget_frames, is_complete, missing_frames, open_store
-
-from selpath import workflows as shipped
 
 
 class _Command(typer.core.TyperCommand):
@@ -274,7 +275,8 @@ def stages(
         for column in ("stage", "module", "what it does"):
             table.add_column(column, overflow="fold")
         for s in registry:
-            table.add_row(s.name, escape(s.func.__module__.removeprefix("selpath.stages.")), escape(plain_text(s.summary)))
+            module = s.func.__module__.removeprefix("selpath.stages.")
+            table.add_row(s.name, escape(module), escape(plain_text(s.summary)))
         console.print(table)
         return
     for s in [registry[name]] if name else list(registry):
@@ -282,9 +284,12 @@ def stages(
 
 
 def _print_stage(s) -> None:
-    """One stage in full: its summary, then each input and setting with its type, default and description."""
+    """One stage in full: its summary, the kinds it makes, then each input and setting with its type, default and
+    description."""
     console.print(f"[bold]{escape(s.name)}[/]  [dim]({escape(s.source)})[/]")
     console.print(escape(plain_text(s.summary)), highlight=False)
+    makes = " or ".join(k.name for k in s.kinds) or "any kind (its result's selpath_kind attr names it)"
+    console.print(f"  [underline]result[/]: {escape(makes)}", highlight=False)
     sections = (("inputs (data: $step or $step.variable)", [
         (i, "required" if i in s.required_inputs else "optional", s.param_docs.get(i, "")) for i in s.inputs]),
         ("settings", [(n, f"{describe(f)} = {'required' if f.is_required() else repr(f.default)}", f.description or "")
@@ -297,6 +302,59 @@ def _print_stage(s) -> None:
             console.print(f"  [bold cyan]{escape(field_name)}[/]  {escape(kind)}", highlight=False)
             if text:
                 console.print(Padding(escape(plain_text(text)), (0, 0, 0, 6)), highlight=False)
+    console.print()
+
+
+@command()
+def kinds(
+    name: Annotated[str | None, typer.Argument(help="show one kind in full", metavar="NAME",
+                                               show_default=False)] = None,
+    markdown: Annotated[bool, _flag("markdown", "print every kind as the Markdown table of docs/format.md")] = False,
+) -> None:
+    """List the cube kinds the installed stages make (selpath's and plugins'), one line each; NAME shows its
+    variables with dims and units, its coordinates' units and its required attrs."""
+    with _guard():
+        registry = default_registry()
+    known = registry.kinds
+    if markdown:
+        print(describe_kinds(known.values()))
+        return
+    if name is not None:
+        if name not in known:
+            _fail(SelpathError(f"unknown cube kind {name!r}; installed: {', '.join(known)}"))
+        _print_kind(known[name], registry.makers(name))
+        return
+    table = Table(title="cube kinds (selpath kinds NAME for one in full)")
+    for column in ("kind", "made by", "what it holds"):
+        table.add_column(column, overflow="fold")
+    for kind in known.values():
+        table.add_row(kind.name, escape(", ".join(registry.makers(kind.name))), escape(kind.description))
+    console.print(table)
+
+
+def _print_kind(kind, makers: list[str]) -> None:
+    console.print(f"[bold]{escape(kind.name)}[/]  [dim](made by {escape(', '.join(makers))})[/]")
+    console.print(escape(kind.description), highlight=False)
+    console.print("\n  [underline]variables[/]")
+    for name, var in kind.variables.items():
+        units = "not fixed" if var.units == "" else "none" if var.units is None else var.units
+        batch = "".join(f"[{d}] " for d in kind.batch_dims)
+        console.print(f"  [bold cyan]{escape(name)}[/]  {escape(batch)}({escape(', '.join(var.dims))}) [+ channel]  "
+                      f"units: {escape(units)}{'' if var.required else '  (optional)'}", highlight=False)
+        text = "; ".join(t for t in (var.long_name, var.description) if t)
+        if text:
+            console.print(Padding(escape(text), (0, 0, 0, 6)), highlight=False)
+    if kind.coord_units:
+        console.print("\n  [underline]coordinates[/]")
+        for dim, units in kind.coord_units.items():
+            console.print(f"  [bold cyan]{escape(dim)}[/]  units in {escape(', '.join(sorted(units)))}",
+                          highlight=False)
+    if kind.attrs:
+        console.print("\n  [underline]attrs[/]")
+        for attr, text in kind.attrs.items():
+            console.print(f"  [bold cyan]{escape(attr)}[/]  {escape(text)}", highlight=False)
+    if kind.png:
+        console.print(f"\n  a workflow output also saves {escape(kind.png)} as <store>.png")
     console.print()
 
 
@@ -389,11 +447,11 @@ def inspect(
 
 def _describe_store(path: Path, ds, valid: bool | None, readable: bool) -> None:
     """Kind, dims, coordinates with units, attrs and each variable with units and valid share."""
-    from selpath.pipeline.kinds import KINDS
     from selpath.pipeline.quality import valid_shares
 
     kind = ds.attrs.get("selpath_kind")
-    about = KINDS[kind].description if kind in KINDS else "unknown kind"
+    kinds = default_registry().kinds
+    about = kinds[kind].description if kind in kinds else "unknown kind"
     on_disk = open_group(path).attrs.get("selpath_format")
     migrated = f", migrated to {ds.attrs.get('selpath_format')} on open" if on_disk != ds.attrs.get(
         "selpath_format") else ""

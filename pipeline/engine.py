@@ -30,13 +30,16 @@ from typing import Any
 import xarray as xr
 import zarr
 from rich.markup import escape
+
 from selpath.pipeline.compute import compute, scheduler_session
 from selpath.pipeline.errors import Problem, SelpathError, StageError, StoreError
 from selpath.pipeline.integrity import BadChunk, verify_store, write_manifest
+from selpath.pipeline.kinds import CubeKind
 from selpath.pipeline.locks import store_locks
 from selpath.pipeline.outputs import PNG_MARKER, Staging, check_png, png_path, tidy_staging
 from selpath.pipeline.provenance import read_provenance, write_provenance
 from selpath.pipeline.quality import ADVISE, FIX, LABEL, WHAT, below_floor, shares
+from selpath.pipeline.registry import resolve_kind
 from selpath.pipeline.spec import OutputSpec, Ref, Step, Workflow, check_output_paths
 from selpath.pipeline.store import forget_frames, missing_frames, open_store, write_store
 
@@ -230,7 +233,7 @@ class _Graph:
         reasons = []
         for out in self._outputs_of.get(step_id, []):
             if out.store in self.report.fresh:
-                self.results[step_id] = open_store(out.store)
+                self.results[step_id] = open_store(out.store, registry=self.workflow.registry)
                 self.report.steps[step_id] = StepReport(step_id, "reused", f"{out.store} has the same provenance",
                                                         step.stage.name)
                 self.log(f"[dim]── {escape(step_id)} ({escape(step.stage.name)}): reused, {escape(out.store)} is up "
@@ -333,7 +336,8 @@ def run_workflow(workflow: Workflow, *, scheduler: str | None = None, progress: 
                 step = graph.report.steps[out.from_]
                 step.seconds = (step.seconds or 0.0) + time.perf_counter() - began
                 log(f"   wrote {escape(out.store)} ({step.seconds:.1f} s)")
-                graph.results[out.from_] = open_store(out.store)  # the steps after it read the stored cube
+                # the steps after it read the stored cube
+                graph.results[out.from_] = open_store(out.store, registry=workflow.registry)
     graph.finish()
     graph.report.seconds = time.perf_counter() - start
     return graph.report
@@ -350,11 +354,8 @@ def _write_output(graph: _Graph, name: str, out: OutputSpec, data: xr.Dataset, s
     row, where align_paths reads one or two).
     """
     workflow = graph.workflow
-    kind = out.kind or data.attrs.get("selpath_kind")
-    if kind is None:
-        raise StageError(Problem(f"the result of step {out.from_!r} has no selpath_kind attr",
-                                 path=f"outputs.{name}", fix="set `kind:` on the output"))
-    if kind == "figure":
+    kind = _output_kind(workflow, name, out, data)
+    if kind.png is not None:
         check_png(out.store)
     upstream = [step for step in graph.unchecked(out.from_) if step != out.from_]
     own = shares(data)
@@ -370,13 +371,32 @@ def _write_output(graph: _Graph, name: str, out: OutputSpec, data: xr.Dataset, s
                          compute_on=(scheduler, client))
         write_manifest(staging.path, data)
         _record(workflow, graph.records, name, out, scheduler, staging.path, usable)
-        if kind == "figure":
-            _save_png(staging.path, out.store)
+        if kind.png is not None:
+            _save_png(staging.path, out.store, kind)
     except BaseException:
         staging.abort()
         raise
     staging.commit()
     graph.checked.update([*upstream, out.from_])
+
+
+def _output_kind(workflow: Workflow, name: str, out: OutputSpec, data: xr.Dataset) -> CubeKind:
+    """The kind an output is stored as: the output's ``kind:``, else the result's ``selpath_kind`` attr, else the
+    one kind its stage declares; looked up among the workflow's registry's kinds, then the installed ones."""
+    stage = workflow.steps[out.from_].stage
+    kind = out.kind or data.attrs.get("selpath_kind") or (stage.kinds[0] if len(stage.kinds) == 1 else None)
+    if kind is None:
+        declared = ", ".join(k.name for k in stage.kinds)
+        raise StageError(Problem(f"the result of step {out.from_!r} (stage {stage.name!r}) names no cube kind (no "
+                                 "selpath_kind attr" + (f"; its stage may make {declared}" if declared else
+                                                        ", and its stage declares none") + ")",
+                                 path=f"outputs.{name}", fix="set `kind:` on the output, or declare the stage's "
+                                 "kind (@stage(..., kind=...), README: Writing a stage)"))
+    try:
+        return resolve_kind(kind, workflow.registry)
+    except StoreError as exc:
+        raise StageError([Problem(p.message, path=f"outputs.{name} (step {out.from_!r})", fix=p.fix)
+                          for p in exc.problems]) from None
 
 
 #: prefix of the upstream shares written beside an output, ``usable.<step>.<variable>``
@@ -447,11 +467,12 @@ def _record(workflow: Workflow, records: dict[str, dict[str, Any]], name: str, o
     })
 
 
-def _save_png(source: str, store: str) -> None:
-    """A ``figure`` cube (written at ``source``) is also saved as ``<store>.png`` beside its store, for people."""
+def _save_png(source: str, store: str, kind: CubeKind) -> None:
+    """A cube whose kind names a ``png`` variable (a figure; written at ``source``) is also saved as
+    ``<store>.png`` beside its store, for people."""
     import matplotlib.image
 
-    image = open_store(source, "figure")["image"].values
+    image = open_store(source, kind)[kind.png].values
     staging = f"{png_path(store)}.partial"
     matplotlib.image.imsave(staging, image, format="png", metadata={PNG_MARKER: store})
     os.replace(staging, png_path(store))

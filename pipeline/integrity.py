@@ -27,9 +27,10 @@ from typing import Any
 import numpy as np
 import xarray as xr
 import zarr
+from zarr.codecs import Crc32cCodec, ZstdCodec
+
 from selpath.pipeline import remote
 from selpath.pipeline.errors import Problem, StoreError
-from zarr.codecs import Crc32cCodec, ZstdCodec
 
 PROVENANCE_GROUP = "_selpath"
 MANIFEST = "manifest"

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 import zarr
+
 from selpath.pipeline import remote
 from selpath.pipeline.errors import StoreError
 from selpath.pipeline.integrity import PROVENANCE_GROUP, consolidate, is_selpath_store, open_group, unreadable_record

@@ -19,6 +19,7 @@ from collections.abc import Mapping
 import dask
 import numpy as np
 import xarray as xr
+
 from selpath.pipeline.errors import Problem, StageError
 
 FLOOR = "selpath_floor"

@@ -9,6 +9,9 @@ registry is the model). A stage's signature defines its workflow interface:
   labelled arrays wired in a workflow with ``$step`` or ``$step.variable``;
 * keyword-only parameters are **settings**, typed, with defaults; the registry builds a strict
   pydantic model from them, so a workflow with a wrong name, type or value fails before anything runs.
+
+A stage names the cube kind(s) its result is (``kind=``, :class:`~selpath.pipeline.kinds.CubeKind`): the registry
+holds those kinds too, by name, so that the engine stores a plugin's result, and opens its store, like a built-in's.
 """
 
 from __future__ import annotations
@@ -26,7 +29,9 @@ from typing import Any
 
 import pydantic
 import xarray as xr
-from selpath.pipeline.errors import SelpathError
+
+from selpath.pipeline.errors import Problem, SelpathError, StoreError
+from selpath.pipeline.kinds import CubeKind
 
 ENTRY_POINT_GROUP = "selpath.stages"
 _MARK = "__selpath_stage__"
@@ -55,6 +60,9 @@ class Stage:
     #: optional: the data variables the stage's result will have, from its validated settings (None where
     #: unknown), so ``$step.variable`` references are checked when the workflow is validated
     variables: Callable[[pydantic.BaseModel], Iterable[str] | None] | None = None
+    #: the cube kinds the stage's result may be (its ``selpath_kind`` attr says which); with one, a result without
+    #: that attr is taken to be of it. Empty: any kind, named by the result (``load_store``, ``import_capture``)
+    kinds: tuple[CubeKind, ...] = ()
 
     @property
     def source(self) -> str:
@@ -96,9 +104,14 @@ def _param_docs(doc: str) -> dict[str, str]:
 
 
 def _build_stage(name: str, func: Callable[..., Any], precheck: Callable | None, identity: Callable | None,
-                 writes: Callable | None = None, variables: Callable | None = None) -> Stage:
+                 writes: Callable | None = None, variables: Callable | None = None,
+                 kind: CubeKind | Iterable[CubeKind] | None = None) -> Stage:
     if not _NAME.match(name):
         raise SelpathError(f"stage name {name!r} must be lower_snake_case")
+    kinds = () if kind is None else (kind,) if isinstance(kind, CubeKind) else tuple(kind)
+    if not all(isinstance(k, CubeKind) for k in kinds):
+        raise SelpathError(f"stage {name!r} ({func.__module__}:{func.__qualname__}): kind= takes CubeKind "
+                           f"declarations (selpath.CubeKind), not {kind!r}")
     hints = typing.get_type_hints(func, include_extras=True)
     signature = inspect.signature(func)
     inputs, required, fields = [], [], {}
@@ -128,13 +141,18 @@ def _build_stage(name: str, func: Callable[..., Any], precheck: Callable | None,
     )
     summary = inspect.cleandoc(func.__doc__ or "").split("\n\n")[0].replace("\n", " ")
     return Stage(name, func, tuple(inputs), tuple(required), model, summary, docs, precheck, identity, writes,
-                 variables)
+                 variables, kinds)
 
 
-def stage(name: str, *, precheck: Callable[[Any], list[str]] | None = None,
+def stage(name: str, *, kind: CubeKind | Iterable[CubeKind] | None = None,
+          precheck: Callable[[Any], list[str]] | None = None,
           identity: Callable[[Any], Any] | None = None, writes: Callable[[Any], str] | None = None,
           variables: Callable[[Any], Iterable[str] | None] | None = None) -> Callable:
     """Mark ``func`` as the stage ``name``; the function itself is returned unchanged.
+
+    ``kind`` is the cube kind of the stage's result (:class:`~selpath.pipeline.kinds.CubeKind`), or the kinds it
+    may be (the result's ``selpath_kind`` attr says which): registered with the stage, so a workflow stores the
+    result checked against it and stamped with its units and long names, and ``open_store`` opens the store.
 
     ``precheck(settings)`` runs when a workflow is validated and returns problems as strings;
     ``identity(settings)`` names external data the stage reads, so provenance changes with it;
@@ -151,17 +169,18 @@ def stage(name: str, *, precheck: Callable[[Any], list[str]] | None = None,
     """
 
     def mark(func: Callable[..., Any]) -> Callable[..., Any]:
-        setattr(func, _MARK, _build_stage(name, func, precheck, identity, writes, variables))
+        setattr(func, _MARK, _build_stage(name, func, precheck, identity, writes, variables, kind))
         return func
 
     return mark
 
 
 class StageRegistry:
-    """Stages by name. Duplicate names are refused, naming both sources."""
+    """Stages by name, and the cube kinds they make. Duplicate names are refused, naming both sources."""
 
     def __init__(self, stages: Iterable[Stage] = ()):
         self._stages: dict[str, Stage] = {}
+        self._kinds: dict[str, tuple[CubeKind, str]] = {}
         for s in stages:
             self.add(s)
 
@@ -170,7 +189,33 @@ class StageRegistry:
         if old is not None and old.func is not new.func:
             raise SelpathError(f"stage {new.name!r} is registered twice: by {old.source} and by {new.source}; "
                                "rename one of them")
+        for kind in new.kinds:
+            known, source = self._kinds.get(kind.name, (None, ""))
+            if known is not None and known != kind:
+                raise SelpathError(f"cube kind {kind.name!r} is declared twice, differently: by {source} and by "
+                                   f"{new.source}; rename one of them, or import one declaration in both")
+            self._kinds.setdefault(kind.name, (kind, new.source))
         self._stages[new.name] = new
+
+    @property
+    def kinds(self) -> dict[str, CubeKind]:
+        """Every registered cube kind by name, sorted."""
+        return {name: self._kinds[name][0] for name in sorted(self._kinds)}
+
+    def kind(self, kind: str | CubeKind) -> CubeKind:
+        """The registered kind ``kind`` names (a :class:`CubeKind` is returned as it is); a StoreError for a name no
+        installed stage package declares."""
+        if isinstance(kind, CubeKind):
+            return kind
+        if kind not in self._kinds:
+            raise StoreError(Problem(f"unknown cube kind {kind!r}: no installed stage package declares it",
+                                     fix=f"install the package whose stage makes it (`selpath kinds` lists the "
+                                     f"installed kinds: {', '.join(sorted(self._kinds)) or 'none'})"))
+        return self._kinds[kind][0]
+
+    def makers(self, kind: str) -> list[str]:
+        """The names of the stages whose result may be of ``kind``."""
+        return [s.name for s in self if any(k.name == kind for k in s.kinds)]
 
     @classmethod
     def from_modules(cls, modules: Iterable[ModuleType | str]) -> StageRegistry:
@@ -210,5 +255,15 @@ class StageRegistry:
 
 @functools.cache
 def default_registry() -> StageRegistry:
-    """The stages installed in this environment (entry-point group ``selpath.stages``), cached."""
+    """The stages installed in this environment (entry-point group ``selpath.stages``) and their kinds, cached."""
     return StageRegistry.from_entry_points()
+
+
+def resolve_kind(kind: str | CubeKind, registry: StageRegistry | None = None) -> CubeKind:
+    """``kind`` itself, or the kind it names: in ``registry`` if that declares it (a workflow's own, a test's), else
+    among the installed ones (:func:`default_registry`); a StoreError names an unknown one."""
+    if isinstance(kind, CubeKind):
+        return kind
+    if registry is not None and kind in registry.kinds:
+        return registry.kind(kind)
+    return default_registry().kind(kind)

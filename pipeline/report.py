@@ -38,6 +38,7 @@ from typing import Any
 import dask
 import numpy as np
 import xarray as xr
+
 from selpath.pipeline.engine import RunReport
 from selpath.pipeline.errors import Problem, StoreError
 from selpath.pipeline.report_spec import LIST_LIMIT, REDUCTIONS, summary_fields
@@ -92,7 +93,7 @@ def summary_lines(workflow: Workflow) -> list[str]:
         key = f"{output}.{name}" + (f".{reduction}" if reduction else "")
         if key not in values:
             if output not in stores:
-                stores[output] = open_store(workflow.outputs[output].store)
+                stores[output] = open_store(workflow.outputs[output].store, registry=workflow.registry)
             values[key] = _value(stores[output], output, name, reduction)
     lazy = [k for k, v in values.items() if isinstance(v, xr.DataArray)]
     with np.errstate(all="ignore"):
@@ -177,7 +178,7 @@ def report_tables(workflow: Workflow) -> list[TableView]:
     if workflow.report is None:
         return []
     return [table for name in workflow.report.tables
-            for table in store_tables(open_store(workflow.outputs[name].store), name)]
+            for table in store_tables(open_store(workflow.outputs[name].store, registry=workflow.registry), name)]
 
 
 class _Filled(string.Formatter):
@@ -205,7 +206,7 @@ def _figure_html(workflow: Workflow, name: str) -> str:
     if not png.is_file():
         return ""
     try:
-        caption = str(open_store(store).attrs.get("caption", ""))
+        caption = str(open_store(store, registry=workflow.registry).attrs.get("caption", ""))
     except StoreError:
         caption = ""
     data = base64.b64encode(png.read_bytes()).decode()

@@ -20,9 +20,9 @@ from pathlib import Path
 from typing import Any
 
 import pydantic
+
 from selpath.pipeline.constraints import PathMarker, describe
 from selpath.pipeline.errors import Problem, SpecError
-from selpath.pipeline.kinds import KINDS
 from selpath.pipeline.outputs import OutputPath, output_problems
 from selpath.pipeline.registry import Stage, StageRegistry, default_registry
 from selpath.pipeline.remote import is_url, local_path, url_problems
@@ -117,6 +117,8 @@ class Workflow:
     self_written: frozenset[str] = frozenset()
     #: the ``report:`` section, its file already resolved (None: the workflow declares no report)
     report: ReportSpec | None = None
+    #: the registry the workflow was validated against: its stages, and the cube kinds they make
+    registry: StageRegistry | None = None
 
     def rerooted(self, folder: str | os.PathLike) -> Workflow:
         """The same workflow with every output store (and the stores stages fill) moved into ``folder``."""
@@ -150,13 +152,13 @@ def load_workflow(path_or_text: str | os.PathLike, registry: StageRegistry | Non
             located.add(loc, pydantic_message(err))
         raise SpecError(located.problems) from None
     steps = _check_steps(spec, raw, registry, located, base_dir)
-    outputs = _check_outputs(spec, steps, located, base_dir)
+    outputs = _check_outputs(spec, steps, located, base_dir, registry)
     self_written = _self_written_outputs(steps, outputs, located)
     order = _topological_order(steps, located)
     report = _check_report(spec.report, outputs, located, base_dir)
     if not located.problems:
         workflow = Workflow(spec.workflow, spec.scheduler, {i: steps[i] for i in order}, outputs, text, source,
-                            base_dir, frozenset(self_written), report)
+                            base_dir, frozenset(self_written), report, registry)
         for field, message, fix in output_path_problems(workflow):
             located.add(field, message, fix)
     if located.problems:
@@ -324,8 +326,8 @@ def _variables_of(step: Step) -> set[str] | None:
     return None if names is None else {str(n) for n in names}
 
 
-def _check_outputs(spec: WorkflowFile, steps: dict[str, Step], located: Located,
-                   base_dir: Path) -> dict[str, OutputSpec]:
+def _check_outputs(spec: WorkflowFile, steps: dict[str, Step], located: Located, base_dir: Path,
+                   registry: StageRegistry) -> dict[str, OutputSpec]:
     outputs: dict[str, OutputSpec] = {}
     stores: dict[str, str] = {}
     ids = [s.id for s in spec.steps]
@@ -334,8 +336,9 @@ def _check_outputs(spec: WorkflowFile, steps: dict[str, Step], located: Located,
         if out.from_ not in ids:
             located.add((*path, "from"), f"output {name!r} comes from unknown step {out.from_!r}",
                         _suggest(out.from_, ids))
-        if out.kind is not None and out.kind not in KINDS:
-            located.add((*path, "kind"), f"unknown cube kind {out.kind!r}", _suggest(out.kind, sorted(KINDS)))
+        known = sorted(set(registry.kinds) | set(default_registry().kinds))
+        if out.kind is not None and out.kind not in known:
+            located.add((*path, "kind"), f"unknown cube kind {out.kind!r}", _suggest(out.kind, known))
         store = out.store if is_url(out.store) else str((base_dir / local_path(out.store)).resolve())
         for message in url_problems(out.store) if is_url(out.store) else []:
             located.add((*path, "store"), message)

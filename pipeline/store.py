@@ -33,6 +33,7 @@ import numpy as np
 import xarray as xr
 import zarr
 from dask.base import tokenize
+
 from selpath.pipeline import remote
 from selpath.pipeline.errors import Problem, StoreError
 from selpath.pipeline.integrity import (
@@ -48,11 +49,11 @@ from selpath.pipeline.integrity import (
     write_manifest,
     written_frames,
 )
-from selpath.pipeline.kinds import FORMAT_VERSION, KINDS
+from selpath.pipeline.kinds import FORMAT_VERSION, CubeKind
 from selpath.pipeline.migrations import MIGRATIONS
 from selpath.pipeline.outputs import Staging
 from selpath.pipeline.provenance import jsonable, read_provenance
-from selpath.pipeline.schema import check_dataset, with_metadata
+from selpath.pipeline.registry import StageRegistry, resolve_kind
 
 
 class IncompleteCaptureWarning(UserWarning):
@@ -131,7 +132,7 @@ def _store_stamp(where: str) -> str:
         return where
 
 
-def _migrate(ds: xr.Dataset, where: str) -> xr.Dataset:
+def _migrate(ds: xr.Dataset, where: str, kind: CubeKind) -> xr.Dataset:
     version = ds.attrs.get("selpath_format")
     if not isinstance(version, int | np.integer) or isinstance(version, bool):
         raise StoreError(
@@ -146,16 +147,18 @@ def _migrate(ds: xr.Dataset, where: str) -> xr.Dataset:
     while version < FORMAT_VERSION:
         if version not in MIGRATIONS:
             raise StoreError(Problem(f"no migration from format {version}", where=where))
-        ds = MIGRATIONS[version](ds)
+        ds = MIGRATIONS[version](ds, kind)
         version += 1
         ds.attrs["selpath_format"] = version
     return ds
 
 
-def open_store(path: str | os.PathLike, kind: str | None = None, *, keep_flags: bool = False) -> xr.Dataset:
+def open_store(path: str | os.PathLike, kind: str | CubeKind | None = None, *, keep_flags: bool = False,
+               registry: StageRegistry | None = None) -> xr.Dataset:
     """Open a store lazily, migrate it if old, and check it against its kind's schema.
 
-    ``kind`` defaults to the store's ``selpath_kind`` attr; when both are given they must agree.
+    ``kind`` defaults to the store's ``selpath_kind`` attr; when both are given they must agree. A kind named by
+    its name is looked up in ``registry`` (a workflow's), else among the installed stages' kinds.
     Every problem is reported at once in one :class:`StoreError`. The ``written__*`` frame flags
     are dropped unless ``keep_flags``; dropping them from an unfinished capture warns, naming how many
     frames of which variable are missing (they read as the fill value, NaN, and would pass unnoticed).
@@ -165,19 +168,20 @@ def open_store(path: str | os.PathLike, kind: str | None = None, *, keep_flags: 
     manifest = read_manifest(where)
     edited = [Problem(p.message, where=where, path=p.path, fix=p.fix) for p in units_problems(raw, manifest)]
     checksummed = raw.attrs.get("selpath_format", 0) >= CHECKSUMMED_FORMAT  # format 2 writes every chunk
-    ds = _migrate(raw, where)
-    stored_kind = ds.attrs.get("selpath_kind")
-    if kind is None:
-        kind = stored_kind
-    if kind is None:
-        raise StoreError(
-            Problem("attr selpath_kind is missing and no kind was given", where=where,
-                    fix=f"set ds.attrs['selpath_kind'] to one of {sorted(KINDS)}")
-        )
-    problems = edited + ([] if stored_kind in (None, kind) else [
-        Problem(f"store holds a {stored_kind!r} cube, not a {kind!r} cube", where=where)
+    stored_kind = raw.attrs.get("selpath_kind")
+    if kind is None and stored_kind is None:
+        raise StoreError(Problem("attr selpath_kind is missing and no kind was given", where=where,
+                                 fix="set ds.attrs['selpath_kind'] to the name of its kind (`selpath kinds` lists "
+                                 "them), or pass kind="))
+    try:
+        spec = resolve_kind(stored_kind if kind is None else kind, registry)
+    except StoreError as exc:
+        raise StoreError([Problem(p.message, where=where, path=p.path, fix=p.fix) for p in exc.problems]) from None
+    ds = _migrate(raw, where, spec)
+    problems = edited + ([] if stored_kind in (None, spec.name) else [
+        Problem(f"store holds a {stored_kind!r} cube, not a {spec.name!r} cube", where=where)
     ])
-    problems += [Problem(p.message, where=where, path=p.path, fix=p.fix) for p in check_dataset(ds, kind)]
+    problems += [Problem(p.message, where=where, path=p.path, fix=p.fix) for p in spec.check(ds)]
     flags = [v for v in ds.data_vars if str(v).startswith(WRITTEN_PREFIX)]
     if checksummed:  # coordinates and flags are written whole when a store is made; data once it is complete
         whole = [str(v) for v in raw.coords] + [str(v) for v in flags]
@@ -213,15 +217,14 @@ def is_complete(path: str | os.PathLike, manifest: Mapping[str, Any] | None = No
     return bool((manifest or {}).get("complete")) or read_provenance(path) is not None
 
 
-def stamp(ds: xr.Dataset, kind: str) -> xr.Dataset:
-    """``ds`` with ``selpath_format`` and ``selpath_kind`` attrs and its kind's variable metadata set, after
-    checking it against ``kind``."""
-    if kind in KINDS:
-        ds = with_metadata(ds, kind)
-    problems = check_dataset(ds, kind)
+def stamp(ds: xr.Dataset, kind: CubeKind) -> xr.Dataset:
+    """``ds`` labelled as a ``kind`` cube (its ``selpath_kind`` attr and its variables' units and long names,
+    :meth:`CubeKind.label`) with the ``selpath_format`` attr, after checking it against ``kind``."""
+    ds = kind.label(ds)
+    problems = kind.check(ds)
     if problems:
         raise StoreError(problems)
-    return ds.assign_attrs(selpath_format=FORMAT_VERSION, selpath_kind=kind)
+    return ds.assign_attrs(selpath_format=FORMAT_VERSION)
 
 
 def _portable_strings(ds: xr.Dataset) -> xr.Dataset:
@@ -252,7 +255,7 @@ def _writable(ds: xr.Dataset) -> xr.Dataset:
     return ds.chunk(regular) if regular else ds
 
 
-def write_store(ds: xr.Dataset, path: str | os.PathLike, kind: str, *, compute: bool = True,
+def write_store(ds: xr.Dataset, path: str | os.PathLike, kind: CubeKind, *, compute: bool = True,
                 replace: bool = False):
     """Write a whole cube (checked and stamped) into a new store at ``path``, every chunk checksummed and
     written (fill-valued ones too), without the manifest: the building block of :func:`to_store`, for writers
@@ -279,8 +282,10 @@ def _replace_problem(path: str | os.PathLike) -> Problem | None:
     return None
 
 
-def to_store(ds: xr.Dataset, path: str | os.PathLike, kind: str, *, compute: bool = True, replace: bool = False):
-    """Write a whole cube (checked and stamped) as a complete store at ``path``, replacing an older store that
+def to_store(ds: xr.Dataset, path: str | os.PathLike, kind: str | CubeKind, *, compute: bool = True,
+             replace: bool = False):
+    """Write a whole cube (checked and stamped as a ``kind`` cube: a :class:`CubeKind`, or the name of an installed
+    one) as a complete store at ``path``, replacing an older store that
     ``to_store`` wrote there; a workflow's output or a capture there is replaced only with ``replace=True``, and
     anything that is not a selpath store is refused, never deleted.
 
@@ -288,6 +293,7 @@ def to_store(ds: xr.Dataset, path: str | os.PathLike, kind: str, *, compute: boo
     crash never leaves a half-written store under ``path``. With ``compute=False`` returns a dask delayed
     that writes and moves it when computed.
     """
+    kind = resolve_kind(kind)
     problem = None if replace else _replace_problem(path)
     if problem is not None:
         raise StoreError(problem)
@@ -314,7 +320,7 @@ def _finish(_written: Any, staging: Staging, metadata: xr.Dataset) -> None:
 # -- frame-by-frame capture -------------------------------------------------------------------------
 
 
-def create_capture(path: str | os.PathLike, template: xr.Dataset, kind: str) -> xr.Dataset:
+def create_capture(path: str | os.PathLike, template: xr.Dataset, kind: str | CubeKind) -> xr.Dataset:
     """Pre-allocate a store for frame-by-frame capture, or reopen a matching one to resume.
 
     ``template`` holds the full cube with lazy (dask) data that is never computed: only its metadata,
@@ -324,10 +330,10 @@ def create_capture(path: str | os.PathLike, template: xr.Dataset, kind: str) -> 
     Returns the opened store with its ``written__*`` flags.
     """
     where = os.fspath(path)
-    template = stamp(template, kind)  # raises for an unknown kind or a template that breaks its schema
-    spec_kind = KINDS[kind]
+    spec_kind = resolve_kind(kind)  # a StoreError for an unknown kind
+    template = stamp(template, spec_kind)  # raises for a template that breaks its schema
     if Path(where).exists():
-        existing = open_store(where, kind, keep_flags=True)
+        existing = open_store(where, spec_kind, keep_flags=True)
         differences = _sweep_differences(existing, template)
         if differences:
             raise StoreError(
@@ -347,7 +353,7 @@ def create_capture(path: str | os.PathLike, template: xr.Dataset, kind: str) -> 
     # the flags are small numpy arrays: write them for real, so every frame starts as missing
     template[list(flags)].to_zarr(where, mode="r+", consolidated=False, write_empty_chunks=True)
     write_manifest(where, template, complete=False)  # complete is what the frame flags say
-    return open_store(where, kind, keep_flags=True)
+    return open_store(where, spec_kind, keep_flags=True)
 
 
 def _sweep_differences(existing: xr.Dataset, template: xr.Dataset) -> list[str]:

@@ -11,6 +11,7 @@ from __future__ import annotations
 from typing import Any
 
 from pydantic.json_schema import models_json_schema
+
 from selpath.pipeline.registry import StageRegistry, default_registry
 from selpath.pipeline.spec import WorkflowFile
 

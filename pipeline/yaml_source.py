@@ -14,6 +14,7 @@ from typing import Any, TypeVar
 
 import pydantic
 import yaml
+
 from selpath.pipeline.errors import ConfigError, Problem, SpecError
 
 #: Largest document accepted, counting every node as often as aliases repeat it. A workflow has hundreds; nested

@@ -14,6 +14,7 @@ from typing import Annotated, Literal
 import numpy as np
 import pydantic
 import xarray as xr
+
 from selpath.pipeline.errors import Problem, SelpathError, StageError
 
 #: the float precision of a solver's arithmetic (a stage setting)
@@ -53,7 +54,8 @@ def file_identity(path) -> dict:
     """A file a stage reads (a scene, rig or label file) by its path and content (sha256; None where it is not a
     file), for the stage's ``identity``: provenance changes when the file does."""
     source = Path(path)
-    return {"file": str(source), "sha256": hashlib.sha256(source.read_bytes()).hexdigest() if source.is_file() else None}
+    digest = hashlib.sha256(source.read_bytes()).hexdigest() if source.is_file() else None
+    return {"file": str(source), "sha256": digest}
 
 
 def read_file(load, path, what: str) -> tuple[object | None, list[str]]:

@@ -19,6 +19,16 @@ import xarray as xr
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from selpath.pipeline.kinds import CubeKind, Variable
+
+#: every figure stage's result: an RGBA image a workflow output also saves as ``<store>.png``
+FIGURE = CubeKind(
+    name="figure",
+    description="a rendered figure (RGBA); a workflow output also saves it as <store>.png",
+    variables={"image": Variable(("y", "x", "rgba"), units=None, long_name="RGBA image")},
+    png="image",
+)
+
 #: the standard figure size in inches and every figure's resolution (dots per inch)
 SIZE_IN, DPI = (9.0, 4.0), 100
 
@@ -65,7 +75,7 @@ def as_figure(render, *args, caption: str, size: tuple[float, float] = SIZE_IN) 
     if not caption:
         raise ValueError("a figure needs a caption")
     image = da.from_delayed(dask.delayed(checked)(*args), shape=shape, dtype=np.uint8)
-    return xr.Dataset({"image": (("y", "x", "rgba"), image)}, attrs={"selpath_kind": "figure", "caption": caption})
+    return FIGURE.label(xr.Dataset({"image": (("y", "x", "rgba"), image)}, attrs={"caption": caption}))
 
 
 def image_colorbar(figure: Figure, ax, mappable, label: str):

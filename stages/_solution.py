@@ -14,6 +14,7 @@ import enum
 from typing import Any, NamedTuple
 
 import numpy as np
+
 from selpath.pipeline.errors import Problem, SelpathError
 
 

@@ -14,10 +14,24 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import xarray as xr
+
 from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.kinds import CubeKind, Variable
 from selpath.pipeline.registry import stage
-from selpath.pipeline.schema import with_metadata
 from selpath.stages._common import require_variables
+
+CAMERA_CALIBRATION = CubeKind(
+    name="camera_calibration",
+    description="a camera's intrinsics and distortion from a checkerboard target (calibrate_camera)",
+    variables={"camera_matrix": Variable(("i", "j"), units="px", long_name="camera intrinsics K"),
+               "distortion": Variable(("k",), units="1", long_name="k1, k2, p1, p2, k3"),
+               "pose_used": Variable(("pose",), False, units=None, long_name="board found at this pose"),
+               "pose_rms_px": Variable(("pose",), False, units="px", long_name="reprojection error of the pose")},
+    attrs={"focal_length_px": "mean of fx and fy, px", "principal_point_px": "[cx, cy], px",
+           "reprojection_rms_px": "reprojection error, px",
+           "distortion_max_px": "largest shift of a pixel inside the sensor by the distortion, px",
+           "sensor_px": "[rows, cols] of the calibrated sensor"},
+)
 
 #: distortion the tomography rig's pinhole model tolerates: the largest shift of a pixel inside the sensor [px]
 MAX_DISTORTION_PX = 0.5
@@ -60,7 +74,7 @@ def distortion_shift(matrix: np.ndarray, distortion: np.ndarray, box: tuple[floa
     return float(np.max(np.linalg.norm(ideal - points.reshape(-1, 2), axis=1)))
 
 
-@stage("calibrate_camera")
+@stage("calibrate_camera", kind=CAMERA_CALIBRATION)
 def calibrate_camera(target: xr.Dataset, /) -> xr.Dataset:
     """A camera's intrinsics from frames of a checkerboard target at several poses (OpenCV ``calibrateCamera``).
 
@@ -101,20 +115,16 @@ def calibrate_camera(target: xr.Dataset, /) -> xr.Dataset:
     pose_rms = np.full(frames.sizes["pose"], np.nan)
     pose_rms[used] = np.asarray(per_view, float).ravel()
     std = std.ravel()
-    attrs = {"selpath_kind": "camera_calibration", "focal_length_px": float((matrix[0, 0] + matrix[1, 1]) / 2),
+    attrs = {"focal_length_px": float((matrix[0, 0] + matrix[1, 1]) / 2),
              "focal_length_std_px": float(np.hypot(std[0], std[1]) / 2),
              "principal_point_px": [float(matrix[0, 2]), float(matrix[1, 2])],
              "principal_point_std_px": [float(std[2]), float(std[3])],
              "pixel_aspect": float(matrix[1, 1] / matrix[0, 0]), "reprojection_rms_px": float(rms),
              "distortion_max_px": distortion_shift(matrix, distortion, (*seen.min(axis=0), *seen.max(axis=0))),
              "sensor_px": [rows, cols]}
-    out = xr.Dataset({
-        "camera_matrix": (("i", "j"), matrix, {"units": "px", "long_name": "camera intrinsics K"}),
-        "distortion": ("k", distortion, {"units": "1", "long_name": "k1, k2, p1, p2, k3"}),
-        "pose_used": ("pose", used, {"long_name": "board found at this pose"}),
-        "pose_rms_px": ("pose", pose_rms, {"units": "px", "long_name": "reprojection error of the pose"}),
-    }, coords={"pose": frames["pose"].values}, attrs=attrs)
-    return with_metadata(out, "camera_calibration")
+    return CAMERA_CALIBRATION.label(xr.Dataset({
+        "camera_matrix": (("i", "j"), matrix), "distortion": ("k", distortion), "pose_used": ("pose", used),
+        "pose_rms_px": ("pose", pose_rms)}, coords={"pose": frames["pose"].values}, attrs=attrs))
 
 
 @stage("apply_camera_calibration")
@@ -135,7 +145,7 @@ def apply_camera_calibration(capture: xr.Dataset, calibration: xr.Dataset, /) ->
     calibration : xr.Dataset
         A ``calibrate_camera`` result of the same camera.
     """
-    if calibration.attrs.get("selpath_kind") != "camera_calibration":
+    if calibration.attrs.get("selpath_kind") != CAMERA_CALIBRATION.name:
         raise StageError(Problem("the calibration is not a calibrate_camera result (selpath_kind "
                                  f"{calibration.attrs.get('selpath_kind')!r})"))
     a = calibration.attrs

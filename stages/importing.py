@@ -31,6 +31,7 @@ import numpy as np
 import pydantic
 import xarray as xr
 from pydantic import BaseModel, ConfigDict, Field
+
 from selpath.pipeline.constraints import StorePath
 from selpath.pipeline.errors import Problem, SelpathError, StageError
 from selpath.pipeline.kinds import LENGTH_UNITS

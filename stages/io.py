@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import xarray as xr
+
 from selpath.pipeline.constraints import StorePath
 from selpath.pipeline.errors import StoreError
 from selpath.pipeline.provenance import store_identity

@@ -6,9 +6,10 @@ import re
 
 import numpy as np
 import pytest
+from typer.testing import CliRunner
+
 from selpath.pipeline import FORMAT_VERSION
 from selpath.pipeline.cli import app
-from typer.testing import CliRunner
 
 runner = CliRunner()
 
@@ -135,7 +136,7 @@ def _every_figure_loads(page):
 def _every_store_carries_its_kinds_metadata(folder):
     """Each store the shipped demo writes opens (its units checked against its kind), every variable its kind
     declares has the kind's units and long name, and no other variable borrowed a coordinate's."""
-    from selpath.pipeline.schema import metadata
+    from selpath.pipeline.registry import default_registry
     from selpath.pipeline.store import open_store
 
     stores = sorted(folder.glob("*.zarr"))
@@ -143,7 +144,7 @@ def _every_store_carries_its_kinds_metadata(folder):
     for path in stores:
         ds = open_store(path)
         kind = ds.attrs["selpath_kind"]
-        for name, (units, long_name) in metadata(ds, kind).items():
+        for name, (units, long_name) in default_registry().kinds[kind].metadata(ds).items():
             assert (ds[name].attrs.get("units"), ds[name].attrs.get("long_name")) == (units, long_name), (path, name)
         for name, var in ds.data_vars.items():
             for coord in ds.coords.values():

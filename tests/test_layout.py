@@ -125,6 +125,7 @@ def test_everything_imports_through_the_one_namespace():
     tracked = subprocess.run(["git", "ls-files", "--cached", "--others", "--exclude-standard", "*.py"], cwd=ROOT,
                              capture_output=True, text=True, check=True).stdout.split()
     bare = {}
+    tracked = [file for file in tracked if (ROOT / file).is_file()]  # not one deleted in the work tree
     for file in tracked:
         names = _imported(ast.parse((ROOT / file).read_text(), file))
         wrong = sorted(n for n in names if n.split(".")[0] in BARE)
@@ -135,7 +136,8 @@ def test_everything_imports_through_the_one_namespace():
     texts = subprocess.run(["git", "ls-files", "--cached", "--others", "--exclude-standard", "*.py", "*.md", ".ci/*"],
                            cwd=ROOT, capture_output=True, text=True, check=True).stdout.split()
     pattern = re.compile(rf"(?<!selpath )\b(?:from|import) (?:{'|'.join(BARE)})\b")
-    quoted = {file: pattern.findall((ROOT / file).read_text()) for file in texts if file != "CHANGELOG.md"}  # old names
+    quoted = {file: pattern.findall((ROOT / file).read_text()) for file in texts
+              if file != "CHANGELOG.md" and (ROOT / file).is_file()}  # (the changelog names the old ones)  # old names
     assert "README.md" in texts and not {file: found for file, found in quoted.items() if found}
 
 

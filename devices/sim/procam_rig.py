@@ -13,6 +13,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+
 from selpath.devices.protocols import SyncLimits
 from selpath.devices.sim.procam_scene import ProcamScene
 from selpath.devices.sim.procam_transport import render_frame

@@ -30,6 +30,7 @@ from typing import Annotated, Literal
 
 import numpy as np
 import pydantic
+
 from selpath.devices.sim.scene import Angle, Pixels, quantity, saturation_above_dark
 from selpath.pipeline.yaml_source import load_yaml_model
 

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.special import ndtr
+
 from selpath.devices.sim.procam_scene import Effects, ProcamRig, ProcamScene
 
 #: rows rendered at a time (bounded memory at any sensor width)

@@ -14,6 +14,7 @@ import base64
 import binascii
 
 import numpy as np
+
 from selpath.devices.patterns import vertical_line
 from selpath.devices.serial_projector import LEVELS, pattern_checksum
 

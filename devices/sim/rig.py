@@ -11,6 +11,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+
 from selpath.devices.protocols import RotaryStage
 from selpath.devices.sim.scene import Scene
 from selpath.devices.sim.tomography import SAMPLES, ExitPoints, exit_points, lit_frame, silhouette

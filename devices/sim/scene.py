@@ -25,6 +25,7 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 import pydantic
+
 from selpath.devices.geometry import OrthographicCamera, PerspectiveCamera, RigGeometry
 from selpath.devices.sim.shapes import Ellipse, Ellipsoid, Polygon, Prism, Solid, convex_polygon
 from selpath.pipeline.yaml_source import load_yaml_model

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 import pydantic
+
 from selpath.devices.sim.scene import Angle, Length
 from selpath.pipeline.yaml_source import load_yaml_model
 
@@ -233,6 +234,7 @@ def capture_target(scene: StereoTargetScene, store, *, progress: bool = True, lo
     import dask.array as da
     import xarray as xr
     from rich.progress import Progress, TextColumn, TimeElapsedColumn
+
     from selpath.devices.patterns import gray_code_levels
     from selpath.pipeline.compute import BAR_COLUMNS, show_bars
     from selpath.pipeline.locks import store_lock

@@ -33,6 +33,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
+
 from selpath.devices.geometry import Camera, RigGeometry, to_lab, to_object
 from selpath.devices.sim.scene import Scene
 from selpath.devices.sim.shapes import Solid, segment_length_inside

@@ -13,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
 from selpath.stages.procam._demux_problem import DemuxProblem, SeparableDemuxProblem, _dtd_np, _residual, _smoothness
 
 #: golden-section steps of the dual search in :func:`best_dual_value` (the interval shrinks 0.618× per step)

@@ -23,6 +23,7 @@ act, a semismooth Newton step), builds its free block from A's free columns.
 from __future__ import annotations
 
 import numpy as np
+
 from selpath.stages.procam._demux_certificate import DUAL_STEPS, certified_gap
 from selpath.stages.procam._demux_problem import DemuxProblem
 from selpath.stages.procam._illumination import difference_operator

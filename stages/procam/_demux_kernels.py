@@ -14,6 +14,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+
 from selpath.stages.procam._demux_certificate import DUAL_SEARCH_STEPS, KKT_HELD, best_dual_value, kkt_gap
 from selpath.stages.procam._demux_problem import DenseOperators
 

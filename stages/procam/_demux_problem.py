@@ -38,6 +38,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+
 from selpath.stages.procam._illumination import difference_operator
 
 #: smoothness weight α of the thesis (§5.2.2), on images scaled to [0, 1]

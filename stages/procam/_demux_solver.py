@@ -79,6 +79,7 @@ from typing import ClassVar, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+
 from selpath.stages._solution import Result, Solution, outcome, raise_if_failed
 from selpath.stages.procam import _demux_kernels as kernels
 from selpath.stages.procam._demux_certificate import DUAL_STEPS, kkt_bound

@@ -19,9 +19,10 @@ import jax
 import numpy as np
 import pydantic
 import xarray as xr
+
 from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.kinds import CubeKind, Variable
 from selpath.pipeline.quality import usable_share
-from selpath.pipeline.schema import with_metadata
 from selpath.stages._solution import Solution, raise_if_failed
 from selpath.stages._sweeps import Sweep
 from selpath.stages.procam._demux_problem import DemuxProblem, SeparableDemuxProblem
@@ -197,17 +198,45 @@ def transport_template(capture: xr.Dataset, transport_dims: tuple[str, ...], tra
     return xr.Dataset(variables, coords={name: capture[name] for name in ("row", "col") if name in capture.coords})
 
 
+_FRAME = ("row", "col")
+#: the per-pixel solver's results beside a transport (both transport kinds declare them)
+DEMUX_EXTRAS = {
+    "iterations": Variable(_FRAME, required=False, units="1", long_name="ADMM iterations run for the pixel"),
+    "converged": Variable(_FRAME, required=False, units=None,
+                          long_name="the pixel's solve met its tolerance (plane-to-ray: a certified gap_bound "
+                                    "within max_gap) and no offset's light is censored"),
+    "censored": Variable(_FRAME, required=False, units=None,
+                         long_name="some offset's light was seen only in clipped frames: T is a lower bound there"),
+    "censored_offsets": Variable(_FRAME, required=False, units="1",
+                                 long_name="offsets whose light was seen only in clipped frames"),
+    "gap_bound": Variable(_FRAME, required=False, units="1",
+                          long_name="certified bound on the relative objective gap (f(T) − f*)/f(T)"),
+    "frames_used": Variable(_FRAME, required=False, units="1",
+                            long_name="frames observed for the pixel, neither clipped nor missing"),
+    "frames_clipped": Variable(_FRAME, required=False, units="1",
+                               long_name="frames at or above saturation_counts, kept as lower bounds"),
+    "clip_ratio": Variable(_FRAME, required=False, units="1",
+                           long_name="brightest frame T predicts over the clip level (counts above dark)"),
+    "objective": Variable(_FRAME, required=False, units="1", long_name="objective at T (images scaled to [0, 1])"),
+}
+#: what a transport carries from its sweep, read by the stages after it (short_range_images, the relighting figures)
+TRANSPORT_ATTRS = {
+    "scan_speed_px_per_us": "v_p used, camera rows per µs (offset o ↔ delay o / v_p)",
+    "line_time_us": "t_p, µs",
+    "full_scale_counts": "counts that scaled the images to [0, 1] (the objective's scale)",
+}
+
 #: what a transport keeps of its capture's attrs: which rig and scene it saw (a simulated capture's scene is the truth
 #: later stages score against, e.g. the labels of ``choose_delay``)
 CAPTURE_ATTRS = ("rig", "scene", "effects", "simulated_scene")
 
 
-def transport_attrs(kind: str, capture: xr.Dataset, *, timing: dict, delays, exposures, keep, margin: float,
+def transport_attrs(capture: xr.Dataset, *, timing: dict, delays, exposures, keep, margin: float,
                     full_scale: float, **settings) -> dict:
     """The attrs every transport store records: what it was captured of, its settings, the timing used and the
     frames dropped."""
     dropped = [[float(d), float(e)] for d, e in zip(delays[~keep], exposures[~keep], strict=True)]
-    return {"selpath_kind": kind, **{k: capture.attrs[k] for k in CAPTURE_ATTRS if k in capture.attrs}, **settings,
+    return {**{k: capture.attrs[k] for k in CAPTURE_ATTRS if k in capture.attrs}, **settings,
             "scan_speed_px_per_us": timing["scan_speed"], "line_time_us": timing["line_time"],
             "sync_offset_us": timing["sync_offset"],
             "full_scale_counts": full_scale, "frames_dropped": dropped, "boundary_margin_us": margin}
@@ -226,14 +255,14 @@ PER_PIXEL_DESCRIPTIONS = {
 }
 
 
-def describe_transport(out: xr.Dataset, frames: int, kind: str, gap_tol: float) -> xr.Dataset:
+def describe_transport(out: xr.Dataset, frames: int, kind: CubeKind, gap_tol: float) -> xr.Dataset:
     """Attrs of the per-pixel variables (the schema's units and long names, as a store written from it will
     carry them) and the result's shares: usable observations (floor 5 %), pixels not censored (no floor: a
     report, which the engine logs with its advice when below 1) and pixels certified (``gap_bound`` ≤ ``gap_tol``;
     no floor: a report; ``converged`` also counts pixels whose residuals met ``tol``)."""
     for name, description in PER_PIXEL_DESCRIPTIONS.items():
         out[name].attrs = {"description": description}
-    out = with_metadata(out, kind)
+    out = kind.label(out)
     out["usable_fraction"] = usable_observations(out["frames_used"], frames)
     out["uncensored_fraction"] = usable_share(
         1.0 - out["censored"].mean(), floor=0.0, label="uncensored",
@@ -246,7 +275,7 @@ def describe_transport(out: xr.Dataset, frames: int, kind: str, gap_tol: float) 
         what=f"pixels whose certified objective-gap bound is at most gap_tol = {gap_tol:g} (converged ones "
              "beyond them met the residual test, tol, with a bound at most max_gap where the solver has one: their "
              "gap_bound says what is proven)",
-        fix=CERTIFY_ADVICE[kind])
+        fix=CERTIFY_ADVICE[kind.name])
     return out
 
 

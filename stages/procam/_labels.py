@@ -13,6 +13,7 @@ from typing import Literal
 
 import numpy as np
 import xarray as xr
+
 from selpath.pipeline.errors import Problem, StageError
 from selpath.stages._common import file_identity
 

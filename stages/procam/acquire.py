@@ -15,22 +15,45 @@ from typing import Annotated, Any, ClassVar, Literal
 import numpy as np
 import pydantic
 import xarray as xr
+
 from selpath.devices.patterns import white
-from selpath.devices.procam_acquire import ProcamInstruments, capture_template, checkerboard_shifts, sweep_frames
-from selpath.devices.procam_acquire import acquire_checkerboards as checkerboard_sweep
+from selpath.devices.procam_acquire import ProcamInstruments, capture_template, sweep_frames
 from selpath.devices.procam_acquire import acquire_full_transport as full_sweep
-from selpath.devices.procam_acquire import acquire_gray_code as gray_code_stack
 from selpath.devices.procam_acquire import acquire_plane_to_ray as plane_sweep
 from selpath.devices.procam_hardware import load_procam_hardware, procam_hardware_rig
 from selpath.devices.sim.procam_rig import simulated_procam_rig
 from selpath.devices.sim.procam_scene import ProcamRig, ProcamScene, load_procam_scene
-from selpath.devices.sim.stereo_target import capture_target, load_stereo_target
 from selpath.devices.sim.sync_firmware import DEFAULT_LIMITS
 from selpath.pipeline.constraints import Count, Positive, StorePath, memory_problems
 from selpath.pipeline.errors import SelpathError
+from selpath.pipeline.kinds import PX_UNITS, SENSOR_COUNTS, TIME_UNITS, CubeKind, Variable
 from selpath.pipeline.registry import stage
 from selpath.stages._common import file_identity, read_file, sweep_log
 from selpath.stages._sweeps import Sweep
+
+_FRAME = ("row", "col")
+#: what a projector–camera capture must say about its sensor: without them clipped frames pass as data
+CAMERA_LEVELS = {
+    "saturation_counts": "raw counts at and above which a pixel is clipped (kept as lower bounds on the light)",
+    "dark_level_counts": "raw counts of an unlit pixel (black level), subtracted before demultiplexing",
+}
+PLANE_TO_RAY_CAPTURE = CubeKind(
+    name="plane_to_ray_capture",
+    description="image stacks over sync delay and exposure (§5.2.3)",
+    variables={"image": Variable(("delay", "exposure", *_FRAME), **SENSOR_COUNTS)},
+    coord_units={"delay": TIME_UNITS, "exposure": TIME_UNITS},
+    attrs={"scan_speed_px_per_us": "projector scan speed v_p, projector rows per µs",
+           "line_time_us": "projector line time t_p, µs", **CAMERA_LEVELS},
+)
+FULL_TRANSPORT_CAPTURE = CubeKind(
+    name="full_transport_capture",
+    description="stacks over delay, exposure and projected line position (§5.3.1)",
+    variables={"image": Variable(("delay", "exposure", "line", *_FRAME), **SENSOR_COUNTS)},
+    coord_units={"delay": TIME_UNITS, "exposure": TIME_UNITS, "line": PX_UNITS},
+    attrs={"scan_speed_px_per_us": "projector scan speed v_p, projector rows per µs",
+           "line_time_us": "projector line time t_p, µs",
+           "line_width_px": "width l_w of the projected vertical line, projector columns", **CAMERA_LEVELS},
+)
 
 
 class TimeSweep(Sweep):
@@ -67,7 +90,8 @@ SensorSize = tuple[Count, Count]
 RigChanges = dict[str, Any]
 
 
-def _scene(scene: StorePath, sensor: SensorSize | None, rig_changes: RigChanges | None = None) -> ProcamScene:
+def acquisition_scene(scene: StorePath, sensor: SensorSize | None,
+                      rig_changes: RigChanges | None = None) -> ProcamScene:
     """The scene file's scene, its rig changed by ``rig_changes`` and ``sensor`` (checked as the file is)."""
     spec = load_procam_scene(scene)
     changes = dict(rig_changes or {})
@@ -96,7 +120,8 @@ def frame_problems(spec: ProcamScene) -> list[str]:
 def _checked_scene(settings, sweep) -> list[str]:
     """Read the scene, check ``sweep(scene) = (delays, exposures)`` against the controller's limits and a frame
     against this machine's memory at validation time."""
-    spec, problems = read_file(lambda path: _scene(path, settings.sensor, settings.rig_changes), settings.scene,
+    spec, problems = read_file(lambda path: acquisition_scene(path, settings.sensor, settings.rig_changes),
+                               settings.scene,
                                "scene")
     if problems:
         return problems
@@ -104,7 +129,7 @@ def _checked_scene(settings, sweep) -> list[str]:
     return DEFAULT_LIMITS.problems(delays, exposures) + frame_problems(spec)
 
 
-def _rig_precheck(settings, sweep) -> list[str]:
+def acquisition_precheck(settings, sweep) -> list[str]:
     """The hardware rig file's problems, or the scene's against ``sweep(scene) = (delays, exposures)``."""
     if getattr(settings, "rig", "sim") == "hardware":
         return _hardware_problems(settings)
@@ -114,7 +139,7 @@ def _rig_precheck(settings, sweep) -> list[str]:
 
 
 def _precheck(settings) -> list[str]:
-    return _rig_precheck(settings, lambda _: (settings.delays.values(), settings.exposures))
+    return acquisition_precheck(settings, lambda _: (settings.delays.values(), settings.exposures))
 
 
 def _hardware_problems(settings) -> list[str]:
@@ -127,7 +152,7 @@ def _hardware_problems(settings) -> list[str]:
     return problems + read_file(load_procam_hardware, settings.hardware, "hardware")[1]
 
 
-def _identity(settings) -> dict:
+def acquisition_identity(settings) -> dict:
     source = settings.hardware if getattr(settings, "rig", "sim") == "hardware" else settings.scene
     return {"rig": settings.rig, **file_identity(source), "sensor": settings.sensor,
             "rig_changes": settings.rig_changes}
@@ -138,7 +163,7 @@ def _simulated_rig(scene: StorePath, sensor: SensorSize | None, rig_changes: Rig
                    ) -> Iterator[ProcamInstruments]:
     """The simulated rig showing ``scene`` (at ``sensor`` size and with ``rig_changes`` when given), closed when
     the sweep ends."""
-    instruments = simulated_procam_rig(_scene(scene, sensor, rig_changes))
+    instruments = simulated_procam_rig(acquisition_scene(scene, sensor, rig_changes))
     try:
         yield instruments
     finally:
@@ -146,7 +171,7 @@ def _simulated_rig(scene: StorePath, sensor: SensorSize | None, rig_changes: Rig
 
 
 @contextmanager
-def _rig(rig: str, scene: StorePath, hardware: StorePath, sensor: SensorSize | None,
+def acquisition_rig(rig: str, scene: StorePath, hardware: StorePath, sensor: SensorSize | None,
          rig_changes: RigChanges | None) -> Iterator[ProcamInstruments]:
     """The simulated rig (``sim``) or the rig a hardware file describes (``hardware``), closed when the sweep
     ends."""
@@ -161,15 +186,15 @@ def _rig(rig: str, scene: StorePath, hardware: StorePath, sensor: SensorSize | N
         instruments.close()
 
 
-def _acquisition(name: str):
-    """``@stage(name)`` for a projector–camera acquisition: validated against the scene and the controller's
-    limits, identified by the scene file, filling its own store; the settings every acquisition shares (rig,
-    sensor, rig changes, progress) are documented once, here."""
+def _acquisition(name: str, kind: CubeKind):
+    """``@stage(name, kind=kind)`` for a projector–camera acquisition: validated against the scene and the
+    controller's limits, identified by the scene file, filling its own store; the settings every acquisition
+    shares (rig, sensor, rig changes, progress) are documented once, here."""
 
     def register(func):
         func.__doc__ = func.__doc__.rstrip() + "\n" + _SHARED_DOCS
-        return stage(name, precheck=_precheck, identity=_identity, writes=lambda settings: settings.store,
-                     variables=lambda settings: ["image"])(func)
+        return stage(name, kind=kind, precheck=_precheck, identity=acquisition_identity,
+                     writes=lambda settings: settings.store, variables=lambda settings: ["image"])(func)
 
     return register
 
@@ -186,7 +211,7 @@ _SHARED_DOCS = """    sensor : [rows, cols] or None
     """
 
 
-@_acquisition("acquire_plane_to_ray")
+@_acquisition("acquire_plane_to_ray", PLANE_TO_RAY_CAPTURE)
 def acquire_plane_to_ray(
     *,
     store: StorePath,
@@ -225,12 +250,12 @@ def acquire_plane_to_ray(
         highlight that clips within one line time gets nothing added (only attenuation helps). ``off``: the
         exposures as given.
     """
-    with _rig(rig, scene, hardware, sensor, rig_changes) as instruments:
+    with acquisition_rig(rig, scene, hardware, sensor, rig_changes) as instruments:
         return plane_sweep(instruments, store, delays.values(), exposures, hdr=hdr == "auto", progress=progress,
                            log=sweep_log(progress))
 
 
-@_acquisition("acquire_full_transport")
+@_acquisition("acquire_full_transport", FULL_TRANSPORT_CAPTURE)
 def acquire_full_transport(
     *,
     store: StorePath,
@@ -267,12 +292,12 @@ def acquire_full_transport(
     line_width : float
         Line width l_w [px].
     """
-    with _rig(rig, scene, hardware, sensor, rig_changes) as instruments:
+    with acquisition_rig(rig, scene, hardware, sensor, rig_changes) as instruments:
         return full_sweep(instruments, store, delays.values(), exposures, lines.values(), line_width,
                           progress=progress, log=sweep_log(progress))
 
 
-@_acquisition("acquire_scan_calibration")
+@_acquisition("acquire_scan_calibration", PLANE_TO_RAY_CAPTURE)
 def acquire_scan_calibration(
     *,
     store: StorePath,
@@ -305,174 +330,9 @@ def acquire_scan_calibration(
         if not hasattr(instruments.camera, "set_shutter"):
             raise SelpathError("the scan calibration needs a camera with a global-shutter mode (set_shutter)")
         instruments.camera.set_shutter("global")
-        template = capture_template(instruments, "plane_to_ray_capture", delays.values(), exposures,
+        template = capture_template(instruments, PLANE_TO_RAY_CAPTURE.name, delays.values(), exposures,
                                     extra_attrs={"shutter": "global"})
         pattern = white(instruments.projector.shape)
-        return sweep_frames(instruments, store, template, "plane_to_ray_capture",
+        return sweep_frames(instruments, store, template, PLANE_TO_RAY_CAPTURE.name,
                             lambda _: instruments.projector.show(pattern), progress,
                             sweep_log(progress))
-
-
-def _checkerboard_precheck(settings) -> list[str]:
-    problems = _rig_precheck(settings, lambda spec: tuple([v] for v in exposure_window(spec, settings.mode)))
-    if settings.rig == "hardware" and settings.mode == "floodlit":
-        problems.append("mode floodlit needs the camera's global shutter; a hardware rig's OpenCV camera has none "
-                        "(use mode: epipolar)")
-    return problems
-
-
-def exposure_window(spec: ProcamScene, mode: str) -> tuple[float, float]:
-    """(t_d, t_e) [µs]: ``epipolar``: 0 and t_p (the synchronised epipolar frame); ``floodlit``: a global-shutter
-    exposure that opens before the scan's first row and closes after its last, with two line times, the sync
-    offset and six jitter deviations to spare on each side (every row lit for its whole line time: the regular
-    image). Its exposure, rows · τ plus the margins, must fit the controller: 20 ms, about 1,170 rows at
-    τ = 17 µs (the shipped workflow renders 300)."""
-    rig = spec.rig
-    if mode == "epipolar":
-        return 0.0, float(rig.line_time)
-    margin = 2 * rig.line_time + abs(rig.sync_offset) + (6 * rig.jitter.std if rig.jitter is not None else 0.0)
-    return -margin, float(rig.camera_rows * rig.row_period + rig.line_time + 2 * margin)
-
-
-@stage("acquire_checkerboards", precheck=_checkerboard_precheck, identity=_identity,
-       writes=lambda settings: settings.store, variables=lambda settings: ["image"])
-def acquire_checkerboards(
-    *,
-    store: StorePath,
-    mode: Literal["floodlit", "epipolar"],
-    square: Count = 24,
-    shifts_per_axis: Count = 4,
-    rig: Literal["sim", "hardware"] = "sim",
-    scene: StorePath = "",
-    hardware: StorePath = "",
-    sensor: SensorSize | None = None,
-    rig_changes: RigChanges | None = None,
-    progress: bool = True,
-) -> xr.Dataset:
-    """Shifted high-frequency checkerboards for direct/global separation (§5.4.6): one frame per shift, frame by
-    frame and resumably, floodlit (global shutter: Nayar et al.'s frames) or epipolar (t_d = 0, t_e = t_p).
-
-    Parameters
-    ----------
-    store : str
-        Zarr store the frames land in (a ``checkerboard_capture``); an existing store of the same boards resumes.
-    mode : str
-        ``floodlit``: the camera's global shutter open over the whole scan (the regular image under the board);
-        ``epipolar``: the synchronised rolling shutter at t_d = 0, t_e = t_p (only the pixel's own epipolar plane).
-    square : int
-        Side of a checkerboard square [projector px] (the thesis: 24); small against the scene's global light.
-    shifts_per_axis : int
-        Shifts per axis, evenly over one period (two squares) [1]: shifts_per_axis² frames (at least 2 per axis,
-        so that every pixel is seen lit and dark; the thesis shifted its board 128 times).
-    rig : str
-        ``sim``: the transport simulator showing ``scene``; ``hardware``: the rig file ``hardware`` (epipolar mode
-        only: its camera has no global shutter).
-    scene : str
-        Projector–camera scene file (``workflows/scenes/*.yaml``), for ``rig: sim``.
-    hardware : str
-        Projector–camera rig file, for ``rig: hardware`` (docs/devices.md).
-    sensor : [rows, cols] or None
-        Render at this sensor size instead of the scene rig's; a frame that would not fit in memory is refused.
-    rig_changes : dict or None
-        Changes to the scene's rig (as for ``acquire_plane_to_ray``).
-    progress : bool
-        Show a progress bar.
-    """
-    if shifts_per_axis < 2:
-        raise SelpathError(f"shifts_per_axis is {shifts_per_axis}: at least 2 are needed, so that every pixel of "
-                           "the board is seen lit and dark")
-    shifts = checkerboard_shifts((square, square), shifts_per_axis)
-    with _rig(rig, scene, hardware, sensor, rig_changes) as instruments:
-        if rig == "sim":
-            delay, exposure = exposure_window(_scene(scene, sensor, rig_changes), mode)
-        else:  # the synchronised epipolar frame: t_d = 0, t_e = t_p (floodlit is refused by the sweep)
-            delay, exposure = 0.0, float(np.ceil(float(instruments.attrs["line_time_us"])))
-        return checkerboard_sweep(instruments, store, (square, square), shifts, mode=mode, delay=delay,
-                                  exposure=exposure, progress=progress, log=sweep_log(progress))
-
-
-def gray_code_window(line_time: float, scan_speed: float, max_offset_rows: float) -> tuple[float, float]:
-    """(t_d, t_e) [µs] of a Gray-code frame: delay 0 and an exposure that also takes in the projector rows up to
-    ``max_offset_rows`` camera rows from each camera row's own (t_p + 2·max_offset / v_p, whole µs)."""
-    return 0.0, float(np.ceil(line_time + 2 * max_offset_rows / scan_speed))
-
-
-def _gray_code_precheck(settings) -> list[str]:
-    return _rig_precheck(settings, lambda spec: tuple([v] for v in gray_code_window(
-        spec.rig.line_time, spec.rig.scan_speed, settings.max_offset_rows)))
-
-
-@stage("acquire_gray_code", precheck=_gray_code_precheck, identity=_identity, writes=lambda settings: settings.store,
-       variables=lambda settings: ["image"])
-def acquire_gray_code(
-    *,
-    store: StorePath,
-    rig: Literal["sim", "hardware"] = "sim",
-    scene: StorePath = "",
-    hardware: StorePath = "",
-    max_offset_rows: Positive = 16.0,
-    sensor: SensorSize | None = None,
-    rig_changes: RigChanges | None = None,
-    progress: bool = True,
-) -> xr.Dataset:
-    """White, black and the projector's Gray codes at t_d = 0, frame by frame and resumably.
-
-    Each column and row bit with its inverse (``cv2.structured_light``), with an exposure of many rows: what
-    ``decode_gray_code`` turns into the projector pixel lighting each camera pixel, and ``epipolar_alignment`` into
-    the rig's row misalignment.
-
-    Parameters
-    ----------
-    store : str
-        Zarr store the frames land in (a ``gray_code_capture``); an existing store of the same codes resumes.
-    rig : str
-        ``sim``: the transport simulator showing ``scene``; ``hardware``: the rig file ``hardware``.
-    scene : str
-        Projector–camera scene file, for ``rig: sim``.
-    hardware : str
-        Projector–camera rig file, for ``rig: hardware`` (docs/devices.md).
-    max_offset_rows : float
-        Misalignment the codes can still see [camera rows]: the exposure spans t_p + 2·max_offset / v_p, so each
-        camera row also integrates the projector rows this far from its own (global light from them too).
-    sensor : [rows, cols] or None
-        Render at this sensor size instead of the scene rig's (``rig: sim``).
-    rig_changes : dict or None
-        Changes to the scene's rig (``rig: sim``), as for ``acquire_plane_to_ray``.
-    progress : bool
-        Show a progress bar.
-    """
-    with _rig(rig, scene, hardware, sensor, rig_changes) as instruments:
-        attrs = instruments.attrs
-        delay, exposure = gray_code_window(float(attrs["line_time_us"]), float(attrs["scan_speed_px_per_us"]),
-                                           max_offset_rows)
-        return gray_code_stack(instruments, store, delay=delay, exposure=exposure, progress=progress,
-                               log=sweep_log(progress))
-
-
-def _target_precheck(settings) -> list[str]:
-    return read_file(load_stereo_target, settings.scene, "scene")[1]
-
-
-def _target_identity(settings) -> dict:
-    return {"rig": "sim", **file_identity(settings.scene)}
-
-
-@stage("acquire_stereo_target", precheck=_target_precheck, identity=_target_identity,
-       writes=lambda settings: settings.store, variables=lambda settings: ["image"])
-def acquire_stereo_target(*, store: StorePath, scene: StorePath, progress: bool = True) -> xr.Dataset:
-    """A checkerboard target at several poses under white, black and Gray codes, filmed by a simulated pinhole pair.
-
-    The pair and the target are ``scene``'s (``selpath.devices.sim.stereo_target``); frames are written one by one and a
-    rerun resumes: what ``calibrate_procam_stereo`` calibrates the pair from.
-
-    Parameters
-    ----------
-    store : str
-        Zarr store the frames land in (a ``stereo_target_capture``); an existing store of the same scene resumes.
-    scene : str
-        Stereo target scene file (``workflows/scenes/stereo-target.yaml``): camera and projector intrinsics, the
-        projector's pose (baseline, roll, pitch, yaw), the board and its poses, light and noise.
-    progress : bool
-        Show a progress bar.
-    """
-    return capture_target(load_stereo_target(scene), store, progress=progress, log=sweep_log(progress))

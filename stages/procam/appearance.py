@@ -31,8 +31,10 @@ import pydantic
 import xarray as xr
 from scipy.ndimage import convolve1d
 from scipy.optimize import least_squares
+
 from selpath.pipeline.constraints import Count, Fraction, NonNegative, Positive, StorePath
 from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.kinds import PX_UNITS, TIME_UNITS, CubeKind, Variable
 from selpath.pipeline.registry import stage
 from selpath.stages.procam._illumination import plane_to_ray_illumination
 from selpath.stages.procam._labels import Labels, label_identity, label_map, label_precheck
@@ -52,7 +54,26 @@ def profile_model(offsets: np.ndarray, fraction: float, width: float) -> np.ndar
     return (1 - fraction) * (offsets == 0) + fraction * laplace_cells(offsets, width)
 
 
-@stage("fit_scattering_profile", precheck=label_precheck, identity=label_identity)
+SCATTERING_PROFILE = CubeKind(
+    name="scattering_profile",
+    description="a material's fitted scattering profile R(d) = (1 − f)·δ + f·Laplace(w) (§5.4.8)",
+    variables={"profile": Variable(("distance",), units="1",
+                                   long_name="scattering profile R(d), mass per unit distance cell"),
+               "measured": Variable(("delay",), units="counts", long_name="the material's mean delay profile"),
+               "model": Variable(("delay",), False, units="counts", long_name="the fitted profile's delay sweep")},
+    coord_units={"distance": PX_UNITS, "delay": TIME_UNITS},
+    attrs={"fraction": "the share f of the light that scatters below the surface",
+           "width_px": "the Laplace lobe's width w, px"},
+)
+APPEARANCE_RENDER = CubeKind(
+    name="appearance_render",
+    description="a mesh rendered with and without a captured subsurface profile (§5.4.8, Fig. 50)",
+    variables={"image": Variable(("render", "row", "col"), units="1", long_name="rendered radiance"),
+               "mask": Variable(("row", "col"), False, units=None, long_name="the mesh's silhouette")},
+)
+
+
+@stage("fit_scattering_profile", kind=SCATTERING_PROFILE, precheck=label_precheck, identity=label_identity)
 def fit_scattering_profile(capture: xr.Dataset, /, *, material: str, labels: Labels = "scene",
                            label_image: StorePath = "", classes: tuple[str, ...] | None = None,
                            exposure: Positive | None = None,
@@ -117,17 +138,15 @@ def fit_scattering_profile(capture: xr.Dataset, /, *, material: str, labels: Lab
         std = np.full(3, np.nan)
     amplitude, fraction, width = (float(v) for v in fit.x)
     distance = np.arange(max_distance + 1)
-    return xr.Dataset(
-        {"profile": ("distance", profile_model(distance, fraction, width),
-                     {"units": "1", "long_name": "scattering profile R(d), mass per unit distance cell"}),
-         "measured": ("delay", measured, {"units": "counts", "long_name": "the material's mean delay profile"}),
-         "model": ("delay", measured + fit.fun, {"units": "counts", "long_name": "the fitted profile's delay sweep"})},
+    return SCATTERING_PROFILE.label(xr.Dataset(
+        {"profile": ("distance", profile_model(distance, fraction, width)), "measured": ("delay", measured),
+         "model": ("delay", measured + fit.fun)},
         coords={"distance": ("distance", distance, {"units": "px", "long_name": "distance d below the surface"}),
                 "delay": ("delay", delays, {"units": "us", "long_name": "sync delay t_d"})},
-        attrs={"selpath_kind": "scattering_profile", "material": material, "fraction": fraction,
+        attrs={"material": material, "fraction": fraction,
                "fraction_std": float(std[1]), "width_px": width, "width_std_px": float(std[2]),
                "amplitude_counts": amplitude, "residual_rms_counts": float(np.sqrt(variance)), "pixels": int(mask.sum()),
-               "exposure_us": t_e, "scene": capture.attrs.get("scene", "")})
+               "exposure_us": t_e, "scene": capture.attrs.get("scene", "")}))
 
 
 def shade(covered: np.ndarray, normal: np.ndarray, light: np.ndarray, fraction: float, width_px: float, *,
@@ -148,7 +167,7 @@ def shade(covered: np.ndarray, normal: np.ndarray, light: np.ndarray, fraction: 
     return irradiance + highlight, scattered + highlight
 
 
-@stage("render_appearance")
+@stage("render_appearance", kind=APPEARANCE_RENDER)
 def render_appearance(profile: xr.Dataset, /, *, mesh: Literal["teapot", "sphere"] = "teapot",
                       size: tuple[Count, Count] = (240, 320),
                       light: tuple[float, float, float] = (-0.7, 0.5, 0.5),
@@ -197,9 +216,8 @@ def render_appearance(profile: xr.Dataset, /, *, mesh: Literal["teapot", "sphere
                          covered.astype(float)])
 
     stack = da.from_delayed(dask.delayed(render)(), shape=(3, *shape), dtype=float)
-    return xr.Dataset(
-        {"image": (("render", "row", "col"), stack[:2], {"units": "1", "long_name": "rendered radiance"}),
-         "mask": (("row", "col"), stack[2] > 0, {"long_name": "the mesh's silhouette"})},
+    return APPEARANCE_RENDER.label(xr.Dataset(
+        {"image": (("render", "row", "col"), stack[:2]), "mask": (("row", "col"), stack[2] > 0)},
         coords={"render": ("render", ["lambertian", "subsurface"])},
-        attrs={"selpath_kind": "appearance_render", "mesh": mesh, "fraction": f, "width_render_px": width,
-               "material": profile.attrs.get("material", ""), "light": list(map(float, direction))})
+        attrs={"mesh": mesh, "fraction": f, "width_render_px": width,
+               "material": profile.attrs.get("material", ""), "light": list(map(float, direction))}))

@@ -13,10 +13,11 @@ from typing import Annotated
 import numpy as np
 import pydantic
 import xarray as xr
+
 from selpath.pipeline.constraints import Fraction, Positive
 from selpath.pipeline.errors import Problem, StageError
 from selpath.pipeline.registry import stage
-from selpath.stages._figures import as_figure, image_colorbar, panels, pixel_axes, rgba
+from selpath.stages._figures import FIGURE, as_figure, image_colorbar, panels, pixel_axes, rgba
 from selpath.stages.procam.figures import display_top
 
 #: the separation figure's size [in]: four images in a row
@@ -37,7 +38,7 @@ def _draw_separation(images: list[np.ndarray], titles: list[str]) -> np.ndarray:
     return rgba(fig)
 
 
-@stage("separation_figure")
+@stage("separation_figure", kind=FIGURE)
 def separation_figure(floodlit: xr.Dataset, epipolar: xr.Dataset, /) -> xr.Dataset:
     """Fig. 48: Nayar et al.'s direct image beside the epipolar image and its direct and global parts.
 
@@ -86,7 +87,7 @@ def _draw_short_range(images: np.ndarray, titles: list[str]) -> np.ndarray:
     return rgba(fig)
 
 
-@stage("short_range_figure")
+@stage("short_range_figure", kind=FIGURE)
 def short_range_figure(short_range: xr.Dataset, /) -> xr.Dataset:
     """Fig. 45: floodlit renders of short-range sweeps |t_d| ≤ T_dmax, with their energy and capture counts.
 
@@ -138,7 +139,7 @@ def _draw_line(images: list[np.ndarray], titles: list[str], band: tuple[int, int
     return rgba(fig)
 
 
-@stage("line_relighting_figure")
+@stage("line_relighting_figure", kind=FIGURE)
 def line_relighting_figure(study: xr.Dataset, /) -> xr.Dataset:
     """Fig. 42: a line relit from the demultiplexed stack beside the line projected alone, short and long.
 
@@ -193,7 +194,7 @@ def _draw_multiplexed(truth: np.ndarray, simplex: np.ndarray, multiplexed: np.nd
     return rgba(fig)
 
 
-@stage("multiplexed_relighting_figure")
+@stage("multiplexed_relighting_figure", kind=FIGURE)
 def multiplexed_relighting_figure(simplex: xr.Dataset, multiplexed: xr.Dataset, /) -> xr.Dataset:
     """Fig. 43: the scene relit from full transport under a checkerboard and floodlit, simplex against
     multiplexed sweeps of the same capture count, beside the simulator's noiseless truth.
@@ -280,7 +281,7 @@ def _draw_matrices(matrices: list[np.ndarray], titles: list[str], gamma: float) 
     return rgba(fig)
 
 
-@stage("transport_matrix_figure")
+@stage("transport_matrix_figure", kind=FIGURE)
 def transport_matrix_figure(transport: xr.Dataset, /, *,
                             columns: Annotated[dict[str, Fraction], pydantic.Field(min_length=1)],
                             gamma: Positive = 0.5) -> xr.Dataset:

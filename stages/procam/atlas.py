@@ -19,8 +19,10 @@ from typing import Annotated
 import numpy as np
 import pydantic
 import xarray as xr
+
 from selpath.pipeline.constraints import Fraction
 from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.kinds import PX_UNITS, CubeKind, Variable
 from selpath.pipeline.registry import stage
 from selpath.stages._common import require_variables
 from selpath.stages.procam.figures import Pixels, pixel_at
@@ -35,7 +37,20 @@ def extent(profile: xr.DataArray, floor: float) -> xr.DataArray:
     return np.sqrt((light * radius2).sum(("du", "dv")) / light.sum(("du", "dv")).where(lambda s: s > 0))
 
 
-@stage("material_atlas")
+_EXTENT = "RMS distance from the direct correspondence"
+MATERIAL_ATLAS = CubeKind(
+    name="material_atlas",
+    description="2-D transport profiles of named pixels scaled to their maximum, and extents (§5.4.10)",
+    variables={"profile": Variable(("site", "du", "dv"), units="1", long_name="T / its maximum"),
+               "extent": Variable(("site",), units="px", long_name=_EXTENT),
+               "extent_map": Variable(("row", "col"), False, units="px", long_name=_EXTENT),
+               "image": Variable(("row", "col"), units="counts", long_name="white image Σ T")},
+    coord_units={"du": PX_UNITS, "dv": PX_UNITS},
+    attrs={"reach_px": "half-width of the profiles' window, px"},
+)
+
+
+@stage("material_atlas", kind=MATERIAL_ATLAS)
 def material_atlas(transport: xr.Dataset, /, *, pixels: Pixels,
                    reach: Annotated[int, pydantic.Field(ge=1, le=500)] = 20, floor: Fraction = 0.02) -> xr.Dataset:
     """2-D transport profiles of named pixels, each scaled to its maximum, with their extents (§5.4.10, Fig. 53).
@@ -82,15 +97,13 @@ def material_atlas(transport: xr.Dataset, /, *, pixels: Pixels,
     at = {name: pixel_at(transport, where) for name, where in pixels.items()}
     rows, cols = (xr.DataArray([rc[k] for rc in at.values()], dims="site") for k in (0, 1))
     sites = window.isel(row=rows, col=cols, drop=True).transpose("site", "du", "dv")  # one vectorised read
-    extent_map = extent(window, floor).assign_attrs(units="px", long_name="RMS distance from the direct correspondence")
+    extent_map = extent(window, floor)
     peak = sites.max(("du", "dv"))
     profile = sites / peak.where(peak > 0)
-    return xr.Dataset(
-        {"profile": profile.drop_attrs(deep=False).assign_attrs(units="1", long_name="T / its maximum"),
+    return MATERIAL_ATLAS.label(xr.Dataset(
+        {"profile": profile.drop_attrs(deep=False),
          "extent": extent_map.isel(row=rows, col=cols, drop=True),  # the map's own numbers at the sites
-         "extent_map": extent_map,
-         "image": t.sum(("du", "dv"), skipna=True).drop_attrs(deep=False).assign_attrs(
-             units=t.attrs.get("units", "counts"), long_name="white image Σ T")},
+         "extent_map": extent_map, "image": t.sum(("du", "dv"), skipna=True).drop_attrs(deep=False)},
         coords={"site": ("site", list(at)), "site_row": rows, "site_col": cols},
         attrs={k: v for k, v in transport.attrs.items() if k not in ("selpath_kind", "simulated_scene")}
-        | {"selpath_kind": "material_atlas", "reach_px": reach, "extent_floor": floor})
+        | {"reach_px": reach, "extent_floor": floor}))

@@ -10,8 +10,10 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 import xarray as xr
+
 from selpath.pipeline.constraints import NonNegative
 from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.kinds import TIME_UNITS, CubeKind, Variable
 from selpath.pipeline.registry import stage
 
 
@@ -33,7 +35,27 @@ def row_profile_statistics(profile: np.ndarray) -> tuple[float, float]:
     return float(profile.sum() / plateau), float((rows * profile).sum() / profile.sum())
 
 
-@stage("calibrate_scan_speed")
+_SWEEP = ("delay", "exposure")
+SCAN_CALIBRATION = CubeKind(
+    name="scan_calibration",
+    description="scan speed v_p and sync offset t_o from global-shutter frames of a white target (§5.3.2)",
+    variables={
+        "count": Variable(_SWEEP, description="illuminated rows counted per frame", units="1",
+                          long_name="illuminated camera rows"),
+        "centroid": Variable(_SWEEP, description="row centroid of the lit band", units="px",
+                             long_name="camera row at the lit band's centroid"),
+        "fitted_count": Variable(_SWEEP, False, units="1", long_name="fitted v_p · t_e"),
+        "fitted_centroid": Variable(_SWEEP, False, units="px", long_name="fitted band centre"),
+        "used": Variable(_SWEEP, required=False, units=None,
+                         long_name="frame used in the fit (a band inside the frame)"),
+    },
+    coord_units={"delay": TIME_UNITS, "exposure": TIME_UNITS},
+    attrs={"scan_speed_px_per_us": "fitted v_p, camera rows per µs", "scan_speed_std": "its standard error",
+           "sync_offset_us": "fitted t_o, µs", "sync_offset_std": "its standard error"},
+)
+
+
+@stage("calibrate_scan_speed", kind=SCAN_CALIBRATION)
 def calibrate_scan_speed(capture: xr.Dataset, /, *, min_rows: NonNegative = 2.0) -> xr.Dataset:
     """Fit the projector scan speed v_p and the sync offset t_o from a global-shutter capture (§5.3.2).
 
@@ -92,16 +114,12 @@ def calibrate_scan_speed(capture: xr.Dataset, /, *, min_rows: NonNegative = 2.0)
     fitted_count, fitted_centroid = full.copy(), full.copy()
     fitted_count[use], fitted_centroid[use] = fitted[:n], fitted[n:]
     coords = {"delay": capture["delay"], "exposure": capture["exposure"]}
-    counted = {"units": "1", "long_name": "illuminated camera rows"}
-    row = {"units": "px", "long_name": "camera row at the lit band's centroid"}
-    return xr.Dataset(
-        {"count": (("delay", "exposure"), count, counted), "centroid": (("delay", "exposure"), centroid, row),
-         "fitted_count": (("delay", "exposure"), fitted_count, counted | {"long_name": "fitted v_p · t_e"}),
-         "fitted_centroid": (("delay", "exposure"), fitted_centroid, row | {"long_name": "fitted band centre"}),
-         "used": (("delay", "exposure"), use)},
+    return SCAN_CALIBRATION.label(xr.Dataset(
+        {"count": (_SWEEP, count), "centroid": (_SWEEP, centroid), "fitted_count": (_SWEEP, fitted_count),
+         "fitted_centroid": (_SWEEP, fitted_centroid), "used": (_SWEEP, use)},
         coords=coords,
-        attrs={"selpath_kind": "scan_calibration", "scan_speed_px_per_us": float(value[0]),
+        attrs={"scan_speed_px_per_us": float(value[0]),
                "scan_speed_std": float(std[0]), "sync_offset_us": float(value[1]), "sync_offset_std": float(std[1]),
                "residual_rms_px": float(np.sqrt(s2)), "frames_used": n,
                "converged": converged},
-    )
+    ))

@@ -17,13 +17,17 @@ from __future__ import annotations
 
 import numpy as np
 import xarray as xr
+
 from selpath.pipeline.constraints import Count, Index, NonNegative, Positive
 from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.kinds import PX_UNITS, CubeKind, Variable
 from selpath.pipeline.registry import stage
 from selpath.stages._common import Dtype, DualSteps, FinishRounds, GapTol, MaxGap, MaxIter
 from selpath.stages.procam._demux_problem import DEFAULT_ALPHA, DEFAULT_BETA, DemuxProblem
 from selpath.stages.procam._demux_solver import DemuxADMM
 from selpath.stages.procam._demux_store import (
+    DEMUX_EXTRAS,
+    TRANSPORT_ATTRS,
     OffsetGrid,
     describe_transport,
     levels_of,
@@ -46,7 +50,17 @@ def _band(block: xr.Dataset, *, solver: DemuxADMM, problem: DemuxProblem, keep: 
                        **per_pixel}, coords={name: block[name] for name in ("row", "col") if name in block.coords})
 
 
-@stage("demux_plane_to_ray")
+PLANE_TO_RAY_TRANSPORT = CubeKind(
+    name="plane_to_ray_transport",
+    description="T(v, s, t) indexed by offset = projector row − camera row",
+    variables={"transport": Variable(("offset", "row", "col"), units="counts",
+                                     long_name="plane-to-ray transport T(v, s, t)"), **DEMUX_EXTRAS},
+    coord_units={"offset": PX_UNITS},
+    attrs=TRANSPORT_ATTRS,
+)
+
+
+@stage("demux_plane_to_ray", kind=PLANE_TO_RAY_TRANSPORT)
 def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, /, *,
                        offsets: OffsetGrid | None = None, alpha: NonNegative = DEFAULT_ALPHA,
                        beta: NonNegative = DEFAULT_BETA, tol: Positive = DemuxADMM.DEFAULT_TOL,
@@ -173,10 +187,9 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
     out = xr.map_blocks(_band, stack.assign_attrs({}), kwargs={
         "solver": solver, "problem": problem, "keep": keep, "levels": levels}, template=template)
     out = out.assign_coords(offset=("offset", grid, {"units": "px", "long_name": "projector row − camera row"}))
-    out["transport"].attrs = {"units": "counts", "long_name": "plane-to-ray transport T(v, s, t)"}
-    out = describe_transport(out, int(keep.sum()), "plane_to_ray_transport", gap_tol)
+    out = describe_transport(out, int(keep.sum()), PLANE_TO_RAY_TRANSPORT, gap_tol)
     return out.assign_attrs(transport_attrs(
-        "plane_to_ray_transport", capture, timing=timing, delays=delays, exposures=exposures, keep=keep, margin=margin,
+        capture, timing=timing, delays=delays, exposures=exposures, keep=keep, margin=margin,
         full_scale=scale, alpha=alpha, beta=beta, tol=tol, gap_tol=gap_tol, max_gap=max_gap,
         finish_rounds=finish_rounds, dual_steps=dual_steps, max_iter=max_iter, polish_iter=polish_iter,
         polish_rounds=polish_rounds, dtype=dtype))

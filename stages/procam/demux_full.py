@@ -11,13 +11,17 @@ from __future__ import annotations
 
 import numpy as np
 import xarray as xr
+
 from selpath.pipeline.constraints import Count, Index, NonNegative, Positive
 from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.kinds import PX_UNITS, CubeKind, Variable
 from selpath.pipeline.registry import stage
 from selpath.stages._common import Dtype, GapTol, MaxIter
 from selpath.stages.procam._demux_problem import DEFAULT_ALPHA, DEFAULT_BETA, SeparableDemuxProblem
 from selpath.stages.procam._demux_solver import DemuxADMM
 from selpath.stages.procam._demux_store import (
+    DEMUX_EXTRAS,
+    TRANSPORT_ATTRS,
     OffsetGrid,
     describe_transport,
     levels_of,
@@ -64,7 +68,23 @@ def _band_full(block: xr.Dataset, *, solver: DemuxADMM, problem: SeparableDemuxP
 FULL_TOL = 5e-3
 
 
-@stage("demux_full")
+FULL_TRANSPORT = CubeKind(
+    name="full_transport",
+    description="T(u, v, s, t) indexed by offsets from the direct correspondence",
+    variables={"transport": Variable(("du", "dv", "row", "col"), units="counts",
+                                     long_name="full transport T(u, v, s, t)"),
+               "u_direct": Variable(("row", "col"), False, units="px",
+                                    long_name="direct correspondence u₀ (centre of the brightest cell)"),
+               **DEMUX_EXTRAS},
+    coord_units={"du": PX_UNITS, "dv": PX_UNITS},
+    attrs={**TRANSPORT_ATTRS,
+           "line_width_px": "width l_w of the projected vertical line, projector columns",
+           "cell_width_px": "width of a u-cell, projector columns (du steps by it)",
+           "cells_px": "centres of the u-cells solved for, projector columns (u₀ is one of them)"},
+)
+
+
+@stage("demux_full", kind=FULL_TRANSPORT)
 def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, /, *,
                offsets: OffsetGrid | None = None, cell_width_px: Positive | None = None,
                du_reach_px: NonNegative | None = None, alpha: NonNegative = DEFAULT_ALPHA,
@@ -149,12 +169,10 @@ def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, 
     out = out.assign_coords(
         du=("du", np.arange(-reach, reach + 1) * step, {"units": "px", "long_name": "projector column − u₀"}),
         dv=("dv", grid, {"units": "px", "long_name": "projector row − camera row"}))
-    out["transport"].attrs = {"units": "counts", "long_name": "full transport T(u, v, s, t)",
-                              "description": f"light from a {step:g}-column u-cell; NaN where no line reached"}
-    out["u_direct"].attrs = {"units": "px", "long_name": "direct correspondence u₀ (centre of the brightest cell)"}
-    out = describe_transport(out, int(keep.sum()) * capture.sizes["line"], "full_transport", gap_tol)
+    out["transport"].attrs = {"description": f"light from a {step:g}-column u-cell; NaN where no line reached"}
+    out = describe_transport(out, int(keep.sum()) * capture.sizes["line"], FULL_TRANSPORT, gap_tol)
     return out.assign_attrs(transport_attrs(
-        "full_transport", capture, timing=timing, delays=delays, exposures=exposures, keep=keep, margin=margin,
+        capture, timing=timing, delays=delays, exposures=exposures, keep=keep, margin=margin,
         full_scale=scale, alpha=alpha, beta=beta, tol=tol, gap_tol=gap_tol, max_iter=max_iter,
         polish_iter=polish_iter, dtype=dtype,
         line_width_px=width, cell_width_px=step, cells_px=cells.tolist(), lines=int(lines.size),

@@ -15,10 +15,11 @@ import numpy as np
 import pydantic
 import xarray as xr
 from matplotlib.colors import Normalize, PowerNorm
+
 from selpath.pipeline.constraints import Count, Fraction, Index, Positive
 from selpath.pipeline.errors import Problem, StageError
 from selpath.pipeline.registry import stage
-from selpath.stages._figures import as_figure, image_colorbar, panels, pixel_axes, rgba, shared_colorbar
+from selpath.stages._figures import FIGURE, as_figure, image_colorbar, panels, pixel_axes, rgba, shared_colorbar
 from selpath.stages.procam.relight import checkerboard_relight, epipolar_image, relight
 
 #: named pixels, name → [x, y] in image fractions, each in [0, 1]; at least one
@@ -73,7 +74,7 @@ def _draw_profiles(frame, delays, measured: dict, offsets, recovered: dict, at: 
     return rgba(fig)
 
 
-@stage("delay_profile_figure")
+@stage("delay_profile_figure", kind=FIGURE)
 def delay_profile_figure(capture: xr.Dataset, transport: xr.Dataset, /, *,
                          pixels: Pixels, exposure: Positive | None = None) -> xr.Dataset:
     """Fig. 38: measured delay profiles I(t_d) and the demultiplexed T(offset) at named pixels.
@@ -181,7 +182,7 @@ def _draw_relit(images: list[np.ndarray], titles: list[str], size: tuple[float, 
     return rgba(fig)
 
 
-@stage("relighting_figure")
+@stage("relighting_figure", kind=FIGURE)
 def relighting_figure(transport: xr.Dataset, /, *, lines: tuple[Fraction, ...] = (0.2, 0.4, 0.6, 0.8),
                       line_rows: Count = 5) -> xr.Dataset:
     """Fig. 40: the scene relit by single virtual lines sweeping down, and under white (the regular image).
@@ -266,7 +267,7 @@ def _draw_epipolar(regular, sharpened, row: int, exposure: float, half_width: in
     return rgba(fig)
 
 
-@stage("epipolar_figure")
+@stage("epipolar_figure", kind=FIGURE)
 def epipolar_figure(capture: xr.Dataset, transport: xr.Dataset, /, *, exposure: Positive | None = None,
                     half_width: Index = 0, row: Fraction = 0.5) -> xr.Dataset:
     """Fig. 47: the captured epipolar frame (t_d = 0) at a long exposure against the sharpened epipolar image
@@ -353,7 +354,7 @@ def _draw_profiles_2d(du, dv, step: float, overview, profiles: dict, at: dict) -
     return rgba(fig)
 
 
-@stage("profile_2d_figure")
+@stage("profile_2d_figure", kind=FIGURE)
 def profile_2d_figure(transport: xr.Dataset, /, *, pixels: Pixels) -> xr.Dataset:
     """Fig. 39: the 2-D profile T(du, dv) of full transport at named pixels, each scaled to its peak, beside
     the white image Σ T with the pixels marked. du is projector columns from the direct correspondence u₀,
@@ -388,7 +389,7 @@ def profile_2d_figure(transport: xr.Dataset, /, *, pixels: Pixels) -> xr.Dataset
     return as_figure(render, overview, profiles, caption=caption, size=PROFILES_SIZE)
 
 
-@stage("relighting_full_figure")
+@stage("relighting_full_figure", kind=FIGURE)
 def relighting_full_figure(transport: xr.Dataset, /, *, square_px: Count | None = None,
                            projector_cols: Count | None = None) -> xr.Dataset:
     """Fig. 41: the scene relit from full transport under a virtual checkerboard, its complement, and white

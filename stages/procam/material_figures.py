@@ -10,9 +10,10 @@ from __future__ import annotations
 
 import numpy as np
 import xarray as xr
+
 from selpath.pipeline.registry import stage
 from selpath.stages._common import require_variables
-from selpath.stages._figures import as_figure, panels, pixel_axes, rgba
+from selpath.stages._figures import FIGURE, as_figure, panels, pixel_axes, rgba
 from selpath.stages.procam.figures import display_top
 
 #: the material figure's size [in]: regular image, mean profiles, label map, confusion matrix
@@ -57,7 +58,7 @@ def _draw_materials(image, delays, mean, names, label, hidden, confusion, bright
     return rgba(fig)
 
 
-@stage("material_figure")
+@stage("material_figure", kind=FIGURE)
 def material_figure(classification: xr.Dataset, classifier: xr.Dataset, /) -> xr.Dataset:
     """Figs. 51–52: the regular image, the classes' mean delay profiles, the pixels classified, the confusion matrix.
 
@@ -123,7 +124,7 @@ def _draw_vein(images, contrast_of, delays, contrast, chosen: float, free_from: 
     return rgba(fig)
 
 
-@stage("vein_figure")
+@stage("vein_figure", kind=FIGURE)
 def vein_figure(choice: xr.Dataset, /) -> xr.Dataset:
     """Fig. 49: the regular image, the far-range indirect image and the chosen delay's, with the contrast curve.
 
@@ -186,7 +187,7 @@ def _draw_atlas(image, sites, rows, cols, du, dv, profiles, extents) -> np.ndarr
     return rgba(fig)
 
 
-@stage("atlas_figure")
+@stage("atlas_figure", kind=FIGURE)
 def atlas_figure(atlas: xr.Dataset, /) -> xr.Dataset:
     """Fig. 53: the white image with the atlas's sites, and each site's 2-D transport profile with its extent.
 
@@ -242,7 +243,7 @@ def _draw_appearance(delays, measured, model, distance, profile, lambertian, sub
     return rgba(fig)
 
 
-@stage("appearance_figure")
+@stage("appearance_figure", kind=FIGURE)
 def appearance_figure(profile: xr.Dataset, render: xr.Dataset, /) -> xr.Dataset:
     """Fig. 50: a material's fitted scattering profile and a mesh rendered without and with it.
 

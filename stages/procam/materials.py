@@ -28,8 +28,10 @@ import dask.array as da
 import numpy as np
 import pydantic
 import xarray as xr
+
 from selpath.pipeline.constraints import Count, Index, Positive, StorePath
 from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.kinds import FLAGS, TIME_UNITS, CubeKind, Variable
 from selpath.pipeline.quality import usable_share
 from selpath.pipeline.registry import stage
 from selpath.stages._common import require_variables
@@ -41,6 +43,37 @@ FLAG_MASKS = [SATURATED, NONFINITE, NO_LIGHT]
 FLAG_MEANINGS = "saturated nonfinite no_light"
 #: below this share of pixels with a usable profile the profiles mean nothing
 USABLE_FLOOR = 0.01
+
+_FRAME = ("row", "col")
+DELAY_PROFILES = CubeKind(
+    name="delay_profiles",
+    description="per-pixel delay profiles normalised by their area, so albedo cancels (§5.4.9)",
+    variables={"profile": Variable(("delay", *_FRAME), units="1", long_name="delay profile / its area"),
+               "area": Variable(_FRAME, units="counts", long_name="area of the delay profile (the regular image)"),
+               "rms_delay": Variable(_FRAME, False, units="us", long_name="RMS delay of the profile about t_d = 0"),
+               "flags": Variable(_FRAME, **FLAGS)},
+    coord_units={"delay": TIME_UNITS},
+    attrs={"source_kind": "the kind the profiles were made from: a capture or a transport"},
+)
+MATERIAL_CLASSIFIER = CubeKind(
+    name="material_classifier",
+    description="an RBF-kernel SVM on delay profiles and its brightness-only baseline, a skops archive",
+    variables={"model": Variable(("byte",), units=None,
+                                 long_name="the profile and brightness classifiers, a skops archive"),
+               "mean_profile": Variable(("material", "delay"), units="1", long_name="mean training profile")},
+    coord_units={"delay": TIME_UNITS},
+    attrs={"source_kind": "the kind of the training profiles' source",
+           "svm_C": "the chosen SVM regularisation C", "svm_gamma": "the chosen RBF width γ"},
+)
+_CLASS_INDEX = "class index into material (−1: no usable profile)"
+MATERIAL_CLASSIFICATION = CubeKind(
+    name="material_classification",
+    description="pixels classified by delay profile and by brightness, and their accuracy (Figs. 51–52)",
+    variables={"label": Variable(_FRAME, units=None, long_name=_CLASS_INDEX),
+               "brightness_label": Variable(_FRAME, units=None, long_name=_CLASS_INDEX + ", brightness only"),
+               "accuracy": Variable(("material",), required=False, units="1",
+                                    long_name="share of the class's pixels classified right")},
+)
 #: the normal quantile of the accuracies' 95 % confidence intervals
 Z95 = 1.959963984540054
 #: the default grids of the cross-validation: C, and γ in units of 1/(number of delays) (scikit-learn's "scale"
@@ -82,7 +115,7 @@ def profile_frames(source: xr.Dataset, exposure: float | None) -> tuple[xr.DataA
                              fix="wire in acquire_plane_to_ray's capture or demux_plane_to_ray's transport"))
 
 
-@stage("delay_profiles")
+@stage("delay_profiles", kind=DELAY_PROFILES)
 def delay_profiles(source: xr.Dataset, /, *, exposure: Positive | None = None) -> xr.Dataset:
     """Per-pixel delay profiles normalised by their area, so albedo cancels (§5.4.9, Fig. 51b).
 
@@ -110,21 +143,16 @@ def delay_profiles(source: xr.Dataset, /, *, exposure: Positive | None = None) -
     delay = frames["delay"]
     spread = np.sqrt(np.maximum((profile * delay**2).sum("delay", skipna=False), 0.0))
     keep = {k: v for k, v in source.attrs.items() if k != "selpath_kind"}
-    return xr.Dataset(
-        {"profile": profile.drop_attrs(deep=False).assign_attrs(units="1", long_name="delay profile / its area"),
-         "area": area.where(~nonfinite).drop_attrs(deep=False).assign_attrs(
-             units="counts", long_name="area of the delay profile (the regular image)"),
-         "rms_delay": spread.drop_attrs(deep=False).assign_attrs(
-             units="us", long_name="RMS delay of the profile about t_d = 0"),
-         "flags": flags.drop_attrs(deep=False).assign_attrs(
-             flag_masks=FLAG_MASKS, flag_meanings=FLAG_MEANINGS,
-             long_name="why a pixel is invalid (CF flags; 0: valid)"),
+    return DELAY_PROFILES.label(xr.Dataset(
+        {"profile": profile.drop_attrs(deep=False), "area": area.where(~nonfinite).drop_attrs(deep=False),
+         "rms_delay": spread.drop_attrs(deep=False),
+         "flags": flags.drop_attrs(deep=False).assign_attrs(flag_masks=FLAG_MASKS, flag_meanings=FLAG_MEANINGS),
          "usable_fraction": usable_share(
              (flags == 0).mean(), floor=USABLE_FLOOR,
              what="pixels with a usable delay profile (light, finite, unsaturated)",
              fix="check that the projector lit the scene and the frames are not all dark, saturated or missing")},
         coords={"delay": ("delay", delay.values.astype(float), {"units": "us", "long_name": "sync delay t_d"})},
-        attrs=keep | what | {"selpath_kind": "delay_profiles"})
+        attrs=keep | what))
 
 
 # -- training ----------------------------------------------------------------------------------------------------
@@ -177,7 +205,7 @@ def training_sample(codes: np.ndarray, flags: np.ndarray, names: tuple[str, ...]
     return np.concatenate(chosen)
 
 
-@stage("train_material_classifier", precheck=label_precheck, identity=label_identity)
+@stage("train_material_classifier", kind=MATERIAL_CLASSIFIER, precheck=label_precheck, identity=label_identity)
 def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scene",
                               label_image: StorePath = "", classes: tuple[str, ...] | None = None, samples_per_class: Count = 1000,
                               folds: Annotated[int, pydantic.Field(ge=2, le=20)] = 5, seed: Index = 0,
@@ -244,11 +272,10 @@ def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scen
     scene = profiles.attrs.get("simulated_scene", {})
     delay = profiles["delay"]
     material = ("material", kept, {"long_name": "material class"})
-    return xr.Dataset(
+    return MATERIAL_CLASSIFIER.label(xr.Dataset(
         {"model": ("byte", np.frombuffer(model, np.uint8),
-                   {"long_name": "the profile and brightness classifiers, a skops archive", "format": "skops",
-                    "sha256": hashlib.sha256(model).hexdigest()}),
-         "mean_profile": (("material", "delay"), mean, {"units": "1", "long_name": "mean training profile"}),
+                   {"format": "skops", "sha256": hashlib.sha256(model).hexdigest()}),
+         "mean_profile": (("material", "delay"), mean),
          "profile_spread": (("material", "delay"), spread,
                             {"units": "1", "long_name": "standard deviation of the training profiles"}),
          "training_pixels": ("material", np.bincount(truth, minlength=present.size),
@@ -259,7 +286,7 @@ def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scen
          "brightness_cv_accuracy": ((), baseline.best_score_,
                                     {"units": "1", "long_name": "cross-validated accuracy, brightness only"})},
         coords={"material": material, "delay": ("delay", delay.values, dict(delay.attrs))},
-        attrs=keep | {"selpath_kind": "material_classifier", "svm_C": float(search.best_params_["svm__C"]),
+        attrs=keep | {"svm_C": float(search.best_params_["svm__C"]),
                       "svm_gamma": float(search.best_params_["svm__gamma"]) * n_delay,
                       "svm_gamma_units": "1/(number of delays)",
                       "brightness_C": float(baseline.best_params_["svm__C"]),
@@ -267,7 +294,7 @@ def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scen
                       "folds": folds, "seed": seed, "samples_per_class": samples_per_class,
                       "novelty_distance": novelty, "novelty_quantile": novelty_quantile,
                       "labels": label_image if labels == "image" else labels, "training_scene": scene.get("scene", ""),
-                      "scikit_learn_version": sklearn.__version__, "skops_version": skops.__version__})
+                      "scikit_learn_version": sklearn.__version__, "skops_version": skops.__version__}))
 
 
 # -- classification ----------------------------------------------------------------------------------------------
@@ -338,7 +365,7 @@ def _scores(truth: xr.DataArray, predicted: xr.DataArray, n: int, prefix: str) -
                 units="1", long_name="share of labelled pixels classified right")}
 
 
-@stage("classify_materials", precheck=label_precheck, identity=label_identity)
+@stage("classify_materials", kind=MATERIAL_CLASSIFICATION, precheck=label_precheck, identity=label_identity)
 def classify_materials(profiles: xr.Dataset, classifier: xr.Dataset, /, *, labels: Labels | None = None,
                        label_image: StorePath = "", classes: tuple[str, ...] | None = None) -> xr.Dataset:
     """Classify every pixel of a capture by its delay profile, and by brightness alone (§5.4.9, Figs. 51c, 52).
@@ -387,7 +414,6 @@ def classify_materials(profiles: xr.Dataset, classifier: xr.Dataset, /, *, label
     out = dict(output_dtypes=[np.int16], dask="parallelized")
     label = xr.apply_ufunc(lambda x: _predict(models["profile"], x), profile, input_core_dims=[["delay"]], **out)
     bright = xr.apply_ufunc(lambda x: _predict(models["brightness"], x[..., None]), profiles["area"], **out)
-    meaning = {"units": None, "long_name": "class index into material (−1: no usable profile)"}
     result = {}
     if "class_centre" in classifier.data_vars and "novelty_distance" in classifier.attrs:
         centre = np.asarray(classifier["class_centre"].values, np.float64)
@@ -397,8 +423,7 @@ def classify_materials(profiles: xr.Dataset, classifier: xr.Dataset, /, *, label
             units="1", long_name="distance of the standardised profile from the nearest class mean")
         result["unlike_training"] = (distance > float(classifier.attrs["novelty_distance"])).assign_attrs(
             long_name="farther from every class than the training pixels' quantile novelty_quantile")
-    result |= {"label": label.assign_attrs(meaning),
-              "brightness_label": bright.where(label >= 0, -1).astype(np.int16).assign_attrs(meaning),
+    result |= {"label": label, "brightness_label": bright.where(label >= 0, -1).astype(np.int16),
               "image": profiles["area"]}
     if labels is not None:
         codes, truth_names = label_map(profiles, labels, label_image, classes, "profiles")
@@ -422,9 +447,9 @@ def classify_materials(profiles: xr.Dataset, classifier: xr.Dataset, /, *, label
             what="labelled pixels with a usable profile",
             fix="check the capture's frames: labelled pixels are dark, saturated or missing")
     keep = {k: v for k, v in profiles.attrs.items() if k not in ("selpath_kind",)}
-    return xr.Dataset(result, coords={"material": ("material", names, {"long_name": "material class"}),
-                                      "true_material": ("true_material", names, {"long_name": "true class"})},
-                      attrs=keep | {"selpath_kind": "material_classification",
-                                    "model_sha256": classifier["model"].attrs.get("sha256"),
-                                    "training_scene": classifier.attrs.get("training_scene", ""),
-                                    "labels": (label_image if labels == "image" else labels) or ""})
+    return MATERIAL_CLASSIFICATION.label(xr.Dataset(
+        result, coords={"material": ("material", names, {"long_name": "material class"}),
+                        "true_material": ("true_material", names, {"long_name": "true class"})},
+        attrs=keep | {"model_sha256": classifier["model"].attrs.get("sha256"),
+                      "training_scene": classifier.attrs.get("training_scene", ""),
+                      "labels": (label_image if labels == "image" else labels) or ""}))

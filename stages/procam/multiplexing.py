@@ -31,14 +31,16 @@ import numpy as np
 import pydantic
 import scipy.linalg
 import xarray as xr
+
 from selpath.devices.patterns import checkerboard
 from selpath.devices.sim.procam_scene import ProcamScene
 from selpath.devices.sim.procam_transport import on_camera_rows, render_frame, seen_rows
 from selpath.pipeline.constraints import Count, Fraction, Index, NonNegative, Positive
 from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.kinds import CubeKind, Variable
 from selpath.pipeline.registry import stage
 from selpath.stages._common import require_variables
-from selpath.stages.procam.acquire import exposure_window
+from selpath.stages.procam.acquire_patterns import exposure_window
 from selpath.stages.procam.relight import relight, relight_full
 
 
@@ -77,7 +79,45 @@ def measured_variance(code: np.ndarray, x: np.ndarray, *, gain: float, read_std:
     return ((decoded - x) ** 2).mean(axis=0)
 
 
-@stage("multiplexing_gain_study")
+_FRAME = ("row", "col")
+MULTIPLEXING_STUDY = CubeKind(
+    name="multiplexing_study",
+    description="SNR gain of multiplexed line codes over simplex: noise model and simulation (§5.4.3)",
+    variables={"predicted_gain_db": Variable(("signal", "code"), units="dB",
+                                             long_name="SNR gain over simplex, noise model"),
+               "measured_gain_db": Variable(("signal", "code"), units="dB",
+                                            long_name="SNR gain over simplex, simulated"),
+               "light_per_capture": Variable(("code",), False, units="1",
+                                             long_name="light per capture, in single-line captures")},
+    coord_units={"signal": frozenset({"counts"})},
+)
+LINE_RELIGHTING_SNR = CubeKind(
+    name="line_relighting_snr",
+    description="a line relit from a demultiplexed stack against the line projected alone, SNR (Fig. 42)",
+    variables={"image": Variable(("method", *_FRAME), units="counts",
+                                 long_name="the line's image (counts of one scan)"),
+               "truth": Variable(_FRAME, units="counts", long_name="the line's image without noise"),
+               "snr_db": Variable(("method",), units="dB", long_name="SNR on the lit pixels, measured"),
+               "predicted_snr_db": Variable(("method",), False, units="dB",
+                                            long_name="SNR on the lit pixels, noise model"),
+               "saturated_fraction": Variable(("method",), False, units="1", long_name="lit pixels saturated"),
+               "captures": Variable(("method",), False, units="1", long_name="captures"),
+               "scans": Variable(("method",), False, units="1", long_name="scans per exposure")},
+    attrs={"line_rows": "the line's camera rows [first, stop)",
+           "lit_fraction": "lit pixels: truth at least this fraction of its maximum"},
+)
+RELIGHTING_SNR = CubeKind(
+    name="relighting_snr",
+    description="the scene relit from full transport under a checkerboard and floodlit, SNR (Fig. 43)",
+    variables={"image": Variable(("pattern", *_FRAME), units="counts", long_name="relit from the transport"),
+               "truth": Variable(("pattern", *_FRAME), units="counts", long_name="the pattern's image without noise"),
+               "snr_db": Variable(("pattern",), units="dB", long_name="SNR on the lit pixels, measured")},
+    attrs={"square_px": "checkerboard square, projector px",
+           "lit_fraction": "lit pixels: truth at least this fraction of its maximum"},
+)
+
+
+@stage("multiplexing_gain_study", kind=MULTIPLEXING_STUDY)
 def multiplexing_gain_study(*, lines: Count = 31,
                             signals: Annotated[tuple[Positive, ...], pydantic.Field(min_length=1)] = (
                                 1.0, 10.0, 100.0, 1e3, 1e4, 1e5),
@@ -128,18 +168,14 @@ def multiplexing_gain_study(*, lines: Count = 31,
     gain_db = {name: 10 * np.log10(values[:, :1] / values) for name, values in (("predicted", predicted),
                                                                                   ("measured", measured))}
     dims = ("signal", "code")
-    return xr.Dataset(
-        {"predicted_gain_db": (dims, gain_db["predicted"], {"units": "dB", "long_name": "SNR gain over simplex, "
-                                                            "noise model"}),
-         "measured_gain_db": (dims, gain_db["measured"], {"units": "dB", "long_name": "SNR gain over simplex, "
-                                                          "simulated"}),
-         "light_per_capture": ("code", [float(c.sum(axis=1).mean()) for c in codes.values()],
-                               {"units": "1", "long_name": "light per capture, in single-line captures"})},
+    return MULTIPLEXING_STUDY.label(xr.Dataset(
+        {"predicted_gain_db": (dims, gain_db["predicted"]), "measured_gain_db": (dims, gain_db["measured"]),
+         "light_per_capture": ("code", [float(c.sum(axis=1).mean()) for c in codes.values()])},
         coords={"signal": ("signal", np.asarray(signals, float), {"units": "counts",
                                                                   "long_name": "signal of one line alone"}),
                 "code": ("code", list(codes))},
-        attrs={"selpath_kind": "multiplexing_study", "lines": lines, "gain_counts_per_electron": gain,
-               "read_std_counts": read_std, "trials": trials, "seed": seed})
+        attrs={"lines": lines, "gain_counts_per_electron": gain, "read_std_counts": read_std, "trials": trials,
+               "seed": seed}))
 
 
 def simulated_scene(capture: xr.Dataset, where: str) -> ProcamScene:
@@ -171,7 +207,7 @@ def line_pattern(scene: ProcamScene, first: int, stop: int) -> tuple[np.ndarray,
     return projector_pattern(scene, np.repeat(band[:, None], scene.rig.projector_cols, axis=1)), band
 
 
-@stage("line_relighting_snr")
+@stage("line_relighting_snr", kind=LINE_RELIGHTING_SNR)
 def line_relighting_snr(capture: xr.Dataset, transport: xr.Dataset, /, *, line: Fraction = 0.5,
                         line_rows: Count = 10, scans: Annotated[tuple[Count, ...], pydantic.Field(min_length=1)] = (
                             1, 50), lit_fraction: Fraction = 0.05) -> xr.Dataset:
@@ -237,23 +273,17 @@ def line_relighting_snr(capture: xr.Dataset, transport: xr.Dataset, /, *, line: 
         captures.append(1)
     measured = [snr_db(image[lit], truth[lit]) for image in images.values()]
     method = ("method", list(images))
-    return xr.Dataset(
-        {"image": (("method", "row", "col"), np.stack(list(images.values())).astype(np.float32),
-                   {"units": "counts", "long_name": "the line's image (counts of one scan)"}),
-         "truth": (("row", "col"), truth.astype(np.float32), {"units": "counts",
-                                                              "long_name": "the line's image without noise"}),
-         "snr_db": ("method", measured, {"units": "dB", "long_name": "SNR on the lit pixels, measured"}),
-         "predicted_snr_db": ("method", predicted, {"units": "dB",
-                                                    "long_name": "SNR on the lit pixels, noise model"}),
-         "saturated_fraction": ("method", saturated, {"units": "1", "long_name": "lit pixels saturated"}),
-         "captures": ("method", captures, {"units": "1", "long_name": "captures"}),
-         "scans": ("method", [np.nan, *map(float, scans)], {"units": "1", "long_name": "scans per exposure"})},
+    return LINE_RELIGHTING_SNR.label(xr.Dataset(
+        {"image": (("method", "row", "col"), np.stack(list(images.values())).astype(np.float32)),
+         "truth": (("row", "col"), truth.astype(np.float32)), "snr_db": ("method", measured),
+         "predicted_snr_db": ("method", predicted), "saturated_fraction": ("method", saturated),
+         "captures": ("method", captures), "scans": ("method", [np.nan, *map(float, scans)])},
         coords={"method": method, "row": ("row", np.arange(rows), {"units": "px"}),
                 "col": ("col", np.arange(rig.camera_cols), {"units": "px"})},
-        attrs={"selpath_kind": "line_relighting_snr", "line_rows": [first, first + line_rows],
+        attrs={"line_rows": [first, first + line_rows],
                "lit_fraction": lit_fraction, "lit_pixels": int(lit.sum()), "intensity_counts": rig.intensity,
                "gain_counts_per_electron": g, "read_std_counts": noise.read_std if noise is not None else 0.0,
-               "scene": scene.scene})
+               "scene": scene.scene}))
 
 
 def projector_pattern(scene: ProcamScene, on_camera: np.ndarray) -> np.ndarray:
@@ -269,7 +299,7 @@ def projector_pattern(scene: ProcamScene, on_camera: np.ndarray) -> np.ndarray:
     return pattern
 
 
-@stage("full_relighting_snr")
+@stage("full_relighting_snr", kind=RELIGHTING_SNR)
 def full_relighting_snr(capture: xr.Dataset, transport: xr.Dataset, /, *, square_px: Count | None = None,
                         lit_fraction: Fraction = 0.05) -> xr.Dataset:
     """The scene relit from full transport under a checkerboard and floodlit, SNR against the truth (Fig. 43).
@@ -317,14 +347,12 @@ def full_relighting_snr(capture: xr.Dataset, transport: xr.Dataset, /, *, square
     measured = [snr_db(images[n][lit[n]], truths[n][lit[n]]) for n in images]
     frame = ("row", "col")
     exposures = [float(e) for e in np.atleast_1d(capture["exposure"].values)]
-    return xr.Dataset(
-        {"image": (("pattern", *frame), np.stack(list(images.values())).astype(np.float32),
-                   {"units": "counts", "long_name": "relit from the transport"}),
-         "truth": (("pattern", *frame), np.stack(list(truths.values())).astype(np.float32),
-                   {"units": "counts", "long_name": "the pattern's image without noise"}),
-         "snr_db": ("pattern", measured, {"units": "dB", "long_name": "SNR on the lit pixels, measured"})},
+    return RELIGHTING_SNR.label(xr.Dataset(
+        {"image": (("pattern", *frame), np.stack(list(images.values())).astype(np.float32)),
+         "truth": (("pattern", *frame), np.stack(list(truths.values())).astype(np.float32)),
+         "snr_db": ("pattern", measured)},
         coords={"pattern": ("pattern", list(images))},
-        attrs={"selpath_kind": "relighting_snr", "square_px": int(square), "square_rows": int(square_rows),
+        attrs={"square_px": int(square), "square_rows": int(square_rows),
                "cell_width_px": step, "line_width_px": float(capture.attrs.get("line_width_px", np.nan)),
                "exposures_us": exposures, "captures": int(capture["image"].size // (rows * cols)),
-               "lit_fraction": lit_fraction, "intensity_counts": rig.intensity, "scene": scene.scene})
+               "lit_fraction": lit_fraction, "intensity_counts": rig.intensity, "scene": scene.scene}))

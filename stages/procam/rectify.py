@@ -30,12 +30,36 @@ import warnings
 
 import numpy as np
 import xarray as xr
+
 from selpath.pipeline.constraints import Fraction, Index, Positive
 from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.kinds import CubeKind, Variable
 from selpath.pipeline.quality import usable_share
 from selpath.pipeline.registry import stage
-from selpath.pipeline.schema import with_metadata
 from selpath.stages._common import require_variables
+from selpath.stages.procam.demux import PLANE_TO_RAY_TRANSPORT
+
+_FRAME = ("row", "col")
+PROJECTOR_CORRESPONDENCE = CubeKind(
+    name="projector_correspondence",
+    description="the projector column and row that light each camera pixel directly (decode_gray_code)",
+    variables={"projector_col": Variable(_FRAME, units="px", long_name="projector column lighting the pixel"),
+               "projector_row": Variable(_FRAME, units="px", long_name="projector row lighting the pixel"),
+               "code_sharpness": Variable(_FRAME, False, units="1", long_name="smallest contrast of the bits no "
+                                          "neighbour shares: 1 direct light only, less with global light")},
+    attrs={"projector_shape": "[rows, cols] of the projector"},
+)
+EPIPOLAR_ALIGNMENT = CubeKind(
+    name="epipolar_alignment",
+    description="how far each pixel's direct light is off its epipolar row, measured and fitted (epipolar_alignment)",
+    variables={"measured": Variable(_FRAME, units="px", long_name="decoded row offset δ, camera rows"),
+               "model": Variable(_FRAME, units="px", long_name="fitted row offset δ, camera rows")},
+    attrs={"shift_rows": "fitted δ at the image centre, camera rows",
+           "roll_deg": "fitted rotation of the projector's rows against the camera's, degree",
+           "median_abs_rows": "median |δ| of the model over the decoded pixels, camera rows",
+           "tolerance_rows": "|δ| above which the rows are not epipolar (default half the lit line's height), camera "
+           "rows"},
+)
 
 #: below this share of decoded pixels a correspondence map means nothing
 DECODED_FLOOR = 0.05
@@ -137,7 +161,7 @@ def check_code_count(patterns: int, column_bits: int, row_bits: int) -> None:
                                  fix="capture the whole stack (a killed acquisition resumes where it stopped)"))
 
 
-@stage("decode_gray_code")
+@stage("decode_gray_code", kind=PROJECTOR_CORRESPONDENCE)
 def decode_gray_code(capture: xr.Dataset, /, *, min_lit: Fraction = 0.02, min_contrast: Fraction = 0.2,
                      unresolved_bits: tuple[Index, Index] | None = None) -> xr.Dataset:
     """The projector column and row lighting each camera pixel directly, from Gray codes (lazy, per row band).
@@ -195,18 +219,15 @@ def decode_gray_code(capture: xr.Dataset, /, *, min_lit: Fraction = 0.02, min_co
     row = both.isel(axis=1, drop=True).drop_attrs(deep=False)
     sharpness = both.isel(axis=2, drop=True).drop_attrs(deep=False)
     out = xr.Dataset({
-        "projector_col": col.assign_attrs(units="px", long_name="projector column lighting the pixel"),
-        "projector_row": row.assign_attrs(units="px", long_name="projector row lighting the pixel"),
-        "code_sharpness": sharpness.assign_attrs(units="1", long_name="smallest contrast of the bits no neighbour "
-                                                 "shares: 1 direct light only, less with global light"),
+        "projector_col": col, "projector_row": row, "code_sharpness": sharpness,
         "decoded_fraction": usable_share(
             np.isfinite(col).mean(), floor=DECODED_FLOOR, what="pixels whose projector column and row were decoded",
             fix="light the scene brighter or lower min_lit; a scene dominated by global light needs a lower "
             "min_contrast"),
-    }, attrs={"selpath_kind": "projector_correspondence", "projector_shape": list(shape),
+    }, attrs={"projector_shape": list(shape),
               "min_lit": min_lit, "min_contrast": min_contrast, "bits_unresolved": [drop[0], drop[1]],
               **{k: attrs[k] for k in ("scan_speed_px_per_us", "line_time_us") if k in attrs}})
-    return with_metadata(out, "projector_correspondence")
+    return PROJECTOR_CORRESPONDENCE.label(out)
 
 
 def row_offsets(projector_row: np.ndarray, projector_rows: int) -> np.ndarray:
@@ -271,7 +292,7 @@ def _require_spread(rows: np.ndarray, cols: np.ndarray) -> None:
                                  "light more of the scene"))
 
 
-@stage("epipolar_alignment")
+@stage("epipolar_alignment", kind=EPIPOLAR_ALIGNMENT)
 def epipolar_alignment(correspondence: xr.Dataset, /, *, tolerance_rows: Positive | None = None,
                        min_sharpness: Fraction = 0.75) -> xr.Dataset:
     """How far each pixel's direct light is off its epipolar row, decoded and fitted, and whether the rows are epipolar.
@@ -335,11 +356,9 @@ def epipolar_alignment(correspondence: xr.Dataset, /, *, tolerance_rows: Positiv
     dims = ("row", "col")
     coords = {d: correspondence[d] for d in dims if d in correspondence.coords}
     out = xr.Dataset({
-        "measured": (dims, delta, {"units": "px", "long_name": "decoded row offset δ, camera rows"}),
-        "model": (dims, model, {"units": "px", "long_name": "fitted row offset δ, camera rows"}),
-    }, coords=coords, attrs={"selpath_kind": "epipolar_alignment", **fitted,
-                             "projector_shape": list(attrs["projector_shape"])})
-    return with_metadata(out, "epipolar_alignment")
+        "measured": (dims, delta), "model": (dims, model),
+    }, coords=coords, attrs={**fitted, "projector_shape": list(attrs["projector_shape"])})
+    return EPIPOLAR_ALIGNMENT.label(out)
 
 
 def _shift_offsets(transport: np.ndarray, delta: np.ndarray, *, offsets: np.ndarray) -> np.ndarray:
@@ -359,7 +378,7 @@ def _shift_offsets(transport: np.ndarray, delta: np.ndarray, *, offsets: np.ndar
     return np.where(inside, value, np.nan).reshape(transport.shape).astype(transport.dtype)
 
 
-@stage("rectify_transport")
+@stage("rectify_transport", kind=PLANE_TO_RAY_TRANSPORT)
 def rectify_transport(transport: xr.Dataset, alignment: xr.Dataset, /) -> xr.Dataset:
     """A plane-to-ray transport re-indexed so that each pixel's epipolar row is offset 0: T'(o) = T(o + δ(s, c)).
 

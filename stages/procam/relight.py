@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 import xarray as xr
+
 from selpath.devices.patterns import checkerboard
 
 

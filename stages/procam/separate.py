@@ -23,8 +23,10 @@ from __future__ import annotations
 
 import numpy as np
 import xarray as xr
+
 from selpath.pipeline.constraints import Fraction, NonNegative, Positive
 from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.kinds import FLAGS, CubeKind, Variable
 from selpath.pipeline.quality import usable_share
 from selpath.pipeline.registry import stage
 from selpath.stages._common import require_variables
@@ -84,11 +86,9 @@ def separate(frames: xr.DataArray, *, black_level: float = 0.0, saturation_level
     global_ = (2.0 * (darkest - b * brightest) / (1.0 - b * b)).where(flags == 0)
     units = frames.attrs.get("units", "counts")
     return xr.Dataset({
-        "direct": direct.drop_attrs(deep=False).assign_attrs(units=units, long_name="direct light L_d"),
-        "global": global_.drop_attrs(deep=False).assign_attrs(units=units, long_name="global light L_g"),
-        "flags": flags.drop_attrs(deep=False).assign_attrs(
-            flag_masks=FLAG_MASKS, flag_meanings=FLAG_MEANINGS,
-            long_name="why a pixel is invalid (CF flags; 0: valid)"),
+        "direct": direct.drop_attrs(deep=False).assign_attrs(units=units),
+        "global": global_.drop_attrs(deep=False).assign_attrs(units=units),
+        "flags": flags.drop_attrs(deep=False).assign_attrs(flag_masks=FLAG_MASKS, flag_meanings=FLAG_MEANINGS),
         "unsaturated_fraction": usable_share(
             (flags == 0).mean(), floor=UNSATURATED_FLOOR,
             what="pixels whose frames are all finite and whose brightest frame is below saturation",
@@ -97,7 +97,16 @@ def separate(frames: xr.DataArray, *, black_level: float = 0.0, saturation_level
     })
 
 
-@stage("separate_direct_global")
+DIRECT_GLOBAL = CubeKind(
+    name="direct_global",
+    description="direct and global light per pixel from shifted checkerboards (§5.4.6, Nayar et al.)",
+    variables={"direct": Variable(("row", "col"), units="counts", long_name="direct light L_d"),
+               "global": Variable(("row", "col"), units="counts", long_name="global light L_g"),
+               "flags": Variable(("row", "col"), required=False, **FLAGS)},
+)
+
+
+@stage("separate_direct_global", kind=DIRECT_GLOBAL)
 def separate_direct_global(capture: xr.Dataset, /, *, black_level: Fraction | None = None,
                            saturation_level: Positive | None = None,
                            dark_level: NonNegative | None = None) -> xr.Dataset:
@@ -154,6 +163,6 @@ def separate_direct_global(capture: xr.Dataset, /, *, black_level: Fraction | No
     result = separate(image.astype(np.result_type(image.dtype, np.float32)) - dark, black_level=b,
                       saturation_level=level - dark)
     keep = {k: v for k, v in capture.attrs.items() if k not in ("selpath_kind", "saturation_counts")}
-    return result.assign_attrs(keep | {"selpath_kind": "direct_global", "black_level": b, "shifts": len(shifts),
-                                       "dark_level_counts": dark}
-                               | ({"saturation_counts": level} if np.isfinite(level) else {}))
+    return DIRECT_GLOBAL.label(result.assign_attrs(
+        keep | {"black_level": b, "shifts": len(shifts), "dark_level_counts": dark}
+        | ({"saturation_counts": level} if np.isfinite(level) else {})))

@@ -21,14 +21,35 @@ from typing import Annotated
 import numpy as np
 import pydantic
 import xarray as xr
+
 from selpath.devices.procam_acquire import plan_sweep
 from selpath.pipeline.constraints import Count, NonNegative, Positive
 from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.kinds import TIME_UNITS, CubeKind, Variable
 from selpath.pipeline.registry import stage
 from selpath.stages._common import require_variables
 
+SHORT_RANGE = CubeKind(
+    name="short_range",
+    description="floodlit images of delay-limited sweeps |t_d| ≤ T_dmax, their energy and captures (§5.4.4)",
+    variables={
+        "image": Variable(("max_delay", "row", "col"), units="counts",
+                          long_name="floodlit image of the short-range sweep"),
+        "energy_fraction": Variable(("max_delay",), units="1",
+                                    long_name="share of the transport's energy within the range"),
+        "reach_rows": Variable(("max_delay",), False, units="px",
+                               long_name="offsets kept: |o| < v_p·(T_dmax + (t_e + t_p)/2)"),
+        "captures": Variable(("max_delay",), False, units="1", long_name="captures of the short-range sweep"),
+        "pixel_to_pixel_captures": Variable(("max_delay",), False, units="1",
+                                            long_name="captures of pixel-to-pixel scanning"),
+        "censored": Variable(("row", "col"), False, units=None,
+                             long_name="light seen only clipped: the images are lower bounds there"),
+    },
+    coord_units={"max_delay": TIME_UNITS},
+)
 
-@stage("short_range_images")
+
+@stage("short_range_images", kind=SHORT_RANGE)
 def short_range_images(transport: xr.Dataset, /, *,
                        max_delays: Annotated[tuple[NonNegative, ...], pydantic.Field(min_length=1)] = (
                            0.0, 850.0, 1700.0, 2550.0),
@@ -77,21 +98,11 @@ def short_range_images(transport: xr.Dataset, /, *,
                        row_block=max(float(speed) * delay_step, 1.0), row_span=t.sizes["row"]) for d in max_delays]
     coords = {"max_delay": ("max_delay", np.asarray(max_delays, float),
                             {"units": "us", "long_name": "delay range T_dmax of the sweep"})}
-    censored = ({"censored": transport["censored"].drop_attrs(deep=False).assign_attrs(
-        long_name="light seen only clipped: the images are lower bounds there")}
-        if "censored" in transport.data_vars else {})
-    return xr.Dataset(
-        {"image": images.drop_attrs(deep=False).assign_attrs(units=t.attrs.get("units", "counts"),
-                                                             long_name="floodlit image of the short-range sweep"),
-         "energy_fraction": energy.drop_attrs(deep=False).assign_attrs(
-             units="1", long_name="share of the transport's energy within the range"),
-         "reach_rows": reach.assign_attrs(units="px", long_name="offsets kept: |o| < v_p·(T_dmax + (t_e + t_p)/2)"),
-         "captures": ("max_delay", [p.captures for p in plan],
-                      {"units": "1", "long_name": "captures of the short-range sweep"}),
-         "pixel_to_pixel_captures": ("max_delay", [p.pixel_to_pixel for p in plan],
-                                     {"units": "1", "long_name": "captures of pixel-to-pixel scanning"}),
-         **censored},
+    censored = ({"censored": transport["censored"].drop_attrs(deep=False)} if "censored" in transport.data_vars else {})
+    return SHORT_RANGE.label(xr.Dataset(
+        {"image": images.drop_attrs(deep=False), "energy_fraction": energy.drop_attrs(deep=False),
+         "reach_rows": reach.drop_attrs(deep=False), "captures": ("max_delay", [p.captures for p in plan]),
+         "pixel_to_pixel_captures": ("max_delay", [p.pixel_to_pixel for p in plan]), **censored},
         coords=coords,
         attrs={k: v for k, v in transport.attrs.items() if k != "selpath_kind"}
-        | {"selpath_kind": "short_range", "delay_step_us": float(delay_step), "exposure_us": float(exposure),
-           "lines": lines})
+        | {"delay_step_us": float(delay_step), "exposure_us": float(exposure), "lines": lines}))

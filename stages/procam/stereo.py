@@ -21,13 +21,40 @@ import warnings
 import cv2
 import numpy as np
 import xarray as xr
+
 from selpath.pipeline.constraints import Count, Fraction, Positive
 from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.kinds import CubeKind, Variable
 from selpath.pipeline.registry import stage
-from selpath.pipeline.schema import with_metadata
 from selpath.stages._common import require_variables
 from selpath.stages.camera_target import board_points, camera_corners
 from selpath.stages.procam.rectify import _decode_band, check_code_count, paired_camera_row, resolved_drop
+
+_M = ("i", "j")
+PROCAM_STEREO_CALIBRATION = CubeKind(
+    name="procam_stereo_calibration",
+    description="camera and projector intrinsics, their relative pose and the rectification (calibrate_procam_stereo)",
+    variables={
+        "camera_matrix": Variable(_M, units="px", long_name="camera intrinsics K_c"),
+        "projector_matrix": Variable(_M, units="px", long_name="projector intrinsics K_p"),
+        "rotation": Variable(_M, units="1", long_name="projector from camera rotation R"),
+        "translation": Variable(("i",), units="mm", long_name="projector from camera translation t"),
+        "camera_distortion": Variable(("k",), False, units="1", long_name="camera k1, k2, p1, p2, k3"),
+        "projector_distortion": Variable(("k",), False, units="1", long_name="projector k1, k2, p1, p2, k3"),
+        "rectify_camera": Variable(_M, False, units="1", long_name="camera rectifying rotation R1"),
+        "rectify_projector": Variable(_M, False, units="1", long_name="projector rectifying rotation R2"),
+        "project_camera": Variable(("i", "m"), False, units="px", long_name="rectified camera projection P1"),
+        "project_projector": Variable(("i", "m"), False, units="px", long_name="rectified projector projection P2"),
+        "pose_used": Variable(("pose",), False, units=None, long_name="board found and decoded at this pose"),
+        "pose_rms_px": Variable(("pose",), False, units="px", long_name="stereo reprojection error of the pose"),
+    },
+    attrs={"reprojection_rms_px": "stereo reprojection error, px",
+           "roll_deg": "rotation of the projector about its optical axis against the camera, degree",
+           "row_disparity_before": "median |row difference| of corresponding corners on the camera's scale, "
+           "unrectified, px",
+           "row_disparity_after": "the same after stereoRectify, px",
+           "sync_rows_median": "median |projector row as the sync pairs it − camera row| at the corners, camera rows"},
+)
 
 #: decoded pixels a corner's local homography needs (it has 8 degrees of freedom)
 MIN_HOMOGRAPHY_PIXELS = 12
@@ -66,7 +93,7 @@ def _rows(points: np.ndarray, k: np.ndarray, dist: np.ndarray, rect: np.ndarray 
     return cv2.undistortPoints(points.reshape(-1, 1, 2).astype(np.float64), k, dist, R=rect, P=p).reshape(-1, 2)[:, 1]
 
 
-@stage("calibrate_procam_stereo")
+@stage("calibrate_procam_stereo", kind=PROCAM_STEREO_CALIBRATION)
 def calibrate_procam_stereo(target: xr.Dataset, /, *, window_px: Count = 10, min_sharpness: Fraction = 0.75,
                             min_lit: Fraction = 0.02, min_contrast: Fraction = 0.2,
                             tolerance_rows: Positive = 0.5) -> xr.Dataset:
@@ -177,17 +204,9 @@ def calibrate_procam_stereo(target: xr.Dataset, /, *, window_px: Count = 10, min
     pose_rms[np.flatnonzero(used)] = np.sqrt(np.mean(np.asarray(per_view, float) ** 2, axis=1))
     m = ("i", "j")
     out = xr.Dataset({
-        "camera_matrix": (m, k_c, {"units": "px", "long_name": "camera intrinsics K_c"}),
-        "projector_matrix": (m, k_p, {"units": "px", "long_name": "projector intrinsics K_p"}),
-        "rotation": (m, r, {"units": "1", "long_name": "projector from camera rotation R"}),
-        "translation": ("i", t.ravel(), {"units": "mm", "long_name": "projector from camera translation t"}),
-        "camera_distortion": ("k", d_c.ravel()[:5], {"units": "1", "long_name": "camera k1, k2, p1, p2, k3"}),
-        "projector_distortion": ("k", d_p.ravel()[:5], {"units": "1", "long_name": "projector k1, k2, p1, p2, k3"}),
-        "rectify_camera": (m, r1, {"units": "1", "long_name": "camera rectifying rotation R1"}),
-        "rectify_projector": (m, r2, {"units": "1", "long_name": "projector rectifying rotation R2"}),
-        "project_camera": (("i", "m"), p1, {"units": "px", "long_name": "rectified camera projection P1"}),
-        "project_projector": (("i", "m"), p2, {"units": "px", "long_name": "rectified projector projection P2"}),
-        "pose_used": ("pose", np.array(used), {"long_name": "board found and decoded at this pose"}),
-        "pose_rms_px": ("pose", pose_rms, {"units": "px", "long_name": "stereo reprojection error of the pose"}),
-    }, coords={"pose": target["pose"].values}, attrs={"selpath_kind": "procam_stereo_calibration", **summary})
-    return with_metadata(out, "procam_stereo_calibration")
+        "camera_matrix": (m, k_c), "projector_matrix": (m, k_p), "rotation": (m, r), "translation": ("i", t.ravel()),
+        "camera_distortion": ("k", d_c.ravel()[:5]), "projector_distortion": ("k", d_p.ravel()[:5]),
+        "rectify_camera": (m, r1), "rectify_projector": (m, r2), "project_camera": (("i", "m"), p1),
+        "project_projector": (("i", "m"), p2), "pose_used": ("pose", np.array(used)), "pose_rms_px": ("pose", pose_rms),
+    }, coords={"pose": target["pose"].values}, attrs=summary)
+    return PROCAM_STEREO_CALIBRATION.label(out)

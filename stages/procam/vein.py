@@ -22,8 +22,10 @@ from __future__ import annotations
 
 import numpy as np
 import xarray as xr
+
 from selpath.pipeline.constraints import Fraction, Positive, StorePath
 from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.kinds import TIME_UNITS, CubeKind, Variable
 from selpath.pipeline.registry import stage
 from selpath.stages._common import require_variables
 from selpath.stages.procam._illumination import plane_to_ray_illumination
@@ -44,7 +46,19 @@ def direct_free(delays: np.ndarray, exposure: float, line_time: float) -> np.nda
     return np.abs(delays) >= (exposure + line_time) / 2 - 1e-9
 
 
-@stage("choose_delay", precheck=label_precheck, identity=label_identity)
+DELAY_CHOICE = CubeKind(
+    name="delay_choice",
+    description="the delay that shows a structure below the surface best, and its images (§5.4.7)",
+    variables={"image": Variable(("view", "row", "col"), units="counts",
+                                 long_name="regular, far-range indirect, chosen-delay"),
+               "contrast": Variable(("delay",), units="1", long_name="Weber contrast |μ_s − μ_v| / μ_s of the frame"),
+               "contrast_of": Variable(("view",), False, units="1", long_name="Weber contrast of each image")},
+    coord_units={"delay": TIME_UNITS},
+    attrs={"chosen_delay_us": "the delay of the highest contrast, µs"},
+)
+
+
+@stage("choose_delay", kind=DELAY_CHOICE, precheck=label_precheck, identity=label_identity)
 def choose_delay(transport: xr.Dataset, /, *, delays: TimeSweep = TimeSweep(start=0, stop=1020, step=17),
                  exposure: Positive = 170.0, structure: str = "vein", surround: str = "skin",
                  labels: Labels = "scene", label_image: StorePath = "", classes: tuple[str, ...] | None = None,
@@ -118,16 +132,13 @@ def choose_delay(transport: xr.Dataset, /, *, delays: TimeSweep = TimeSweep(star
     coords = {"delay": ("delay", candidates, {"units": "us", "long_name": "candidate sync delay t_d"}),
               "view": ("view", list(VIEWS))}
     keep = {k: v for k, v in transport.attrs.items() if k != "selpath_kind"}
-    return xr.Dataset(
-        {"image": images.drop_attrs(deep=False).assign_attrs(units=t.attrs.get("units", "counts"),
-                                                             long_name="regular, far-range indirect, chosen-delay"),
-         "contrast": ("delay", contrast, {"units": "1", "long_name": "Weber contrast |μ_s − μ_v| / μ_s of the frame"}),
-         "contrast_of": weber_contrast(region["structure"], region["surround"]).assign_attrs(
-             units="1", long_name="Weber contrast of each image"),
+    return DELAY_CHOICE.label(xr.Dataset(
+        {"image": images.drop_attrs(deep=False), "contrast": ("delay", contrast),
+         "contrast_of": weber_contrast(region["structure"], region["surround"]),
          "bright_enough": ("delay", bright_enough.astype(bool),
                            {"long_name": f"surround at least {min_signal:g} of its regular mean"})},
         coords=coords,
-        attrs=keep | {"selpath_kind": "delay_choice", "chosen_delay_us": float(candidates[best]),
+        attrs=keep | {"chosen_delay_us": float(candidates[best]),
                       "commanded_delay_us": float(candidates[best]) - float(transport.attrs.get("sync_offset_us", 0.0)),
                       "exposure_us": float(exposure), "structure": structure, "surround": surround,
-                      "direct_free_from_us": (exposure + float(line_time)) / 2, "far_range_rows": reach})
+                      "direct_free_from_us": (exposure + float(line_time)) / 2, "far_range_rows": reach}))

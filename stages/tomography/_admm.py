@@ -37,6 +37,7 @@ from typing import ClassVar
 import jax
 import jax.numpy as jnp
 import numpy as np
+
 from selpath.pipeline.constraints import machine_memory
 from selpath.stages._solution import Solution, outcome, raise_if_failed
 from selpath.stages.tomography._projector import Geometry, HostProjector, MatrixProjector, WalkProjector, operator_norm

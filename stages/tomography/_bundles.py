@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.optimize
 import scipy.sparse
+
 from selpath.devices.geometry import RigGeometry, to_lab
 from selpath.stages._solution import Solution, outcome
 from selpath.stages.tomography._admm import gradient

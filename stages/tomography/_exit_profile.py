@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
 from selpath.devices.geometry import RigGeometry, to_lab
 from selpath.devices.sim.shapes import Prism
 from selpath.stages.tomography._walks import Walks, beam_entry, random_walks, surface_seen, walk_weights

@@ -15,14 +15,34 @@ from typing import ClassVar, Literal
 import numpy as np
 import pydantic
 import xarray as xr
+
+from selpath.devices.geometry import RIG_ATTRS, camera_attr_problems
 from selpath.devices.hardware import hardware_rig, load_hardware
 from selpath.devices.sim.rig import simulated_rig
 from selpath.devices.sim.scene import load_scene
 from selpath.devices.tomography_acquire import acquire_tomography as sweep
 from selpath.pipeline.constraints import StorePath, memory_problems
+from selpath.pipeline.kinds import ANGLE_UNITS, SENSOR_COUNTS, CubeKind, Variable
 from selpath.pipeline.registry import stage
 from selpath.stages._common import read_file, sweep_log
 from selpath.stages._sweeps import Sweep
+
+#: frames of the rotating object (DESIGN §2): what ``acquire_tomography``, the simulators and ``import_capture`` make
+TOMOGRAPHY_CAPTURE = CubeKind(
+    name="tomography_capture",
+    description="frames of the rotating object: target, reference (no inclusion), backlit, dark",
+    variables={
+        "target": Variable(("angle", "row", "col"), description="object with the inclusion", **SENSOR_COUNTS),
+        "reference": Variable(("angle", "row", "col"), description="same object without it (§4.4.2)",
+                              **SENSOR_COUNTS),
+        "backlit": Variable(("angle", "row", "col"), False, "silhouettes against a lit plane (§4.2.6)",
+                            **SENSOR_COUNTS),
+        "dark": Variable(("row", "col"), False, "sensor offset with all lights off", **SENSOR_COUNTS),
+    },
+    coord_units={"angle": ANGLE_UNITS},
+    attrs=RIG_ATTRS,
+    attr_checks=(camera_attr_problems,),
+)
 
 
 class AngleSweep(Sweep):
@@ -65,7 +85,8 @@ def _identity(settings) -> dict:
     return {"rig": settings.rig, "file": str(source), "sha256": digest}
 
 
-@stage("acquire_tomography", precheck=_precheck, identity=_identity, writes=lambda settings: settings.store,
+@stage("acquire_tomography", kind=TOMOGRAPHY_CAPTURE, precheck=_precheck, identity=_identity,
+       writes=lambda settings: settings.store,
        variables=lambda settings: ["target", "reference", "backlit", "dark"])  # as capture_template writes
 def acquire_tomography(
     *,

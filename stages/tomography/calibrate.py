@@ -18,12 +18,15 @@ from __future__ import annotations
 
 import numpy as np
 import xarray as xr
+
 from selpath.devices.geometry import saturation_counts
 from selpath.pipeline.constraints import Fraction, NonNegative, Positive
 from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.kinds import ANGLE_UNITS, FLAGS, CubeKind, Variable
 from selpath.pipeline.quality import usable_share
 from selpath.pipeline.registry import stage
 from selpath.stages._common import require_variables, sorted_sweep
+from selpath.stages.tomography.acquire import TOMOGRAPHY_CAPTURE
 from selpath.stages.tomography.hull import SILHOUETTE_FLOOR, object_masks
 
 #: bits of ``flags``; target bits are shifted by 0, reference bits by 3; BACKGROUND: not on the object
@@ -34,12 +37,37 @@ FLAG_MEANINGS = ("target_saturated target_no_signal target_nonfinite "
                  "reference_saturated reference_no_signal reference_nonfinite background")
 FRAME_VARIABLES = ("target", "reference", "backlit")
 
+_FRAMES = ("angle", "row", "col")
+#: what absorption and normalise_reference report of the object's pixels beside their usable shares
+_SHARES = {
+    "object_valid_fraction": Variable((), False, units="1",
+                                      long_name="share of the object's pixels (not flagged background) that are valid"),
+    "background_fraction": Variable((), False, units="1",
+                                    long_name="share of pixels flagged background (off the object in the backlit "
+                                    "frames)"),
+}
+ABSORPTION = CubeKind(
+    name="absorption",
+    description="total absorption A = log I_reference − log I_target per pixel, with flags",
+    variables={"absorption": Variable(_FRAMES, units="1",
+                                      long_name="total absorption A = log I_reference − log I_target"),
+               "flags": Variable(_FRAMES, description="CF flag bits; 0 means valid", **FLAGS), **_SHARES},
+    coord_units={"angle": ANGLE_UNITS},
+)
+TRANSMITTANCE = CubeKind(
+    name="transmittance",
+    description="I_target / I_reference per pixel, with flags",
+    variables={"transmittance": Variable(_FRAMES, units="1", long_name="transmittance I_target / I_reference"),
+               "flags": Variable(_FRAMES, description="CF flag bits; 0 means valid", **FLAGS), **_SHARES},
+    coord_units={"angle": ANGLE_UNITS},
+)
+
 
 def _float_dtype(array: xr.DataArray) -> np.dtype:
     return np.result_type(array.dtype, np.float32)
 
 
-@stage("subtract_background")
+@stage("subtract_background", kind=TOMOGRAPHY_CAPTURE)
 def subtract_background(capture: xr.Dataset, /, *, background: str = "dark",
                         variables: tuple[str, ...] = FRAME_VARIABLES) -> xr.Dataset:
     """Subtract a background frame (dark by default) from the frame variables, lazily.
@@ -66,7 +94,7 @@ def subtract_background(capture: xr.Dataset, /, *, background: str = "dark",
     return capture.assign(corrected).assign_attrs(background_subtracted=background)
 
 
-@stage("subtract_dark")
+@stage("subtract_dark", kind=TOMOGRAPHY_CAPTURE)
 def subtract_dark(capture: xr.Dataset, /) -> xr.Dataset:
     """Subtract the ``dark`` frame from target, reference and backlit frames (see subtract_background).
 
@@ -222,8 +250,7 @@ def _checked_pair(capture: xr.Dataset, stage_name: str, saturation_level: float 
     )
     value = value.transpose(*capture["target"].dims).drop_attrs(deep=False)  # (apply_ufunc copied the frames' attrs)
     flags = flags.transpose(*capture["target"].dims).drop_attrs(deep=False)
-    flags.attrs.update(flag_masks=FLAG_MASKS, flag_meanings=FLAG_MEANINGS,
-                       long_name="why a pixel is invalid (CF flags; 0: valid)")
+    flags.attrs.update(flag_masks=FLAG_MASKS, flag_meanings=FLAG_MEANINGS)
     attrs = {k: v for k, v in capture.attrs.items() if k != "selpath_kind"}
     attrs.pop("saturation_level", None)  # the old name of saturation_counts
     attrs.update(saturation_counts=level, min_signal=min_signal, min_signal_relative=min_signal_relative,
@@ -247,10 +274,8 @@ def _checked_pair(capture: xr.Dataset, stage_name: str, saturation_level: float 
             "above min_signal)",
             fix="most target frames are saturated, NaN or dark where the reference is lit: check them and the clip "
             "level (attr saturation_counts, or the stage's saturation_level)"),
-        "object_valid_fraction": ((flags == 0).sum() / objects).astype(np.float64).assign_attrs(
-            units="1", long_name="share of the object's pixels (not flagged background) that are valid"),
-        "background_fraction": (~on_object).mean().astype(np.float64).assign_attrs(
-            units="1", long_name="share of pixels flagged background (off the object in the backlit frames)"),
+        "object_valid_fraction": ((flags == 0).sum() / objects).astype(np.float64),
+        "background_fraction": (~on_object).mean().astype(np.float64),
     }
     if object_mask.ndim:
         shares["silhouette_fraction"] = silhouette_share
@@ -304,7 +329,7 @@ def _pair_docs(func):
     return func
 
 
-@stage("normalise_reference")
+@stage("normalise_reference", kind=TRANSMITTANCE)
 @_pair_docs
 def normalise_reference(capture: xr.Dataset, /, *, saturation_level: Positive | None = None,
                         min_signal: NonNegative = 0.0, min_signal_relative: Fraction = 0.0,
@@ -317,12 +342,10 @@ def normalise_reference(capture: xr.Dataset, /, *, saturation_level: Positive | 
                                                 min_signal_relative, absorption=False,
                                                 flag_background=flag_background,
                                                 silhouette_threshold=silhouette_threshold)
-    value.attrs.update(units="1", long_name="transmittance I_target / I_reference")
-    return xr.Dataset({"transmittance": value, "flags": flags, **shares},
-                      attrs={**attrs, "selpath_kind": "transmittance"})
+    return TRANSMITTANCE.label(xr.Dataset({"transmittance": value, "flags": flags, **shares}, attrs=attrs))
 
 
-@stage("absorption")
+@stage("absorption", kind=ABSORPTION)
 @_pair_docs
 def absorption(capture: xr.Dataset, /, *, saturation_level: Positive | None = None,
                min_signal: NonNegative = 0.0, min_signal_relative: Fraction = 0.0, flag_background: bool = True,
@@ -338,5 +361,4 @@ def absorption(capture: xr.Dataset, /, *, saturation_level: Positive | None = No
                                                 min_signal_relative, absorption=True,
                                                 flag_background=flag_background,
                                                 silhouette_threshold=silhouette_threshold)
-    value.attrs.update(units="1", long_name="total absorption A = log I_reference − log I_target")
-    return xr.Dataset({"absorption": value, "flags": flags, **shares}, attrs={**attrs, "selpath_kind": "absorption"})
+    return ABSORPTION.label(xr.Dataset({"absorption": value, "flags": flags, **shares}, attrs=attrs))

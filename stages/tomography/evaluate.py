@@ -10,12 +10,30 @@ from __future__ import annotations
 
 import numpy as np
 import xarray as xr
+
 from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.kinds import CubeKind, Variable
 from selpath.pipeline.registry import stage
 from selpath.stages._common import require_variables
 
+_SIGMA = "1/{length}"
+RECONSTRUCTION_ERROR = CubeKind(
+    name="reconstruction_error",
+    description="RMSE and largest absolute error of a reconstruction against a known truth; its inclusion's",
+    variables={"rmse": Variable((), units=_SIGMA, long_name="RMSE of σ"),
+               "max_abs_error": Variable((), units=_SIGMA, long_name="max |error| of σ"),
+               "mean_inside": Variable((), required=False, units=_SIGMA,
+                                       long_name="mean σ over the truth's half-maximum region"),
+               "truth_inside": Variable((), required=False, units=_SIGMA,
+                                        long_name="the truth's mean σ over its half-maximum region"),
+               "centroid_error": Variable((), required=False, units="{length}",
+                                          long_name="distance between the half-maximum regions' centroids"),
+               "radius_error": Variable((), required=False, units="{length}",
+                                        long_name="|difference| of the half-maximum regions' radii")},
+)
 
-@stage("reconstruction_error")
+
+@stage("reconstruction_error", kind=RECONSTRUCTION_ERROR)
 def reconstruction_error(reconstruction: xr.Dataset, truth: xr.Dataset, /) -> xr.Dataset:
     """RMSE and max |error| of ``reconstruction``'s σ against ``truth``'s, over every slice and pixel (NaN skipped);
     and the inclusion's: the truth's cells at or above half its largest σ (per slice) are its inclusion, the
@@ -60,20 +78,18 @@ def reconstruction_error(reconstruction: xr.Dataset, truth: xr.Dataset, /) -> xr
     sigma = reconstruction["sigma"]
     error = sigma - expected
     slices = reconstruction.sizes.get("slice", 1)
-    unit = sigma.attrs.get("units", "")
-    length = {"units": reconstruction["x"].attrs.get("units", "")}
     inclusion = expected >= 0.5 * expected.max(("y", "x"))
     (x_true, y_true), radius_true = _region(expected, inclusion)
     (x_ours, y_ours), radius_ours = _region(sigma, sigma >= 0.5 * sigma.max(("y", "x")))
-    return xr.Dataset(
-        {"rmse": ((), ((error**2).mean() ** 0.5).data, {"units": unit}),
-         "max_abs_error": ((), abs(error).max().data, {"units": unit}),
-         "mean_inside": ((), sigma.where(inclusion).mean().data, {"units": unit}),
-         "truth_inside": ((), expected.where(inclusion & sigma.notnull()).mean().data, {"units": unit}),
-         "centroid_error": ((), np.hypot(x_ours - x_true, y_ours - y_true).max().data, length),
-         "radius_error": ((), abs(radius_ours - radius_true).max().data, length)},
-        attrs={"selpath_kind": "reconstruction_error", "slices": int(slices),
-               "method": reconstruction.attrs.get("method", "")})
+    return RECONSTRUCTION_ERROR.label(xr.Dataset(
+        {"rmse": ((), ((error**2).mean() ** 0.5).data),
+         "max_abs_error": ((), abs(error).max().data),
+         "mean_inside": ((), sigma.where(inclusion).mean().data),
+         "truth_inside": ((), expected.where(inclusion & sigma.notnull()).mean().data),
+         "centroid_error": ((), np.hypot(x_ours - x_true, y_ours - y_true).max().data),
+         "radius_error": ((), abs(radius_ours - radius_true).max().data)},
+        attrs={"slices": int(slices), "method": reconstruction.attrs.get("method", ""),
+               "length_unit": reconstruction["x"].attrs.get("units", reconstruction.attrs.get("length_unit", ""))}))
 
 
 def _region(sigma: xr.DataArray, region: xr.DataArray) -> tuple[tuple[xr.DataArray, xr.DataArray], xr.DataArray]:

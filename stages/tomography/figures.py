@@ -11,10 +11,11 @@ from __future__ import annotations
 import numpy as np
 import xarray as xr
 from matplotlib import colormaps
+
 from selpath.pipeline.constraints import Index
 from selpath.pipeline.registry import stage
 from selpath.stages._common import require_variables
-from selpath.stages._figures import as_figure, image_colorbar, panels, pixel_axes, rgba, slice_name
+from selpath.stages._figures import FIGURE, as_figure, image_colorbar, panels, pixel_axes, rgba, slice_name
 from selpath.stages.tomography.sinogram import coverage_model, optimal_light_angle
 
 #: sizes [in] of the figures that are not of the standard size
@@ -39,7 +40,7 @@ def _draw_sinogram(absorption: np.ndarray, observed: np.ndarray, theta: np.ndarr
     return rgba(fig)
 
 
-@stage("sinogram_figure")
+@stage("sinogram_figure", kind=FIGURE)
 def sinogram_figure(sinogram: xr.Dataset, /, *, slice_index: Index = 0) -> xr.Dataset:
     """The sinogram of one slice beside its mask of observed rays (the missing areas of Fig. 14 / 20).
 
@@ -87,7 +88,7 @@ def _draw_coverage(measured: np.ndarray | None, analytic: np.ndarray | None, lig
     return rgba(fig)
 
 
-@stage("coverage_figure")
+@stage("coverage_figure", kind=FIGURE)
 def coverage_figure(coverage: xr.Dataset | None = None, /) -> xr.Dataset:
     """Coverage versus θ_l for orthographic and perspective (FOV 30°, 60°) cameras, with measured points.
 
@@ -123,7 +124,7 @@ def _draw_capture(frame: np.ndarray, backlit: np.ndarray, angle: float) -> np.nd
     return rgba(fig)
 
 
-@stage("capture_figure")
+@stage("capture_figure", kind=FIGURE)
 def capture_figure(capture: xr.Dataset, /, *, angle_index: Index = 0) -> xr.Dataset:
     """One target frame beside its backlit frame.
 

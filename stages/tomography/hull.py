@@ -15,16 +15,49 @@ import numpy as np
 import xarray as xr
 from scipy.optimize import linprog
 from scipy.spatial import ConvexHull, HalfspaceIntersection
-from selpath.devices.geometry import Camera, RigGeometry, geometry_attrs, to_object_xy
-from selpath.pipeline.constraints import Index, Positive
-from selpath.pipeline.errors import Problem, StageError
-from selpath.pipeline.quality import usable_share
-from selpath.pipeline.registry import stage
-from selpath.pipeline.schema import with_metadata
-from selpath.stages._common import require_variables, sorted_sweep
 from skimage.filters import threshold_otsu
 from skimage.measure import label
 from skimage.morphology import remove_small_holes, remove_small_objects
+
+from selpath.devices.geometry import RIG_ATTRS, Camera, RigGeometry, camera_attr_problems, geometry_attrs, to_object_xy
+from selpath.pipeline.constraints import Index, Positive
+from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.kinds import ANGLE_UNITS, CubeKind, Variable
+from selpath.pipeline.quality import usable_share
+from selpath.pipeline.registry import stage
+from selpath.stages._common import require_variables, sorted_sweep
+
+SILHOUETTES = CubeKind(
+    name="silhouettes",
+    description="object masks per angle from backlit frames (§4.2.6)",
+    variables={"silhouette": Variable(("angle", "row", "col"), description="True where the object is", units=None,
+                                      long_name="object mask")},
+    coord_units={"angle": ANGLE_UNITS},
+    attrs=RIG_ATTRS,  # visual_hull builds the rig's geometry from them
+    attr_checks=(camera_attr_problems,),
+)
+
+
+def _views(what: str) -> Variable:
+    return Variable(("slice",), False, units="1", long_name=f"views per slice {what}")
+
+
+HULL = CubeKind(
+    name="hull",
+    description="visual hull: the object's convex contour per slice (coordinate: camera row), object frame",
+    variables={
+        "vertices": Variable(("slice", "vertex", "xy"), description="counter-clockwise, NaN-padded", units="{length}",
+                             long_name="contour vertex (x, y), object frame"),
+        "n_vertices": Variable(("slice",), description="vertices used per slice; 0: no contour", units="1",
+                               long_name="vertices of the contour"),
+        "empty_views": _views("with no silhouette"),
+        "border_views": _views("whose silhouette touches the border"),
+        "gapped_views": _views("whose silhouette has gaps"),
+    },
+    attrs={**RIG_ATTRS,  # align_paths and coverage build the rig's geometry from them
+           "hull_resolution": "largest gap between the silhouette edge and the contour, length unit"},
+    attr_checks=(camera_attr_problems,),
+)
 
 
 def _silhouette_kernel(backlit: np.ndarray, dark: np.ndarray, *, threshold: float | None, min_size: int
@@ -90,7 +123,7 @@ def object_masks(backlit: xr.DataArray, dark: xr.DataArray | None = None, *, thr
     return mask.transpose("angle", ..., "row", "col")
 
 
-@stage("silhouettes")
+@stage("silhouettes", kind=SILHOUETTES)
 def silhouettes(capture: xr.Dataset, /, *, threshold: Positive | None = None,
                 min_size: Index = MIN_SIZE) -> xr.Dataset:
     """Binary object masks from the backlit frames, per angle (lazy, one task per angle chunk).
@@ -114,8 +147,8 @@ def silhouettes(capture: xr.Dataset, /, *, threshold: Positive | None = None,
     share = usable_share(((covered > 0) & (covered < 1)).mean(), floor=SILHOUETTE_FLOOR,
                          what="backlit frames with a silhouette (neither empty nor the whole frame)",
                          fix="check the backlit and dark frames (NaN, unlit, saturated) or set `threshold` [counts]")
-    return xr.Dataset({"silhouette": mask, "object_fraction": share},
-                      attrs=geometry_attrs(capture.attrs) | {"selpath_kind": "silhouettes"})
+    return SILHOUETTES.label(xr.Dataset({"silhouette": mask, "object_fraction": share},
+                                        attrs=geometry_attrs(capture.attrs)))
 
 
 #: floor of ``object_fraction``: a hull from fewer than half the views is not the object's
@@ -206,7 +239,7 @@ def hull_rows_per_chunk(n_angles: int, cols: int) -> int:
     return max(1, HULL_CHUNK_BYTES // max(n_angles * cols, 1))
 
 
-@stage("visual_hull")
+@stage("visual_hull", kind=HULL)
 def visual_hull(silhouettes: xr.Dataset, /) -> xr.Dataset:
     """The convex contour of every slice from the silhouettes of all angles: dim ``slice``, whose coordinate is
     the camera row the slice is seen in.
@@ -240,19 +273,14 @@ def visual_hull(silhouettes: xr.Dataset, /) -> xr.Dataset:
     vertices = packed.isel(vertex=slice(0, max_vertices))
     counts, empty, border, gapped = (packed.isel(vertex=max_vertices + i // 2, xy=i % 2, drop=True).astype(np.int64)
                                      for i in range(4))
-    attrs = geometry_attrs(silhouettes.attrs) | {"selpath_kind": "hull", "hull_resolution": camera.axis_pixel_size / 2,
+    attrs = geometry_attrs(silhouettes.attrs) | {"hull_resolution": camera.axis_pixel_size / 2,
                                                  "n_views": len(angles)}
-    def views(count: xr.DataArray, what: str) -> xr.DataArray:
-        return count.drop_attrs(deep=False).assign_attrs(units="1", long_name=f"views per slice {what}")
-
-    hull = xr.Dataset({"vertices": vertices, "n_vertices": counts,
-                       "empty_views": views(empty, "with no silhouette"),
-                       "border_views": views(border, "whose silhouette touches the border"),
-                       "gapped_views": views(gapped, "whose silhouette has gaps")},
+    hull = xr.Dataset({"vertices": vertices, "n_vertices": counts, "empty_views": empty.drop_attrs(deep=False),
+                       "border_views": border.drop_attrs(deep=False), "gapped_views": gapped.drop_attrs(deep=False)},
                       attrs=attrs | {"xy": "x, y in the object frame"})
     # each slice's height (assigned after the chunked kernel, so it stays a numpy coordinate)
     hull = hull.assign_coords(z=slice_heights(camera, np.arange(rows), silhouettes.attrs["length_unit"]))
-    return with_metadata(hull, "hull")
+    return HULL.label(hull)
 
 
 def slice_heights(camera: Camera, rows: np.ndarray, unit: str, dim: str = "slice") -> tuple[str, np.ndarray, dict]:

@@ -15,14 +15,34 @@ from __future__ import annotations
 
 import numpy as np
 import xarray as xr
-from selpath.devices.geometry import RigGeometry, geometry_attrs, to_object_xy
+
+from selpath.devices.geometry import RIG_ATTRS, RigGeometry, geometry_attrs, to_object_xy
 from selpath.devices.sim.shapes import convex_polygon
 from selpath.pipeline.constraints import Fraction
 from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.kinds import ANGLE_UNITS, CubeKind, Variable
 from selpath.pipeline.quality import usable_share
 from selpath.pipeline.registry import stage
 from selpath.stages._common import require_variables
 from selpath.stages.tomography.hull import contours, slice_heights
+
+_PIXELS = ("angle", "row", "col")
+RAYS = CubeKind(
+    name="rays",
+    description="aligned light paths per pixel: sinogram coordinates and total absorption (§4.2.6)",
+    variables={
+        "theta": Variable(_PIXELS, description="normal angle of the ray, degree in [0, 180)", units="degree",
+                          long_name="normal angle θ of the ray"),
+        "x": Variable(_PIXELS, description="signed distance of the ray from the axis", units="{length}",
+                      long_name="signed distance X of the ray from the axis"),
+        "absorption": Variable(_PIXELS, description="total absorption; NaN where dropped", units="1",
+                               long_name="total absorption A = log I_reference − log I_target"),
+        "reason": Variable(_PIXELS, description="0: ray kept; else why it was dropped", units=None,
+                           long_name="why the ray was dropped (0: kept)"),
+    },
+    coord_units={"angle": ANGLE_UNITS},
+    attrs={"length_unit": RIG_ATTRS["length_unit"], "light_angle_deg": RIG_ATTRS["light_angle_deg"]},
+)
 
 #: why a pixel gave no ray (``reason`` variable; 0: a ray)
 REASONS = {
@@ -106,7 +126,7 @@ def _align_kernel(absorption, flags, angle, row, col, vertices, n_vertices, *, g
 RAY_FLOOR = 0.05
 
 
-@stage("align_paths")
+@stage("align_paths", kind=RAYS)
 def align_paths(absorption: xr.Dataset, hull: xr.Dataset, /, *, min_exit_cos: Fraction = 0.02) -> xr.Dataset:
     """Turn every lit pixel into a ray (θ, X) with its total absorption, on the lit slices only (lazy).
 
@@ -154,20 +174,17 @@ def align_paths(absorption: xr.Dataset, hull: xr.Dataset, /, *, min_exit_cos: Fr
     theta, x, total = (fields.isel(field=i, drop=True) for i in range(3))
     total = total.astype(data.dtype)  # the kernel's stack is float64; the absorption keeps its own precision
     reason = fields.isel(field=3, drop=True).astype(np.int8)
-    unit = hull.attrs["length_unit"]
     half_width = geometry.camera.view_half_width
     meanings = " ".join(f"{k}={v.replace(' ', '_')}" for k, v in REASONS.items())
     out = xr.Dataset(
-        {"theta": theta.assign_attrs(units="degree", long_name="normal angle θ of the ray"),
-         "x": x.assign_attrs(units=unit, long_name="signed distance X of the ray from the axis"),
-         "absorption": total.assign_attrs(long_name="total absorption along the ray"),
+        {"theta": theta, "x": x, "absorption": total,
          "reason": reason.assign_attrs(flag_values=list(REASONS), flag_meanings=meanings),
          "ray_fraction": usable_share(
              (reason == 0).sum() / np.maximum((reason != 1).sum(), 1), floor=RAY_FLOOR,
              what="lit-row pixels whose camera ray meets the contour that became rays",
              fix="see `reason`: flagged absorption (5) points at min_signal or the frames, no contour (6) or misses "
              "(3) at the silhouettes and the hull, grazing (2) at min_exit_cos")},
-        attrs=geometry_attrs(hull.attrs) | {"selpath_kind": "rays", "x_extent": half_width,
-                                            "min_exit_cos": min_exit_cos})
+        attrs=geometry_attrs(hull.attrs) | {"x_extent": half_width, "min_exit_cos": min_exit_cos})
+    out = RAYS.label(out)
     # (transpose only when needed: a no-op transpose layer trips dask 2026.8 when several outputs share it)
     return out if tuple(out["theta"].dims) == ("angle", "row", "col") else out.transpose("angle", "row", "col")

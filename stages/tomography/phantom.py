@@ -20,18 +20,18 @@ import dask.array as da
 import numpy as np
 import pydantic
 import xarray as xr
+
 from selpath.devices.geometry import to_object
 from selpath.devices.sim import tomography as tomo
 from selpath.devices.sim.scene import Scene, load_scene
 from selpath.pipeline.constraints import Count, Index, NonNegative, Positive, StorePath, memory_problems
 from selpath.pipeline.errors import Problem, StageError
 from selpath.pipeline.registry import stage
-from selpath.pipeline.schema import in_length
 from selpath.stages._common import read_file
 from selpath.stages.tomography.acquire import AngleSweep
 from selpath.stages.tomography.paths import sinogram_coordinates
-from selpath.stages.tomography.reconstruct import ome_attrs
-from selpath.stages.tomography.sinogram import Bins, bin_index
+from selpath.stages.tomography.reconstruct import RECONSTRUCTION, ome_attrs
+from selpath.stages.tomography.sinogram import SINOGRAM, Bins, bin_index
 
 #: θ_l, the light's angle to the camera axis [degree]
 LightAngle = Annotated[float, pydantic.Field(ge=0, le=180)]
@@ -110,7 +110,7 @@ def observed_mask(scene: Scene, angles_deg: np.ndarray, theta_deg: np.ndarray, x
     return seen
 
 
-@stage("simulate_sinogram", precheck=_sinogram_precheck)
+@stage("simulate_sinogram", kind=SINOGRAM, precheck=_sinogram_precheck)
 def simulate_sinogram(*, scene: StorePath, light_angle_deg: LightAngle | None = None, n_theta: Count = 180,
                       n_x: Bins = 128, x_extent: Positive | None = None,
                       angles: AngleSweep = AngleSweep(),  # noqa: B008 (a frozen model: immutable default)
@@ -150,14 +150,14 @@ def simulate_sinogram(*, scene: StorePath, light_angle_deg: LightAngle | None = 
     observed = observed_mask(spec, angles.values(), theta, x)
     dims = ("slice", "theta", "x")
     geometry = spec.geometry().attrs()
-    return xr.Dataset(
+    return SINOGRAM.label(xr.Dataset(
         {"absorption": (dims, absorption[None]), "observed": (dims, observed[None]),
          "count": (dims, observed[None].astype(np.int64))},
         coords={"slice": ("slice", [0]), "z": ("slice", [0.0], {"units": "mm", "long_name": "slice height z"}),
                 "theta": ("theta", theta, {"units": "degree"}),
                 "x": ("x", x, {"units": "mm"})},
-        attrs=geometry | {"selpath_kind": "sinogram", "x_extent": extent, "theta_step_deg": 180.0 / n_theta,
-                          "x_step": 2 * extent / (n_x - 1), "scene": spec.scene, "noise_std": noise_std})
+        attrs=geometry | {"x_extent": extent, "theta_step_deg": 180.0 / n_theta,
+                          "x_step": 2 * extent / (n_x - 1), "scene": spec.scene, "noise_std": noise_std}))
 
 
 def truth_raster(scene: Scene, n: int, extent: float, supersample: int = 4, z: float = 0.0) -> np.ndarray:
@@ -174,7 +174,7 @@ def truth_raster(scene: Scene, n: int, extent: float, supersample: int = 4, z: f
     return total.reshape(n, supersample, n, supersample).mean(axis=(1, 3))
 
 
-@stage("phantom_truth", precheck=_truth_precheck)
+@stage("phantom_truth", kind=RECONSTRUCTION, precheck=_truth_precheck)
 def phantom_truth(sinogram: xr.Dataset, /, *, scene: StorePath, n_pixels: Count | None = None,
                   supersample: Count = 4) -> xr.Dataset:
     """The scene's inclusion σ on the reconstruction grid of ``sinogram`` (the reference for error tables).
@@ -206,9 +206,9 @@ def phantom_truth(sinogram: xr.Dataset, /, *, scene: StorePath, n_pixels: Count 
                                  fix="bin it with bin_sinogram from one capture"))
     rasters = {z: dask.delayed(truth_raster)(spec, n, extent, supersample, z) for z in dict.fromkeys(heights.tolist())}
     volume = da.stack([da.from_delayed(rasters[z], (n, n), np.float64) for z in heights.tolist()])  # a slice a task
-    return xr.Dataset(
-        {"sigma": (("slice", "y", "x"), volume, {"units": in_length("1/{length}", unit)})},
+    return RECONSTRUCTION.label(xr.Dataset(
+        {"sigma": (("slice", "y", "x"), volume)},
         coords={"slice": ("slice", slices), "z": ("slice", heights, {"units": unit, "long_name": "slice height z"}),
                 "y": ("y", centres, {"units": unit}), "x": ("x", centres, {"units": unit})},
-        attrs={"selpath_kind": "reconstruction", "method": "truth", "scene": spec.scene, "cell_size": cell}
-        | ome_attrs(heights, centres, centres, unit))
+        attrs={"method": "truth", "scene": spec.scene, "cell_size": cell}
+        | ome_attrs(heights, centres, centres, unit)))

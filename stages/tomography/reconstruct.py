@@ -22,17 +22,47 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import xarray as xr
+
 from selpath.devices.geometry import geometry_attrs
 from selpath.pipeline.constraints import Count, NonNegative, Positive, memory_problems
 from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.kinds import LENGTH_UNITS, CubeKind, Variable
 from selpath.pipeline.registry import stage
-from selpath.pipeline.schema import in_length
 from selpath.stages._common import Dtype, MaxIter, require_variables
 from selpath.stages.tomography._admm import TVADMM
 from selpath.stages.tomography._filters import ramp_filter
 from selpath.stages.tomography._projector import Geometry, any_nearest, backproject
 from selpath.stages.tomography.hull import contours
 from selpath.stages.tomography.sinogram import observed_share, support_function
+
+_SIGMA = "1/{length}"
+RECONSTRUCTION = CubeKind(
+    name="reconstruction",
+    description="absorption coefficient σ per slice",
+    variables={
+        "sigma": Variable(("y", "x"), description="absorption coefficient per unit length", units=_SIGMA,
+                          long_name="absorption coefficient σ"),
+        "reliable": Variable(("y", "x"), required=False, units=None,
+                             long_name="cell every ray through which is observed or known"),
+        "sigma_max": Variable(("y", "x"), required=False, units=_SIGMA,
+                              long_name="upper bound σ_max of the box constraint"),
+        "iterations": Variable((), required=False, units="1", long_name="ADMM iterations run"),
+        "converged": Variable((), required=False, units=None, long_name="ADMM met its tolerance"),
+        "objective": Variable(("iteration",), required=False, units="1",
+                              long_name="objective of Eq. 20 per ADMM iteration (NaN after the stop)"),
+        "primal_residual": Variable(("iteration",), required=False, units="1",
+                                    long_name="relative primal residual per ADMM iteration (NaN after the stop)"),
+        "dual_residual": Variable(("iteration",), required=False, units="1",
+                                  long_name="relative dual residual per ADMM iteration (NaN after the stop)"),
+        # reconstruct_scattering's (selpath.stages.tomography.scattering): L-BFGS-B's end and the bundles' sizes
+        "final_objective": Variable((), required=False, units="1", long_name="objective at the stop"),
+        "paths_per_bin": Variable((), required=False, units="1", long_name="median distinct paths per observed bin"),
+        "bins_without_paths": Variable((), required=False, units="1",
+                                       long_name="observed bins no walk reached (left out of the fit)"),
+    },
+    coord_units={"y": LENGTH_UNITS, "x": LENGTH_UNITS},
+    batch_dims=("slice",),
+)
 
 
 def image_problems(n_pixels: int | None) -> list[str]:
@@ -203,10 +233,9 @@ def reconstruction_store(sinogram: xr.Dataset, geometry: Geometry, variables: di
         coords["z"] = sinogram["z"]
         volume = ome_attrs(sinogram["z"].values, centres, centres, unit)
     out = xr.Dataset(variables, coords=coords)
-    out["sigma"].attrs.update(units=in_length("1/{length}", unit), long_name="absorption coefficient σ")
     out["observed_fraction"] = observed_share(sinogram["observed"])
-    return out.assign_attrs(geometry_attrs(sinogram.attrs) | {"selpath_kind": "reconstruction",
-                                                              "cell_size": geometry.cell} | volume | attrs)
+    return RECONSTRUCTION.label(out.assign_attrs(geometry_attrs(sinogram.attrs) | {"cell_size": geometry.cell}
+                                                 | volume | attrs))
 
 
 def fbp_slice(absorption: np.ndarray, known: np.ndarray, support: np.ndarray, geometry: Geometry, *,
@@ -262,7 +291,7 @@ def _blocks(sinogram: xr.Dataset, hull: xr.Dataset | None) -> xr.Dataset:
     return inputs.assign_attrs({})
 
 
-@stage("fbp", precheck=_image_precheck)
+@stage("fbp", kind=RECONSTRUCTION, precheck=_image_precheck)
 def fbp(sinogram: xr.Dataset, hull: xr.Dataset | None = None, /, *, n_pixels: Count | None = None,
         filter: Literal["ram-lak", "shepp-logan", "cosine", "hamming", "hann"] = "ram-lak",  # noqa: A002
         fill: Literal["zero", "linear"] = "zero", dtype: Dtype = "float32") -> xr.Dataset:
@@ -322,7 +351,7 @@ def _tv_block(block: xr.Dataset, *, solver: TVADMM, slack: float, bound: str, dt
         coords={"slice": block["slice"]})
 
 
-@stage("reconstruct_tv", precheck=_image_precheck)
+@stage("reconstruct_tv", kind=RECONSTRUCTION, precheck=_image_precheck)
 def reconstruct_tv(sinogram: xr.Dataset, hull: xr.Dataset | None = None, /, *,
                    tv_weight: NonNegative = TVADMM.DEFAULT_TV_WEIGHT, n_pixels: Count | None = None,
                    bound: Literal["physical", "nonnegative"] = "physical", bound_slack: NonNegative = 0.0,

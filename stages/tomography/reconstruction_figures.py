@@ -11,12 +11,13 @@ from __future__ import annotations
 import numpy as np
 import xarray as xr
 from matplotlib.patches import Rectangle
+
 from selpath.pipeline.constraints import Index
 from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.kinds import in_length
 from selpath.pipeline.registry import stage
-from selpath.pipeline.schema import in_length
 from selpath.stages._common import require_variables
-from selpath.stages._figures import as_figure, panels, pixel_axes, rgba, shared_colorbar, slice_name
+from selpath.stages._figures import FIGURE, as_figure, panels, pixel_axes, rgba, shared_colorbar, slice_name
 
 #: inches per column of the reconstruction figure, and its height with and without the truth's row of errors
 RECONSTRUCTION_COLUMN, RECONSTRUCTION_HEIGHT, RECONSTRUCTION_HEIGHT_NO_TRUTH = 3.0, 6.0, 3.2
@@ -112,7 +113,7 @@ def _draw_reconstructions(images: list[np.ndarray], titles: list[str], truth: np
     return rgba(fig)
 
 
-@stage("reconstruction_figure")
+@stage("reconstruction_figure", kind=FIGURE)
 def reconstruction_figure(fbp: xr.Dataset, optimised: xr.Dataset, truth: xr.Dataset | None = None,
                           bundles: xr.Dataset | None = None, /, *, slice_index: Index = 0) -> xr.Dataset:
     """FBP beside the constrained optimisation (and the truth, with errors, when given), as in Fig. 18/21; with
@@ -220,7 +221,7 @@ def _draw_convergence(objective: np.ndarray, primal: np.ndarray, dual: np.ndarra
     return rgba(fig)
 
 
-@stage("convergence_figure")
+@stage("convergence_figure", kind=FIGURE)
 def convergence_figure(optimised: xr.Dataset, /) -> xr.Dataset:
     """Objective and relative primal/dual residuals per ADMM iteration, every slice.
 
@@ -284,7 +285,7 @@ def _draw_volume(views: list, titles: list[str], rows: list[str], x: np.ndarray,
     return rgba(fig)
 
 
-@stage("volume_figure")
+@stage("volume_figure", kind=FIGURE)
 def volume_figure(reconstruction: xr.Dataset, truth: xr.Dataset | None = None, /, *,
                   at: tuple[float, float, float] | None = None) -> xr.Dataset:
     """A reconstructed volume at a glance: three orthogonal sections and the maximum-intensity projection along z.

@@ -43,14 +43,50 @@ import numpy as np
 import xarray as xr
 from scipy.ndimage import map_coordinates
 from scipy.optimize import least_squares
-from selpath.devices.geometry import Camera, RigGeometry, geometry_attrs, to_object_xy
+
+from selpath.devices.geometry import RIG_ATTRS, Camera, RigGeometry, camera_attr_problems, geometry_attrs, to_object_xy
 from selpath.devices.sim.shapes import convex_polygon
 from selpath.pipeline.constraints import Count, NonNegative, Positive
 from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.kinds import ANGLE_UNITS, CubeKind, Variable
 from selpath.pipeline.registry import stage
 from selpath.stages._common import require_variables, sorted_sweep
+from selpath.stages.tomography.acquire import TOMOGRAPHY_CAPTURE
 from selpath.stages.tomography.calibrate import absorption as absorption_stage
 from selpath.stages.tomography.hull import backlight_levels, intersect_half_planes, tangent_half_planes
+
+
+def _fitted(units: str, long_name: str, description: str = "") -> Variable:
+    return Variable((), False, description, units=units, long_name=long_name)
+
+
+RIG_CALIBRATION = CubeKind(
+    name="rig_calibration",
+    description="the tomography rig's axis column and light angle θ_l estimated from a capture (calibrate_rig); its "
+    "attrs are the corrected geometry",
+    variables={
+        "axis_column": _fitted("px", "column the rotation axis is seen in", "principal point's column: where the axis "
+                               "is seen"),
+        "axis_column_std": _fitted("px", "standard uncertainty of axis_column", "standard uncertainty"),
+        "axis_column_stated": _fitted("px", "axis column stated"),
+        "axis_residual_rms": _fitted("px", "RMS disagreement of left and right silhouette tangents, pixels at the "
+                                     "axis"),
+        "light_angle": _fitted("degree", "light angle θ_l", "θ_l"),
+        "light_angle_std": _fitted("degree", "standard uncertainty of θ_l", "standard uncertainty"),
+        "contour_offset": _fitted("px", "outward offset of the lit slice's contour fitted with θ_l, pixels at the "
+                                  "axis"),
+        "contour_offset_std": _fitted("px", "standard uncertainty of it"),
+        "light_angle_stated": _fitted("degree", "θ_l stated"),
+        "light_residual_rms": _fitted("1", "RMS absorption disagreement of reversed chords"),
+        "light_cost": Variable(("light_angle_trial",), False, "θ_l profile", units="1",
+                               long_name="mean squared disagreement of reversed chords"),
+        "light_pairs": Variable(("light_angle_trial",), False, units="1", long_name="pairs compared"),
+    },
+    coord_units={"light_angle_trial": ANGLE_UNITS},
+    attrs={**RIG_ATTRS, "stated_principal_point_px": "(col, row) principal point the capture stated, px",
+           "stated_light_angle_deg": "θ_l the capture stated, degree"},
+    attr_checks=(camera_attr_problems,),
+)
 
 #: sweeps must cover a full turn (within this, degree) for the axis and light fits to pair opposite views
 FULL_TURN_TOLERANCE = 1e-6
@@ -353,7 +389,7 @@ def _spread(n: int, count: int) -> np.ndarray:
     return np.unique(np.linspace(0, n - 1, min(count, n)).round().astype(int))
 
 
-@stage("calibrate_rig")
+@stage("calibrate_rig", kind=RIG_CALIBRATION)
 def calibrate_rig(capture: xr.Dataset, /, *, axis: bool = True, light_angle: bool = True,
                   search_deg: Positive = 5.0, search_step_deg: Positive = 0.25, rows: Count = 32,
                   min_signal: NonNegative = 1.0) -> xr.Dataset:
@@ -458,34 +494,23 @@ def _all_edges(capture: xr.Dataset) -> np.ndarray:
 
 def _calibration_dataset(capture, stated: RigGeometry, geometry: RigGeometry, axis_fit: Fit | None,
                          light_fit: Fit | None, profile) -> xr.Dataset:
-    px, deg = {"units": "px"}, {"units": "degree"}
     data, attrs = {}, {}
     if axis_fit is not None:
-        unit = stated.camera.axis_pixel_size
-        data |= {"axis_column": ((), axis_fit.value[0], px | {"long_name": "column the rotation axis is seen in"}),
-                 "axis_column_std": ((), axis_fit.std[0], px | {"long_name": "standard uncertainty of axis_column"}),
-                 "axis_column_stated": ((), stated.camera.centre_px[0], px | {"long_name": "axis column stated"}),
-                 "axis_residual_rms": ((), axis_fit.rms / unit, px | {
-                     "long_name": "RMS disagreement of left and right silhouette tangents, pixels at the axis"})}
+        data |= {"axis_column": axis_fit.value[0], "axis_column_std": axis_fit.std[0],
+                 "axis_column_stated": stated.camera.centre_px[0],
+                 "axis_residual_rms": axis_fit.rms / stated.camera.axis_pixel_size}
         attrs |= {"axis_edges_used": axis_fit.count, "axis_converged": axis_fit.converged}
     if light_fit is not None:
         trials, cost, pairs = profile
-        data |= {"light_angle": ((), light_fit.value[0], deg | {"long_name": "light angle θ_l"}),
-                 "light_angle_std": ((), light_fit.std[0], deg | {"long_name": "standard uncertainty of θ_l"}),
-                 "contour_offset": ((), light_fit.value[1], px | {
-                     "long_name": "outward offset of the lit slice's contour fitted with θ_l, pixels at the axis"}),
-                 "contour_offset_std": ((), light_fit.std[1], px | {"long_name": "standard uncertainty of it"}),
-                 "light_angle_stated": ((), stated.light_angle_deg, deg | {"long_name": "θ_l stated"}),
-                 "light_residual_rms": ((), light_fit.rms, {"units": "1", "long_name":
-                                                            "RMS absorption disagreement of reversed chords"}),
-                 "light_cost": (("light_angle_trial",), cost, {"units": "1", "long_name":
-                                                               "mean squared disagreement of reversed chords"}),
-                 "light_pairs": (("light_angle_trial",), pairs, {"units": "1", "long_name": "pairs compared"})}
+        data |= {"light_angle": light_fit.value[0], "light_angle_std": light_fit.std[0],
+                 "contour_offset": light_fit.value[1], "contour_offset_std": light_fit.std[1],
+                 "light_angle_stated": stated.light_angle_deg, "light_residual_rms": light_fit.rms,
+                 "light_cost": (("light_angle_trial",), cost), "light_pairs": (("light_angle_trial",), pairs)}
         attrs |= {"light_pairs_used": light_fit.count, "light_converged": light_fit.converged}
-    coords = {"light_angle_trial": ("light_angle_trial", profile[0], deg)} if profile is not None else {}
-    return xr.Dataset(data, coords=coords, attrs=geometry_attrs(capture.attrs) | geometry.attrs() | attrs | {
-        "selpath_kind": "rig_calibration", "stated_principal_point_px": list(stated.camera.centre_px),
-        "stated_light_angle_deg": stated.light_angle_deg})
+    coords = {} if profile is None else {"light_angle_trial": ("light_angle_trial", profile[0], {"units": "degree"})}
+    return RIG_CALIBRATION.label(xr.Dataset(data, coords=coords, attrs=geometry_attrs(capture.attrs) | geometry.attrs()
+                                            | attrs | {"stated_principal_point_px": list(stated.camera.centre_px),
+                                                       "stated_light_angle_deg": stated.light_angle_deg}))
 
 
 #: camera attrs a calibration must share with the capture it is applied to (it estimates none of them)
@@ -493,7 +518,7 @@ _SHARED = ("camera_model", "focal_length_px", "camera_distance", "pixel_size", "
            "beam_height")
 
 
-@stage("apply_rig_calibration")
+@stage("apply_rig_calibration", kind=TOMOGRAPHY_CAPTURE)
 def apply_rig_calibration(capture: xr.Dataset, calibration: xr.Dataset, /) -> xr.Dataset:
     """The capture with the calibrated rig geometry in its attrs (frames untouched, lazy); the values it stated
     are kept as ``stated_principal_point_px`` and ``stated_light_angle_deg``.
@@ -506,7 +531,7 @@ def apply_rig_calibration(capture: xr.Dataset, calibration: xr.Dataset, /) -> xr
         A ``calibrate_rig`` result. Its camera (model, focal length or pixel size, distance), length unit and
         light kind must be the capture's: a calibration of another rig is refused.
     """
-    if calibration.attrs.get("selpath_kind") != "rig_calibration":
+    if calibration.attrs.get("selpath_kind") != RIG_CALIBRATION.name:
         raise StageError(Problem("apply_rig_calibration: the calibration is not a calibrate_rig result "
                                  f"(selpath_kind {calibration.attrs.get('selpath_kind')!r})"))
     differ = [f"{k}: capture {capture.attrs.get(k)!r}, calibration {calibration.attrs.get(k)!r}" for k in _SHARED

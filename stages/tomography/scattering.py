@@ -54,6 +54,7 @@ import dask
 import dask.array as da
 import numpy as np
 import xarray as xr
+
 from selpath.devices.geometry import RigGeometry
 from selpath.pipeline.constraints import Count, Index, NonNegative, Positive, memory_problems
 from selpath.pipeline.errors import Problem, StageError
@@ -65,6 +66,7 @@ from selpath.stages.tomography._bundles import fit_slice, trace_bundles
 from selpath.stages.tomography._projector import Geometry
 from selpath.stages.tomography.hull import contours
 from selpath.stages.tomography.reconstruct import (
+    RECONSTRUCTION,
     check_inputs,
     grid_geometry,
     reconstruct_tv,
@@ -121,7 +123,7 @@ def _stats(*values) -> tuple[np.ndarray, ...]:
     return tuple(np.asarray(v, dtype) for v, dtype in zip(values, _STATS.values(), strict=True))
 
 
-@stage("reconstruct_scattering")
+@stage("reconstruct_scattering", kind=RECONSTRUCTION)
 def reconstruct_scattering(rays: xr.Dataset, sinogram: xr.Dataset, hull: xr.Dataset,
                            scattering: xr.Dataset | None = None, /, *, sigma_s: NonNegative | None = None,
                            tv_weight: NonNegative = TVADMM.DEFAULT_TV_WEIGHT, n_pixels: Count | None = None,

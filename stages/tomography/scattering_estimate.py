@@ -19,11 +19,12 @@ import dask.array as da
 import numpy as np
 import pydantic
 import xarray as xr
+
 from selpath.devices.geometry import RigGeometry, geometry_attrs, saturation_counts
 from selpath.pipeline.constraints import Count, Index, Positive
 from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.kinds import CubeKind, Variable
 from selpath.pipeline.registry import stage
-from selpath.pipeline.schema import with_metadata
 from selpath.stages._common import require_variables
 from selpath.stages.tomography._exit_profile import (
     CANDIDATES,
@@ -35,6 +36,27 @@ from selpath.stages.tomography._exit_profile import (
 )
 from selpath.stages.tomography._walks import walk_body
 from selpath.stages.tomography.hull import contours
+
+SCATTERING_ESTIMATE = CubeKind(
+    name="scattering_estimate",
+    description="σ_s of the medium fitted to how the reference frames spread the beam's light (#27)",
+    variables={
+        "sigma_s": Variable((), units="1/{length}", long_name="scattering coefficient σ_s (estimate)"),
+        "sigma_s_low": Variable((), units="1/{length}", long_name="16th percentile of the bootstrap σ_s"),
+        "sigma_s_high": Variable((), units="1/{length}", long_name="84th percentile of the bootstrap σ_s"),
+        "settled": Variable((), units=None, long_name="the last round's estimate stayed near its walks' σ_s"),
+        "rounds": Variable((), units="1", long_name="rounds of walks traced"),
+        "effective_walks": Variable((), units="1", long_name="effective number of walks at the estimate"),
+        "objective": Variable(("candidate",), units="1", long_name="misfit of the log exit profile"),
+        "candidate_sigma_s": Variable(("candidate",), units="1/{length}", long_name="candidate σ_s"),
+        "measured_profile": Variable(("distance_bin",), units="counts·{length}^2",
+                                     long_name="reference light per distance bin (counts × pixel area)"),
+        "modelled_profile": Variable(("distance_bin",), units="counts·{length}^2",
+                                     long_name="walks per distance bin at the estimate, scaled"),
+        "bin_distance": Variable(("distance_bin",), units="{length}",
+                                 long_name="distance from the entry point (bin centre)"),
+    },
+)
 
 
 def _estimate_sigma_s(raw, dark, vertices, count, *, geometry: RigGeometry, angles: np.ndarray, rows: np.ndarray,
@@ -101,7 +123,7 @@ _ESTIMATE = {"sigma_s": ((), np.float64), "sigma_s_low": ((), np.float64), "sigm
              "bin_distance": (("distance_bin",), np.float64)}
 
 
-@stage("estimate_scattering")
+@stage("estimate_scattering", kind=SCATTERING_ESTIMATE)
 def estimate_scattering(capture: xr.Dataset, hull: xr.Dataset, /, *, views: Count = 36, photons: Count = 50_000,
                         row_band: Index = 32, distance_bins: Annotated[int, pydantic.Field(ge=3)] = 12,
                         initial: Positive | None = None, bootstrap: Count = 200,
@@ -191,7 +213,5 @@ def estimate_scattering(capture: xr.Dataset, hull: xr.Dataset, /, *, views: Coun
                  for (name, (dims, dtype)), part in zip(_ESTIMATE.items(), parts, strict=True)}
     unit = geometry.length_unit
     out = xr.Dataset(variables)
-    attrs = {"selpath_kind": "scattering_estimate", "row": row, "views": len(pick), "photons": photons,
-             "row_band": row_band, "seed": seed}
-    return with_metadata(out.assign_attrs(geometry_attrs(capture.attrs) | attrs | {"length_unit": unit}),
-                         "scattering_estimate")
+    attrs = {"row": row, "views": len(pick), "photons": photons, "row_band": row_band, "seed": seed}
+    return SCATTERING_ESTIMATE.label(out.assign_attrs(geometry_attrs(capture.attrs) | attrs | {"length_unit": unit}))

@@ -9,6 +9,7 @@ import numpy as np
 import pydantic
 import xarray as xr
 from dask.base import tokenize
+
 from selpath.devices.geometry import OrthographicCamera
 from selpath.devices.sim import tomography as tomo
 from selpath.devices.sim.parallel_light import Rod, render
@@ -17,7 +18,7 @@ from selpath.pipeline.constraints import Count, Index, NonNegative, Positive, St
 from selpath.pipeline.errors import Problem, StageError
 from selpath.pipeline.registry import stage
 from selpath.stages._common import read_file
-from selpath.stages.tomography.acquire import AngleSweep
+from selpath.stages.tomography.acquire import TOMOGRAPHY_CAPTURE, AngleSweep
 
 _FRAME_BYTES_PER_CHUNK = 64 * 2**20
 
@@ -63,7 +64,7 @@ def _capture_precheck(settings) -> list[str]:
     return problems
 
 
-@stage("simulate_parallel_capture", precheck=_capture_precheck)
+@stage("simulate_parallel_capture", kind=TOMOGRAPHY_CAPTURE, precheck=_capture_precheck)
 def simulate_parallel_capture(
     *,
     angles: AngleSweep = AngleSweep(),  # noqa: B008 (a frozen model: immutable default)
@@ -137,19 +138,17 @@ def simulate_parallel_capture(
 
     dims = ("angle", "row", "col")
     dark = np.full((n_rows, n_cols), dark_level, dtype=np.float32)
-    return xr.Dataset(
-        {name: (dims, frames(name), {"units": "counts"}) for name in ("target", "reference", "backlit")}
-        | {"dark": (("row", "col"), dark, {"units": "counts"})},
+    return TOMOGRAPHY_CAPTURE.label(xr.Dataset(
+        {name: (dims, frames(name)) for name in ("target", "reference", "backlit")} | {"dark": (("row", "col"), dark)},
         coords={"angle": ("angle", angle_values, {"units": "degree", "long_name": "stage angle φ"})},
         attrs={
-            "selpath_kind": "tomography_capture",
             **OrthographicCamera(rows=n_rows, cols=n_cols, pixel_size=pixel_size).attrs(),
             "light_angle_deg": 0.0,
             "length_unit": "mm",
             "saturation_counts": saturation_level,
             "simulator": "selpath.devices.sim.parallel_light",
         },
-    )
+    ))
 
 
 
@@ -175,7 +174,7 @@ def _scene_capture_precheck(settings) -> list[str]:
                            fix="lower rows_per_chunk")
 
 
-@stage("simulate_capture", precheck=_scene_capture_precheck,
+@stage("simulate_capture", kind=TOMOGRAPHY_CAPTURE, precheck=_scene_capture_precheck,
        identity=lambda settings: scene_identity(settings.scene) if settings.scene else {})
 def simulate_capture(*, scene: StorePath, angles: AngleSweep = AngleSweep(),  # noqa: B008 (frozen model)
                      rows_per_chunk: Count | None = None) -> xr.Dataset:
@@ -222,10 +221,8 @@ def simulate_capture(*, scene: StorePath, angles: AngleSweep = AngleSweep(),  # 
     dims = ("angle", "row", "col")
     geometry = spec.stated_geometry().attrs()
     dark = np.full((rows, cols), spec.sensor.dark_level, np.float32)
-    return xr.Dataset(
-        {name: (dims, frames[k], {"units": "counts"}) for k, name in enumerate(tomo.FRAME_KINDS)}
-        | {"dark": (("row", "col"), dark, {"units": "counts"})},
+    return TOMOGRAPHY_CAPTURE.label(xr.Dataset(
+        {name: (dims, frames[k]) for k, name in enumerate(tomo.FRAME_KINDS)} | {"dark": (("row", "col"), dark)},
         coords={"angle": ("angle", angle_values, {"units": "degree", "long_name": "stage angle φ"})},
-        attrs={"selpath_kind": "tomography_capture", **geometry, "saturation_counts": spec.sensor.saturation_level,
-               "rig": "simulated", "scene": spec.scene, "effects": list(spec.effects.names()),
-               "simulator": "selpath.devices.sim.tomography.render_rows"})
+        attrs={**geometry, "saturation_counts": spec.sensor.saturation_level, "rig": "simulated", "scene": spec.scene,
+               "effects": list(spec.effects.names()), "simulator": "selpath.devices.sim.tomography.render_rows"}))

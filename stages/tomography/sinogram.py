@@ -16,14 +16,47 @@ import dask.array as da
 import numpy as np
 import pydantic
 import xarray as xr
+
 from selpath.devices.geometry import RigGeometry, geometry_attrs
 from selpath.pipeline.constraints import Positive, memory_problems
 from selpath.pipeline.errors import Problem, StageError
+from selpath.pipeline.kinds import ANGLE_UNITS, LENGTH_UNITS, CubeKind, Variable
 from selpath.pipeline.quality import usable_share
 from selpath.pipeline.registry import stage
-from selpath.pipeline.schema import with_metadata
 from selpath.stages._common import require_variables
 from selpath.stages.tomography.hull import contours
+
+SINOGRAM = CubeKind(
+    name="sinogram",
+    description="total absorption on a (θ, X) grid with a mask of observed rays",
+    variables={
+        "absorption": Variable(("theta", "x"), units="1",
+                               long_name="total absorption A = log I_reference − log I_target"),
+        "observed": Variable(("theta", "x"), description="True where a ray was measured", units=None,
+                             long_name="bin holds a measured ray"),
+        "count": Variable(("theta", "x"), False, "rays averaged into the bin", units="1",
+                          long_name="rays averaged into the bin"),
+    },
+    coord_units={"theta": ANGLE_UNITS, "x": LENGTH_UNITS},
+    batch_dims=("slice",),
+)
+
+
+def _eq8(what: str) -> Variable:
+    return Variable(("slice",), False, units="1", long_name=what)
+
+
+COVERAGE = CubeKind(
+    name="coverage",
+    description="observation rate of a sinogram: measured and analytic d_min, d_max (§4.2.7)",
+    variables={"coverage": Variable(("slice",), units="1", long_name="observed share d_max − d_min"),
+               "d_min": Variable(("slice",), units="1", long_name="lowest observed |X| / R, d_min"),
+               "d_max": Variable(("slice",), units="1", long_name="highest observed |X| / R, d_max"),
+               "analytic_d_min": _eq8("d_min of Eq. 8–19 (cylinder of this radius)"),
+               "analytic_d_max": _eq8("d_max of Eq. 8–19 (cylinder of this radius)"),
+               "analytic_coverage": _eq8("coverage of Eq. 8–19"),
+               "radius": Variable(("slice",), False, units="{length}", long_name="mean contour radius")},
+)
 
 #: bins of a grid whose step is span / (bins − 1): at least 2
 Bins = Annotated[int, pydantic.Field(ge=2)]
@@ -112,7 +145,7 @@ def _bin_memory(n_theta: int, n_x: int) -> list[str]:
 FILLED_ADVICE = 0.97
 
 
-@stage("bin_sinogram", precheck=_bin_precheck)
+@stage("bin_sinogram", kind=SINOGRAM, precheck=_bin_precheck)
 def bin_sinogram(rays: xr.Dataset, /, *, n_theta: Bins | None = None, n_x: Bins | None = None,
                  x_extent: Positive | None = None) -> xr.Dataset:
     """Bin rays into a (θ, X) sinogram per slice, with the mask of observed bins (lazy, per slice).
@@ -175,9 +208,9 @@ def bin_sinogram(rays: xr.Dataset, /, *, n_theta: Bins | None = None, n_x: Bins 
     out = out.rename({"row": "slice"})
     if tuple(out["absorption"].dims) != ("slice", "theta", "x"):
         out = out.transpose("slice", "theta", "x")
-    return with_metadata(out.assign_attrs(geometry_attrs(rays.attrs) | {
-        "selpath_kind": "sinogram", "theta_step_deg": 180.0 / n_theta, "x_step": 2 * extent / (n_x - 1),
-        "x_extent": extent, "capture_n_theta": supported[0], "capture_n_x": supported[1]}), "sinogram")
+    return SINOGRAM.label(out.assign_attrs(geometry_attrs(rays.attrs) | {
+        "theta_step_deg": 180.0 / n_theta, "x_step": 2 * extent / (n_x - 1),
+        "x_extent": extent, "capture_n_theta": supported[0], "capture_n_x": supported[1]}))
 
 
 def capture_sampling(rays: xr.Dataset) -> tuple[float | None, float | None]:
@@ -325,7 +358,7 @@ def _coverage_kernel(observed, vertices, n_vertices, *, theta, x):
     return np.moveaxis(out, 0, -1)
 
 
-@stage("coverage")
+@stage("coverage", kind=COVERAGE)
 def coverage(sinogram: xr.Dataset, hull: xr.Dataset, /) -> xr.Dataset:
     """Observed share of each slice's sinogram, with the band [d_min, d_max] it covers and Eq. 8–19.
 
@@ -367,15 +400,8 @@ def coverage(sinogram: xr.Dataset, hull: xr.Dataset, /) -> xr.Dataset:
     analytic = xr.apply_ufunc(bounds, radius, output_core_dims=[["bound"]],
                               dask="parallelized", output_dtypes=[np.float64],
                               dask_gufunc_kwargs={"output_sizes": {"bound": 3}})
-    def share(array, what):
-        return array.drop_attrs(deep=False).assign_attrs(units="1", long_name=what)
-
-    return with_metadata(xr.Dataset(
-        {"coverage": measured, "d_min": d_min, "d_max": d_max,
-         "analytic_d_min": share(analytic.isel(bound=0, drop=True), "d_min of Eq. 8–19 (cylinder of this radius)"),
-         "analytic_d_max": share(analytic.isel(bound=1, drop=True), "d_max of Eq. 8–19 (cylinder of this radius)"),
-         "analytic_coverage": share(analytic.isel(bound=2, drop=True), "coverage of Eq. 8–19"),
-         "radius": radius.drop_attrs(deep=False).assign_attrs(units=hull.attrs.get("length_unit", ""),
-                                                    long_name="mean contour radius")},
-        attrs={"selpath_kind": "coverage", "light_angle_deg": theta_l,
-               "camera_model": camera.model}), "coverage")
+    bound = {name: analytic.isel(bound=i, drop=True).drop_attrs(deep=False)
+             for i, name in enumerate(("analytic_d_min", "analytic_d_max", "analytic_coverage"))}
+    return COVERAGE.label(xr.Dataset(
+        {"coverage": measured, "d_min": d_min, "d_max": d_max, **bound, "radius": radius.drop_attrs(deep=False)},
+        attrs={"light_angle_deg": theta_l, "camera_model": camera.model, "length_unit": geometry.length_unit}))

@@ -14,8 +14,10 @@ from typing import Annotated
 import numpy as np
 import pydantic
 import xarray as xr
+
 from selpath.devices.sim.scene import scene_identity
 from selpath.pipeline.constraints import Count, NonNegative, Positive, StorePath, memory_problems
+from selpath.pipeline.kinds import ANGLE_UNITS, LENGTH_UNITS, CubeKind, Variable
 from selpath.pipeline.registry import stage
 from selpath.stages._common import MaxIter
 from selpath.stages.tomography._admm import TVADMM
@@ -31,6 +33,17 @@ from selpath.stages.tomography.phantom import (
 from selpath.stages.tomography.reconstruct import fbp, reconstruct_tv
 from selpath.stages.tomography.sinogram import Bins
 
+_SIGMA = "1/{length}"
+LIGHT_ANGLE_STUDY = CubeKind(
+    name="light_angle_study",
+    description="reconstructions and their errors versus the light angle θ_l (§4.4.1, Table 1)",
+    variables={"rmse": Variable(("light_angle", "method"), units=_SIGMA, long_name="RMSE of σ"),
+               "max_abs_error": Variable(("light_angle", "method"), units=_SIGMA, long_name="max |error| of σ"),
+               "sigma": Variable(("light_angle", "method", "y", "x"), units=_SIGMA,
+                                 long_name="absorption coefficient σ")},
+    coord_units={"light_angle": ANGLE_UNITS, "y": LENGTH_UNITS, "x": LENGTH_UNITS},
+)
+
 
 def _study_precheck(settings) -> list[str]:
     """The scene, and the largest arrays of one θ_l: the rays, the truth raster (supersample 4 on the n_x grid)
@@ -41,7 +54,7 @@ def _study_precheck(settings) -> list[str]:
                               f"{n_x:,} × {n_x:,} float32)", fix="lower n_theta or n_x"))
 
 
-@stage("light_angle_study", precheck=_study_precheck)
+@stage("light_angle_study", kind=LIGHT_ANGLE_STUDY, precheck=_study_precheck)
 def light_angle_study(*, scene: StorePath,
                       light_angles: Annotated[tuple[LightAngle, ...], pydantic.Field(min_length=1)] = (
                           0.0, 30.0, 60.0, 90.0, 120.0),
@@ -88,7 +101,7 @@ def light_angle_study(*, scene: StorePath,
         light_angle=("light_angle", np.asarray(light_angles, float), {"units": "degree"}),
         method=("method", ["fbp", "optimisation"]))
     error = sigma - truth
-    return xr.Dataset(
+    return LIGHT_ANGLE_STUDY.label(xr.Dataset(
         {"sigma": sigma, "rmse": np.sqrt((error**2).mean(("y", "x"))), "max_abs_error": abs(error).max(("y", "x")),
          "observed_fraction": ("light_angle", np.array(observed)), "truth": truth},
-        attrs={"selpath_kind": "light_angle_study", **scene_identity(scene), "tv_weight": tv_weight})
+        attrs={**scene_identity(scene), "tv_weight": tv_weight}))

@@ -2,12 +2,12 @@
 as they found it (a phase the solver stopped calling through its module would hide in "other", silently)."""
 
 import numpy as np
-import selpath.stages.procam._demux_kernels as kernels
-from selpath.stages.procam._demux_problem import DemuxProblem
-from selpath.stages.procam._demux_solver import DemuxADMM
 
+import selpath.stages.procam._demux_kernels as kernels
 from benchmarks._demux_sweep import matrix, sample
 from benchmarks.demux_phases import PHASES, timed_phases
+from selpath.stages.procam._demux_problem import DemuxProblem
+from selpath.stages.procam._demux_solver import DemuxADMM
 
 
 def test_every_phase_is_timed_and_the_solver_is_restored():

@@ -6,16 +6,18 @@ from dataclasses import fields
 
 import numpy as np
 import pytest
+
 from selpath.devices.geometry import (
+    CAMERA_ATTRS,
     CAMERAS,
     GEOMETRY_ATTRS,
+    RIG_ATTRS,
     OrthographicCamera,
     PerspectiveCamera,
     RigGeometry,
 )
 from selpath.devices.hardware import GeometryConfig
 from selpath.pipeline import StageError
-from selpath.pipeline.kinds import CAMERA_ATTRS, RIG_ATTRS
 
 CAMERA_CASES = {
     "perspective": PerspectiveCamera(rows=7, cols=11, focal_length_px=40.0, camera_distance=80.0,
@@ -134,6 +136,7 @@ def test_the_perspective_camera_subtends_the_closed_form_angle():
 
 def test_an_unknown_light_kind_is_refused_not_taken_for_a_beam():
     import pytest
+
     from selpath.devices.geometry import OrthographicCamera, RigGeometry
     from selpath.pipeline.errors import StageError
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 import pytest
+
 from selpath.devices.opencv_camera import OpenCVCamera
 from selpath.pipeline.errors import DeviceError
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from selpath.devices.sim.parallel_light import Rod, column_x, line_integrals
 from selpath.stages.tomography.acquire import AngleSweep
 from selpath.stages.tomography.calibrate import absorption

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import xarray as xr
+
 from selpath.devices.procam_acquire import acquire_full_transport, acquire_plane_to_ray, plan_sweep
 from selpath.devices.sim.procam_rig import simulated_procam_rig
 from selpath.devices.sim.procam_scene import ProcamScene
@@ -86,22 +87,22 @@ def test_frames_are_the_simulator_frames_at_the_commanded_settings(tmp_path):
 def test_rig_changes_reach_the_frames_and_the_record_and_bad_ones_name_the_field(tmp_path):
     """``rig_changes`` (here a dimmer projector and a dark level) change what the rig renders, the capture records
     the scene as simulated, and an unknown or invalid field is refused with its name."""
-    from selpath.stages.procam.acquire import _scene
+    from selpath.stages.procam.acquire import acquisition_scene
     from selpath.stages.procam.multiplexing import simulated_scene
 
     path = tmp_path / "scene.yaml"
     path.write_text(SCENE.replace("FRAME", "0 us"))
-    dim = _scene(path, None, {"intensity": 250.0, "dark_level": 64.0})
+    dim = acquisition_scene(path, None, {"intensity": 250.0, "dark_level": 64.0})
     ds = acquire_plane_to_ray(simulated_procam_rig(dim), tmp_path / "c.zarr", [0.0], [170.0], progress=False)
     assert simulated_scene(ds, "capture") == dim
     assert dim.rig.intensity == 250.0 and dim.rig.noise.read_std == 2.0  # the rest of the rig is the file's
-    bright = _scene(path, None).with_rig(noise=None, bits=None)
+    bright = acquisition_scene(path, None).with_rig(noise=None, bits=None)
     np.testing.assert_allclose(render_frame(dim.with_rig(noise=None, bits=None), 0.0, 170.0) - 64.0,
                                render_frame(bright, 0.0, 170.0) / 4, rtol=1e-5, atol=1e-3)
     with pytest.raises(Exception, match="intensty: Extra inputs"):
-        _scene(path, None, {"intensty": 3.0})
+        acquisition_scene(path, None, {"intensty": 3.0})
     with pytest.raises(Exception, match="dark_level: Input should be greater than or equal to 0"):
-        _scene(path, None, {"dark_level": -1.0})
+        acquisition_scene(path, None, {"dark_level": -1.0})
 
 
 def test_full_transport_sweep_writes_every_line(tmp_path):
@@ -186,7 +187,7 @@ def test_checkerboard_frames_are_the_simulators_and_a_lost_frame_is_captured_aga
     from selpath.devices.procam_acquire import acquire_checkerboards, checkerboard_shifts
     from selpath.pipeline.integrity import BadChunk
     from selpath.pipeline.store import forget_frames
-    from selpath.stages.procam.acquire import exposure_window
+    from selpath.stages.procam.acquire_patterns import exposure_window
 
     scene = small_scene()
     square = (6, 10)

@@ -12,9 +12,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import selpath.devices.procam_hardware as procam_hardware
 import xarray as xr
 import yaml
+
+import selpath.devices.procam_hardware as procam_hardware
 from selpath.devices.procam_acquire import acquire_full_transport, acquire_plane_to_ray
 from selpath.devices.procam_hardware import load_procam_hardware, procam_hardware_rig
 from selpath.devices.protocols import SyncLimits
@@ -25,7 +26,6 @@ from selpath.pipeline.errors import DeviceDisconnected, SpecError
 from selpath.pipeline.provenance import read_provenance
 from selpath.pipeline.spec import load_workflow
 from selpath.pipeline.store import missing_frames, open_store
-
 from tests.devices.conftest import written_frames
 
 SCENE = {

@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import pytest
-from selpath.devices.sim.scene import load_scene
-from selpath.pipeline.errors import ConfigError
 
 from selpath import workflows
+from selpath.devices.sim.scene import load_scene
+from selpath.pipeline.errors import ConfigError
 
 SCENES = sorted((workflows.folder() / "scenes").glob("*.yaml"))
 

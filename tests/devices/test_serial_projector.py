@@ -6,12 +6,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from selpath.devices.patterns import checkerboard, vertical_line
 from selpath.devices.serial_line import SerialLine
 from selpath.devices.serial_projector import SyncLineProjector, quantise
 from selpath.devices.sim.procam_rig import FakeProcamHardware
 from selpath.pipeline.errors import DeviceError
-
 from tests.devices.test_procam_hardware import scene
 
 

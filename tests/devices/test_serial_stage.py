@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import xarray as xr
+
 from selpath.devices.serial_line import SerialLine, frame_reply
 from selpath.devices.serial_stage import SerialRotaryStage
 from selpath.devices.sim.rig import SimCamera, SimLight, SimSampleChanger, simulated_rig

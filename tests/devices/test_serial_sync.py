@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import pytest
+
 from selpath.devices.protocols import SyncController, SyncLimits
 from selpath.devices.serial_sync import SerialSyncController
 from selpath.devices.sim.sync_firmware import DEFAULT_LIMITS, FakeSyncFirmware

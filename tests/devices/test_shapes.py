@@ -8,6 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial import ConvexHull
+
 from selpath.devices.sim.shapes import Ellipse, Ellipsoid, Prism, convex_polygon, segment_length_inside
 
 coords = st.floats(-5, 5, allow_nan=False)

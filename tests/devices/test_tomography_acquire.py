@@ -8,6 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import xarray as xr
+
+from selpath import workflows
 from selpath.devices.sim.rig import simulated_rig
 from selpath.devices.sim.scene import load_scene
 from selpath.devices.tomography_acquire import acquire_tomography
@@ -16,8 +18,6 @@ from selpath.pipeline.errors import DeviceError, StoreError
 from selpath.pipeline.provenance import read_provenance
 from selpath.pipeline.spec import load_workflow
 from selpath.pipeline.store import missing_frames, open_store
-
-from selpath import workflows
 
 SCENE = """\
 scene: tiny-bin

@@ -5,8 +5,9 @@ from __future__ import annotations
 import matplotlib.path
 import numpy as np
 import pytest
-import selpath.devices.sim.tomography as tomo
 from scipy.ndimage import binary_erosion
+
+import selpath.devices.sim.tomography as tomo
 from selpath.devices.sim.scene import Scene
 
 R = 10.0  # mm, radius of the object

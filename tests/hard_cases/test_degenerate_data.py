@@ -10,6 +10,7 @@ import re
 import numpy as np
 import pytest
 import xarray as xr
+
 from selpath.pipeline import StageError, load_workflow, run_workflow, to_store
 from selpath.pipeline.quality import enforce
 from selpath.stages._common import UnsortedSweepWarning
@@ -20,7 +21,6 @@ from selpath.stages.tomography.paths import align_paths
 from selpath.stages.tomography.reconstruct import fbp, reconstruct_tv
 from selpath.stages.tomography.simulate import simulate_parallel_capture
 from selpath.stages.tomography.sinogram import bin_sinogram
-
 from tests.stages.tomography.test_tomography_processing import capture as simulated
 from tests.stages.tomography.test_tomography_processing import cylinder_camera, make_scene
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from selpath.stages.procam._demux_problem import DemuxProblem
 from selpath.stages.procam._demux_solver import DemuxADMM
 from selpath.stages.procam._illumination import plane_to_ray_illumination

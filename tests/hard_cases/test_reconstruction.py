@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import xarray as xr
+
 from selpath.stages.tomography.reconstruct import fbp, reconstruct_tv
 
 N_THETA, N_X, L = 36, 32, 1.0

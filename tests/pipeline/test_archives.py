@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
 from selpath.pipeline import StoreError, load_workflow, open_store, run_workflow, to_store
 from selpath.pipeline.integrity import verify_store
 from selpath.pipeline.provenance import content_digest, read_provenance, store_identity
@@ -205,9 +206,10 @@ def test_read_only_inputs_are_read_and_never_written(archive):
 def test_inspect_lists_an_archives_stores_with_their_provenance(archive, monkeypatch):
     """``selpath inspect FOLDER`` (a folder that is not a store): one row per store under it, with its kind and
     the workflow and output that wrote it, and stores written outside a workflow said to be so."""
+    from typer.testing import CliRunner
+
     from selpath.pipeline.cli import app
     from selpath.pipeline.provenance import archive_stores
-    from typer.testing import CliRunner
 
     rows = {r["store"]: r for r in archive_stores(archive)}
     assert set(rows) == {"archive/foreign.zarr", "out/absorption.zarr", "out/capture.zarr", "results/again.zarr",

@@ -12,21 +12,25 @@ import numpy as np
 import pytest
 import xarray as xr
 import zarr
+from typer.testing import CliRunner
+
 from selpath.pipeline import SpecError, StoreError, load_workflow, open_store, run_workflow, to_store
 from selpath.pipeline.cli import app
 from selpath.pipeline.integrity import verify_store
-from selpath.pipeline.kinds import KINDS, LENGTH_UNITS
+from selpath.pipeline.kinds import LENGTH_UNITS
 from selpath.pipeline.provenance import write_provenance
+from selpath.pipeline.registry import default_registry
 from selpath.pipeline.store import missing_frames
-from typer.testing import CliRunner
-
 from tests.devices.test_tomography_acquire import make_workflow
 
 runner = CliRunner()
+#: every installed kind (selpath's own are declared beside the stages that make them)
+KINDS = default_registry().kinds
 SIZES = {"angle": 3, "row": 4, "col": 5, "vertex": 3, "xy": 2, "slice": 2, "delay": 3, "exposure": 2, "line": 2,
          "offset": 3, "du": 2, "dv": 3, "theta": 4, "x": 5, "y": 5, "rgba": 4, "light_angle": 2, "method": 2,
          "iteration": 3, "shift": 2, "max_delay": 2, "signal": 2, "code": 2, "pattern": 2,
-         "light_angle_trial": 3, "pose": 2, "i": 3, "j": 3, "k": 5, "byte": 64, "material": 3, "view": 3, "site": 2, "distance": 4, "render": 2,
+         "light_angle_trial": 3, "pose": 2, "i": 3, "j": 3, "k": 5, "m": 4, "byte": 64, "material": 3, "view": 3,
+         "site": 2, "distance": 4, "render": 2,
          "candidate": 3, "distance_bin": 4}
 
 

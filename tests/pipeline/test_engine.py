@@ -10,6 +10,7 @@ import shutil
 import numpy as np
 import pytest
 import xarray as xr
+
 from selpath.pipeline import StageError, StageRegistry, build, load_workflow, open_store, read_provenance, run_workflow
 from selpath.pipeline.errors import SpecError
 from selpath.pipeline.registry import default_registry, stage

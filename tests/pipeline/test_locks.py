@@ -11,6 +11,7 @@ import textwrap
 import time
 
 import pytest
+
 from selpath.pipeline import StoreError, load_workflow, open_store, run_workflow
 from selpath.pipeline.locks import lock_path, store_lock
 

@@ -7,12 +7,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import zarr
-from selpath.pipeline import StoreError, open_store, to_store
-from selpath.pipeline.kinds import FORMAT_VERSION, KINDS
-from selpath.pipeline.schema import metadata, with_metadata
-from selpath.pipeline.store import IncompleteStoreWarning
 
-from tests.pipeline.test_corruption import minimal
+from selpath.pipeline import StoreError, open_store, to_store
+from selpath.pipeline.kinds import FORMAT_VERSION
+from selpath.pipeline.store import IncompleteStoreWarning
+from tests.pipeline.test_corruption import KINDS, minimal
 
 
 def expected(kind: str, length: str = "mm") -> dict[str, tuple[str | None, str]]:
@@ -38,7 +37,7 @@ def test_a_store_of_every_kind_carries_its_kinds_metadata_whatever_it_was_given(
     for name, (units, long_name) in want.items():
         assert back[name].attrs.get("units") == units, name
         assert back[name].attrs.get("long_name") == long_name, name
-    assert metadata(back, kind) == want
+    assert KINDS[kind].metadata(back) == want
 
 
 def test_a_store_whose_units_were_edited_is_refused(tmp_path):
@@ -100,7 +99,7 @@ def test_stage_outputs_carry_the_metadata_before_they_are_stored():
 
     _, hull, sino, cover = lazy_chain()
     for ds, kind in ((hull, "hull"), (sino, "sinogram"), (cover, "coverage")):
-        for name, (units, long_name) in metadata(ds, kind).items():
+        for name, (units, long_name) in KINDS[kind].metadata(ds).items():
             assert ds[name].attrs.get("units") == units and ds[name].attrs.get("long_name") == long_name, name
     for name in ("analytic_d_min", "analytic_d_max", "analytic_coverage", "radius", "observed_fraction"):
         ds = cover if name in cover else sino
@@ -111,7 +110,7 @@ def test_stage_outputs_carry_the_metadata_before_they_are_stored():
 def test_a_format_5_tomography_capture_names_its_clip_level_as_projector_camera_captures_do(tmp_path):
     """One name for the sensor's clip level across both instruments: format ≤ 5 tomography stores wrote
     ``saturation_level``; on open it is ``saturation_counts``, and the stages still read the old name."""
-    ds = with_metadata(minimal("tomography_capture"), "tomography_capture").assign_attrs(
+    ds = KINDS["tomography_capture"].label(minimal("tomography_capture")).assign_attrs(
         selpath_format=5, selpath_kind="tomography_capture", saturation_level=1000.0)
     ds.to_zarr(tmp_path / "old.zarr", consolidated=False)
     with pytest.warns(IncompleteStoreWarning):

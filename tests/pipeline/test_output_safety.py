@@ -8,14 +8,14 @@ import dask.array as da
 import numpy as np
 import pytest
 import xarray as xr
+from typer.testing import CliRunner
+
+from selpath import workflows
 from selpath.pipeline import SpecError, StageRegistry, load_workflow, open_store, read_provenance, run_workflow, stage
 from selpath.pipeline.cli import app
 from selpath.pipeline.outputs import Staging, tidy_staging
 from selpath.pipeline.registry import default_registry
 from selpath.pipeline.store import to_store
-from typer.testing import CliRunner
-
-from selpath import workflows
 
 runner = CliRunner()
 
@@ -177,6 +177,7 @@ def test_a_commit_replaces_only_selpath_stores(tmp_path):
 
 def test_a_figure_png_selpath_did_not_write_is_never_replaced(tmp_path):
     import matplotlib.image
+
     from selpath.pipeline import StoreError
 
     (tmp_path / "out").mkdir()

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import xarray as xr
 import zarr
+
 from selpath.pipeline import (
     StoreError,
     create_capture,
@@ -26,7 +27,6 @@ from selpath.pipeline import (
     write_provenance,
 )
 from selpath.pipeline.integrity import open_group, verify_store
-
 from tests.devices.test_tomography_acquire import make_workflow
 
 GEOMETRY = {"camera_model": "orthographic", "pixel_size": 0.1, "light_angle_deg": 45.0, "length_unit": "mm"}
@@ -147,10 +147,9 @@ def test_every_store_a_workflow_writes_opens_quietly_in_plain_xarray(tmp_path, s
 
 
 def test_a_study_records_its_scene_by_name_and_content_never_by_path(tmp_path):
+    from selpath import workflows
     from selpath.stages.tomography.acquire import AngleSweep
     from selpath.stages.tomography.studies import light_angle_study
-
-    from selpath import workflows
 
     source = workflows.scene("phantom-cylinder")
     study = light_angle_study(scene=source, light_angles=(30.0,), n_theta=8, n_x=8, angles=AngleSweep(step=30.0),

@@ -9,6 +9,7 @@ import dask.array as da
 import numpy as np
 import pytest
 import xarray as xr
+
 from selpath.pipeline import StageError, StageRegistry, load_workflow, open_store, read_provenance, run_workflow, stage
 from selpath.pipeline.quality import enforce, usable_share
 

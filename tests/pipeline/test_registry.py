@@ -6,6 +6,7 @@ from importlib.metadata import EntryPoint
 
 import pytest
 import xarray as xr
+
 from selpath.pipeline import SelpathError, StageRegistry, stage
 from selpath.pipeline.registry import default_registry
 

@@ -11,9 +11,9 @@ import textwrap
 import numpy as np
 import pytest
 import xarray as xr
+
 from selpath.pipeline import SpecError, StoreError, load_workflow, open_store, run_workflow, to_store
 from selpath.pipeline.provenance import read_provenance, store_identity
-
 from tests.conftest import SMALL_WORKFLOW
 
 moto_server = pytest.importorskip("moto.server")

@@ -7,11 +7,12 @@ import re
 
 import numpy as np
 import pytest
+from typer.testing import CliRunner
+
 from selpath.pipeline import SpecError, load_workflow
 from selpath.pipeline.cli import app
 from selpath.pipeline.report_spec import summary_fields
 from selpath.pipeline.store import open_store
-from typer.testing import CliRunner
 
 runner = CliRunner()
 
@@ -104,6 +105,7 @@ def test_a_study_table_prints_every_small_variable_with_its_units():
     """`tables:` shows a study's results as the thesis does (Table 1: a row per θ_l, a column per method and
     error); every cell is checked against the store's own values, formatted to 4 significant digits."""
     import xarray as xr
+
     from selpath.pipeline.report import store_tables
 
     rmse = np.array([[5.056e-3, 3.459e-3], [6.164e-4, 3.439e-4]])

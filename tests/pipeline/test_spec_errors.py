@@ -7,6 +7,7 @@ import re
 import numpy as np
 import pytest
 import xarray as xr
+
 from selpath.pipeline import FORMAT_VERSION, SpecError, load_workflow, to_store
 
 

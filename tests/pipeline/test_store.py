@@ -13,6 +13,7 @@ import zarr
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
+
 from selpath.pipeline import (
     StoreError,
     create_capture,
@@ -205,10 +206,12 @@ def test_provenance_survives_region_writes(tmp_path):
 def test_format_doc_lists_every_kind_as_the_code_does():
     from pathlib import Path
 
-    from selpath.pipeline.schema import describe_kinds
+    from selpath.pipeline.kinds import describe_kinds
+    from selpath.pipeline.registry import default_registry
 
     doc = (Path(__file__).resolve().parents[2] / "docs" / "format.md").read_text()
-    assert describe_kinds() in doc, "docs/format.md is out of date: paste pipeline.schema.describe_kinds()"
+    assert describe_kinds(default_registry().kinds.values()) in doc, \
+        "docs/format.md is out of date: paste `selpath kinds --markdown`"
 
 
 def test_a_projector_camera_capture_must_say_where_its_sensor_clips(tmp_path):

@@ -11,11 +11,11 @@ from pathlib import Path
 import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
-from selpath.pipeline import SelpathError, load_workflow
-from selpath.pipeline.cli import app
 from typer.testing import CliRunner
 
 from selpath import workflows
+from selpath.pipeline import SelpathError, load_workflow
+from selpath.pipeline.cli import app
 from tests.conftest import SMALL_WORKFLOW
 
 WORKFLOWS = [workflows.path(name) for name in workflows.names()]

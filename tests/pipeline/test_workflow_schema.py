@@ -9,11 +9,11 @@ import json
 import jsonschema
 import pytest
 import yaml
-from selpath.pipeline.cli import app
-from selpath.pipeline.workflow_schema import workflow_schema
 from typer.testing import CliRunner
 
 from selpath import workflows
+from selpath.pipeline.cli import app
+from selpath.pipeline.workflow_schema import workflow_schema
 
 
 @pytest.fixture(scope="module")

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import xarray as xr
+
 from selpath.devices.sim.stereo_target import StereoTargetScene, capture_target
 from selpath.pipeline.errors import StageError
 from selpath.stages.camera_target import apply_camera_calibration, calibrate_camera, distortion_shift

@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import xarray as xr
+
 from selpath.pipeline.errors import StageError
 from selpath.pipeline.registry import default_registry
 from selpath.stages._figures import as_figure, panels, rgba, shape_of

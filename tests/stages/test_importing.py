@@ -9,11 +9,11 @@ import pytest
 import tifffile
 import xarray as xr
 import yaml
+from typer.testing import CliRunner
+
 from selpath.pipeline import ConfigError, StageError, load_workflow, open_store, run_workflow
 from selpath.pipeline.cli import app
 from selpath.stages.importing import import_capture, read_frames
-from typer.testing import CliRunner
-
 from tests.devices.test_tomography_acquire import make_workflow
 
 runner = CliRunner()

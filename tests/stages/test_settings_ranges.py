@@ -17,16 +17,16 @@ from pathlib import Path
 
 import pydantic
 import pytest
-import selpath.pipeline.constraints as constraints
 from annotated_types import Ge, Gt
+
+import selpath.pipeline.constraints as constraints
+from selpath import workflows
 from selpath.pipeline import SpecError, load_workflow
 from selpath.pipeline.registry import default_registry
 from selpath.stages._sweeps import sweep_count
 from selpath.stages.procam._demux_store import OffsetGrid
 from selpath.stages.procam.acquire import PixelSweep, TimeSweep
 from selpath.stages.tomography.acquire import AngleSweep
-
-from selpath import workflows
 
 WORKFLOWS = workflows.folder()
 GIB = 2**30

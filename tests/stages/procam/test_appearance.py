@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from selpath.devices.sim.procam_scene import ProcamScene
 from selpath.pipeline import StageError
 from selpath.stages.procam._mesh import rasterise, sphere
 from selpath.stages.procam.appearance import fit_scattering_profile, render_appearance, shade
-
 from tests.stages.procam.test_demux import capture_of
 from tests.stages.procam.test_materials import SWEEP, materials
 

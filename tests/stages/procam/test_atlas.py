@@ -7,12 +7,12 @@ import numpy as np
 import pytest
 import scipy.stats
 import xarray as xr
+
+from selpath import workflows
 from selpath.devices.sim import procam_transport as tr
 from selpath.devices.sim.procam_scene import ProcamScene
 from selpath.pipeline import StageError
 from selpath.stages.procam.atlas import material_atlas
-
-from selpath import workflows
 
 DU = DV = np.arange(-20, 21)
 

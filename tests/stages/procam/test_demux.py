@@ -7,6 +7,7 @@ import pytest
 import xarray as xr
 from hypothesis import given
 from hypothesis import strategies as st
+
 from selpath.devices.sim import procam_transport as tr
 from selpath.devices.sim.procam_scene import ProcamScene
 from selpath.pipeline.errors import StageError

@@ -9,9 +9,9 @@ from dataclasses import replace
 import jax
 import numpy as np
 import pytest
+
 from selpath.stages.procam._demux_problem import DemuxProblem
 from selpath.stages.procam._demux_solver import DemuxADMM
-
 from tests.stages.procam.test_demux_solver import CASES, cvxpy_optimum, sparse_transport, sweep_matrix
 
 
@@ -183,9 +183,8 @@ def test_pixels_with_masked_and_clipped_frames_get_the_kkt_bound_and_it_bounds_t
     (on the catalogue's NaN case, 2048 px: median 1.4e-2 → 7.4e-4); the Woodbury route calls 2G_p positive
     definite exactly where it is (α = 0: where the kept frames' rows have full rank), and elsewhere gives no
     second-order bound (1), not a wrong one."""
-    from selpath.stages.procam._demux_certificate import certified_gap, kept_hessian, kkt_bound
-
     from benchmarks.demux_catalogue import reference
+    from selpath.stages.procam._demux_certificate import certified_gap, kept_hessian, kkt_bound
 
     problem = DemuxProblem.build(sweep_matrix(*CASES["well-posed"]), alpha=0.01, beta=0.01)
     rng = np.random.default_rng(12)
@@ -234,9 +233,8 @@ def test_the_dual_ascent_takes_the_kkt_bound_to_the_true_gap(case):
     steps (well-posed, rank-deficient, wide exposures), 1.02 / 1.49 / 6.2 with 10, within 5e-5 of 1 with 100, and
     with 1000 within 3.2e-6 at the worst pixel. With a tenth of the frames NaN the pixels' own Hessians (Woodbury)
     and steps (a lower bound on λ_min(2G_p)) do the same: 1.42, 1.13, 1 + 1.4e-6, worst 3.7e-7 off."""
-    from selpath.stages.procam._demux_certificate import kkt_bound
-
     from benchmarks.demux_catalogue import reference
+    from selpath.stages.procam._demux_certificate import kkt_bound
 
     delays, exposures, offsets = CASES["well-posed" if case == "NaN frames" else case]
     problem = DemuxProblem.build(sweep_matrix(delays, exposures, offsets), alpha=0.01, beta=0.01)

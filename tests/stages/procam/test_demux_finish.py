@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from selpath.stages._solution import Result, SolverError
 from selpath.stages.procam._demux_certificate import certified_gap
 from selpath.stages.procam._demux_problem import DemuxProblem
 from selpath.stages.procam._demux_solver import DemuxADMM
-
 from tests.stages.procam.test_demux_solver import CASES, cvxpy_optimum, sparse_transport, sweep_matrix
 
 #: the hard cases' slow sweep: 9 delays 5 rows apart, exposures of 10 and 30 rows over 65 offsets (a clean pixel

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+
 from selpath.devices.sim import procam_transport as tr
 from selpath.devices.sim.procam_scene import ProcamScene
 from selpath.stages.procam._demux_problem import DemuxProblem
@@ -13,7 +14,6 @@ from selpath.stages.procam._demux_store import solve_pixels
 from selpath.stages.procam._illumination import plane_to_ray_illumination
 from selpath.stages.procam.demux import demux_plane_to_ray
 from selpath.stages.procam.figures import epipolar_figure, relighting_figure
-
 from tests.stages.procam.test_demux import RIG, capture_of
 
 # the thesis's sweep shape (delays every 10 rows, exposures of 10, 30 and 50 rows), 9 delays

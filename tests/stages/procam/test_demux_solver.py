@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+
 from selpath.stages._solution import Result, SolverError
 from selpath.stages.procam._demux_problem import DemuxProblem
 from selpath.stages.procam._demux_solver import MIN_BATCH, DemuxADMM

@@ -4,6 +4,7 @@ figure stage, on dask-backed captures, under a dask scheduler that fails on the 
 from __future__ import annotations
 
 import pytest
+
 from selpath.stages.procam.demux import demux_plane_to_ray
 from selpath.stages.procam.demux_full import demux_full
 from selpath.stages.procam.figures import (
@@ -14,7 +15,6 @@ from selpath.stages.procam.figures import (
     relighting_full_figure,
 )
 from selpath.stages.procam.relight import checkerboard_relight, epipolar_image, non_epipolar_image, relight
-
 from tests.stages.procam import test_demux, test_demux_full
 
 

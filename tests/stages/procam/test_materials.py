@@ -7,6 +7,8 @@ import numpy as np
 import pytest
 import scipy.stats
 import xarray as xr
+
+from selpath import workflows
 from selpath.devices.sim.procam_scene import ProcamScene, load_procam_scene
 from selpath.pipeline import StageError
 from selpath.pipeline.quality import enforce
@@ -18,8 +20,6 @@ from selpath.stages.procam.materials import (
     wilson_interval,
 )
 from selpath.stages.procam.multiplexing import noiseless
-
-from selpath import workflows
 from tests.stages.procam.test_demux import capture_of
 
 #: the materials capture's sweep: ±340 µs every 17 µs (one camera row per step) at t_e = 170 µs

@@ -9,13 +9,14 @@ import cv2
 import numpy as np
 import pytest
 import xarray as xr
+
 from selpath.devices.patterns import gray_code_levels
 from selpath.devices.procam_acquire import acquire_gray_code
 from selpath.devices.sim.procam_rig import simulated_procam_rig
 from selpath.devices.sim.procam_scene import ProcamScene
 from selpath.devices.sim.procam_transport import seen_rows
 from selpath.pipeline.errors import StageError
-from selpath.stages.procam.acquire import gray_code_window
+from selpath.stages.procam.acquire_patterns import gray_code_window
 from selpath.stages.procam.rectify import decode_gray_code, epipolar_alignment, rectify_transport, row_offsets
 
 RIG = {"camera_rows": 40, "camera_cols": 48, "projector_rows": 40, "projector_cols": 48}
@@ -100,7 +101,6 @@ def test_a_planted_misalignment_is_measured_warned_of_and_rectified_out_of_the_t
     both within 3 standard errors (and 0.02 rows, 0.05°), warns with the numbers, and the demultiplexed transport's
     direct peak moves from a median |offset| of about 0.6 rows to under 0.1 after rectification (goal 0.25)."""
     from selpath.stages.procam.demux import demux_plane_to_ray
-
     from tests.stages.procam.test_demux import capture_of
 
     s = scene(misalignment={"roll": "1.5 deg", "shift": "0.6 px"}, noise={"gain": 1.0, "read_std": 2.0})

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import xarray as xr
+
 from selpath.devices import patterns
 from selpath.devices.sim import procam_transport as tr
 from selpath.devices.sim.procam_scene import ProcamScene

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import xarray as xr
+
 from selpath.devices.sim import procam_transport as tr
 from selpath.pipeline import StageError
 from selpath.stages.procam.demux import demux_plane_to_ray
 from selpath.stages.procam.short_range import short_range_images
-
 from tests.stages.procam.test_demux import capture_of, scene
 
 RANGES = (0.0, 68.0, 136.0, 272.0)  # µs: 0, 4, 8 and 16 rows at v_p = 1/17 rows/µs

@@ -8,6 +8,7 @@ import warnings
 import cv2
 import numpy as np
 import pytest
+
 from selpath.devices.patterns import gray_code_levels
 from selpath.devices.sim.stereo_target import StereoTargetScene, capture_target, trace
 from selpath.pipeline.errors import StageError

@@ -6,14 +6,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import xarray as xr
+
+from selpath import workflows
 from selpath.devices.sim import procam_transport as tr
 from selpath.devices.sim.procam_scene import ProcamScene, load_procam_scene
 from selpath.pipeline import StageError
 from selpath.stages.procam.acquire import TimeSweep
 from selpath.stages.procam.demux import demux_plane_to_ray
 from selpath.stages.procam.vein import choose_delay
-
-from selpath import workflows
 from tests.stages.procam.test_demux import capture_of
 
 OFFSETS = np.arange(-60, 61)

@@ -12,10 +12,10 @@ def monte_carlo_capture(seed: int, step: float = 12.0, photons: int = 100_000, s
     ``samples`` every ``step`` degrees with the given scattering seed, backlit and dark frames, unclipped; and the
     scene's path."""
     import xarray as xr
-    from selpath.devices.sim import tomography as tomo
-    from selpath.devices.sim.scene import load_scene
 
     from selpath import workflows
+    from selpath.devices.sim import tomography as tomo
+    from selpath.devices.sim.scene import load_scene
 
     path = workflows.scene("cylinder-in-cylinder-s1")
     scene = load_scene(path)

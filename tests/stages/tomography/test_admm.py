@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.sparse as sps
+
 from selpath.stages._solution import Result, SolverError
 from selpath.stages.tomography._admm import TVADMM, total_variation
 from selpath.stages.tomography._projector import Geometry, forward

@@ -9,6 +9,7 @@ import pytest
 import xarray as xr
 from hypothesis import given, settings
 from hypothesis import strategies as st
+
 from selpath.pipeline import StageError
 from selpath.stages.tomography.calibrate import (
     BACKGROUND,
@@ -252,7 +253,6 @@ def test_the_background_bit_drops_no_ray():
     flags (off the silhouette) already gave no ray (reason 1). Noisy background, perspective camera."""
     from selpath.stages.tomography.hull import silhouettes, visual_hull
     from selpath.stages.tomography.paths import align_paths
-
     from tests.stages.tomography.test_tomography_processing import capture as simulated
     from tests.stages.tomography.test_tomography_processing import make_scene
 

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import xarray as xr
+
 from selpath.pipeline.errors import StageError
 from selpath.stages.tomography.evaluate import reconstruction_error
 

@@ -8,11 +8,11 @@ import subprocess
 import sys
 
 import numpy as np
+
 from selpath.stages._figures import DPI, SIZE_IN
 from selpath.stages.tomography.figures import capture_figure, coverage_figure, sinogram_figure
 from selpath.stages.tomography.reconstruct import fbp, reconstruct_tv
 from selpath.stages.tomography.reconstruction_figures import convergence_figure, reconstruction_figure
-
 from tests.stages.tomography.test_reconstruct import sinogram
 from tests.stages.tomography.test_tomography_processing import lazy_chain
 

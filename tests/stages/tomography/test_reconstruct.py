@@ -11,6 +11,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import xarray as xr
+from skimage.data import shepp_logan_phantom
+from skimage.transform import radon, resize
+
+from selpath import workflows
 from selpath.stages.tomography._filters import ramp_response
 from selpath.stages.tomography._projector import Geometry, adjoint, backproject, forward, system_matrix
 from selpath.stages.tomography.acquire import AngleSweep
@@ -23,10 +27,6 @@ from selpath.stages.tomography.reconstruct import (
     support_mask,
     upper_bound,
 )
-from skimage.data import shepp_logan_phantom
-from skimage.transform import radon, resize
-
-from selpath import workflows
 
 L = 1.0
 DISKS = (((0.2, -0.1), 0.3, 0.2), ((-0.4, 0.3), 0.2, 0.1), ((0.0, 0.0), 0.8, 0.05))

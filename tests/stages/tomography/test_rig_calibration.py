@@ -9,6 +9,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import xarray as xr
+
 from selpath.devices.sim import tomography as tomo
 from selpath.devices.sim.scene import Scene
 from selpath.pipeline import StageError

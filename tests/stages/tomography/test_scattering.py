@@ -7,8 +7,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from selpath.pipeline.schema import check_dataset, with_metadata
 
+from selpath.stages.tomography.reconstruct import RECONSTRUCTION
 from tests.stages.tomography.scattering_scenes import scattering_capture
 
 
@@ -40,7 +40,7 @@ def test_a_slice_with_no_observed_bin_is_nan_and_unconverged_not_zero(seed0):
     rays, sinogram, hull, _, _ = seed0
     empty = sinogram.assign(observed=sinogram["observed"] & False)
     out = reconstruct_scattering(rays, empty, hull, sigma_s=1.0, photons=500).compute()
-    assert check_dataset(with_metadata(out, "reconstruction"), "reconstruction") == []  # a store the engine writes
+    assert RECONSTRUCTION.check(out) == []  # a store the engine writes
     assert np.isnan(out["sigma"].values).all()
     assert not bool(out["converged"][0]) and int(out["bins_without_paths"][0]) == 0
 
@@ -53,13 +53,12 @@ def test_the_bundles_absorption_is_the_simulators_own_at_the_true_sigma(seed0):
     (measured: at most 0.08, most within 0.04; three seeds of the model spread ±0.05; the simulator's 100 k photons
     a frame are noisy too). On the 32-grid of the reconstructions the same disc blurred by bilinear interpolation
     reads up to 0.07 higher: a coarse grid's absorber needs less σ to absorb as much."""
+    from selpath import workflows
     from selpath.devices.geometry import RigGeometry
     from selpath.stages.tomography._bundles import forward, trace_bundles
     from selpath.stages.tomography.hull import contours
     from selpath.stages.tomography.phantom import phantom_truth
     from selpath.stages.tomography.reconstruct import grid_geometry
-
-    from selpath import workflows
 
     rays, sinogram, hull, _, cap = seed0
     row = int(sinogram["slice"].values[0])
@@ -114,6 +113,7 @@ def test_the_bundle_model_recovers_the_absorber_the_shortest_path_model_halves(s
 
 def test_the_reconstruction_takes_sigma_s_from_an_estimate_and_refuses_an_ambiguous_or_failed_one(seed0):
     import xarray as xr
+
     from selpath.pipeline import StageError
     from selpath.stages.tomography.scattering import reconstruct_scattering
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from selpath.pipeline.schema import check_dataset, with_metadata
 
+from selpath.stages.tomography.scattering_estimate import SCATTERING_ESTIMATE
 from tests.stages.tomography.scattering_scenes import monte_carlo_capture
 
 
@@ -61,7 +61,7 @@ def test_the_estimate_recovers_the_scenes_sigma_s_within_its_stated_uncertainty(
     truth, width = (1.0, 0.25) if case == "sigma_s=1" else (2.0, 0.25)
     cap, hull = (seed0[4], seed0[2]) if truth == 1.0 else request.getfixturevalue("reference_s2")
     out = estimate_scattering(cap, hull, photons=20_000, bootstrap=100).compute()
-    assert check_dataset(with_metadata(out, "scattering_estimate"), "scattering_estimate") == []
+    assert out.attrs["selpath_kind"] == "scattering_estimate" and SCATTERING_ESTIMATE.check(out) == []
     estimate, low, high = (float(out[k]) for k in ("sigma_s", "sigma_s_low", "sigma_s_high"))
     print(f"{case}: {estimate:.3f} [{low:.3f}, {high:.3f}], {int(out['rounds'])} rounds, "
           f"{float(out['effective_walks']):.0f} effective walks")

@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import pytest
+
+from selpath import workflows
 from selpath.pipeline.spec import load_workflow
 from selpath.stages.tomography.acquire import AngleSweep
 from selpath.stages.tomography.studies import light_angle_study
-
-from selpath import workflows
 
 #: those that read another's output (workflows.AFTER) validate only once it exists: test_cli covers them
 WORKFLOWS = [workflows.path(name) for name in workflows.names() if name not in workflows.AFTER]

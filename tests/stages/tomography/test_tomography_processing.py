@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import xarray as xr
 from scipy.spatial.distance import directed_hausdorff
+
 from selpath.devices.sim import tomography as tomo
 from selpath.devices.sim.scene import Scene
 from selpath.pipeline import FORMAT_VERSION, StageError, open_store

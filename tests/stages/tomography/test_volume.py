@@ -10,6 +10,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import xarray as xr
+
+from selpath import workflows
 from selpath.devices.sim.scene import Scene, load_scene
 from selpath.pipeline import StageError
 from selpath.stages.tomography.acquire import AngleSweep
@@ -22,8 +24,6 @@ from selpath.stages.tomography.reconstruct import fbp, ome_attrs, reconstruct_tv
 from selpath.stages.tomography.reconstruction_figures import upright, volume_figure
 from selpath.stages.tomography.simulate import simulate_capture
 from selpath.stages.tomography.sinogram import bin_sinogram
-
-from selpath import workflows
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_tomography_processing import capture  # noqa: E402  (the in-memory simulated capture)
@@ -161,11 +161,12 @@ def test_no_task_of_the_volume_chain_holds_a_whole_capture(monkeypatch, tmp_path
     result holds more than 8 render chunks' bytes (the paths' 4 float64 fields of a chunk: 8×) or the hull's
     contours of every slice (which each path task reads), and either is under a quarter of one frame kind."""
     import dask
+    from dask.callbacks import Callback
+
     import selpath.stages.tomography.hull as hull_module
     import selpath.stages.tomography.reconstruct as reconstruct_module
     import selpath.stages.tomography.simulate as simulate_module
     import selpath.stages.tomography.sinogram as sinogram_module
-    from dask.callbacks import Callback
 
     scene = small_grape(cols=96)
     path = tmp_path / "small-grape.yaml"
@@ -207,6 +208,7 @@ def test_the_volume_workflow_recovers_the_grape_and_3d_viewers_can_open_it(tmp_p
     an independent OME-Zarr 0.5 validator (ome-zarr-models)."""
     import zarr
     from ome_zarr_models.v05.image import Image
+
     from selpath.pipeline import load_workflow, open_store
     from selpath.pipeline.engine import run_workflow
 

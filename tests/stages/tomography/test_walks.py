@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import numpy as np
+
 from selpath.devices.geometry import OrthographicCamera, RigGeometry
 from selpath.devices.sim.shapes import Ellipse, Prism
 from selpath.stages.tomography._walks import beam_entry, exit_weights, random_walks, walk_body, walk_weights
