@@ -36,7 +36,7 @@ from selpath.pipeline.constraints import StorePath
 from selpath.pipeline.errors import Problem, SelpathError, StageError
 from selpath.pipeline.kinds import LENGTH_UNITS
 from selpath.pipeline.provenance import hash_file
-from selpath.pipeline.registry import stage
+from selpath.pipeline.registry import resolve_kind, stage
 from selpath.pipeline.yaml_source import load_yaml_model
 
 #: file suffixes read as one image per file (a folder or glob of them is a stack, in natural name order)
@@ -369,11 +369,10 @@ def _tomography(spec: TomographyImport, base: Path) -> xr.Dataset:
     elif spec.camera_model == "perspective":  # the sensor's centre, in selpath's convention
         rows, cols = next(iter(shapes))
         attrs["principal_point_px"] = [(cols - 1) / 2.0, (rows - 1) / 2.0]
-    counts = {"units": "counts", "long_name": "sensor counts"}
-    variables = {name: (("angle", "row", "col"), array, counts) for name, array in stacks.items()}
+    variables = {name: (("angle", "row", "col"), array) for name, array in stacks.items()}
     if dark is not None:
-        variables["dark"] = (("row", "col"), dark, counts)
-    for name, (_, array, _) in variables.items():
+        variables["dark"] = (("row", "col"), dark)
+    for name, (_, array) in variables.items():
         _check_values(array, f"frames.{name}")
     return xr.Dataset(variables, coords={"angle": ("angle", angles.astype(float),
                                                   {"units": "degree", "long_name": "stage angle φ"})},
@@ -394,8 +393,7 @@ def _plane_to_ray(spec: PlaneToRayImport, base: Path) -> xr.Dataset:
                                  f"({n_d * n_e}, row, col)", where="import spec"))
     _check_values(image, "frames.image")
     attrs = spec.model_dump(exclude={"kind", "frames", "delays_us", "exposures_us", "order"})
-    return xr.Dataset({"image": (("delay", "exposure", "row", "col"), image,
-                                 {"units": "counts", "long_name": "sensor counts"})},
+    return xr.Dataset({"image": (("delay", "exposure", "row", "col"), image)},
                       coords={"delay": ("delay", np.asarray(spec.delays_us, float),
                                         {"units": "us", "long_name": "sync delay t_d"}),
                               "exposure": ("exposure", np.asarray(spec.exposures_us, float),
@@ -419,8 +417,7 @@ def _full_transport(spec: FullTransportImport, base: Path) -> xr.Dataset:
                                  f"or ({count}, row, col)", where="import spec"))
     _check_values(image, "frames.image")
     attrs = spec.model_dump(exclude={"kind", "frames", "delays_us", "exposures_us", "lines_px", "order"})
-    return xr.Dataset({"image": (("delay", "exposure", "line", "row", "col"), image,
-                                 {"units": "counts", "long_name": "sensor counts"})},
+    return xr.Dataset({"image": (("delay", "exposure", "line", "row", "col"), image)},
                       coords={"delay": ("delay", np.asarray(spec.delays_us, float),
                                         {"units": "us", "long_name": "sync delay t_d"}),
                               "exposure": ("exposure", np.asarray(spec.exposures_us, float),
@@ -468,6 +465,6 @@ def import_capture(*, spec: StorePath) -> xr.Dataset:
     """
     parsed = read_spec(spec)
     base = Path(spec).resolve().parent
-    if isinstance(parsed, TomographyImport):
-        return _tomography(parsed, base)
-    return _plane_to_ray(parsed, base) if isinstance(parsed, PlaneToRayImport) else _full_transport(parsed, base)
+    build = (_tomography if isinstance(parsed, TomographyImport) else
+             _plane_to_ray if isinstance(parsed, PlaneToRayImport) else _full_transport)
+    return resolve_kind(parsed.kind).label(build(parsed, base))  # the kind's units and long names (counts)
