@@ -7,7 +7,16 @@ The public surface, for notebooks and plugins::
 
 from selpath.pipeline.constraints import StorePath
 from selpath.pipeline.engine import RunReport, build, run_workflow
-from selpath.pipeline.errors import ConfigError, DeviceError, Problem, SelpathError, SpecError, StageError, StoreError
+from selpath.pipeline.errors import (
+    ConfigError,
+    DeviceError,
+    EnvironmentFault,
+    Problem,
+    SelpathError,
+    SpecError,
+    StageError,
+    StoreError,
+)
 from selpath.pipeline.kinds import FORMAT_VERSION, CubeKind, Variable
 from selpath.pipeline.provenance import read_provenance, write_provenance
 from selpath.pipeline.registry import Stage, StageRegistry, default_registry, stage
@@ -19,6 +28,7 @@ __all__ = [
     "CubeKind",
     "ConfigError",
     "DeviceError",
+    "EnvironmentFault",
     "Problem",
     "RunReport",
     "SelpathError",

@@ -26,8 +26,8 @@ from selpath import workflows as shipped
 from selpath.pipeline.compute import enable_compile_cache
 from selpath.pipeline.constraints import describe
 from selpath.pipeline.engine import RunReport, run_workflow
-from selpath.pipeline.errors import Problem, SelpathError, StoreError
-from selpath.pipeline.integrity import open_group, verify_store
+from selpath.pipeline.errors import Problem, SelpathError, StoreError, environment_fault
+from selpath.pipeline.integrity import open_group, resized_chunks, verify_store
 from selpath.pipeline.kinds import describe_kinds
 from selpath.pipeline.locks import store_lock
 from selpath.pipeline.provenance import archive_stores, read_provenance
@@ -111,6 +111,9 @@ def _guard() -> Iterator[None]:
                      highlight=False)
         raise typer.Exit(2) from None
     except Exception as exc:  # noqa: BLE001 - the last line of defence between a bug and a traceback
+        fault = environment_fault(exc)  # the machine refused (permissions, a long name, a full disk): no bug
+        if fault is not None:
+            _fail(fault)
         if os.environ.get("SELPATH_DEBUG"):
             raise
         text = escape(f"{type(exc).__name__}: {exc}".split("\n")[0][:500])
@@ -382,8 +385,8 @@ def inspect(
     store: Annotated[Path, typer.Argument(help="a selpath zarr store, or a folder of stores (an archive)",
                                           metavar="STORE", show_default=False)],
     verify: Annotated[bool, _flag("verify", "read every chunk and list the missing and corrupt ones")] = False,
-    recapture: Annotated[bool, _flag("recapture", "with --verify: mark capture frames with bad chunks as not "
-                                     "captured, so the next run of the acquisition captures them again")] = False,
+    recapture: Annotated[bool, _flag("recapture", "mark capture frames with bad chunks as not captured, so the "
+                                     "next run of the acquisition captures them again")] = False,
     valid: Annotated[bool | None, typer.Option("--valid/--no-valid", metavar="",
                                                help="compute each variable's valid share (reads every value; "
                                                f"default: for stores of at most {VALID_LIMIT:.0e} values)")] = None,
@@ -391,8 +394,10 @@ def inspect(
     """Check a store and show its kind, dims, coords with units, variables, missing frames and provenance; or,
     given a folder that is not a store (an archive), list every store under it with its provenance in one table.
 
-    Exit status 0: complete and (with --verify) every chunk readable; 1: incomplete (frames missing, or no
-    record that writing finished) or bad chunks; 2: it cannot be opened or breaks its kind's schema.
+    Every chunk's size is compared with the one recorded when the store was written (one listing, contents not
+    read); --verify reads every chunk and checks its checksum. Exit status 0: complete, and every chunk of its
+    recorded size (with --verify: every chunk readable); 1: incomplete (frames missing, or no record that writing
+    finished) or bad chunks; 2: it cannot be opened or breaks its kind's schema.
     """
     if store.is_dir() and not (store / "zarr.json").exists():
         _print_archive(store)
@@ -409,7 +414,8 @@ def inspect(
             _print_bad(bad, recapture and store)
             raise typer.Exit(1 if bad else 2) from None
         missing = missing_frames(store)
-        bad = verify_store(store) if verify else []
+        resized = None if verify else resized_chunks(store)  # one listing: sizes against the manifest's record
+        bad = verify_store(store) if verify else resized or []
         provenance = read_provenance(store)
         complete = is_complete(store) or bool(missing)
     with _guard(), np.errstate(all="ignore"):
@@ -427,6 +433,16 @@ def inspect(
                       "such stores); write it again")
     if verify:
         _print_bad(bad, recapture and store)
+    elif resized is None:
+        console.print("chunks: no record of their sizes (written before selpath 0.2, or a capture not finished); "
+                      "contents not read: `selpath inspect --verify` reads every chunk and checks its checksum")
+    elif bad:
+        _print_bad(bad, recapture and store, how="check (sizes against the record; contents not read)")
+        console.print("a chunk changed since it was written: `selpath inspect --verify` reads every chunk; running "
+                      "the workflow that wrote the store computes it again (a capture: captures those frames again)")
+    else:
+        console.print("chunks: every one has the size it was written with (contents not read: `selpath inspect "
+                      "--verify` reads every chunk and checks its checksum)")
     if provenance:
         console.print("[underline]provenance[/]")
         step = provenance.get("step_record", {})
@@ -504,8 +520,8 @@ def _scalar_text(value) -> str:
     return f"{value:.6g}" if isinstance(value, int | float) else escape(str(value))
 
 
-def _print_bad(bad: list, recapture_store: Path | bool) -> None:
-    console.print(f"verify: {'[green]every chunk reads[/]' if not bad else f'[red]{len(bad)} bad chunk(s)[/]'}")
+def _print_bad(bad: list, recapture_store: Path | bool, how: str = "verify") -> None:
+    console.print(f"{how}: {'[green]every chunk reads[/]' if not bad else f'[red]{len(bad)} bad chunk(s)[/]'}")
     for chunk in bad:
         console.print(f"  {escape(str(chunk))}")
     if bad and recapture_store:

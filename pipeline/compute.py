@@ -19,6 +19,8 @@ from dask.callbacks import Callback
 from rich import get_console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
+from selpath.pipeline.errors import EnvironmentFault, Problem
+
 #: Environment of worker processes: one thread for XLA and BLAS each, since dask owns the parallelism.
 WORKER_ENV = {
     "XLA_FLAGS": "--xla_cpu_multi_thread_eigen=false intra_op_parallelism_threads=1",
@@ -93,15 +95,31 @@ def scheduler_session(scheduler: str, *, n_workers: int | None = None) -> Iterat
     """Yield a ``distributed.Client`` for distributed schedulers, else None (local schedulers)."""
     address = os.environ.get("DASK_SCHEDULER_ADDRESS") or (scheduler if scheduler.startswith("tcp://") else None)
     if address:
-        from distributed import Client
-
-        with Client(address) as client:
+        with _connected(address) as client:
             yield client
     elif scheduler == "processes":
         with local_cluster(n_workers or min(2, os.cpu_count() or 1)) as client:
             yield client
     else:
         yield None
+
+
+@contextmanager
+def _connected(address: str) -> Iterator[Any]:
+    """A ``distributed.Client`` of the scheduler at ``address``; an EnvironmentFault naming it if none answers (within
+    distributed's connect timeout, ``distributed.comm.timeouts.connect``, 30 s by default)."""
+    from distributed import Client
+
+    try:
+        client = Client(address)
+    except (OSError, TimeoutError) as exc:  # refused, unreachable or silent: the environment, not a bug
+        where = "DASK_SCHEDULER_ADDRESS" if os.environ.get("DASK_SCHEDULER_ADDRESS") else "the workflow's scheduler"
+        raise EnvironmentFault(Problem(
+            f"no dask scheduler answers at {address} ({type(exc).__name__}: {str(exc).splitlines()[0][:200]})",
+            where=where, fix="start it (`dask scheduler`, and workers with `dask worker ADDRESS`), check the host and "
+            "port, or run here with `--scheduler threads` (or `scheduler: threads` in the workflow)")) from exc
+    with client:
+        yield client
 
 
 @contextmanager

@@ -33,7 +33,14 @@ from rich.markup import escape
 
 from selpath.pipeline.compute import compute, scheduler_session
 from selpath.pipeline.errors import Problem, SelpathError, StageError, StoreError
-from selpath.pipeline.integrity import BadChunk, verify_store, write_manifest
+from selpath.pipeline.integrity import (
+    PROVENANCE_GROUP,
+    BadChunk,
+    record_chunk_sizes,
+    resized_chunks,
+    verify_store,
+    write_manifest,
+)
 from selpath.pipeline.kinds import CubeKind
 from selpath.pipeline.locks import store_locks
 from selpath.pipeline.outputs import PNG_MARKER, Staging, check_png, png_path, tidy_staging
@@ -194,34 +201,37 @@ class _Graph:
             self._outputs_of.setdefault(out.from_, []).append(out)
             self._stored[out.store] = read_provenance(out.store)  # once per output
             if reuse and (self._stored[out.store] or {}).get("step_hash") == self.records[out.from_]["step_hash"]:
-                if verify and self._damaged(out):
+                if self._damaged(out, None if verify else _resized(out.store)):
                     continue
                 if out.store in workflow.self_written and _has_missing_frames(out.store):
                     continue  # a frame's chunk was lost (or marked for recapture): the acquisition resumes
                 self.report.fresh.add(out.store)
 
-    def _damaged(self, out: OutputSpec) -> bool:
-        """Read every chunk of an up-to-date output (``--verify``). A damaged capture has the frames under its bad
-        chunks marked not captured, so its acquisition captures just those again; any other damaged output is
-        recomputed whole (the outputs after it were made from its intact data and stay; after a capture, whose
+    def _damaged(self, out: OutputSpec, bad: list[BadChunk] | None = None) -> bool:
+        """Whether an up-to-date output is damaged: ``bad`` chunks already found (a chunk whose size changed since it
+        was written, :func:`_resized`), else every chunk read (``--verify``). A damaged capture has the frames under
+        its bad chunks marked not captured, so its acquisition captures just those again; any other damaged output
+        is recomputed whole (the outputs after it were made from its intact data and stay; after a capture, whose
         frames captured again differ by their noise, they are recomputed)."""
         capture = out.store in self.workflow.self_written
-        try:
-            bad = verify_store(out.store)
-        except StoreError as exc:  # its root metadata does not read: a capture cannot resume from it
-            if capture:
-                raise
-            bad = [BadChunk("zarr.json", None, exc.problems[0].message)]
+        how = "verify" if bad is None else "check"
+        if bad is None:
+            try:
+                bad = verify_store(out.store)
+            except StoreError as exc:  # its root metadata does not read: a capture cannot resume from it
+                if capture:
+                    raise
+                bad = [BadChunk("zarr.json", None, exc.problems[0].message)]
         if not bad:
             return False
         self.damaged[out.store] = bad
         listed = "; ".join(str(b) for b in bad[:3]) + (" …" if len(bad) > 3 else "")
         if capture:
             frames = forget_frames(out.store, bad)  # StoreError where a bad chunk is not a frame
-            self.log(f"[yellow]verify[/]: {escape(out.store)}: {len(bad)} bad chunk(s) ({escape(listed)}); "
+            self.log(f"[yellow]{how}[/]: {escape(out.store)}: {len(bad)} bad chunk(s) ({escape(listed)}); "
                      f"{frames} frame(s) will be captured again")
             return frames > 0 or _has_missing_frames(out.store)
-        self.log(f"[yellow]verify[/]: {escape(out.store)}: {len(bad)} bad chunk(s) ({escape(listed)}); "
+        self.log(f"[yellow]{how}[/]: {escape(out.store)}: {len(bad)} bad chunk(s) ({escape(listed)}); "
                  "it will be computed again")
         return True
 
@@ -328,6 +338,8 @@ def run_workflow(workflow: Workflow, *, scheduler: str | None = None, progress: 
                     continue
                 began = time.perf_counter()
                 if out.store in workflow.self_written:  # the stage filled it as it ran: record, never rewrite
+                    if not _has_missing_frames(out.store):  # complete: its chunks' sizes, for the checks to come
+                        record_chunk_sizes(out.store)
                     _record(workflow, graph.records, name, out, scheduler, out.store)
                 else:
                     _write_output(graph, name, out, _as_dataset(result, name), scheduler, client, progress,
@@ -436,6 +448,15 @@ def _usable(staging: str, step_id: str, data: xr.Dataset, carried: dict[str, tup
     if problems:
         raise StageError(problems)
     return found
+
+
+def _resized(store: str) -> list[BadChunk]:
+    """The chunks of a stored output whose size changed since it was written (one listing, nothing read); none where
+    the store records no sizes. A manifest that does not read counts as a bad record."""
+    try:
+        return resized_chunks(store) or []
+    except StoreError as exc:
+        return [BadChunk(PROVENANCE_GROUP, None, exc.problems[0].message)]
 
 
 def _has_missing_frames(store: str) -> bool:

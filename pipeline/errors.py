@@ -6,6 +6,8 @@ Errors that can have several causes at once (a workflow file, a store's schema) 
 
 from __future__ import annotations
 
+import errno
+import os
 from dataclasses import dataclass
 
 
@@ -75,6 +77,40 @@ class StageError(_ProblemsError):
     """A stage got inputs it cannot work on (wrong dims, missing variables, ...)."""
 
     title = "problems with a stage's inputs"
+
+
+class EnvironmentFault(_ProblemsError):
+    """This machine refused what selpath asked of it: a folder it may not write, a name too long for the file
+    system, a full disk, a dask scheduler that does not answer. Not a bug: the message says what to change."""
+
+    title = "problems with this machine"
+
+
+#: errno → (what happened, the fix) for the faults of the environment a user can mend
+_FAULTS = {
+    errno.EACCES: ("permission denied", "write to a folder you may write to (the output's `store:`, or `--out`), "
+                   "or change the folder's permissions"),
+    errno.EPERM: ("operation not permitted", "write to a folder you own, or change its permissions"),
+    errno.EROFS: ("the file system is read-only", "write the outputs to a writable disk"),
+    errno.ENAMETOOLONG: ("a file name is too long for the file system", "shorten the store's name or path (most file "
+                         "systems take 255 bytes a name; selpath adds up to 30 for its lock and staging files)"),
+    errno.ENOSPC: ("no space left on the device", "free space or write elsewhere; every finished output and "
+                   "captured frame is kept, so running again resumes"),
+    errno.EDQUOT: ("the disk quota is exceeded", "free space or write elsewhere; running again resumes"),
+    errno.EMFILE: ("too many open files", "raise the limit (ulimit -n) or use fewer dask workers"),
+}
+
+
+def environment_fault(exc: BaseException, doing: str = "") -> EnvironmentFault | None:
+    """The :class:`EnvironmentFault` an OSError of the environment stands for (naming the file and the fix), or None
+    for any other error (a bug, to be reported as one). ``doing``: what selpath was doing, for the message."""
+    if not isinstance(exc, OSError) or exc.errno not in _FAULTS:
+        return None
+    what, fix = _FAULTS[exc.errno]
+    where = os.fsdecode(exc.filename) if exc.filename is not None else ""
+    if exc.errno == errno.ENAMETOOLONG and where:
+        what += f" (its last part has {len(os.fsencode(os.path.basename(where)))} bytes)"
+    return EnvironmentFault(Problem(what + (f" while {doing}" if doing else ""), where=where, fix=fix))
 
 
 class DeviceError(SelpathError):

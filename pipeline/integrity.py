@@ -10,6 +10,10 @@
   moved into place (:mod:`selpath.pipeline.outputs`): it says the store is complete and records the units of
   every coordinate and variable, so a units attr edited afterwards is refused rather than carried into
   results 1000× wrong.
+* The manifest also records every chunk's size in bytes when the store is complete (:func:`record_chunk_sizes`):
+  one listing of the store tells a chunk truncated or replaced by one of another size since (:func:`resized_chunks`),
+  without reading any; ``selpath inspect`` and a workflow about to reuse the store check it. A chunk changed in place
+  to bytes of the same size is found only by reading it.
 * :func:`verify_store` reads every chunk and lists the bad ones (``selpath inspect --verify``).
 """
 
@@ -87,12 +91,80 @@ def units_of(ds: xr.Dataset) -> dict[str, str | None]:
 def write_manifest(path: str | os.PathLike, ds: xr.Dataset, *, complete: bool = True) -> None:
     """Record that ``path`` holds ``ds`` completely (or, for captures filled frame by frame, that its frame
     flags say what is complete), with the units of every coordinate and variable as the store holds them
-    (its kind's metadata applied when it was written: read back, not taken from ``ds``)."""
+    (its kind's metadata applied when it was written: read back, not taken from ``ds``) and, when complete, the
+    size of every chunk (:func:`chunk_sizes`)."""
     group = open_group(path, mode="r+")
     stored = {name: array.attrs.get("units") for name, array in group.arrays()}
     units = {name: stored.get(name, units) for name, units in units_of(ds).items()}
-    group.require_group(PROVENANCE_GROUP).attrs[MANIFEST] = {"complete": complete, "units": units}
+    record = {"complete": complete, "units": units} | ({CHUNK_BYTES: chunk_sizes(path)} if complete else {})
+    group.require_group(PROVENANCE_GROUP).attrs[MANIFEST] = record
     consolidate(path)
+
+
+#: the manifest's record of every chunk's size: ``{array: {chunk key: bytes}}``
+CHUNK_BYTES = "chunk_bytes"
+
+
+def chunk_sizes(path: str | os.PathLike) -> dict[str, dict[str, int]]:
+    """Every chunk of every array of the store and its size in bytes, ``{array: {chunk key: bytes}}``: one listing
+    (local: a directory walk; object storage: one listing per array), no chunk read."""
+    where = os.fspath(path)
+    sizes: dict[str, dict[str, int]] = {}
+    for name, _ in _readable_arrays(open_group(where), where)[0]:
+        if remote.is_url(where):
+            found = {key[len(name) + 1:]: int(info.get("size", -1)) for key, info in
+                     remote.list_objects(where, name).items()}
+        else:
+            folder = Path(remote.local_path(where)) / name
+            found = {Path(parent, file).relative_to(folder).as_posix(): os.stat(os.path.join(parent, file)).st_size
+                     for parent, _, files in os.walk(folder) for file in files}
+        sizes[name] = {key: size for key, size in sorted(found.items()) if key != "zarr.json"}
+    return sizes
+
+
+def record_chunk_sizes(path: str | os.PathLike, *, record: bool = True) -> None:
+    """Record the store's chunk sizes in its manifest now (a capture, once its last frame is written), keeping the
+    rest of the manifest; ``record=False`` drops the record instead (a capture about to have frames written again:
+    its chunks change, and the record is made anew when it is complete)."""
+    manifest = dict(read_manifest(path) or {})
+    if not record and CHUNK_BYTES not in manifest:
+        return
+    manifest.pop(CHUNK_BYTES, None)
+    group = open_group(path, mode="r+")
+    group.require_group(PROVENANCE_GROUP).attrs[MANIFEST] = manifest | ({CHUNK_BYTES: chunk_sizes(path)} if record
+                                                                         else {})
+    consolidate(path)
+
+
+def resized_chunks(path: str | os.PathLike, manifest: Mapping[str, Any] | None = None) -> list[BadChunk] | None:
+    """The chunks whose size differs from the one the manifest recorded (truncated, or replaced since), or that are
+    gone; None where the manifest records no sizes (a store of selpath before 0.2, an unfinished capture). One
+    listing; contents are not read (:func:`verify_store` reads them)."""
+    where = os.fspath(path)
+    manifest = read_manifest(where) if manifest is None else manifest
+    recorded = (manifest or {}).get(CHUNK_BYTES)
+    if recorded is None:
+        return None
+    arrays = dict(_readable_arrays(open_group(where), where)[0])
+    now = chunk_sizes(where)
+    bad = []
+    for name, sizes in sorted(recorded.items()):
+        if name not in arrays:
+            bad.append(BadChunk(name, None, "missing (the manifest records it; no array of that name reads)"))
+            continue
+        index = _chunk_index(arrays[name])
+        for key, size in sorted(sizes.items()):
+            got = now.get(name, {}).get(key)
+            if got != size:
+                reason = ("missing" if got is None else
+                          f"{got:,} bytes, written as {size:,}: changed since it was written (truncated or replaced)")
+                bad.append(BadChunk(name, index.get(key), reason))
+    return bad
+
+
+def _chunk_index(array: zarr.Array) -> dict[str, tuple[int, ...]]:
+    """Chunk key (as the array encodes it) → chunk coordinates, for every chunk of the array's grid."""
+    return {array.metadata.encode_chunk_key(c): c for c in itertools.product(*(range(n) for n in array.cdata_shape))}
 
 
 def read_manifest(path: str | os.PathLike) -> dict[str, Any] | None:
@@ -146,7 +218,7 @@ def present_chunks(path: str | os.PathLike, name: str, array: zarr.Array) -> np.
     by the array's own chunk key encoding (a store of 1 425 frame bands is one directory walk, not 1 425 stats)."""
     where = os.fspath(path)
     present = np.zeros(array.cdata_shape, dtype=bool)
-    index = {array.metadata.encode_chunk_key(c): c for c in itertools.product(*(range(n) for n in present.shape))}
+    index = _chunk_index(array)
     if remote.is_url(where):  # one listing of the array's prefix
         keys = (key[len(name) + 1:] for key in remote.list_objects(where, name))
     else:

@@ -19,7 +19,7 @@ from collections.abc import Iterable, Iterator
 from contextlib import ExitStack, contextmanager
 from pathlib import Path
 
-from selpath.pipeline.errors import Problem, StoreError
+from selpath.pipeline.errors import Problem, StoreError, environment_fault
 
 try:
     import fcntl
@@ -52,9 +52,15 @@ def store_lock(store: str | os.PathLike, purpose: str = "writing") -> Iterator[N
         yield
         return
     path = lock_path(store)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    while True:
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
         fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as exc:
+        fault = environment_fault(exc, f"taking the lock of the output store {os.fspath(store)}")
+        if fault is None:
+            raise
+        raise fault from exc
+    while True:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -75,6 +81,7 @@ def store_lock(store: str | os.PathLike, purpose: str = "writing") -> Iterator[N
         if same:
             break
         os.close(fd)
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
     try:
         os.ftruncate(fd, 0)
         os.write(fd, json.dumps(_owner(purpose)).encode())

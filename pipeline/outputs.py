@@ -108,8 +108,12 @@ def output_problems(outputs: list[OutputPath], protected: Mapping[str, str | os.
         text = out.store
         name = text.rstrip("/").rsplit("/", 1)[-1]
         if not name.endswith(STORE_SUFFIX) or name == STORE_SUFFIX:
+            there = Path(text) if text.strip() and not is_remote(text) else None
+            held = ("" if there is None or not (there.exists() or there.is_symlink()) else
+                    ": it is an existing folder, and not a selpath store, so selpath never writes into it" if
+                    there.is_dir() and not is_selpath_store(there) else ": it is an existing file")
             problems.append((out.field, f"output {out.name!r} store {text!r} is not a path ending in "
-                             f"'{STORE_SUFFIX}'", f"name the store like out/{out.name}.zarr"))
+                             f"'{STORE_SUFFIX}'{held}", f"name a new store, like out/{out.name}.zarr"))
             continue
         if is_remote(text):
             problems.extend((out.field, message, fix) for message, fix in _remote_problems(out, text))

@@ -45,6 +45,7 @@ from selpath.pipeline.integrity import (
     compressors,
     open_group,
     read_manifest,
+    record_chunk_sizes,
     units_problems,
     write_manifest,
     written_frames,
@@ -341,6 +342,8 @@ def create_capture(path: str | os.PathLike, template: xr.Dataset, kind: str | Cu
                 + [Problem("a different sweep is already stored here", where=where,
                            fix="choose another store path, or delete this one to start over")]
             )
+        if any(missing_frames(where).values()):  # frames will be written: their sizes are recorded when complete
+            record_chunk_sizes(where, record=False)
         return existing
     flags = {}
     for name, var in template.data_vars.items():
@@ -452,6 +455,7 @@ def forget_frames(path: str | os.PathLike, bad: Iterable[BadChunk]) -> int:
         flags, array = group[f"{WRITTEN_PREFIX}{chunk.variable}"], group[chunk.variable]
         position = tuple(c * s for c, s in zip(chunk.chunk[: flags.ndim], array.chunks, strict=False))
         frames.add((chunk.variable, position))
+    record_chunk_sizes(where, record=False)  # the frames are written again: the sizes are recorded anew after
     for variable, position in sorted(frames):
         group[f"{WRITTEN_PREFIX}{variable}"][position] = False
     return len(frames)

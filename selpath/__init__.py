@@ -29,6 +29,7 @@ from selpath.pipeline.engine import RunReport, run_workflow
 from selpath.pipeline.errors import (
     ConfigError,
     DeviceError,
+    EnvironmentFault,
     Problem,
     SelpathError,
     SpecError,
@@ -60,6 +61,7 @@ __all__ = [
     "ConfigError",
     "CubeKind",
     "DeviceError",
+    "EnvironmentFault",
     "Problem",
     "RunReport",
     "SelpathError",
