@@ -31,7 +31,7 @@ from selpath.pipeline.integrity import open_group, resized_chunks, verify_store
 from selpath.pipeline.kinds import describe_kinds
 from selpath.pipeline.locks import store_lock
 from selpath.pipeline.provenance import archive_stores, read_provenance
-from selpath.pipeline.registry import default_registry, plain_text
+from selpath.pipeline.registry import default_registry, plain_text, resolve_kind
 from selpath.pipeline.report import report_tables, summary_lines, write_html
 from selpath.pipeline.spec import load_workflow
 from selpath.pipeline.store import forget_frames, is_complete, missing_frames, open_store
@@ -455,7 +455,7 @@ def inspect(
         for key, value in lines.items():
             console.print(f"  {key}: {escape(value)}", highlight=False, soft_wrap=True)
     else:
-        console.print("provenance: none (written outside a workflow, e.g. by pipeline.to_store or another tool, or "
+        console.print("provenance: none (written outside a workflow, e.g. by selpath.to_store or another tool, or "
                       "still being written)")
     if incomplete or bad:
         raise typer.Exit(1)
@@ -466,8 +466,7 @@ def _describe_store(path: Path, ds, valid: bool | None, readable: bool) -> None:
     from selpath.pipeline.quality import valid_shares
 
     kind = ds.attrs.get("selpath_kind")
-    kinds = default_registry().kinds
-    about = kinds[kind].description if kind in kinds else "unknown kind"
+    about = resolve_kind(kind, module=ds.attrs.get("selpath_kind_module")).description  # (opened: a known kind)
     on_disk = open_group(path).attrs.get("selpath_format")
     migrated = f", migrated to {ds.attrs.get('selpath_format')} on open" if on_disk != ds.attrs.get(
         "selpath_format") else ""
@@ -504,7 +503,7 @@ def _describe_store(path: Path, ds, valid: bool | None, readable: bool) -> None:
             console.print(head, highlight=False, soft_wrap=True)
             if array.attrs.get("long_name"):
                 console.print(f"      {escape(str(array.attrs['long_name']))}", highlight=False, soft_wrap=True)
-    hidden = ("selpath_kind", "selpath_format")
+    hidden = ("selpath_kind", "selpath_format", "selpath_kind_module")
     attrs = {k: v for k, v in ds.attrs.items() if k not in hidden and not k.startswith("_")}
     if attrs:
         console.print("[underline]attrs[/]")

@@ -315,10 +315,11 @@ def run_workflow(workflow: Workflow, *, scheduler: str | None = None, progress: 
     a private, optimised copy of its graph, ``ProhibitReuse``, so every output recomputed it.) An output's
     provenance is written as soon as its data is complete, so a killed run keeps every finished output.
 
-    ``verify`` reads every chunk of the outputs that would be reused (their checksums) before trusting them: a
-    damaged one is computed again, a damaged capture captures again only the frames under its bad chunks (and
-    the outputs after it are recomputed). Without it a damaged chunk is found when it is read (a StoreError naming
-    it), which for a reused output may be never.
+    Before an output is reused, its chunks' sizes are compared with those recorded when it was written (one listing,
+    nothing read): a chunk truncated or replaced since makes it damaged. ``verify`` also reads every chunk of the
+    outputs that would be reused (their checksums). A damaged output is computed again, a damaged capture captures
+    again only the frames under its bad chunks (and the outputs after it are recomputed). A chunk changed in place to
+    bytes of the same size is found only by ``verify``, or when it is read (a StoreError naming it).
     """
     start = time.perf_counter()
     scheduler = scheduler or workflow.scheduler
@@ -393,10 +394,17 @@ def _write_output(graph: _Graph, name: str, out: OutputSpec, data: xr.Dataset, s
 
 
 def _output_kind(workflow: Workflow, name: str, out: OutputSpec, data: xr.Dataset) -> CubeKind:
-    """The kind an output is stored as: the output's ``kind:``, else the result's ``selpath_kind`` attr, else the
-    one kind its stage declares; looked up among the workflow's registry's kinds, then the installed ones."""
+    """The kind an output is stored as: the output's ``kind:``; else the result's ``selpath_kind`` attr where the stage
+    declares that kind or declares none; else the one kind its stage declares (a result that kept its input's attr
+    is still the stage's kind); looked up among the workflow's registry's kinds, then the installed ones."""
     stage = workflow.steps[out.from_].stage
-    kind = out.kind or data.attrs.get("selpath_kind") or (stage.kinds[0] if len(stage.kinds) == 1 else None)
+    named, declared = data.attrs.get("selpath_kind"), [k.name for k in stage.kinds]
+    if out.kind is None and named is not None and declared and named not in declared and len(declared) > 1:
+        raise StageError(Problem(f"the result of step {out.from_!r} is a {named!r} cube; its stage {stage.name!r} "
+                                 f"makes {' or '.join(declared)}", path=f"outputs.{name}",
+                                 fix="set `kind:` on the output, or label the result with one of the stage's kinds"))
+    kind = out.kind or (named if named in declared or not declared else None) or (
+        stage.kinds[0] if len(stage.kinds) == 1 else None)
     if kind is None:
         declared = ", ".join(k.name for k in stage.kinds)
         raise StageError(Problem(f"the result of step {out.from_!r} (stage {stage.name!r}) names no cube kind (no "

@@ -88,8 +88,8 @@ class EnvironmentFault(_ProblemsError):
 
 #: errno → (what happened, the fix) for the faults of the environment a user can mend
 _FAULTS = {
-    errno.EACCES: ("permission denied", "write to a folder you may write to (the output's `store:`, or `--out`), "
-                   "or change the folder's permissions"),
+    errno.EACCES: ("permission denied", "use a folder you may write to (the workflow's output `store:` paths, or "
+                   "`selpath demo --out`), or change the folder's permissions"),
     errno.EPERM: ("operation not permitted", "write to a folder you own, or change its permissions"),
     errno.EROFS: ("the file system is read-only", "write the outputs to a writable disk"),
     errno.ENAMETOOLONG: ("a file name is too long for the file system", "shorten the store's name or path (most file "
@@ -104,7 +104,9 @@ _FAULTS = {
 def environment_fault(exc: BaseException, doing: str = "") -> EnvironmentFault | None:
     """The :class:`EnvironmentFault` an OSError of the environment stands for (naming the file and the fix), or None
     for any other error (a bug, to be reported as one). ``doing``: what selpath was doing, for the message."""
-    if not isinstance(exc, OSError) or exc.errno not in _FAULTS:
+    while exc is not None and not (isinstance(exc, OSError) and exc.errno in _FAULTS):
+        exc = exc.__cause__ or exc.__context__  # an OSError wrapped by a library (dask, zarr, fsspec)
+    if exc is None:
         return None
     what, fix = _FAULTS[exc.errno]
     where = os.fsdecode(exc.filename) if exc.filename is not None else ""

@@ -101,70 +101,68 @@ def write_manifest(path: str | os.PathLike, ds: xr.Dataset, *, complete: bool = 
     consolidate(path)
 
 
-#: the manifest's record of every chunk's size: ``{array: {chunk key: bytes}}``
+#: the manifest's record of every chunk's size: ``{array: [bytes of each chunk, in C order of its chunk grid]}``,
+#: −1 where a chunk was absent
 CHUNK_BYTES = "chunk_bytes"
 
 
-def chunk_sizes(path: str | os.PathLike) -> dict[str, dict[str, int]]:
-    """Every chunk of every array of the store and its size in bytes, ``{array: {chunk key: bytes}}``: one listing
-    (local: a directory walk; object storage: one listing per array), no chunk read."""
+def chunk_sizes(path: str | os.PathLike) -> dict[str, list[int]]:
+    """Every array's chunk sizes in bytes in C order of its chunk grid (−1: absent): one listing of the store (local: a
+    directory walk; object storage: one listing per array), no chunk read."""
     where = os.fspath(path)
-    sizes: dict[str, dict[str, int]] = {}
-    for name, _ in _readable_arrays(open_group(where), where)[0]:
-        if remote.is_url(where):
-            found = {key[len(name) + 1:]: int(info.get("size", -1)) for key, info in
-                     remote.list_objects(where, name).items()}
-        else:
-            folder = Path(remote.local_path(where)) / name
-            found = {Path(parent, file).relative_to(folder).as_posix(): os.stat(os.path.join(parent, file)).st_size
-                     for parent, _, files in os.walk(folder) for file in files}
-        sizes[name] = {key: size for key, size in sorted(found.items()) if key != "zarr.json"}
-    return sizes
+    return {name: chunk_files(where, name, array).ravel().tolist()
+            for name, array in _readable_arrays(open_group(where), where)[0]}
 
 
-def record_chunk_sizes(path: str | os.PathLike, *, record: bool = True) -> None:
+def record_chunk_sizes(path: str | os.PathLike) -> None:
     """Record the store's chunk sizes in its manifest now (a capture, once its last frame is written), keeping the
-    rest of the manifest; ``record=False`` drops the record instead (a capture about to have frames written again:
-    its chunks change, and the record is made anew when it is complete)."""
-    manifest = dict(read_manifest(path) or {})
-    if not record and CHUNK_BYTES not in manifest:
-        return
-    manifest.pop(CHUNK_BYTES, None)
-    group = open_group(path, mode="r+")
-    group.require_group(PROVENANCE_GROUP).attrs[MANIFEST] = manifest | ({CHUNK_BYTES: chunk_sizes(path)} if record
-                                                                         else {})
+    rest of the manifest."""
+    _set_chunk_record(path, chunk_sizes(path))
+
+
+def drop_chunk_sizes(path: str | os.PathLike) -> None:
+    """Drop the record of the chunk sizes (a capture about to have frames written again: its chunks change; the record
+    is made anew when it is complete)."""
+    if CHUNK_BYTES in (read_manifest(path) or {}):
+        _set_chunk_record(path, None)
+
+
+def _set_chunk_record(path: str | os.PathLike, sizes: dict[str, list[int]] | None) -> None:
+    manifest = {k: v for k, v in (read_manifest(path) or {}).items() if k != CHUNK_BYTES}
+    open_group(path, mode="r+").require_group(PROVENANCE_GROUP).attrs[MANIFEST] = manifest | (
+        {CHUNK_BYTES: sizes} if sizes is not None else {})
     consolidate(path)
 
 
 def resized_chunks(path: str | os.PathLike, manifest: Mapping[str, Any] | None = None) -> list[BadChunk] | None:
-    """The chunks whose size differs from the one the manifest recorded (truncated, or replaced since), or that are
-    gone; None where the manifest records no sizes (a store of selpath before 0.2, an unfinished capture). One
+    """The chunks whose size differs from the one the manifest recorded (truncated, lengthened or replaced since), or
+    that are gone; None where the manifest records no sizes (a store of selpath before 0.2, an unfinished capture). One
     listing; contents are not read (:func:`verify_store` reads them)."""
     where = os.fspath(path)
     manifest = read_manifest(where) if manifest is None else manifest
     recorded = (manifest or {}).get(CHUNK_BYTES)
-    if recorded is None:
-        return None
-    arrays = dict(_readable_arrays(open_group(where), where)[0])
-    now = chunk_sizes(where)
+    group = open_group(where)
+    if not isinstance(recorded, dict) or group.attrs.get("selpath_format", 0) < CHECKSUMMED_FORMAT:
+        return None  # (format 1 did not write chunks holding only the fill value: their absence says nothing)
+    arrays = dict(_readable_arrays(group, where)[0])
     bad = []
     for name, sizes in sorted(recorded.items()):
+        if not isinstance(sizes, list) or not all(isinstance(s, int) for s in sizes):
+            bad.append(BadChunk(PROVENANCE_GROUP, None, f"its record of {name}'s chunk sizes is malformed"))
+            continue
         if name not in arrays:
             bad.append(BadChunk(name, None, "missing (the manifest records it; no array of that name reads)"))
             continue
-        index = _chunk_index(arrays[name])
-        for key, size in sorted(sizes.items()):
-            got = now.get(name, {}).get(key)
-            if got != size:
-                reason = ("missing" if got is None else
-                          f"{got:,} bytes, written as {size:,}: changed since it was written (truncated or replaced)")
-                bad.append(BadChunk(name, index.get(key), reason))
+        now, was = chunk_files(where, name, arrays[name]), np.asarray(sizes, dtype=np.int64)
+        if now.size != was.size:
+            bad.append(BadChunk(name, None, f"its chunk grid has {now.size} chunks, written with {was.size}"))
+            continue
+        for flat in np.flatnonzero(now.ravel() != was):
+            got, size = int(now.ravel()[flat]), int(was[flat])
+            reason = ("missing" if got < 0 else
+                      f"{got:,} bytes, written as {size:,}: changed since it was written (truncated or replaced)")
+            bad.append(BadChunk(name, tuple(int(i) for i in np.unravel_index(flat, now.shape)), reason))
     return bad
-
-
-def _chunk_index(array: zarr.Array) -> dict[str, tuple[int, ...]]:
-    """Chunk key (as the array encodes it) → chunk coordinates, for every chunk of the array's grid."""
-    return {array.metadata.encode_chunk_key(c): c for c in itertools.product(*(range(n) for n in array.cdata_shape))}
 
 
 def read_manifest(path: str | os.PathLike) -> dict[str, Any] | None:
@@ -211,25 +209,43 @@ def _arrays(group: zarr.Group) -> Iterable[tuple[str, zarr.Array]]:
             yield name, node
 
 
-def present_chunks(path: str | os.PathLike, name: str, array: zarr.Array) -> np.ndarray | None:
-    """Boolean array over ``array``'s chunk grid: True where the chunk's file (or object) exists.
+def chunk_files(path: str | os.PathLike, name: str, array: zarr.Array) -> np.ndarray:
+    """The size in bytes of each chunk of ``array`` over its chunk grid, −1 where its file (or object) is absent.
 
     One listing of the array's folder (or prefix, on object storage), each file name decoded to its chunk index
-    by the array's own chunk key encoding (a store of 1 425 frame bands is one directory walk, not 1 425 stats)."""
+    by the array's own chunk key encoding (a store of 1 425 frame bands is one directory walk)."""
     where = os.fspath(path)
-    present = np.zeros(array.cdata_shape, dtype=bool)
-    index = _chunk_index(array)
+    sizes = np.full(array.cdata_shape, -1, dtype=np.int64)
+    index = {array.metadata.encode_chunk_key(c): c for c in itertools.product(*(range(n) for n in sizes.shape))}
     if remote.is_url(where):  # one listing of the array's prefix
-        keys = (key[len(name) + 1:] for key in remote.list_objects(where, name))
+        found = ((key[len(name) + 1:], int(info.get("size", 0))) for key, info in
+                 remote.list_objects(where, name).items())
     else:
         folder = Path(remote.local_path(where)) / name
-        keys = (Path(parent, file).relative_to(folder).as_posix()
-                for parent, _, files in os.walk(folder) for file in files)
-    for key in keys:
+        found = ((Path(entry.path).relative_to(folder).as_posix(), entry.stat().st_size) for entry in _files(folder))
+    for key, size in found:
         coords = index.get(key)
         if coords is not None:
-            present[coords] = True
-    return present
+            sizes[coords] = size
+    return sizes
+
+
+def _files(folder: Path) -> Iterable[os.DirEntry]:
+    """Every file under ``folder`` (none where it is absent), as directory entries."""
+    try:
+        entries = list(os.scandir(folder))
+    except FileNotFoundError:
+        return
+    for entry in entries:
+        if entry.is_dir(follow_symlinks=False):
+            yield from _files(Path(entry.path))
+        else:
+            yield entry
+
+
+def present_chunks(path: str | os.PathLike, name: str, array: zarr.Array) -> np.ndarray:
+    """Boolean array over ``array``'s chunk grid: True where the chunk's file (or object) exists."""
+    return chunk_files(path, name, array) >= 0
 
 
 def written_frames(path: str | os.PathLike, variable: str, flags: np.ndarray) -> np.ndarray:
@@ -285,7 +301,8 @@ def _decode_error(exc: Exception) -> str:
 
 
 def verify_store(path: str | os.PathLike) -> list[BadChunk]:
-    """Read and decode every chunk of every array of the store; return the missing and corrupt ones.
+    """Read and decode every chunk of every array of the store; return the missing and corrupt ones, and those whose
+    size differs from the manifest's record (:func:`resized_chunks`: a chunk replaced by one that decodes).
 
     A chunk is missing when its file is absent where the store promises it: everywhere in a complete
     format-2 store, and in a capture for every frame its ``written__`` flag says was captured.
@@ -339,6 +356,9 @@ def verify_store(path: str | os.PathLike) -> list[BadChunk]:
                 array.get_block_selection(coords)
             except Exception as exc:  # noqa: BLE001 - zarr and its codecs raise many types for bad bytes
                 bad.append(BadChunk(name, coords, f"corrupt ({_decode_error(exc)})"))
+    # a chunk replaced by another that decodes (another store's) changed its size: the record names it
+    listed = {(chunk.variable, chunk.chunk) for chunk in bad}
+    bad.extend(chunk for chunk in resized_chunks(where, manifest) or () if (chunk.variable, chunk.chunk) not in listed)
     return bad
 
 

@@ -13,6 +13,7 @@ units every kind draws from.
 from __future__ import annotations
 
 import re
+import sys
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field
 
@@ -106,8 +107,13 @@ class CubeKind:
     #: a variable holding an RGBA image (dims ``(y, x, rgba)``, uint8) that a workflow output also saves as
     #: ``<store>.png`` beside the store, for people (the figures)
     png: str | None = None
+    #: the module that declared the kind (where it was made, as namedtuple finds its module), written into every
+    #: store of the kind as ``selpath_kind_module``: opening the store imports that module alone to find the kind,
+    #: where it is one the ``selpath.stages`` entry points name, instead of every installed stage package
+    module: str = field(init=False, default="", compare=False, repr=False)
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "module", sys._getframe(2).f_globals.get("__name__", ""))  # the caller of __init__
         if not _NAME.match(self.name):
             raise SelpathError(f"cube kind name {self.name!r} must be lower_snake_case")
         if self.png is not None and (self.png not in self.variables or len(self.variables[self.png].dims) != 3):
@@ -140,7 +146,13 @@ class CubeKind:
             attrs |= ({"units": units} if units is not None else {}) | ({"long_name": long_name} if long_name else {})
             fixed[name] = ds[name].copy(deep=False)
             fixed[name].attrs = attrs
-        return (ds.assign(fixed) if fixed else ds).assign_attrs(selpath_kind=self.name)
+        out = ds.assign(fixed) if fixed else ds.copy(deep=False)
+        out.attrs = ({k: v for k, v in ds.attrs.items() if k != "selpath_kind_module"} | {"selpath_kind": self.name}
+                     | ({"selpath_kind_module": self.module} if self.module else {}))
+        return out
+
+    def __hash__(self) -> int:  # equal kinds have one name (the dict fields could not be hashed)
+        return hash(self.name)
 
     def _dims_ok(self, actual: tuple[str, ...], expected: tuple[str, ...]) -> bool:
         core = tuple(d for d in actual if d not in self.batch_dims)
@@ -204,7 +216,12 @@ def describe_kinds(kinds: Iterable[CubeKind]) -> str:
         )
         units = "<br>".join(f"{d}: {'/'.join(sorted(u))}" for d, u in kind.coord_units.items()) or "—"
         attrs = "<br>".join(f"`{a}`" for a in kind.attrs) or "—"
-        batch = f" Stacks over {', '.join(f'`{d}`' for d in kind.batch_dims)}." if kind.batch_dims else ""
-        png = f" Saved also as `<store>.png` (`{kind.png}`)." if kind.png else ""
-        rows.append(f"| `{kind.name}` | {kind.description or '—'}{batch}{png} | {variables} | {units} | {attrs} |")
+        notes = [kind.description or "—"]
+        if kind.batch_dims:
+            notes.append(f"Stacks over {', '.join(f'`{d}`' for d in kind.batch_dims)}.")
+        if kind.png:
+            notes.append(f"`{kind.png}` is also saved as `<store>.png`.")
+        stop = "." if len(notes) > 1 and not notes[0].endswith(".") else ""
+        what = notes[0] + stop + "".join(f" {n}" for n in notes[1:])
+        rows.append(f"| `{kind.name}` | {what} | {variables} | {units} | {attrs} |")
     return "\n".join(rows)

@@ -21,7 +21,7 @@ def _from_format_1(ds: xr.Dataset, kind: CubeKind) -> xr.Dataset:
 
 def _from_format_2(ds: xr.Dataset, kind: CubeKind) -> xr.Dataset:
     """Format 2 → 3: a hull's dim ``row`` becomes ``slice``, with the camera rows as its coordinate."""
-    if ds.attrs.get("selpath_kind") != "hull" or "row" not in ds.dims or "slice" in ds.dims:
+    if kind.name != "hull" or "row" not in ds.dims or "slice" in ds.dims:
         return ds
     return ds.rename({"row": "slice"}).assign_coords(slice=("slice", range(ds.sizes["row"])))
 
@@ -53,7 +53,7 @@ def _from_format_5(ds: xr.Dataset, kind: CubeKind) -> xr.Dataset:
         attrs = dict(ds.attrs)
         level = attrs.pop("saturation_level")
         ds = ds.drop_attrs(deep=False).assign_attrs({"saturation_counts": level} | attrs)
-    if ds.attrs.get("selpath_kind") not in ("plane_to_ray_transport", "full_transport"):
+    if kind.name not in ("plane_to_ray_transport", "full_transport"):
         return ds
     out = ds.assign_attrs(selpath_note=CLIPPED_MASKED_NOTE)
     meanings = {"converged": "the pixel's solve met its tolerance (clipped frames masked: not censoring-aware)",

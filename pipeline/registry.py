@@ -181,6 +181,8 @@ class StageRegistry:
     def __init__(self, stages: Iterable[Stage] = ()):
         self._stages: dict[str, Stage] = {}
         self._kinds: dict[str, tuple[CubeKind, str]] = {}
+        #: plugins left out because they failed to import (``from_entry_points(skip_broken=True)``): name → why
+        self.broken: dict[str, str] = {}
         for s in stages:
             self.add(s)
 
@@ -230,15 +232,21 @@ class StageRegistry:
         return registry
 
     @classmethod
-    def from_entry_points(cls, group: str = ENTRY_POINT_GROUP) -> StageRegistry:
-        modules = []
+    def from_entry_points(cls, group: str = ENTRY_POINT_GROUP, *, skip_broken: bool = False) -> StageRegistry:
+        """The stages (and their kinds) of every module the entry-point ``group`` names. A module that fails to import
+        is a SelpathError naming it, or with ``skip_broken`` left out and named in :attr:`broken`."""
+        modules, broken = [], {}
         for ep in sorted(entry_points(group=group), key=lambda e: e.name):
             try:
                 modules.append(ep.load())
             except Exception as exc:  # a broken plugin must say which one it is
-                raise SelpathError(f"stage plugin {ep.name!r} ({ep.value}) failed to import: "
-                                   f"{type(exc).__name__}: {exc}") from exc
-        return cls.from_modules(modules)
+                message = f"stage plugin {ep.name!r} ({ep.value}) failed to import: {type(exc).__name__}: {exc}"
+                if not skip_broken:
+                    raise SelpathError(message) from exc
+                broken[ep.name] = message
+        registry = cls.from_modules(modules)
+        registry.broken = broken
+        return registry
 
     def __getitem__(self, name: str) -> Stage:
         return self._stages[name]
@@ -259,11 +267,50 @@ def default_registry() -> StageRegistry:
     return StageRegistry.from_entry_points()
 
 
-def resolve_kind(kind: str | CubeKind, registry: StageRegistry | None = None) -> CubeKind:
+def resolve_kind(kind: str | CubeKind, registry: StageRegistry | None = None, *, module: str | None = None) -> CubeKind:
     """``kind`` itself, or the kind it names: in ``registry`` if that declares it (a workflow's own, a test's), else
-    among the installed ones (:func:`default_registry`); a StoreError names an unknown one."""
+    in ``module`` (a store's ``selpath_kind_module``: imported alone, and only if an installed ``selpath.stages``
+    entry point names it), else among every installed one (:func:`default_registry`; plugins that fail to import are
+    then passed over, and named if the kind is found nowhere). A StoreError names an unknown kind."""
     if isinstance(kind, CubeKind):
         return kind
     if registry is not None and kind in registry.kinds:
         return registry.kind(kind)
-    return default_registry().kind(kind)
+    if module and kind in _kinds_of(module):
+        return _kinds_of(module)[kind]
+    try:
+        return default_registry().kind(kind)
+    except StoreError:
+        raise
+    except SelpathError:  # a plugin failed to import: the others still declare their kinds
+        lenient = _lenient_registry()
+        if kind in lenient.kinds:
+            return lenient.kind(kind)
+        raise StoreError(Problem(f"unknown cube kind {kind!r}: no installed stage package that imports declares it",
+                                 fix="mend the plugins that failed to import: " + "; ".join(lenient.broken.values())
+                                 )) from None
+
+
+@functools.cache
+def _entry_point_packages(group: str = ENTRY_POINT_GROUP) -> frozenset[str]:
+    """The top-level packages of the modules the installed entry points name (``selpath``, a plugin's)."""
+    return frozenset(ep.value.split(":")[0].split(".")[0] for ep in entry_points(group=group))
+
+
+@functools.cache
+def _kinds_of(module: str) -> dict[str, CubeKind]:
+    """The kinds declared in ``module`` (module constants made there), where it lies in a package an installed entry
+    point names (no other module is ever imported from what a store says); empty where it does not, or where it
+    fails to import."""
+    if module.split(".")[0] not in _entry_point_packages():
+        return {}
+    try:
+        found = vars(importlib.import_module(module)).values()
+    except Exception:  # noqa: BLE001 - a broken module: the full registry says why
+        return {}
+    return {k.name: k for k in found if isinstance(k, CubeKind) and k.module == module}
+
+
+@functools.cache
+def _lenient_registry() -> StageRegistry:
+    return StageRegistry.from_entry_points(skip_broken=True)

@@ -331,12 +331,13 @@ def _check_outputs(spec: WorkflowFile, steps: dict[str, Step], located: Located,
     outputs: dict[str, OutputSpec] = {}
     stores: dict[str, str] = {}
     ids = [s.id for s in spec.steps]
+    known = sorted(set(registry.kinds) | set(default_registry().kinds)) if any(
+        out.kind is not None for out in spec.outputs.values()) else []
     for name, out in spec.outputs.items():
         path = ("outputs", name)
         if out.from_ not in ids:
             located.add((*path, "from"), f"output {name!r} comes from unknown step {out.from_!r}",
                         _suggest(out.from_, ids))
-        known = sorted(set(registry.kinds) | set(default_registry().kinds))
         if out.kind is not None and out.kind not in known:
             located.add((*path, "kind"), f"unknown cube kind {out.kind!r}", _suggest(out.kind, known))
         store = out.store if is_url(out.store) else str((base_dir / local_path(out.store)).resolve())

@@ -35,7 +35,7 @@ import zarr
 from dask.base import tokenize
 
 from selpath.pipeline import remote
-from selpath.pipeline.errors import Problem, StoreError
+from selpath.pipeline.errors import Problem, StoreError, environment_fault
 from selpath.pipeline.integrity import (
     CHECKSUMMED_FORMAT,
     WRITTEN_PREFIX,
@@ -43,9 +43,9 @@ from selpath.pipeline.integrity import (
     CheckedArray,
     absent_chunks,
     compressors,
+    drop_chunk_sizes,
     open_group,
     read_manifest,
-    record_chunk_sizes,
     units_problems,
     write_manifest,
     written_frames,
@@ -103,6 +103,9 @@ def _open_raw(path: str | os.PathLike) -> xr.Dataset:
         ds = xr.open_dataset(where, engine="zarr", consolidated=False, decode_timedelta=False, chunks=None,
                              cache=False)
     except Exception as exc:  # zarr/xarray raise many types for a corrupt store; name it, keep the cause
+        fault = environment_fault(exc, "reading the store")  # unreadable to this user: no corruption
+        if fault is not None:
+            raise fault from exc
         raise StoreError(
             Problem(f"cannot be read as a zarr store ({type(exc).__name__}: {exc})", where=where,
                     fix="the store is corrupt or not zarr v3; re-create it or restore it from a backup")
@@ -175,7 +178,8 @@ def open_store(path: str | os.PathLike, kind: str | CubeKind | None = None, *, k
                                  fix="set ds.attrs['selpath_kind'] to the name of its kind (`selpath kinds` lists "
                                  "them), or pass kind="))
     try:
-        spec = resolve_kind(stored_kind if kind is None else kind, registry)
+        spec = resolve_kind(stored_kind if kind is None else kind, registry,
+                            module=raw.attrs.get("selpath_kind_module"))  # where the kind was declared: a hint
     except StoreError as exc:
         raise StoreError([Problem(p.message, where=where, path=p.path, fix=p.fix) for p in exc.problems]) from None
     ds = _migrate(raw, where, spec)
@@ -342,8 +346,7 @@ def create_capture(path: str | os.PathLike, template: xr.Dataset, kind: str | Cu
                 + [Problem("a different sweep is already stored here", where=where,
                            fix="choose another store path, or delete this one to start over")]
             )
-        if any(missing_frames(where).values()):  # frames will be written: their sizes are recorded when complete
-            record_chunk_sizes(where, record=False)
+        drop_chunk_sizes(where)  # frames may be written: the sizes are recorded anew once the capture is complete
         return existing
     flags = {}
     for name, var in template.data_vars.items():
@@ -455,7 +458,7 @@ def forget_frames(path: str | os.PathLike, bad: Iterable[BadChunk]) -> int:
         flags, array = group[f"{WRITTEN_PREFIX}{chunk.variable}"], group[chunk.variable]
         position = tuple(c * s for c, s in zip(chunk.chunk[: flags.ndim], array.chunks, strict=False))
         frames.add((chunk.variable, position))
-    record_chunk_sizes(where, record=False)  # the frames are written again: the sizes are recorded anew after
+    drop_chunk_sizes(where)  # the frames are written again: the sizes are recorded anew once it is complete
     for variable, position in sorted(frames):
         group[f"{WRITTEN_PREFIX}{variable}"][position] = False
     return len(frames)

@@ -24,7 +24,7 @@ from selpath.pipeline.kinds import CubeKind, Variable
 #: every figure stage's result: an RGBA image a workflow output also saves as ``<store>.png``
 FIGURE = CubeKind(
     name="figure",
-    description="a rendered figure (RGBA); a workflow output also saves it as <store>.png",
+    description="a rendered figure (RGBA)",
     variables={"image": Variable(("y", "x", "rgba"), units=None, long_name="RGBA image")},
     png="image",
 )

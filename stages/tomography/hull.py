@@ -302,7 +302,7 @@ def contours(hull: xr.Dataset, slices: xr.DataArray, stage_name: str) -> xr.Data
     Raises a StageError naming the slices the hull lacks, or saying how to read a hull of an earlier layout.
     """
     if "slice" not in hull.dims or "slice" not in hull.indexes:
-        fix = ("open its store with pipeline.open_store, which migrates hulls of formats 1-2 (dim 'row')"
+        fix = ("open its store with selpath.open_store, which migrates hulls of formats 1-2 (dim 'row')"
                if "row" in hull.dims else "compute it with visual_hull")
         raise StageError(Problem(f"{stage_name}: the hull has no slice coordinate (dims {tuple(hull.dims)})",
                                  fix=fix))

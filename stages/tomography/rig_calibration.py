@@ -137,7 +137,8 @@ def _with_axis(camera: Camera, column: float) -> Camera:
 
 def _support_samples(edges, angles_deg, side: float, camera: Camera):
     """(ψ, h) of the finite sub-pixel edges of one side (−1 left, +1 right) over the angles: each tangent's outward
-    normal angle ψ in the object frame and its offset h = H(ψ) (:func:`selpath.stages.tomography.hull.tangent_half_planes`)."""
+    normal angle ψ in the object frame and its offset h = H(ψ)
+    (:func:`selpath.stages.tomography.hull.tangent_half_planes`)."""
     none = np.full_like(edges, np.nan)
     normals, offsets = tangent_half_planes(*((edges, none) if side < 0 else (none, edges)), angles_deg, camera)
     return np.arctan2(normals[:, 1], normals[:, 0]), offsets

@@ -75,14 +75,14 @@ from selpath.stages.tomography.reconstruct import (
 )
 from selpath.stages.tomography.sinogram import bin_index
 
-#: the TV smoothing ε of :func:`selpath.stages.tomography._bundles.smooth_total_variation`, relative to the data's σ scale
-#: (the largest observed absorption over the image's width, the σ a uniform object across the grid would need) [1]
+#: the TV smoothing ε of :func:`selpath.stages.tomography._bundles.smooth_total_variation`, relative to the data's σ
+#: scale (the largest observed absorption over the image's width, the σ a uniform object across the grid would need) [1]
 TV_SMOOTHING = 1e-3
 
-#: bytes per path sample held while fitting, at the peak of building :func:`selpath.stages.tomography._bundles.path_matrix`:
-#: the sample (points, length, owner: 32) and its four (cell, weight) pairs in int32/float64 with the build's
-#: temporaries (~80); the matrix kept is ~2 entries per sample (24). Measured: 15.5 M samples of the scattering
-#: workflow's slice at σ_s = 1, 1.7 GB
+#: bytes per path sample held while fitting, at the peak of building
+#: :func:`selpath.stages.tomography._bundles.path_matrix`: the sample (points, length, owner: 32) and its four
+#: (cell, weight) pairs in int32/float64 with the build's temporaries (~80); the matrix kept is ~2 entries per sample
+#: (24). Measured: 15.5 M samples of the scattering workflow's slice at σ_s = 1, 1.7 GB
 SAMPLE_BYTES = 128
 
 

@@ -39,9 +39,10 @@ def test_a_complete_store_records_the_size_of_every_chunk(tmp_path):
     recorded = read_manifest(store)[CHUNK_BYTES]
     arrays = [p.name for p in store.iterdir() if p.is_dir() and p.name != "_selpath"]
     assert sorted(recorded) == sorted(arrays) and "sigma" in recorded
-    for name in arrays:
-        assert recorded[name] == _sizes_on_disk(store / name), name
-    assert len(recorded["sigma"]) == 9  # (5, 5) cells in 2 × 2 chunks
+    for name in arrays:  # every chunk exists in a complete store: its sizes, in the grid's order
+        assert sorted(recorded[name]) == sorted(_sizes_on_disk(store / name).values()) and min(recorded[name]) > 0
+    assert len(recorded["sigma"]) == 9  # (5, 5) cells in 2 × 2 chunks, row by row
+    assert recorded["sigma"][3] == (store / "sigma" / "c" / "1" / "0").stat().st_size
     assert resized_chunks(store) == []
     shown = runner.invoke(app, ["inspect", str(store)], env=ENV)
     assert shown.exit_code == 0 and "every one has the size it was written with" in shown.output, shown.output
@@ -61,6 +62,18 @@ def test_inspect_names_a_chunk_whose_size_changed_without_verify(tmp_path, damag
     shown = runner.invoke(app, ["inspect", str(store)], env=ENV)
     assert shown.exit_code == 1, shown.output
     assert "1 bad chunk(s)" in shown.output and "sigma chunk (1, 0)" in shown.output, shown.output
+
+
+def test_a_chunk_replaced_by_one_that_decodes_is_found_by_inspect_and_verify(tmp_path):
+    """Another store's chunk (valid zstd + crc32c) in place of one: it decodes, so only its size tells."""
+    ds = minimal("reconstruction")
+    for name, scale in (("r.zarr", 1.0), ("other.zarr", 0.0)):  # zeros: a chunk that compresses to fewer bytes
+        to_store((ds * scale).assign_attrs(ds.attrs).chunk(dict.fromkeys(ds.dims, 2)), tmp_path / name,
+                 "reconstruction")
+    chunk = Path("sigma") / "c" / "0" / "0"
+    (tmp_path / "r.zarr" / chunk).write_bytes((tmp_path / "other.zarr" / chunk).read_bytes())
+    assert [(b.variable, b.chunk) for b in resized_chunks(tmp_path / "r.zarr")] == [("sigma", (0, 0))]
+    assert [(b.variable, b.chunk) for b in verify_store(tmp_path / "r.zarr")] == [("sigma", (0, 0))]
 
 
 def test_a_chunk_changed_in_place_is_found_by_verify_and_inspect_says_it_read_no_contents(tmp_path):

@@ -33,8 +33,12 @@ def _one_line(text: str) -> str:
 def test_the_faults_of_the_environment_are_named_other_errors_are_not():
     fault = environment_fault(PermissionError(errno.EACCES, "Permission denied", "/data/out"), "writing")
     assert isinstance(fault, EnvironmentFault)
-    assert str(fault) == ("/data/out: permission denied while writing (fix: write to a folder you may write to (the "
-                          "output's `store:`, or `--out`), or change the folder's permissions)")
+    assert str(fault) == ("/data/out: permission denied while writing (fix: use a folder you may write to (the "
+                          "workflow's output `store:` paths, or `selpath demo --out`), or change the folder's "
+                          "permissions)")
+    wrapped = RuntimeError("a library's own error")
+    wrapped.__cause__ = OSError(errno.ENOSPC, "No space left on device", "/data/out/x.zarr")
+    assert "no space left on the device" in str(environment_fault(wrapped))  # found through the chain
     long = "x" * 300
     assert "its last part has 300 bytes" in str(environment_fault(OSError(errno.ENAMETOOLONG, "too long", long)))
     assert environment_fault(FileNotFoundError(errno.ENOENT, "gone", "/a")) is None  # could be a bug: not named
@@ -88,7 +92,7 @@ def test_a_read_only_output_folder_is_named_with_the_fix():
         text = _one_line(result.stdout + result.stderr)
         assert result.returncode == 2, text
         assert "permission denied while taking the lock of the output store" in text, text
-        assert "write to a folder you may write to" in text and "bug" not in text
+        assert "use a folder you may write to" in text and "bug" not in text
         assert sorted(p.name for p in base.iterdir()) == ["wf.yaml"]
     finally:
         shutil.rmtree(base, ignore_errors=True)

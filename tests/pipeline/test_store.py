@@ -58,7 +58,8 @@ def test_round_trip_is_identical(tmp_path_factory, data, channel):
     path = tmp_path_factory.mktemp("rt") / "s.zarr"
     to_store(ds, path, "tomography_capture")
     back = open_store(path).load()
-    expected = ds.assign_attrs(selpath_format=FORMAT_VERSION, selpath_kind="tomography_capture")
+    expected = ds.assign_attrs(selpath_format=FORMAT_VERSION, selpath_kind="tomography_capture",
+                               selpath_kind_module="selpath.stages.tomography.acquire")  # where the kind is declared
     xr.testing.assert_identical(back, expected)
 
 
@@ -104,7 +105,8 @@ def test_store_written_by_plain_xarray_opens(tmp_path):
     ds.to_zarr(tmp_path / "plain.zarr", consolidated=False)
     with pytest.warns(IncompleteStoreWarning, match="plain.zarr: no record that writing this store finished"):
         opened = open_store(tmp_path / "plain.zarr").load()
-    expected = ds.assign_attrs(selpath_format=FORMAT_VERSION)  # migrated from format 1 on open
+    # migrated from format 1 on open: labelled as its kind (units, long names, where the kind is declared)
+    expected = ds.assign_attrs(selpath_format=FORMAT_VERSION, selpath_kind_module="selpath.stages.tomography.acquire")
     xr.testing.assert_identical(opened, expected)
     write_manifest(tmp_path / "plain.zarr", ds)
     xr.testing.assert_identical(open_store(tmp_path / "plain.zarr").load(), expected)

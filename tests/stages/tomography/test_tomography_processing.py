@@ -216,7 +216,7 @@ def test_a_hull_of_the_old_layout_opens_and_feeds_every_stage(tmp_path, old_form
                                 reconstruct_tv(sino, hull, max_iter=5).compute())
     for stage in (lambda h: align_paths(absorption(cap), h), lambda h: coverage(sino, h), lambda h: fbp(sino, h)):
         with pytest.raises(StageError, match=r"the hull has no slice coordinate .*fix: open its store with "
-                                             r"pipeline\.open_store, which migrates"):
+                                             r"selpath\.open_store, which migrates"):
             stage(old)
 
 
