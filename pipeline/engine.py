@@ -399,19 +399,18 @@ def _output_kind(workflow: Workflow, name: str, out: OutputSpec, data: xr.Datase
     is still the stage's kind); looked up among the workflow's registry's kinds, then the installed ones."""
     stage = workflow.steps[out.from_].stage
     named, declared = data.attrs.get("selpath_kind"), [k.name for k in stage.kinds]
-    if out.kind is None and named is not None and declared and named not in declared and len(declared) > 1:
-        raise StageError(Problem(f"the result of step {out.from_!r} is a {named!r} cube; its stage {stage.name!r} "
-                                 f"makes {' or '.join(declared)}", path=f"outputs.{name}",
-                                 fix="set `kind:` on the output, or label the result with one of the stage's kinds"))
-    kind = out.kind or (named if named in declared or not declared else None) or (
-        stage.kinds[0] if len(stage.kinds) == 1 else None)
-    if kind is None:
-        declared = ", ".join(k.name for k in stage.kinds)
-        raise StageError(Problem(f"the result of step {out.from_!r} (stage {stage.name!r}) names no cube kind (no "
-                                 "selpath_kind attr" + (f"; its stage may make {declared}" if declared else
-                                                        ", and its stage declares none") + ")",
-                                 path=f"outputs.{name}", fix="set `kind:` on the output, or declare the stage's "
-                                 "kind (@stage(..., kind=...), README: Writing a stage)"))
+    if out.kind is not None:
+        kind = out.kind
+    elif named is not None and (named in declared or not declared):
+        kind = named
+    elif len(declared) == 1:
+        kind = stage.kinds[0]
+    else:
+        what = f"is a {named!r} cube" if named is not None else "names no cube kind (no selpath_kind attr)"
+        makes = f"makes {' or '.join(declared)}" if declared else "declares none"
+        raise StageError(Problem(f"the result of step {out.from_!r} {what}; its stage {stage.name!r} {makes}",
+                                 path=f"outputs.{name}", fix="set `kind:` on the output, or label the result with a "
+                                 "kind its stage declares (@stage(..., kind=...), README: Writing a stage)"))
     try:
         return resolve_kind(kind, workflow.registry)
     except StoreError as exc:

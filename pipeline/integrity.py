@@ -134,10 +134,12 @@ def _set_chunk_record(path: str | os.PathLike, sizes: dict[str, list[int]] | Non
     consolidate(path)
 
 
-def resized_chunks(path: str | os.PathLike, manifest: Mapping[str, Any] | None = None) -> list[BadChunk] | None:
+def resized_chunks(path: str | os.PathLike, manifest: Mapping[str, Any] | None = None,
+                   listed: Mapping[str, np.ndarray] | None = None) -> list[BadChunk] | None:
     """The chunks whose size differs from the one the manifest recorded (truncated, lengthened or replaced since), or
     that are gone; None where the manifest records no sizes (a store of selpath before 0.2, an unfinished capture). One
-    listing; contents are not read (:func:`verify_store` reads them)."""
+    listing (``listed``: the arrays' :func:`chunk_files` a caller already has); contents are not read
+    (:func:`verify_store` reads them)."""
     where = os.fspath(path)
     manifest = read_manifest(where) if manifest is None else manifest
     recorded = (manifest or {}).get(CHUNK_BYTES)
@@ -153,7 +155,8 @@ def resized_chunks(path: str | os.PathLike, manifest: Mapping[str, Any] | None =
         if name not in arrays:
             bad.append(BadChunk(name, None, "missing (the manifest records it; no array of that name reads)"))
             continue
-        now, was = chunk_files(where, name, arrays[name]), np.asarray(sizes, dtype=np.int64)
+        now = listed[name] if listed is not None and name in listed else chunk_files(where, name, arrays[name])
+        was = np.asarray(sizes, dtype=np.int64)
         if now.size != was.size:
             bad.append(BadChunk(name, None, f"its chunk grid has {now.size} chunks, written with {was.size}"))
             continue
@@ -209,25 +212,27 @@ def _arrays(group: zarr.Group) -> Iterable[tuple[str, zarr.Array]]:
             yield name, node
 
 
-def chunk_files(path: str | os.PathLike, name: str, array: zarr.Array) -> np.ndarray:
-    """The size in bytes of each chunk of ``array`` over its chunk grid, −1 where its file (or object) is absent.
+def chunk_files(path: str | os.PathLike, name: str, array: zarr.Array, *, sizes: bool = True) -> np.ndarray:
+    """The size in bytes of each chunk of ``array`` over its chunk grid, −1 where its file (or object) is absent
+    (``sizes=False``: 0 for every present one, no file's size asked for).
 
     One listing of the array's folder (or prefix, on object storage), each file name decoded to its chunk index
     by the array's own chunk key encoding (a store of 1 425 frame bands is one directory walk)."""
     where = os.fspath(path)
-    sizes = np.full(array.cdata_shape, -1, dtype=np.int64)
-    index = {array.metadata.encode_chunk_key(c): c for c in itertools.product(*(range(n) for n in sizes.shape))}
+    out = np.full(array.cdata_shape, -1, dtype=np.int64)
+    index = {array.metadata.encode_chunk_key(c): c for c in itertools.product(*(range(n) for n in out.shape))}
     if remote.is_url(where):  # one listing of the array's prefix
         found = ((key[len(name) + 1:], int(info.get("size", 0))) for key, info in
                  remote.list_objects(where, name).items())
     else:
         folder = Path(remote.local_path(where)) / name
-        found = ((Path(entry.path).relative_to(folder).as_posix(), entry.stat().st_size) for entry in _files(folder))
+        found = ((Path(entry.path).relative_to(folder).as_posix(), entry.stat().st_size if sizes else 0)
+                 for entry in _files(folder))
     for key, size in found:
         coords = index.get(key)
         if coords is not None:
-            sizes[coords] = size
-    return sizes
+            out[coords] = size
+    return out
 
 
 def _files(folder: Path) -> Iterable[os.DirEntry]:
@@ -245,7 +250,7 @@ def _files(folder: Path) -> Iterable[os.DirEntry]:
 
 def present_chunks(path: str | os.PathLike, name: str, array: zarr.Array) -> np.ndarray:
     """Boolean array over ``array``'s chunk grid: True where the chunk's file (or object) exists."""
-    return chunk_files(path, name, array) >= 0
+    return chunk_files(path, name, array, sizes=False) >= 0
 
 
 def written_frames(path: str | os.PathLike, variable: str, flags: np.ndarray) -> np.ndarray:
@@ -253,8 +258,6 @@ def written_frames(path: str | os.PathLike, variable: str, flags: np.ndarray) ->
     group = open_group(path)
     array = group[variable]
     present = present_chunks(path, variable, array)
-    if present is None:
-        return flags
     frame_axes = flags.ndim
     if frame_axes == 0:  # a single frame (the dark frame): written if all its chunks are there
         return flags & present.all()
@@ -272,7 +275,7 @@ def absent_chunks(path: str | os.PathLike, variables: Iterable[str]) -> list[Pro
     for name in variables:
         array = group[name]
         present = present_chunks(path, name, array)
-        if present is None or present.all():
+        if present.all():
             continue
         missing = [tuple(int(i) for i in c) for c in np.argwhere(~present)]
         problems.append(Problem(f"{len(missing)} of {present.size} chunks are missing, first {missing[0]}; they "
@@ -335,11 +338,12 @@ def verify_store(path: str | os.PathLike) -> list[BadChunk]:
                 pass  # checked where present and not expected where absent
     data_vars = {name for name, array in arrays if _is_data(array, flags, name)}
     flagged = {name[len(WRITTEN_PREFIX):] for name, _ in arrays if name.startswith(WRITTEN_PREFIX)}
+    listing: dict[str, np.ndarray] = {}
     for name, array in arrays:
-        present = present_chunks(where, name, array)
-        grid = array.cdata_shape
-        for coords in itertools.product(*(range(n) for n in grid)):
-            if present is not None and not present[coords]:
+        listing[name] = chunk_files(where, name, array)  # one listing: presence here, sizes below
+        present = listing[name] >= 0
+        for coords in itertools.product(*(range(n) for n in array.cdata_shape)):
+            if not present[coords]:
                 if form < CHECKSUMMED_FORMAT:  # format 1 skipped chunks holding only the fill value
                     expected = False
                 elif name in flagged:  # a capture's frames: expected where flagged written
@@ -357,8 +361,9 @@ def verify_store(path: str | os.PathLike) -> list[BadChunk]:
             except Exception as exc:  # noqa: BLE001 - zarr and its codecs raise many types for bad bytes
                 bad.append(BadChunk(name, coords, f"corrupt ({_decode_error(exc)})"))
     # a chunk replaced by another that decodes (another store's) changed its size: the record names it
-    listed = {(chunk.variable, chunk.chunk) for chunk in bad}
-    bad.extend(chunk for chunk in resized_chunks(where, manifest) or () if (chunk.variable, chunk.chunk) not in listed)
+    named = {(chunk.variable, chunk.chunk) for chunk in bad}
+    bad.extend(chunk for chunk in resized_chunks(where, manifest, listing) or () if (chunk.variable, chunk.chunk)
+               not in named)
     return bad
 
 

@@ -8,6 +8,9 @@ import os
 import shutil
 import stat
 import tarfile
+import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -244,9 +247,27 @@ def _unprivileged() -> list[str] | None:
     if os.geteuid() != 0 or setpriv is None:
         return None
     prefix = [setpriv, "--reuid=65534", "--regid=65534", "--clear-groups"]
-    probe = subprocess.run([*prefix, sys.executable, "-c", "import selpath.pipeline.cli, selpath.stages"], capture_output=True,
-                           cwd="/", env={"HOME": "/tmp", "PATH": os.environ.get("PATH", "")})
+    probe = subprocess.run([*prefix, sys.executable, "-c", "import selpath.pipeline.cli, selpath.stages"],
+                           capture_output=True, cwd="/", env={"HOME": "/tmp", "PATH": os.environ.get("PATH", "")})
     return prefix if probe.returncode == 0 else None
+
+
+@contextmanager
+def unprivileged_folder() -> Iterator[tuple[list[str], Path]]:
+    """(the command prefix that runs as uid 65534, a fresh root-owned folder under /tmp it may read); skips the test
+    where that cannot be; the folder goes afterwards, whatever modes the test gave its contents."""
+    prefix = _unprivileged()
+    if prefix is None:
+        pytest.skip("needs root, setpriv, and a Python that uid 65534 may run (.ci/run makes its venv so)")
+    base = Path(tempfile.mkdtemp(dir="/tmp", prefix="selpath-ro-"))
+    try:
+        base.chmod(0o755)
+        yield prefix, base
+    finally:
+        for path in [base, *base.rglob("*")]:
+            if path.is_dir():
+                path.chmod(0o755)
+        shutil.rmtree(base, ignore_errors=True)
 
 
 def test_a_user_without_write_permission_reprocesses_a_read_only_archive(archive, tmp_path_factory):
@@ -256,14 +277,8 @@ def test_a_user_without_write_permission_reprocesses_a_read_only_archive(archive
     byte-for-byte and time-for-time unchanged."""
     import subprocess
     import sys
-    import tempfile
 
-    prefix = _unprivileged()
-    if prefix is None:
-        pytest.skip("needs root, setpriv, and a Python that uid 65534 may run (.ci/run makes its venv so)")
-    base = Path(tempfile.mkdtemp(dir="/tmp", prefix="selpath-ro-"))
-    try:
-        base.chmod(0o755)
+    with unprivileged_folder() as (prefix, base):
         shutil.copytree(archive / "out", base / "archive" / "out")
         shutil.copytree(archive / "archive", base / "archive" / "archive")
         store = base / "archive"
@@ -284,8 +299,3 @@ def test_a_user_without_write_permission_reprocesses_a_read_only_archive(archive
         assert (work / "results" / "again.zarr").is_dir() and (work / "results" / "foreign.zarr").is_dir()
         assert (work / "results" / "again.zarr").stat().st_uid == 65534
         assert _files(store) == before
-    finally:
-        for path in [base, *base.rglob("*")]:
-            if path.is_dir():
-                path.chmod(0o755)
-        shutil.rmtree(base, ignore_errors=True)

@@ -6,11 +6,8 @@ from __future__ import annotations
 
 import errno
 import os
-import shutil
 import subprocess
 import sys
-import tempfile
-from pathlib import Path
 
 import dask
 import pytest
@@ -20,7 +17,7 @@ from selpath.pipeline import EnvironmentFault, SpecError, load_workflow
 from selpath.pipeline.cli import app
 from selpath.pipeline.errors import environment_fault
 from tests.conftest import SMALL_WORKFLOW
-from tests.pipeline.test_archives import _unprivileged
+from tests.pipeline.test_archives import unprivileged_folder
 
 runner = CliRunner()
 ENV = {"COLUMNS": "200"}
@@ -78,12 +75,7 @@ def test_an_output_naming_a_folder_of_the_users_files_says_so(tmp_path):
 
 def test_a_read_only_output_folder_is_named_with_the_fix():
     """As an unprivileged user (uid 65534, no capabilities: root's chmod is no test), in a folder owned by root."""
-    prefix = _unprivileged()
-    if prefix is None:
-        pytest.skip("needs root, setpriv, and a Python that uid 65534 may run (.ci/run makes its venv so)")
-    base = Path(tempfile.mkdtemp(dir="/tmp", prefix="selpath-ro-"))
-    try:
-        base.chmod(0o755)
+    with unprivileged_folder() as (prefix, base):
         (base / "wf.yaml").write_text(SMALL_WORKFLOW)
         result = subprocess.run([*prefix, sys.executable, "-m", "selpath", "run", "wf.yaml", "--no-progress"],
                                 cwd=base, capture_output=True, text=True, timeout=240,
@@ -94,5 +86,3 @@ def test_a_read_only_output_folder_is_named_with_the_fix():
         assert "permission denied while taking the lock of the output store" in text, text
         assert "use a folder you may write to" in text and "bug" not in text
         assert sorted(p.name for p in base.iterdir()) == ["wf.yaml"]
-    finally:
-        shutil.rmtree(base, ignore_errors=True)

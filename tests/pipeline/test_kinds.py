@@ -137,3 +137,19 @@ def test_a_hint_naming_a_module_outside_the_installed_packages_is_never_imported
     zarr.open_group(store, mode="r+").attrs["selpath_kind_module"] = "antigravity"  # would open a browser
     ds = open_store(store)  # found among the installed kinds instead
     assert ds.attrs["selpath_kind"] == "absorption" and "antigravity" not in sys.modules
+
+
+def test_a_result_that_names_no_kind_from_a_stage_that_declares_none_is_refused_with_the_fix(small_workflow, tmp_path):
+    @stage("bare")
+    def bare(capture: xr.Dataset, /) -> xr.Dataset:
+        return capture[["target"]].drop_attrs(deep=False)
+
+    registry = StageRegistry([*default_registry(), bare.__selpath_stage__])
+    path = tmp_path / "bare.yaml"
+    path.write_text(small_workflow.read_text().replace(
+        "outputs:", "  - {id: plain, stage: bare, with: {capture: $capture}}\noutputs:")
+        + "  plain: {from: plain, store: out/plain.zarr}\n")
+    with pytest.raises(StageError, match=r"outputs.plain: the result of step 'plain' names no cube kind \(no "
+                                         r"selpath_kind attr\); its stage 'bare' declares none .*set `kind:` on the"):
+        run_workflow(load_workflow(path, registry), progress=False)
+    assert not (tmp_path / "out" / "plain.zarr").exists()
