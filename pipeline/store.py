@@ -250,8 +250,10 @@ def _writable(ds: xr.Dataset) -> xr.Dataset:
     ds = _portable_strings(ds.copy())
     for name, var in ds.variables.items():
         ds[name].encoding = {"compressors": compressors()} if var.dtype.kind in "fiub" else {}
-    if not ds.chunks:
+    if not any(var.chunks for var in ds.variables.values()):
         return ds
+    # variables cut differently along a dim (a result beside its input's flags) get one cut: zarr needs it, and
+    # Dataset.chunks refuses to answer until they do
     ds = ds.unify_chunks()
     regular = {}
     for dim, chunks in ds.chunks.items():

@@ -17,7 +17,13 @@ What a notebook needs is here::
     report = selpath.run("my-workflows/tomography-sim.yaml")       # a workflow from Python
     selpath.to_store(dataset, "mine.zarr", "absorption")           # any cube as a checked, complete store
 
-and for a plugin, :func:`stage` with :class:`CubeKind` and :class:`Variable` (README, "Writing a stage").
+and, on every store's Dataset and its variables, the ``.selpath`` accessor (:mod:`selpath.explore.accessor`)::
+
+    transport = selpath.open_store("selpath-demo/transport.zarr")
+    transport.selpath.profile(x=0.5, y=0.4)                        # T over offset, with sync delay [µs]
+    transport.selpath.relight(line=360).selpath.plot()             # the scene under one projector row
+
+For a plugin, :func:`stage` with :class:`CubeKind` and :class:`Variable` (README, "Writing a stage").
 """
 
 from __future__ import annotations
@@ -25,6 +31,7 @@ from __future__ import annotations
 import os
 from importlib.metadata import PackageNotFoundError, version
 
+import selpath.explore.accessor  # noqa: F401  (registers the .selpath accessor on xarray objects)
 from selpath.pipeline.engine import RunReport, run_workflow
 from selpath.pipeline.errors import (
     ConfigError,

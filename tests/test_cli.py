@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+import selpath
 from selpath.pipeline import FORMAT_VERSION
 from selpath.pipeline.cli import app
 
@@ -100,6 +102,16 @@ def test_demo_acquires_on_the_simulated_rig_into_its_own_folder(tmp_path):
     _every_store_carries_its_kinds_metadata(out)
     for report in ("report.html", "procam-report.html"):
         _every_figure_loads(out / report)
+    _the_readmes_accessor_tour_runs_on_the_demo(out)
+
+
+def _the_readmes_accessor_tour_runs_on_the_demo(out):
+    """The README's ``.selpath`` block, as a user pastes it, on the demo's stores (its paths made the test's)."""
+    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    block = text.split("DataArray (`selpath.explore.accessor`")[1].split("```python")[1].split("```")[0]
+    namespace = {"selpath": selpath}
+    exec(block.replace("selpath-demo/", f"{out}/"), namespace)  # the README's own code
+    assert namespace["p"].attrs["units"] == "counts" and namespace["p"]["sync_delay"].attrs["units"] == "us"
 
 
 def _every_figure_loads(page):

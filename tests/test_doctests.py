@@ -10,12 +10,12 @@ import pkgutil
 import pytest
 
 import selpath
-from selpath import devices, pipeline, stages, workflows
+from selpath import devices, explore, pipeline, stages, workflows
 
 
 def modules() -> list[str]:
     names = ["selpath"]
-    for package in (pipeline, stages, devices, workflows):
+    for package in (pipeline, stages, devices, workflows, explore):
         names.append(package.__name__)
         names += [m.name for m in pkgutil.walk_packages(package.__path__, f"{package.__name__}.")]
     return sorted(n for n in names if not n.endswith("__main__"))
@@ -24,7 +24,7 @@ def modules() -> list[str]:
 def test_the_walk_finds_every_part():
     found = modules()
     assert {"selpath.pipeline.registry", "selpath.stages.tomography.sinogram", "selpath.devices.sim.scene",
-            "selpath.workflows"} <= set(found)
+            "selpath.workflows", "selpath.explore.accessor"} <= set(found)
     assert selpath.__name__ == "selpath"
 
 

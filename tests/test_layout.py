@@ -1,6 +1,7 @@
 """The layout of DESIGN §1, read from the source with ast (an import inside a function, or under TYPE_CHECKING,
 counts too): one namespace, ``selpath``, whose parts are the top-level folders; pipeline is the floor (imports
-neither stages nor devices), devices never depend on stages, the two instruments' stages never import each other
+neither stages nor devices), devices never depend on stages, explore (the accessor and the explorer) sits on top
+and nothing below imports it, the two instruments' stages never import each other
 (what both need lives in stages/_*.py and stages/io.py), and no modules import each other in a loop."""
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 #: folder → the package it installs as (pyproject.toml's package-dir)
 PARTS = {"selpath": "selpath", "pipeline": "selpath.pipeline", "stages": "selpath.stages",
-         "devices": "selpath.devices", "workflows": "selpath.workflows"}
+         "devices": "selpath.devices", "workflows": "selpath.workflows", "explore": "selpath.explore"}
 BARE = ("pipeline", "stages", "devices", "workflows")
 
 
@@ -93,8 +94,9 @@ def cycles(edges: dict[str, set[str]]) -> list[list[str]]:
 
 
 @pytest.mark.parametrize(("package", "forbidden"), [
-    ("pipeline", ("selpath.stages", "selpath.devices")),
-    ("devices", ("selpath.stages",)),
+    ("pipeline", ("selpath.stages", "selpath.devices", "selpath.explore")),
+    ("devices", ("selpath.stages", "selpath.explore")),
+    ("stages", ("selpath.explore",)),
     ("stages/tomography", ("selpath.stages.procam",)),
     ("stages/procam", ("selpath.stages.tomography",)),
 ])

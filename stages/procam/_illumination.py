@@ -58,6 +58,17 @@ def plane_to_ray_illumination(delays, exposures, offsets, *, scan_speed: float, 
     return out
 
 
+def offset_delay(offsets, *, scan_speed: float, sync_offset: float = 0.0) -> np.ndarray:
+    """The sync delay t_d [µs] at which offset o's light is centred in the exposure: t_d = o / v_p − t_o (the box
+    of Eq. 33 centred on o; ``scan_speed`` v_p [rows per µs], ``sync_offset`` t_o [µs]). A frame at t_d with
+    exposure t_e sees the offsets within v_p·(t_e + t_p)/2 of v_p·(t_d + t_o).
+
+    >>> offset_delay([-10, 0, 10], scan_speed=1 / 17, sync_offset=5.0).tolist()
+    [-175.0, -5.0, 165.0]
+    """
+    return np.asarray(offsets, dtype=float) / scan_speed - sync_offset
+
+
 def epipolar_boundary(delays, exposures, *, sync_offset: float = 0.0, margin: float) -> np.ndarray:
     """True for frames whose exposure edge passes within ``margin`` [µs] of the epipolar row (t_d ≈ ±t_e/2).
 

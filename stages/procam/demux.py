@@ -36,6 +36,7 @@ from selpath.stages.procam._demux_store import (
     sweep_illumination,
     transport_attrs,
     transport_template,
+    with_sync_delay,
 )
 
 
@@ -187,6 +188,7 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
     out = xr.map_blocks(_band, stack.assign_attrs({}), kwargs={
         "solver": solver, "problem": problem, "keep": keep, "levels": levels}, template=template)
     out = out.assign_coords(offset=("offset", grid, {"units": "px", "long_name": "projector row − camera row"}))
+    out = with_sync_delay(out, "offset", timing)
     out = describe_transport(out, int(keep.sum()), PLANE_TO_RAY_TRANSPORT, gap_tol)
     return out.assign_attrs(transport_attrs(
         capture, timing=timing, delays=delays, exposures=exposures, keep=keep, margin=margin,

@@ -30,6 +30,7 @@ from selpath.stages.procam._demux_store import (
     sweep_illumination,
     transport_attrs,
     transport_template,
+    with_sync_delay,
 )
 from selpath.stages.procam._illumination import line_cells, line_illumination
 
@@ -169,6 +170,7 @@ def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, 
     out = out.assign_coords(
         du=("du", np.arange(-reach, reach + 1) * step, {"units": "px", "long_name": "projector column − u₀"}),
         dv=("dv", grid, {"units": "px", "long_name": "projector row − camera row"}))
+    out = with_sync_delay(out, "dv", timing)
     out["transport"].attrs = {"description": f"light from a {step:g}-column u-cell; NaN where no line reached"}
     out = describe_transport(out, int(keep.sum()) * capture.sizes["line"], FULL_TRANSPORT, gap_tol)
     return out.assign_attrs(transport_attrs(

@@ -152,7 +152,7 @@ def _grid(count: int) -> tuple[int, int]:
     return int(np.ceil(count / cols)), cols
 
 
-def _draw_relit(images: list[np.ndarray], titles: list[str], size: tuple[float, float], extra=None,
+def draw_relit(images: list[np.ndarray], titles: list[str], size: tuple[float, float], extra=None,
                 gamma: float = 1.0, censored: np.ndarray | None = None) -> np.ndarray:
     """Images on one colour scale (0 to the last image's, white's, 99.5th percentile; a power law ``gamma``)
     with one colour bar; ``extra(ax, images)`` draws into one more panel after them; ``censored`` pixels
@@ -239,7 +239,7 @@ def relighting_figure(transport: xr.Dataset, /, *, lines: tuple[Fraction, ...] =
     def render(*arrays):
         mask = np.asarray(arrays[-1]) if censored is not None else None
         images = arrays[:-1] if censored is not None else arrays
-        return _draw_relit([np.asarray(a, dtype=float) for a in images], titles, size, profiles, gamma=0.5,
+        return draw_relit([np.asarray(a, dtype=float) for a in images], titles, size, profiles, gamma=0.5,
                            censored=mask)
 
     return as_figure(render, *images, *([censored] if censored is not None else []), caption=caption, size=size)
@@ -429,7 +429,7 @@ def relighting_full_figure(transport: xr.Dataset, /, *, square_px: Count | None 
     censored = censored_of(transport)
 
     def render(checkerboard, complement, white, *mask):
-        return _draw_relit([np.asarray(a) for a in (checkerboard, complement, white)], titles, CHECKERBOARD_SIZE,
+        return draw_relit([np.asarray(a) for a in (checkerboard, complement, white)], titles, CHECKERBOARD_SIZE,
                            censored=np.asarray(mask[0]) if mask else None)
 
     return as_figure(render, *(relit[name].data for name in ("checkerboard", "complement", "white")),

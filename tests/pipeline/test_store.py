@@ -98,6 +98,18 @@ def test_numeric_data_are_written_with_fast_zstd_and_a_checksum(tmp_path):
                                                                                         ("Crc32cCodec", None)]
 
 
+def test_variables_cut_differently_along_a_dim_are_written_with_one_cut(tmp_path):
+    """A result beside its input's flags (a stage's image in bands of 3 rows, a map read in one chunk): the store
+    takes one chunking (Dataset.chunks refuses to answer otherwise) and reads back equal (#55's crash)."""
+    ds = capture(rows=7)
+    ds["target"] = ds["target"].chunk({"row": 3})
+    ds["reference"] = ds["reference"].chunk({"row": 7})
+    to_store(ds, tmp_path / "s.zarr", "tomography_capture")
+    back = open_store(tmp_path / "s.zarr")
+    xr.testing.assert_equal(back["target"].compute(), capture(rows=7)["target"])
+    assert back["target"].chunks == back["reference"].chunks
+
+
 def test_store_written_by_plain_xarray_opens(tmp_path):
     """The documented format is enough: no selpath writer involved. Without a manifest nothing says the writing
     finished, so opening warns; write_manifest (what to_store does last) records it."""

@@ -71,6 +71,11 @@ def test_round_trip_reproduces_the_images(noise_free):
     assert error <= 1e-2, error
     assert transport["transport"].min() >= 0 and np.isfinite(transport["transport"]).all()
     assert transport["converged"].mean() >= 0.99
+    # the offsets' sync delays, o / v_p − t_o by hand (17 µs a row, t_o = 0), and the frames an ideal rig records
+    np.testing.assert_allclose(transport["sync_delay"].values, transport["offset"].values * 17.0)
+    assert transport["sync_delay"].attrs["units"] == "us"
+    frame = transport.selpath.ideal_frame(float(capture["delay"][3]), float(capture["exposure"][1]))
+    np.testing.assert_allclose(frame.values, forward(transport, capture)[3, 1], rtol=1e-9)
 
 
 def test_gap_tol_is_a_stage_setting_and_a_certified_pixel_is_converged():

@@ -251,3 +251,21 @@ def test_relighting_snr_renders_the_same_board_and_measures_the_error_on_lit_pix
     assert study.attrs["square_px"] == 8 and float(study["snr_db"].min()) > 10.0
     with pytest.raises(StageError, match="would split cells"):
         full_relighting_snr(capture.assign_attrs(simulated_scene=s.model_dump(mode="json")), out, square_px=3)
+
+
+def test_the_accessor_relights_full_transport_and_its_dv_carries_the_sync_delay(noise_free):
+    """The ``.selpath`` accessor on a full transport: any 2-D pattern (relight_full's), a row pattern lighting every
+    projector column, the epipolar image of T summed over du, the 2-D profile; dv's sync delay o / v_p − t_o."""
+    s, _, out = noise_free
+    columns = 0.5 + 0.5 * np.cos(2 * np.pi * np.arange(24) / 24)
+    rows = ((np.arange(16) >= 4) & (np.arange(16) < 12)).astype(float)
+    pattern = np.outer(rows, columns)
+    np.testing.assert_allclose(out.selpath.relight(pattern).values, relight_full(out, pattern).values)
+    np.testing.assert_allclose(out.selpath.relight(rows=range(4, 12)).values,
+                               relight_full(out, np.repeat(rows[:, None], 24, axis=1)).values)
+    np.testing.assert_allclose(out.selpath.epipolar().values,
+                               out["transport"].sum("du").sel(dv=0).values, rtol=1e-6)
+    profile = out.selpath.profile(row=8, col=12)
+    assert profile.dims == ("du", "dv") and profile["sync_delay"].dims == ("dv",)
+    np.testing.assert_allclose(out["sync_delay"].values, out["dv"].values / s.rig.scan_speed - s.rig.sync_offset)
+    assert out["sync_delay"].attrs["units"] == "us"
