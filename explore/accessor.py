@@ -22,11 +22,9 @@ from __future__ import annotations
 import numpy as np
 import xarray as xr
 
-from selpath.explore import plots
+from selpath.stages._common import pixel_at
 from selpath.stages.procam._illumination import offset_delay
-from selpath.stages.procam.figures import pixel_at
 from selpath.stages.procam.relight import epipolar_image, ideal_frame, labelled, non_epipolar_image, relight_pattern
-from selpath.stages.procam.virtual import Pattern
 
 #: the variable each kind is about, where a method needs one and none is named
 MAIN = {"plane_to_ray_transport": "transport", "full_transport": "transport", "plane_to_ray_capture": "image",
@@ -109,6 +107,8 @@ class _Common:
     def plot(self, variable: str | None = None, **kwargs):
         """A matplotlib figure of the cube (an image, a profile, a sinogram with its unobserved bins, flags with a
         categorical key): :func:`selpath.explore.plots.plot`."""
+        from selpath.explore import plots  # matplotlib, when a figure is asked for
+
         obj = self._obj
         if isinstance(obj, xr.Dataset) and self.kind == "sinogram" and variable is None:
             return plots.sinogram(obj, **kwargs)
@@ -217,6 +217,8 @@ class SelpathDataset(_Common):
         if sum(given) != 1:
             raise ValueError("give exactly one of pattern, line or rows")
         if pattern is None:
+            from selpath.stages.procam.virtual import Pattern  # the stage's rule for rows lit
+
             pattern = Pattern(rows=(line,) if line is not None else tuple(int(r) for r in rows)).array(n_rows)
         return relight_pattern(self._obj, pattern, projector_rows=None if space == "camera" else n_rows)
 

@@ -7,15 +7,36 @@ Jupyter displays a returned figure inline.
 
 from __future__ import annotations
 
+import io
 import textwrap
 
 import numpy as np
 import xarray as xr
 from matplotlib import colormaps
+from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import ListedColormap
+from matplotlib.figure import Figure
 from matplotlib.patches import Patch
 
-from selpath.stages._figures import panels
+from selpath.stages._figures import DPI
+
+
+class NotebookFigure(Figure):
+    """A matplotlib figure that Jupyter shows as a PNG whether or not pyplot's inline backend is on (these figures
+    never pass through pyplot)."""
+
+    def _repr_png_(self) -> bytes:
+        buffer = io.BytesIO()
+        self.savefig(buffer, format="png")
+        return buffer.getvalue()
+
+
+def panels(*args, size: tuple[float, float], **kwargs):
+    """A new figure of ``size`` inches with its own Agg canvas, and its axes: ``Figure.subplots(*args, **kwargs)``."""
+    figure = NotebookFigure(figsize=size, dpi=DPI, layout="constrained")
+    FigureCanvasAgg(figure)
+    return figure, figure.subplots(*args, **kwargs)
+
 
 #: a flag map's two colours: False, True
 FLAG_COLOURS = ("0.85", "tab:red")
@@ -58,24 +79,32 @@ def _axis_label(da: xr.DataArray, dim: str) -> str:
     return label(da[dim], dim) if dim in da.coords else f"{dim} [px]"
 
 
-def image(da: xr.DataArray, *, cmap: str = "gray", size=(6.0, 4.5), **imshow):
+def image(da: xr.DataArray, *, cmap: str = "gray", size=(6.0, 4.5), centre: bool = False, **imshow):
     """A 2-D variable as an image with a colour bar naming it; a boolean one (a flag map) with a categorical key
-    instead (its two values, no colour scale)."""
+    instead (its two values, no colour scale). Camera frames (row, col) and sinograms (θ, X) are drawn with their
+    first row at the top, lab sections (y, x) with y increasing upward (as the reconstruction figures draw them).
+    ``centre``: a colour scale symmetric about 0 (an error map, with a diverging ``cmap``)."""
     dims = _frame_dims(da) or tuple(da.dims)
     da = da.transpose(*dims)
     fig, ax = panels(1, 1, size=size)
     values = np.asarray(da.values)
     extent = _extent(da, dims)
+    origin = "lower" if dims == ("y", "x") else "upper"
+    if extent is not None and origin == "lower":
+        extent = [extent[0], extent[1], extent[3], extent[2]]
+    placed = {"extent": extent, "origin": origin, "aspect": "auto" if extent and dims != ("y", "x") else None,
+              "interpolation": "nearest"}
     if values.dtype == bool:
-        ax.imshow(values.astype(int), cmap=ListedColormap(FLAG_COLOURS), vmin=0, vmax=1, interpolation="nearest",
-                  extent=extent, aspect="auto" if extent else None)
+        ax.imshow(values.astype(int), cmap=ListedColormap(FLAG_COLOURS), vmin=0, vmax=1, **placed)
         name = da.name or da.attrs.get("long_name", "flag")
         ax.legend(handles=[Patch(color=FLAG_COLOURS[1], label=f"{name}: yes ({int(values.sum())} px)"),
                            Patch(color=FLAG_COLOURS[0], label=f"no ({int((~values).sum())} px)")],
                   fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.12), ncols=2, frameon=False)
     else:
-        shown = ax.imshow(values, cmap=cmap, interpolation="nearest", extent=extent,
-                          aspect="auto" if extent else None, **imshow)
+        if centre:
+            top = float(np.nanmax(np.abs(values))) if np.isfinite(values).any() else 1.0
+            imshow = {"vmin": -top, "vmax": top, **imshow}
+        shown = ax.imshow(values, cmap=cmap, **placed, **imshow)
         fig.colorbar(shown, ax=ax, label=label(da, "value"))
     ax.set(xlabel=_axis_label(da, dims[1]), ylabel=_axis_label(da, dims[0]))
     ax.set_title(title(da), fontsize=9)

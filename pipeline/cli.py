@@ -94,7 +94,7 @@ def _fail(exc: SelpathError) -> None:
 
 
 @contextmanager
-def _guard() -> Iterator[None]:
+def guard() -> Iterator[None]:
     """Every error reaches the user as one message, never a traceback (SELPATH_DEBUG=1 shows it)."""
     try:
         yield
@@ -174,12 +174,12 @@ def run(
         _fail(SelpathError(f"{file} is a shipped workflow, not a file here: copy it to run it where its stores "
                            f"should land (`selpath workflows --copy DIR`, then `selpath run DIR/{file.name}.yaml`), "
                            "or run the demo (`selpath demo`)"))
-    with _guard():
+    with guard():
         workflow = load_workflow(file)
         result = run_workflow(workflow, scheduler=scheduler, progress=progress, reuse=not force,
                               verify=verify, log=console.print)
     _print_report(result)
-    with _guard():
+    with guard():
         summary, tables = _print_results(workflow)
         if report:
             _write_report(workflow, result, summary, tables)
@@ -211,7 +211,7 @@ def workflows(
             console.print(f"{name}  {escape(str(shipped.path(name)))}{after}")
         console.print("(read-only where selpath is installed: `selpath workflows --copy DIR` to run or edit them)")
         return
-    with _guard():
+    with guard():
         if copy.exists() and not copy.is_dir():
             _fail(SelpathError(f"{copy} is a file; --copy needs a folder (absent or empty of the shipped files)"))
         copy.mkdir(parents=True, exist_ok=True)
@@ -229,7 +229,7 @@ def workflows(
 def validate(file: Annotated[Path, typer.Argument(help="workflow YAML file", metavar="FILE",
                                                  show_default=False)]) -> None:
     """Check a workflow without running it; lists every problem with file:line and the fix."""
-    with _guard():
+    with guard():
         workflow = load_workflow(file)
     steps = len(workflow.steps)
     console.print(f"[green]ok[/]: {escape(workflow.name)}: {steps} step{'s' if steps != 1 else ''}, outputs "
@@ -249,7 +249,7 @@ def import_(spec: Annotated[Path, typer.Argument(help="import spec (YAML): kind,
     """
     from selpath.pipeline.store import to_store
 
-    with _guard():
+    with guard():
         if store.exists():
             raise StoreError(Problem("exists; selpath import writes a new store and never replaces one",
                                      where=str(store), fix="choose another path, or delete that store yourself"))
@@ -268,7 +268,7 @@ def stages(
     all_: Annotated[bool, _flag("all", "show every stage in full")] = False,
 ) -> None:
     """List the registered stages, one line each; NAME (or --all) shows inputs, settings, defaults, units and docs."""
-    with _guard():
+    with guard():
         registry = default_registry()
     if name and name not in registry:
         errors.print(f"[bold red]error:[/] unknown stage {escape(repr(name))}; known: {', '.join(registry.names())}")
@@ -316,7 +316,7 @@ def kinds(
 ) -> None:
     """List the cube kinds the installed stages make (selpath's and plugins'), one line each; NAME shows its
     variables with dims and units, its coordinates' units and its required attrs."""
-    with _guard():
+    with guard():
         registry = default_registry()
     known = registry.kinds
     if markdown:
@@ -402,7 +402,7 @@ def inspect(
     if store.is_dir() and not (store / "zarr.json").exists():
         _print_archive(store)
         return
-    with _guard(), warnings.catch_warnings(record=True) as caught:
+    with guard(), warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
             ds = open_store(store, keep_flags=True)
@@ -418,7 +418,7 @@ def inspect(
         bad = verify_store(store) if verify else resized or []
         provenance = read_provenance(store)
         complete = is_complete(store) or bool(missing)
-    with _guard(), np.errstate(all="ignore"):
+    with guard(), np.errstate(all="ignore"):
         _describe_store(store, ds.drop_vars([v for v in ds.data_vars if str(v).startswith("written__")]), valid,
                         readable=not bad)
     incomplete = not complete
@@ -524,7 +524,7 @@ def _print_bad(bad: list, recapture_store: Path | bool, how: str = "verify") -> 
     for chunk in bad:
         console.print(f"  {escape(str(chunk))}")
     if bad and recapture_store:
-        with _guard(), store_lock(recapture_store, purpose="inspect --recapture"):
+        with guard(), store_lock(recapture_store, purpose="inspect --recapture"):
             frames = forget_frames(recapture_store, bad)
         console.print(f"marked {frames} frame(s) as not captured: run the acquisition again to capture them")
 
@@ -544,7 +544,7 @@ def demo(
     names = list(shipped.DEMO) if instrument == "all" else [instrument]
     if any(name not in shipped.DEMO for name in names):
         _fail(SelpathError(f"unknown instrument {instrument!r}: choose {', '.join(shipped.DEMO)} or all"))
-    with _guard():
+    with guard():
         for name in names:
             workflow = load_workflow(shipped.path(shipped.DEMO[name])).rerooted(out)
             result = run_workflow(workflow, scheduler=scheduler, log=console.print)
@@ -552,7 +552,28 @@ def demo(
             _write_report(workflow, result, *_print_results(workflow))
 
 
+def add_commands() -> None:
+    """The commands other packages add: each entry point of the ``selpath.commands`` group names a typer command
+    function (selpath's own ``explore`` comes this way, so this layer never imports the one above it). A command
+    that fails to load is left out with a warning; the others still run."""
+    from importlib.metadata import entry_points
+
+    known = {c.name or c.callback.__name__ for c in app.registered_commands}
+    for point in entry_points(group="selpath.commands"):
+        if point.name in known:
+            continue
+        try:
+            function = point.load()
+        except Exception as exc:  # noqa: BLE001 - a broken plugin must not break the command line
+            errors.print(f"[yellow]warning:[/] command {point.name!r} ({point.value}) did not load: "
+                         f"{escape(f'{type(exc).__name__}: {exc}')}", highlight=False)
+            continue
+        app.command(name=point.name, cls=_Command)(function)
+        known.add(point.name)
+
+
 def main() -> None:
+    add_commands()
     app()
 
 

@@ -15,6 +15,7 @@ import numpy as np
 import pydantic
 import xarray as xr
 
+from selpath.pipeline.constraints import Fraction
 from selpath.pipeline.errors import Problem, SelpathError, StageError
 
 #: the float precision of a solver's arithmetic (a stage setting)
@@ -99,3 +100,15 @@ def sorted_sweep(ds: xr.Dataset, dim: str, stage_name: str) -> xr.Dataset:
                       UnsortedSweepWarning, stacklevel=3)
         ds = ds.sortby(dim)
     return ds
+
+
+#: named pixels, name → [x, y] in image fractions, each in [0, 1]; at least one
+Pixels = Annotated[dict[str, tuple[Fraction, Fraction]], pydantic.Field(min_length=1)]
+
+
+def pixel_at(ds: xr.Dataset, where: tuple[float, float]) -> tuple[int, int]:
+    """The (row, col) of the pixel at image fractions ``where`` = [x, y] of ``ds``'s frame."""
+    x, y = where
+    if not (0 <= x <= 1 and 0 <= y <= 1):
+        raise StageError(Problem(f"pixel {where} is not in image fractions [0, 1]", fix="give [x, y] fractions"))
+    return (min(int(y * ds.sizes["row"]), ds.sizes["row"] - 1), min(int(x * ds.sizes["col"]), ds.sizes["col"] - 1))

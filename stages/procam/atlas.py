@@ -24,8 +24,7 @@ from selpath.pipeline.constraints import Fraction
 from selpath.pipeline.errors import Problem, StageError
 from selpath.pipeline.kinds import PX_UNITS, CubeKind, Variable
 from selpath.pipeline.registry import stage
-from selpath.stages._common import require_variables
-from selpath.stages.procam.figures import Pixels, pixel_at
+from selpath.stages._common import Pixels, pixel_at, require_variables
 
 
 def extent(profile: xr.DataArray, floor: float) -> xr.DataArray:

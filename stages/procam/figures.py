@@ -9,32 +9,20 @@ Each renders lazily into a ``figure`` cube (RGBA), saved by the engine as ``<sto
 from __future__ import annotations
 
 import textwrap
-from typing import Annotated
 
 import numpy as np
-import pydantic
 import xarray as xr
 from matplotlib.colors import Normalize, PowerNorm
 
 from selpath.pipeline.constraints import Count, Fraction, Index, Positive
 from selpath.pipeline.errors import Problem, StageError
 from selpath.pipeline.registry import stage
+from selpath.stages._common import Pixels, pixel_at
 from selpath.stages._figures import FIGURE, as_figure, image_colorbar, panels, pixel_axes, rgba, shared_colorbar
 from selpath.stages.procam.relight import checkerboard_relight, epipolar_image, relight
 
-#: named pixels, name → [x, y] in image fractions, each in [0, 1]; at least one
-Pixels = Annotated[dict[str, tuple[Fraction, Fraction]], pydantic.Field(min_length=1)]
-
 #: sizes [in] of the figures that are not of the standard size
 PROFILES_SIZE, EPIPOLAR_SIZE, CHECKERBOARD_SIZE = (9.0, 3.2), (9.0, 3.0), (9.0, 2.6)
-
-
-def pixel_at(ds: xr.Dataset, where: tuple[float, float]) -> tuple[int, int]:
-    """The (row, col) of the pixel at image fractions ``where`` = [x, y] of ``ds``'s frame."""
-    x, y = where
-    if not (0 <= x <= 1 and 0 <= y <= 1):
-        raise StageError(Problem(f"pixel {where} is not in image fractions [0, 1]", fix="give [x, y] fractions"))
-    return (min(int(y * ds.sizes["row"]), ds.sizes["row"] - 1), min(int(x * ds.sizes["col"]), ds.sizes["col"] - 1))
 
 
 def _named_pixels(at: dict[str, tuple[int, int]]) -> str:

@@ -55,6 +55,18 @@ def on_camera_rows(pattern, camera_rows: int, projector_rows: int | None = None)
     return table.reshape((camera_rows, *pattern.shape[1:]))
 
 
+def relight_weights(offsets: np.ndarray, row_pattern: np.ndarray) -> np.ndarray:
+    """The weight b(s + o) of each (offset, camera row) under a row pattern b on camera-rectified rows (0 where
+    s + o leaves the pattern): I(s, t) = Σ_o T(o, s, t)·weight[o, s].
+
+    >>> relight_weights(np.array([-1, 0, 1]), np.array([0.0, 1.0, 0.5])).tolist()
+    [[0.0, 0.0, 1.0], [0.0, 1.0, 0.5], [1.0, 0.5, 0.0]]
+    """
+    rows = row_pattern.shape[0]
+    v = np.arange(rows)[None, :] + np.asarray(offsets)[:, None]
+    return np.where((v >= 0) & (v < rows), row_pattern[np.clip(v, 0, rows - 1)], 0.0)
+
+
 def relight(transport: xr.DataArray, row_pattern: np.ndarray) -> xr.DataArray:
     """The image under a virtual pattern of projector rows b(v) (rectified onto camera rows, 1 = lit for a
     whole line time; :func:`on_camera_rows` takes it there from the projector's rows): I(s, t) = Σ_o T(o, s, t) ·
@@ -64,9 +76,8 @@ def relight(transport: xr.DataArray, row_pattern: np.ndarray) -> xr.DataArray:
     if row_pattern.shape != (rows,):
         raise ValueError(f"row pattern has shape {row_pattern.shape}; expected ({rows},) camera-rectified rows "
                          "(on_camera_rows maps a pattern of the projector's rows onto them)")
-    v = np.arange(rows)[None, :] + transport["offset"].values[:, None]
-    lit = np.where((v >= 0) & (v < rows), row_pattern[np.clip(v, 0, rows - 1)], 0.0)
-    weights = xr.DataArray(lit.astype(transport.dtype), dims=("offset", "row"))
+    weights = xr.DataArray(relight_weights(transport["offset"].values, row_pattern).astype(transport.dtype),
+                           dims=("offset", "row"))
     lit_rows = int(np.count_nonzero(row_pattern))
     return labelled((transport * weights).sum("offset"), transport, "image relit under a virtual row pattern",
                     f"Σ_o T(o, s, t)·b(s + o) over {transport.sizes['offset']} offsets, {lit_rows} of {rows} "
@@ -76,14 +87,14 @@ def relight(transport: xr.DataArray, row_pattern: np.ndarray) -> xr.DataArray:
 def epipolar_image(transport: xr.DataArray, half_width: int = 0) -> xr.DataArray:
     """Light from the pixel's own epipolar plane (Eq. 35), or from the 2·half_width + 1 planes around it:
     the *sharpened* epipolar image of §5.4.5, as narrow as the transport's resolution allows."""
-    image = transport.where(abs(transport["offset"]) <= half_width, 0).sum("offset")
+    image = transport.isel(offset=np.flatnonzero(np.abs(transport["offset"].values) <= half_width)).sum("offset")
     return labelled(image, transport, "epipolar image" if half_width == 0 else f"epipolar image, |offset| ≤ "
                     f"{half_width}", f"Σ_o T(o, s, t) over |o| ≤ {half_width} rows (Eq. 35)")
 
 
 def non_epipolar_image(transport: xr.DataArray, half_width: int = 0) -> xr.DataArray:
     """Light from every other plane (Eq. 36): every offset beyond ``half_width`` rows of the pixel's own."""
-    image = transport.where(abs(transport["offset"]) > half_width, 0).sum("offset")
+    image = transport.isel(offset=np.flatnonzero(np.abs(transport["offset"].values) > half_width)).sum("offset")
     return labelled(image, transport, "non-epipolar image" if half_width == 0 else f"non-epipolar image, |offset| > "
                     f"{half_width}", f"Σ_o T(o, s, t) over |o| > {half_width} rows (Eq. 36)")
 
@@ -98,8 +109,9 @@ def ideal_frame(transport: xr.DataArray, delay: float, exposure: float, *, scan_
     offsets = transport["offset"].values
     weight = plane_to_ray_illumination([delay], [exposure], offsets, scan_speed=scan_speed, line_time=line_time,
                                        sync_offset=sync_offset)[0]
-    weights = xr.DataArray(weight.astype(transport.dtype), dims="offset")
-    return labelled((transport * weights).sum("offset"), transport,
+    lit = np.flatnonzero(weight)  # the offsets the exposure sees: a few of them, read alone
+    weights = xr.DataArray(weight[lit].astype(transport.dtype), dims="offset")
+    return labelled((transport.isel(offset=lit) * weights).sum("offset"), transport,
                     f"ideal frame at t_d = {delay:g} µs, t_e = {exposure:g} µs",
                     f"Σ_o T(o)·w(o; t_d, t_e), v_p = {scan_speed:g} rows/µs, t_p = {line_time:g} µs, t_o = "
                     f"{sync_offset:g} µs (Eq. 33; no noise or clipping)")
