@@ -2,8 +2,9 @@
 vein's contrast, a material's scattering profile).
 
 A capture of the simulated rig labels itself (``labels: scene``: the objects of the scene it records, by name, the
-background unlabelled); any other capture takes an integer label image (``labels: image``: .npy, PNG or TIFF of the
-frame's size, 0 unlabelled, codes 1 … n named by the stage's ``classes``).
+background unlabelled); any other capture takes an integer label image (``labels: image``: .npy, a member of an .npz
+named ``file.npz:member``, PNG or TIFF of the frame's size, 0 unlabelled, codes 1 … n named by the stage's
+``classes``).
 """
 
 from __future__ import annotations
@@ -42,10 +43,19 @@ def label_map(profiles: xr.Dataset, labels: str, image: str, classes: tuple[str,
         if codes.shape != shape:
             raise StageError(Problem(f"the scene renders {codes.shape}, the profiles are {shape}", where=where))
     else:
-        if not labels or not os.path.exists(labels):
+        file, _, member = labels.partition(".npz:")
+        file = file + ".npz" if member else labels
+        if not labels or not os.path.exists(file):
             raise StageError(Problem(f"no label image at {labels!r}", where=where,
-                                     fix="give an integer image (.npy, .png, .tif) of codes 1 … n, 0 unlabelled"))
-        if labels.endswith(".npy"):
+                                     fix="give an integer image (.npy, .npz:member, .png, .tif) of codes 1 … n, 0 "
+                                         "unlabelled"))
+        if member:
+            with np.load(file, allow_pickle=False) as archive:
+                if member not in archive.files:
+                    raise StageError(Problem(f"{file} has no member {member!r}; it holds {archive.files}",
+                                             where=where))
+                codes = archive[member]
+        elif labels.endswith(".npy"):
             codes = np.load(labels, allow_pickle=False)
         else:
             import imageio.v3 as iio
@@ -70,11 +80,16 @@ def label_map(profiles: xr.Dataset, labels: str, image: str, classes: tuple[str,
 
 def label_precheck(settings) -> list[str]:
     """A stage's ``labels: image`` without a label image file, at validation time."""
-    if settings.labels == "image" and not os.path.isfile(settings.label_image):
+    file = settings.label_image.partition(".npz:")[0] + ".npz" if ".npz:" in settings.label_image \
+        else settings.label_image
+    if settings.labels == "image" and not os.path.isfile(file):
         return [f"labels: image needs label_image, an integer label image; {settings.label_image!r} is not a file"]
     return []
 
 
 def label_identity(settings) -> dict:
     """What a stage's labels are, for provenance: the label image by content, else where they come from."""
-    return file_identity(settings.label_image) if settings.labels == "image" else {"labels": settings.labels}
+    if settings.labels != "image":
+        return {"labels": settings.labels}
+    file, _, member = settings.label_image.partition(".npz:")
+    return file_identity(file + ".npz") | {"member": member} if member else file_identity(settings.label_image)

@@ -35,6 +35,7 @@ from selpath.pipeline.kinds import FLAGS, TIME_UNITS, CubeKind, Variable
 from selpath.pipeline.quality import usable_share
 from selpath.pipeline.registry import stage
 from selpath.stages._common import require_variables
+from selpath.stages.procam import _material_features as features
 from selpath.stages.procam._labels import Labels, label_identity, label_map, label_precheck
 
 #: bits of the profiles' ``flags``
@@ -60,7 +61,9 @@ MATERIAL_CLASSIFIER = CubeKind(
     description="an RBF-kernel SVM on delay profiles and its brightness-only baseline, a skops archive",
     variables={"model": Variable(("byte",), units=None,
                                  long_name="the profile and brightness classifiers, a skops archive"),
-               "mean_profile": Variable(("material", "delay"), units="1", long_name="mean training profile")},
+               "mean_profile": Variable(("material", "delay"), units="1", long_name="mean training profile"),
+               "reference": Variable(("sample", "delay"), False, units="1",
+                                     long_name="the training pixels' standardised profiles (novelty's neighbours)")},
     coord_units={"delay": TIME_UNITS},
     attrs={"source_kind": "the kind of the training profiles' source",
            "svm_C": "the chosen SVM regularisation C", "svm_gamma": "the chosen RBF width γ"},
@@ -116,7 +119,7 @@ def profile_frames(source: xr.Dataset, exposure: float | None) -> tuple[xr.DataA
 
 
 @stage("delay_profiles", kind=DELAY_PROFILES)
-def delay_profiles(source: xr.Dataset, /, *, exposure: Positive | None = None) -> xr.Dataset:
+def delay_profiles(source: xr.Dataset, /, *, exposure: Positive | None = None, fold: bool = False) -> xr.Dataset:
     """Per-pixel delay profiles normalised by their area, so albedo cancels (§5.4.9, Fig. 51b).
 
     Returns ``profile`` over (delay, row, col) [1, summing to 1 over delay], ``area`` [counts: the profile's sum,
@@ -132,8 +135,15 @@ def delay_profiles(source: xr.Dataset, /, *, exposure: Positive | None = None) -
         col, attr ``scan_speed_px_per_us``: offset o is delay o / v_p).
     exposure : float or None
         The capture's exposure whose delay sweep is the profile [µs]; None: the capture's only one.
+    fold : bool
+        Fold the profile about t_d = 0 (p(t) + p(−t), over t_d ≥ 0; the delays must be symmetric about 0): a
+        rectified rig lights rows s ± o alike in a homogeneous medium, so the two halves measure the same light and
+        their sum halves the noise's variance (``selpath.stages.procam._material_features``).
     """
     frames, saturated, what = profile_frames(source, exposure)
+    if fold:
+        frames = _folded(frames)
+        what = what | {"folded": True}
     frames = frames.chunk({"delay": -1}) if frames.chunks else frames
     area = frames.sum("delay")
     nonfinite = (~np.isfinite(frames)).any("delay")
@@ -155,6 +165,19 @@ def delay_profiles(source: xr.Dataset, /, *, exposure: Positive | None = None) -
         attrs=keep | what))
 
 
+def _folded(frames: xr.DataArray) -> xr.DataArray:
+    """Frames over delay folded onto t_d ≥ 0 (:func:`selpath.stages.procam._material_features.fold`), lazily."""
+    try:
+        zero = features.zero_of(frames["delay"].values)
+    except ValueError as exc:
+        raise StageError(Problem(f"fold: {exc}", fix="sweep delays symmetric about 0, or fold: false")) from None
+    later = frames.isel(delay=slice(zero, None))
+    earlier = frames.isel(delay=slice(zero, None, -1) if zero else slice(0, 1)).assign_coords(
+        delay=later["delay"].values)
+    first = xr.DataArray((np.arange(later.sizes["delay"]) > 0).astype(frames.dtype), dims="delay")
+    return later + earlier * first
+
+
 # -- training ----------------------------------------------------------------------------------------------------
 
 
@@ -169,16 +192,27 @@ def _pixels(profiles: xr.Dataset, index: np.ndarray) -> tuple[np.ndarray, np.nda
     return np.asarray(flat, np.float64).T, np.asarray(area, np.float64)
 
 
-def _fit(features: np.ndarray, truth: np.ndarray, grid: dict, folds: int, seed: int):
-    from sklearn.model_selection import GridSearchCV, StratifiedKFold
+def _fit(values: np.ndarray, truth: np.ndarray, grid: dict, folds: int, blocks: np.ndarray):
+    """The RBF SVM (after standardising) whose C and γ score best over ``folds`` folds of spatial blocks."""
+    from sklearn.model_selection import GridSearchCV, GroupKFold
     from sklearn.pipeline import Pipeline
     from sklearn.preprocessing import StandardScaler
     from sklearn.svm import SVC
 
     search = GridSearchCV(Pipeline([("scale", StandardScaler()), ("svm", SVC(kernel="rbf"))]), grid,
-                          cv=StratifiedKFold(folds, shuffle=True, random_state=seed))
-    search.fit(features, truth)
+                          cv=GroupKFold(folds))
+    search.fit(values, truth, groups=blocks)
     return search
+
+
+def _pooled(profiles: xr.Dataset, regions: np.ndarray, window: int) -> tuple[np.ndarray, np.ndarray]:
+    """Profiles (delay, row, col) and areas pooled over ``window`` within ``regions``
+    (:func:`selpath.stages.procam._material_features.pool` on the frames, profile × area, then normalised again)."""
+    profile = np.asarray(profiles["profile"].transpose("delay", "row", "col").values, np.float64)
+    area = np.asarray(profiles["area"].values, np.float64)
+    frames = features.pool(profile * area[None], regions, window)
+    total = frames.sum(axis=0)
+    return frames / np.where(total > 0, total, np.nan)[None], total
 
 
 def training_sample(codes: np.ndarray, flags: np.ndarray, names: tuple[str, ...], per_class: int, folds: int,
@@ -207,14 +241,16 @@ def training_sample(codes: np.ndarray, flags: np.ndarray, names: tuple[str, ...]
 
 @stage("train_material_classifier", kind=MATERIAL_CLASSIFIER, precheck=label_precheck, identity=label_identity)
 def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scene",
-                              label_image: StorePath = "", classes: tuple[str, ...] | None = None, samples_per_class: Count = 1000,
+                              label_image: StorePath = "", classes: tuple[str, ...] | None = None,
+                              samples_per_class: Count = 1000,
                               folds: Annotated[int, pydantic.Field(ge=2, le=20)] = 5, seed: Index = 0,
                               c_grid: Grid = C_GRID, gamma_grid: Grid = GAMMA_GRID,
-                              novelty_quantile: Annotated[float, pydantic.Field(gt=0.5, le=1.0)] = 0.999
-                              ) -> xr.Dataset:
+                              flag_rate: Annotated[float, pydantic.Field(gt=0.0, lt=0.5)] = 0.01,
+                              pool_px: Count = 1) -> xr.Dataset:
     """Train an RBF-kernel SVM on labelled pixels' delay profiles, and the brightness-only baseline (§5.4.9).
 
-    Hyper-parameters by stratified cross-validation over ``folds`` folds on the training pixels. Returns the
+    Hyper-parameters by cross-validation over ``folds`` folds of spatial blocks (2 × folds bands of rows over the
+    training pixels' span: neighbouring pixels share light and noise, so random folds would leak). Returns the
     ``model`` (a skops archive, bytes), the mean and spread of each class's profiles (Fig. 51b), the pixels used and
     both classifiers' cross-validated accuracy; attrs the chosen C and γ and what the model was trained on.
     Refused: fewer than 2 classes, a class with fewer usable labelled pixels than folds, no labelled pixel.
@@ -234,7 +270,7 @@ def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scen
     samples_per_class : int
         Training pixels drawn per class (at most; all when a class has fewer) [1].
     folds : int
-        Folds of the stratified cross-validation [1].
+        Folds of the cross-validation over spatial blocks [1].
     seed : int
         Seed of the pixel draw and of the folds.
     c_grid : tuple of float
@@ -242,9 +278,14 @@ def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scen
     gamma_grid : tuple of float
         RBF width γ to try, in units of 1/(number of delays) [1]: 1 is scikit-learn's ``gamma="scale"`` on
         standardised profiles (when no delay is constant over the training pixels).
-    novelty_quantile : float
-        A new pixel whose standardised profile lies farther from every class's mean than this quantile of the
-        training pixels' distances from their own class's mean is flagged unlike every trained class [1].
+    flag_rate : float
+        The share of a trained material's pixels the classifier may flag as unlike every trained class, on data like
+        the training capture's [1]: a pixel is flagged when its mean distance to its 5 nearest training pixels (the
+        SVM's standardised space) exceeds the (1 − flag_rate) quantile of the training pixels' own, each scored out of
+        fold (split conformal; ``selpath.stages.procam._material_features``).
+    pool_px : int
+        Pool each labelled pixel's frames with its neighbours of the same label over a window of this many pixels
+        a side before normalising (1: none) [px]; ``classify_materials`` then pools alike, within superpixels.
     """
     import sklearn
     import skops.io
@@ -253,21 +294,31 @@ def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scen
     codes, names = label_map(profiles, labels, label_image, classes, "profiles")
     flags = np.asarray(profiles["flags"].values)
     index = training_sample(codes, flags, names, samples_per_class, folds, seed)
-    features, area = _pixels(profiles, index)
+    if pool_px > 1:
+        profile, total = _pooled(profiles, np.where((codes > 0) & (flags == 0), codes, -1), pool_px)
+        values = profile.reshape(profile.shape[0], -1)[:, index].T
+        area = total.reshape(-1)[index]
+    else:
+        values, area = _pixels(profiles, index)
+    blocks = features.row_blocks(index // profiles.sizes["col"], features.BLOCKS_PER_FOLD * folds)
+    if np.unique(blocks).size < folds:
+        raise StageError(Problem(f"the training pixels span {np.unique(blocks).size} distinct bands of rows; "
+                                 f"cross-validation over {folds} folds of bands needs as many",
+                                 fix="label pixels over more rows, or lower folds"))
     # classes are indexed among those with training pixels (a label code no pixel carries is not a class): the
     # stored ``material`` coordinate and the SVMs' outputs then agree
     present, truth = np.unique(codes.ravel()[index] - 1, return_inverse=True)
-    n_delay = features.shape[1]
-    search = _fit(features, truth, {"svm__C": list(c_grid), "svm__gamma": [g / n_delay for g in gamma_grid]},
-                  folds, seed)
-    baseline = _fit(area[:, None], truth, {"svm__C": list(c_grid), "svm__gamma": list(gamma_grid)}, folds, seed)
+    n_delay = values.shape[1]
+    search = _fit(values, truth, {"svm__C": list(c_grid), "svm__gamma": [g / n_delay for g in gamma_grid]},
+                  folds, blocks)
+    baseline = _fit(area[:, None], truth, {"svm__C": list(c_grid), "svm__gamma": list(gamma_grid)}, folds, blocks)
     model = skops.io.dumps({"profile": search.best_estimator_, "brightness": baseline.best_estimator_})
     kept = [names[k] for k in present]
-    standard = search.best_estimator_.named_steps["scale"].transform(features)
+    standard = search.best_estimator_.named_steps["scale"].transform(values)
     centre = np.stack([standard[truth == k].mean(0) for k in range(present.size)])
-    novelty = float(np.quantile(np.linalg.norm(standard - centre[truth], axis=1), novelty_quantile))
-    mean = np.stack([features[truth == k].mean(0) for k in range(present.size)])
-    spread = np.stack([features[truth == k].std(0) for k in range(present.size)])
+    novelty = features.novelty_threshold(standard, blocks, folds, flag_rate)
+    mean = np.stack([values[truth == k].mean(0) for k in range(present.size)])
+    spread = np.stack([values[truth == k].std(0) for k in range(present.size)])
     keep = {k: v for k, v in profiles.attrs.items() if k not in ("selpath_kind", "simulated_scene")}
     scene = profiles.attrs.get("simulated_scene", {})
     delay = profiles["delay"]
@@ -282,6 +333,7 @@ def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scen
                              {"units": "1", "long_name": "training pixels"}),
          "class_centre": (("material", "delay"), centre,
                           {"units": "1", "long_name": "mean standardised training profile (the SVM's scaling)"}),
+         "reference": (("sample", "delay"), standard.astype(np.float32)),
          "cv_accuracy": ((), search.best_score_, {"units": "1", "long_name": "cross-validated accuracy, profiles"}),
          "brightness_cv_accuracy": ((), baseline.best_score_,
                                     {"units": "1", "long_name": "cross-validated accuracy, brightness only"})},
@@ -292,7 +344,7 @@ def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scen
                       "brightness_C": float(baseline.best_params_["svm__C"]),
                       "brightness_gamma": float(baseline.best_params_["svm__gamma"]),
                       "folds": folds, "seed": seed, "samples_per_class": samples_per_class,
-                      "novelty_distance": novelty, "novelty_quantile": novelty_quantile,
+                      "novelty_distance": novelty, "flag_rate": flag_rate, "pool_px": pool_px,
                       "labels": label_image if labels == "image" else labels, "training_scene": scene.get("scene", ""),
                       "scikit_learn_version": sklearn.__version__, "skops_version": skops.__version__}))
 
@@ -326,16 +378,40 @@ def _predict(model, features: np.ndarray) -> np.ndarray:
     return out.reshape(features.shape[:-1])
 
 
-def _nearest_centre(model, centre: np.ndarray, features: np.ndarray) -> np.ndarray:
-    """Distance of each pixel's standardised profile from the nearest class mean (NaN where a feature is NaN)."""
-    flat = features.reshape(-1, features.shape[-1])
+def _distance(model, values: np.ndarray, measure) -> np.ndarray:
+    """``measure`` of each pixel's profile standardised as the SVM's pipeline does (NaN where a value is NaN)."""
+    flat = values.reshape(-1, values.shape[-1])
     ok = np.isfinite(flat).all(axis=1)
     out = np.full(flat.shape[0], np.nan, np.float32)
     if ok.any():
-        standard = model.named_steps["scale"].transform(flat[ok])
-        squared = (standard**2).sum(1)[:, None] - 2 * standard @ centre.T + (centre**2).sum(1)[None, :]
-        out[ok] = np.sqrt(np.maximum(squared.min(axis=1), 0.0))
-    return out.reshape(features.shape[:-1])
+        out[ok] = measure(model.named_steps["scale"].transform(flat[ok]))
+    return out.reshape(values.shape[:-1])
+
+
+def _novelty_measure(classifier: xr.Dataset):
+    """(distance of standardised profiles, its long name, the flag's long name) of the classifier's novelty rule:
+    the mean distance to the 5 nearest training pixels (#55), or, for a classifier trained before, the distance to
+    the nearest class mean; None for a classifier with neither."""
+    if "novelty_distance" not in classifier.attrs:
+        return None
+    if "reference" in classifier.data_vars:
+        from sklearn.neighbors import NearestNeighbors
+
+        neighbours = NearestNeighbors(n_neighbors=features.NEIGHBOURS).fit(
+            np.asarray(classifier["reference"].values, np.float64))
+        return (lambda z: neighbours.kneighbors(z)[0].mean(axis=1),
+                "mean distance of the standardised profile to its 5 nearest training pixels",
+                "farther from the training pixels than the classifier's flag_rate allows")
+    if "class_centre" in classifier.data_vars:
+        centre = np.asarray(classifier["class_centre"].values, np.float64)
+
+        def nearest(z):
+            squared = (z**2).sum(1)[:, None] - 2 * z @ centre.T + (centre**2).sum(1)[None, :]
+            return np.sqrt(np.maximum(squared.min(axis=1), 0.0))
+
+        return (nearest, "distance of the standardised profile from the nearest class mean",
+                "farther from every class than the training pixels' quantile novelty_quantile (before #55)")
+    return None
 
 
 def wilson_interval(successes, trials, z: float = Z95):
@@ -367,16 +443,18 @@ def _scores(truth: xr.DataArray, predicted: xr.DataArray, n: int, prefix: str) -
 
 @stage("classify_materials", kind=MATERIAL_CLASSIFICATION, precheck=label_precheck, identity=label_identity)
 def classify_materials(profiles: xr.Dataset, classifier: xr.Dataset, /, *, labels: Labels | None = None,
-                       label_image: StorePath = "", classes: tuple[str, ...] | None = None) -> xr.Dataset:
+                       label_image: StorePath = "", classes: tuple[str, ...] | None = None,
+                       pool_px: Count | None = None, superpixel_px: Count = 300) -> xr.Dataset:
     """Classify every pixel of a capture by its delay profile, and by brightness alone (§5.4.9, Figs. 51c, 52).
 
     Returns ``label`` and ``brightness_label`` over (row, col) (index into ``material``; −1: no usable profile), the
-    regular image ``image`` [counts], and ``unlike_training`` (a pixel farther from every class's mean than the
-    classifier's ``novelty_distance``: no trained material, e.g. the background; its label is still the nearest
-    class's) with the distance ``novelty_distance``; with ``labels``, the truth ``true_label``, ``confusion`` over
-    (true_material, material), per-class ``accuracy`` with its 95 % Wilson interval and ``overall_accuracy``, and
-    the same for the brightness baseline (``brightness_`` prefix). Refused: profiles over other delays, another
-    source kind or exposure than the classifier's, a model store whose hash does not match.
+    regular image ``image`` [counts], and ``unlike_training`` (a pixel whose mean distance to its 5 nearest training
+    pixels exceeds the classifier's calibrated ``novelty_distance``, the (1 − ``flag_rate``) quantile of the training
+    pixels' own out of fold: no trained material, e.g. the background; its label is still the SVM's) with that
+    distance ``novelty_distance``; with pooling, ``pooled_area``; with ``labels``, the truth ``true_label``,
+    ``confusion`` over (true_material, material), per-class ``accuracy`` with its 95 % Wilson interval and
+    ``overall_accuracy``, and the same for the brightness baseline (``brightness_`` prefix). Refused: profiles over
+    other delays, another source kind or exposure than the classifier's, a model store whose hash does not match.
 
     Parameters
     ----------
@@ -391,6 +469,13 @@ def classify_materials(profiles: xr.Dataset, classifier: xr.Dataset, /, *, label
         Path of the label image with ``labels: image``.
     classes : tuple of str or None
         The names of a label image's codes 1, 2, ….
+    pool_px : int or None
+        Pool each pixel's frames with its neighbours over a window of this many pixels a side, within its
+        superpixel (never across an edge where the profile's shape changes), before classifying [px]; None: the
+        classifier's own ``pool_px`` (1: none). Pooling reads the whole profile cube into memory (delays × rows ×
+        cols × 8 bytes) and classifies it at once; without it the classification is lazy, band by band.
+    superpixel_px : int
+        The superpixels' size when pooling (SLIC on the standardised profiles) [px].
     """
     require_variables(profiles, ("profile", "area", "flags"), "classify_materials")
     require_variables(classifier, ("model", "mean_profile"), "classify_materials")
@@ -409,22 +494,32 @@ def classify_materials(profiles: xr.Dataset, classifier: xr.Dataset, /, *, label
         raise StageError(problems)
     models = load_classifiers(classifier)
     names = [str(v) for v in classifier["material"].values]
+    pool_px = int(classifier.attrs.get("pool_px", 1)) if pool_px is None else pool_px
+    area = profiles["area"]
     profile = profiles["profile"].transpose("row", "col", "delay")
+    if pool_px > 1:
+        usable = np.asarray(profiles["flags"].values) == 0
+        cube = np.asarray(profiles["profile"].transpose("delay", "row", "col").values, np.float64)
+        pooled, total = _pooled(profiles, features.superpixels(cube, superpixel_px, usable), pool_px)
+        profile = xr.DataArray(np.moveaxis(pooled, 0, -1), dims=("row", "col", "delay"))
+        area = xr.DataArray(np.where(usable, total, np.nan), dims=("row", "col"))
     profile = profile.chunk({"delay": -1}) if profile.chunks else profile
     out = dict(output_dtypes=[np.int16], dask="parallelized")
     label = xr.apply_ufunc(lambda x: _predict(models["profile"], x), profile, input_core_dims=[["delay"]], **out)
-    bright = xr.apply_ufunc(lambda x: _predict(models["brightness"], x[..., None]), profiles["area"], **out)
+    bright = xr.apply_ufunc(lambda x: _predict(models["brightness"], x[..., None]), area, **out)
     result = {}
-    if "class_centre" in classifier.data_vars and "novelty_distance" in classifier.attrs:
-        centre = np.asarray(classifier["class_centre"].values, np.float64)
-        distance = xr.apply_ufunc(lambda x: _nearest_centre(models["profile"], centre, x), profile,
+    novelty = _novelty_measure(classifier)
+    if novelty is not None:
+        measure, what, flag = novelty
+        distance = xr.apply_ufunc(lambda x: _distance(models["profile"], x, measure), profile,
                                   input_core_dims=[["delay"]], output_dtypes=[np.float32], dask="parallelized")
-        result["novelty_distance"] = distance.assign_attrs(
-            units="1", long_name="distance of the standardised profile from the nearest class mean")
+        result["novelty_distance"] = distance.assign_attrs(units="1", long_name=what)
         result["unlike_training"] = (distance > float(classifier.attrs["novelty_distance"])).assign_attrs(
-            long_name="farther from every class than the training pixels' quantile novelty_quantile")
+            long_name=flag)
     result |= {"label": label, "brightness_label": bright.where(label >= 0, -1).astype(np.int16),
               "image": profiles["area"]}
+    if pool_px > 1:
+        result["pooled_area"] = area.assign_attrs(units="counts", long_name="area of the pooled profile")
     if labels is not None:
         codes, truth_names = label_map(profiles, labels, label_image, classes, "profiles")
         unknown = sorted({n for k, n in enumerate(truth_names, start=1) if (codes == k).any()} - set(names))
