@@ -4,7 +4,6 @@ captured one, white relighting against T's sum, the RMSE against reconstruction_
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import nbformat
@@ -28,7 +27,7 @@ def test_the_notebook_runs(path, tmp_path, monkeypatch):
     """About 70–90 s each: most of it the workflow the notebook runs first."""
     monkeypatch.setenv("SELPATH_DEMO", str(tmp_path / "demo"))
     notebook = nbformat.read(path, as_version=4)
-    NotebookClient(notebook, timeout=900, kernel_name="python3", resources={"metadata": {"path": str(tmp_path)}},
-                   env={**os.environ, "SELPATH_DEMO": str(tmp_path / "demo")}).execute()
+    NotebookClient(notebook, timeout=900, kernel_name="python3",  # the kernel inherits SELPATH_DEMO
+                   resources={"metadata": {"path": str(tmp_path)}}).execute()
     images = sum("image/png" in output.get("data", {}) for cell in notebook.cells for output in cell.get("outputs", []))
     assert images >= 5, f"{path.name} drew {images} figures"

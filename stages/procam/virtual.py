@@ -250,7 +250,8 @@ def relit_figure(relit: xr.Dataset, /) -> xr.Dataset:
     names = [str(n) for n in relit["pattern"].values]
     described = relit.attrs.get("patterns", {})
     titles = [f"({chr(97 + i)}) {name}" for i, name in enumerate(names)]
-    caption = f"""The scene relit from its light transport under virtual projector patterns (thesis §5.4.1–5.4.2):
+    caption = f"""The scene relit from its light transport under virtual projector patterns of the workflow's own, as
+        the thesis's Fig. 40 relights it under lines (§5.4.1; Fig. 41 and §5.4.2 for 2-D patterns from full transport):
         {"; ".join(f"({chr(97 + i)}) {n}: {described.get(n, '')}" for i, n in enumerate(names))}; all on one
         colour scale in counts (0 to the 99.5th percentile of the last image), axes in camera pixels.
         {censored_note(relit)}"""
