@@ -23,8 +23,15 @@ import numpy as np
 import xarray as xr
 
 from selpath.stages._common import pixel_at
-from selpath.stages.procam._illumination import offset_delay
-from selpath.stages.procam.relight import epipolar_image, ideal_frame, labelled, non_epipolar_image, relight_pattern
+from selpath.stages.procam._illumination import SYNC_DELAY_ATTRS, offset_delay
+from selpath.stages.procam.relight import (
+    epipolar_image,
+    ideal_frame,
+    labelled,
+    non_epipolar_image,
+    pattern_rows,
+    relight_pattern,
+)
 
 #: the variable each kind is about, where a method needs one and none is named
 MAIN = {"plane_to_ray_transport": "transport", "full_transport": "transport", "plane_to_ray_capture": "image",
@@ -155,20 +162,25 @@ class SelpathDataset(_Common):
         timing = self._timing(scan_speed, sync_offset)
         values = offset_delay(self._obj[dim].values, scan_speed=timing["scan_speed"],
                               sync_offset=timing["sync_offset"])
-        return xr.DataArray(values, dims=dim, coords={dim: self._obj[dim]}, name="sync_delay", attrs={
-            "units": "us", "long_name": "sync delay t_d (o / v_p − t_o)"})
+        return xr.DataArray(values, dims=dim, coords={dim: self._obj[dim]}, name="sync_delay",
+                            attrs=dict(SYNC_DELAY_ATTRS))
 
     def profile(self, row: int | None = None, col: int | None = None, *, x: float | None = None,
-                y: float | None = None) -> xr.DataArray:
+                y: float | None = None, scan_speed: float | None = None,
+                sync_offset: float | None = None) -> xr.DataArray:
         """A pixel's transport: T over offset with its ``sync_delay`` [µs] beside it (plane-to-ray), or the 2-D
-        T(du, dv) (full transport), in the transport's units."""
+        T(du, dv) (full transport), in the transport's units. The sync delay needs v_p and t_o: the store's, else
+        ``scan_speed`` [rows/µs] and ``sync_offset`` [µs]; a transport that records neither and is given neither
+        gets no ``sync_delay`` (its description says so)."""
         r, c = self.pixel(row, col, x=x, y=y)
-        t = self._transport()
-        dim = self._offset_dim()
-        out = t.isel(row=r, col=c).assign_coords(sync_delay=self.sync_delay())
-        what = "T(offset)" if dim == "offset" else "T(du, dv)"
-        return _note(out, f"transport {what} of pixel (row {r}, col {c})",
-                     "the transport at one pixel; sync_delay = offset / v_p − t_o [µs]")
+        out = self._transport().isel(row=r, col=c)
+        try:
+            out = out.assign_coords(sync_delay=self.sync_delay(scan_speed=scan_speed, sync_offset=sync_offset))
+            how = "sync_delay = offset / v_p − t_o [µs]"
+        except ValueError:
+            how = "no sync_delay: the store records no scan_speed_px_per_us (give scan_speed)"
+        what = "T(offset)" if self._offset_dim() == "offset" else "T(du, dv)"
+        return _note(out, f"transport {what} of pixel (row {r}, col {c})", f"the transport at one pixel; {how}")
 
     def ideal_frame(self, delay: float, exposure: float, *, scan_speed: float | None = None,
                     line_time: float | None = None, sync_offset: float | None = None) -> xr.DataArray:
@@ -202,17 +214,8 @@ class SelpathDataset(_Common):
         ``projector``: on the projector's rows (``projector_rows``, else the store's ``projector_shape``), averaged
         onto the camera rows each covers; ``camera``: on the transport's camera-rectified rows. A plane-to-ray
         transport takes row patterns (it holds no column); a full transport any 2-D pattern."""
-        t = self._transport()
-        shape = self._obj.attrs.get("projector_shape")
-        if space not in ("projector", "camera"):
-            raise ValueError(f"space is {space!r}; expected 'projector' or 'camera'")
-        if space == "camera":
-            n_rows = t.sizes["row"]
-        else:
-            n_rows = projector_rows or (int(shape[0]) if shape is not None else None)
-            if n_rows is None:
-                raise ValueError("the store does not record the projector's rows (attr projector_shape): give "
-                                 "projector_rows, or a pattern on camera rows with space='camera'")
+        self._transport()
+        n_rows = pattern_rows(self._obj, space, projector_rows)
         given = [pattern is not None, line is not None, rows is not None]
         if sum(given) != 1:
             raise ValueError("give exactly one of pattern, line or rows")

@@ -6,8 +6,10 @@ given too; slide delay and exposure → the frame an ideal rig records; pick a p
 a band half-width → the epipolar and non-epipolar images; a sinogram with its unobserved bins in grey; a
 reconstruction's slices beside its truth and error. The numbers come from :mod:`selpath.explore.views`.
 
-A local tool: it listens on 127.0.0.1 unless told otherwise, serves its page and Panel's own assets and nothing
-else (no route reads a path), opens only the stores it was given (read-only, lazily) and never writes.
+A local tool: it listens on 127.0.0.1 unless told otherwise (and warns when told), serves its page and Panel's own
+assets and nothing else (no route reads a path), opens only the stores it was given (read-only, lazily) and never
+writes; a store's caption is shown as plain text. A transport's I(t_d) comes from a plane-to-ray capture of the
+same frame size among the stores given (the first such): give the two that belong together.
 Every plot's data source is named (``image-source``, ``profile-source``, ``intensity-source``), so a browser test
 reads back what is drawn.
 """
@@ -27,6 +29,7 @@ from bokeh.models import ColorBar, ColumnDataSource, LinearAxis, LinearColorMapp
 from bokeh.plotting import figure
 
 from selpath.explore.views import TransportView, find_stores, open_stores, pair_captures, truth_of
+from selpath.stages.procam._illumination import offset_delay
 
 #: the image panel's width in screen pixels (its height follows the frame's aspect)
 WIDTH = 560
@@ -110,7 +113,8 @@ def transport_panel(view: TransportView, name: str) -> pn.viewable.Viewable:
         t_o = float(view.store.attrs.get("sync_offset_us", 0.0))
         o0, o1 = float(offsets.min()), float(offsets.max())
         pfig.x_range = Range1d(o0, o1)
-        pfig.extra_x_ranges = {"delay": Range1d(o0 / speed - t_o, o1 / speed - t_o)}
+        d0, d1 = offset_delay([o0, o1], scan_speed=speed, sync_offset=t_o)
+        pfig.extra_x_ranges = {"delay": Range1d(float(d0), float(d1))}
         pfig.add_layout(LinearAxis(x_range_name="delay", axis_label="sync delay t_d [µs]"), "above")
     ifig, isource = None, None
     if view.capture is not None:
@@ -193,7 +197,7 @@ def figure_panel(ds: xr.Dataset, name: str) -> pn.viewable.Viewable:
     buffer = io.BytesIO()
     matplotlib.image.imsave(buffer, np.asarray(ds["image"].values), format="png")
     return pn.Column(pn.pane.PNG(buffer.getvalue(), width=900),
-                     pn.pane.Markdown(ds.attrs.get("caption", ""), width=900))
+                     pn.pane.Str(ds.attrs.get("caption", ""), width=900))  # a store's text, never read as HTML
 
 
 def _slice_widget(ds: xr.Dataset) -> pn.widgets.Widget | None:
@@ -293,13 +297,14 @@ class Explorer:
     def __init__(self, paths: list[Path]) -> None:
         self.paths = find_stores(paths)
         self.stores = open_stores(self.paths)
-        captures = pair_captures(self.stores)
-        self.transports = {name: TransportView(ds, self.stores.get(captures.get(name, ""))) for name, ds in
-                           self.stores.items() if ds.attrs.get("selpath_kind") == "plane_to_ray_transport"}
+        self.captures = pair_captures(self.stores)
+        self.transports: dict[str, TransportView] = {}  # built when first shown (a full-size one: ~10 s, 0.5 GB)
 
     def panel(self, name: str) -> pn.viewable.Viewable:
         ds, kind = self.stores[name], self.stores[name].attrs.get("selpath_kind")
-        if name in self.transports:
+        if kind == "plane_to_ray_transport":
+            if name not in self.transports:
+                self.transports[name] = TransportView(ds, self.stores.get(self.captures.get(name, "")))
             return transport_panel(self.transports[name], name)
         if kind == "plane_to_ray_capture":
             return capture_panel(ds, name)
@@ -346,13 +351,17 @@ def serve(paths: list[Path], *, host: str = "127.0.0.1", port: int = 5006, show:
     start = time.perf_counter()
     explorer = Explorer(paths)
     port = port or free_port(host)
-    origins = [f"{host}:{port}"] + ([f"localhost:{port}", f"127.0.0.1:{port}"] if host in LOCAL else [])
+    # a local page accepts its own origin only; on another address the browser's origin is the machine's name,
+    # which the server cannot know, so any is accepted (and the start says the page is open to the network)
+    origins = [f"{host}:{port}", f"localhost:{port}", f"127.0.0.1:{port}"] if host in LOCAL else ["*"]
     server = pn.serve({"/": explorer.page}, address=host, port=port, show=False, start=False,
                       title="selpath explore", websocket_origin=origins, print=False)
     url = f"http://{host}:{port}/"
     log(f"selpath explore: {len(explorer.stores)} store(s), read-only, ready in {time.perf_counter() - start:.1f} s")
     for name, path in explorer.paths.items():
         log(f"  {name}: {path} ({explorer.stores[name].attrs.get('selpath_kind')})")
+    if host not in LOCAL:
+        log(f"warning: listening on {host}: anyone who can reach this machine can view these stores (no password)")
     log(f"listening on {url} (Ctrl-C stops)")
     server.start()
     if show:

@@ -33,13 +33,22 @@ PREVIEW_BYTES = 512 * 2**20
 def find_stores(paths: list[Path]) -> dict[str, Path]:
     """name → path of every selpath store given, or found under a given folder (names relative to it)."""
     found: dict[str, Path] = {}
+
+    def add(name: str, path: Path) -> None:
+        if path in found.values():
+            return
+        unique, k = name, 2
+        while unique in found:  # the same name under two folders given
+            unique, k = f"{name} ({k})", k + 1
+        found[unique] = path
+
     for path in paths:
         path = Path(path).resolve()
         if is_selpath_store(path):
-            found[path.name] = path
+            add(path.name, path)
         elif path.is_dir():
             for entry in archive_stores(path):
-                found[entry["store"]] = path / entry["store"]
+                add(entry["store"], path / entry["store"])
         else:
             raise FileNotFoundError(f"{path} is neither a selpath store nor a folder")
     if not found:
@@ -74,6 +83,9 @@ class TransportView:
     def __post_init__(self) -> None:
         t = self.store["transport"]
         self.bin = column_bin(t.sizes["col"], t.sizes["row"], t.sizes["offset"], t.dtype.itemsize)
+        # NaN cells (a rectified transport's edges) add nothing, as in every full-resolution view; the padded
+        # columns of a last, narrower bin are left out of its mean
+        t = t.fillna(0)
         binned = t.coarsen(col=self.bin, boundary="pad").mean() if self.bin > 1 else t
         # band by band into one (row, offset, col) array: never the store's whole cube and its transpose at once
         rows, offsets, cols = t.sizes["row"], t.sizes["offset"], binned.sizes["col"]
@@ -81,7 +93,7 @@ class TransportView:
         step = max(1, (t.chunksizes.get("row") or (rows,))[0]) if t.chunks else rows
         for r0 in range(0, rows, step):
             band = binned.isel(row=slice(r0, r0 + step)).transpose("row", "offset", "col").values
-            self.cube[r0:r0 + band.shape[0]] = np.nan_to_num(band)
+            self.cube[r0:r0 + band.shape[0]] = band
         self.floodlit = self.cube.sum(axis=1)
         self.offsets = t["offset"].values
 

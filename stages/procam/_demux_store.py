@@ -27,7 +27,12 @@ from selpath.stages._solution import Solution, raise_if_failed
 from selpath.stages._sweeps import Sweep
 from selpath.stages.procam._demux_problem import DemuxProblem, SeparableDemuxProblem
 from selpath.stages.procam._demux_solver import DemuxADMM, batch_slots, observed
-from selpath.stages.procam._illumination import epipolar_boundary, offset_delay, plane_to_ray_illumination
+from selpath.stages.procam._illumination import (
+    SYNC_DELAY_ATTRS,
+    epipolar_boundary,
+    offset_delay,
+    plane_to_ray_illumination,
+)
 
 #: streaming batches per solver call: a call's pool (data, warm starts, results: ~8 (P × K) arrays, 64 MB at
 #: K = 128) is bounded while the batch's tail (its last, slowest pixels) is paid once per 16 batches of pixels
@@ -236,8 +241,7 @@ def with_sync_delay(out: xr.Dataset, dim: str, timing: dict) -> xr.Dataset:
     which each offset's light is centred in the exposure (:func:`~selpath.stages.procam._illumination.offset_delay`,
     from the v_p and t_o the demultiplexing used), so a profile plots over the capture's own delay axis."""
     delay = offset_delay(out[dim].values, scan_speed=timing["scan_speed"], sync_offset=timing["sync_offset"])
-    return out.assign_coords(sync_delay=(dim, delay, {
-        "units": "us", "long_name": "sync delay t_d (o / v_p − t_o)"}))
+    return out.assign_coords(sync_delay=(dim, delay, dict(SYNC_DELAY_ATTRS)))
 
 
 def transport_attrs(capture: xr.Dataset, *, timing: dict, delays, exposures, keep, margin: float,

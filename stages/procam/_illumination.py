@@ -58,6 +58,10 @@ def plane_to_ray_illumination(delays, exposures, offsets, *, scan_speed: float, 
     return out
 
 
+#: what a ``sync_delay`` coordinate carries, wherever it is made (a transport store, the accessor)
+SYNC_DELAY_ATTRS = {"units": "us", "long_name": "sync delay t_d (o / v_p − t_o)"}
+
+
 def offset_delay(offsets, *, scan_speed: float, sync_offset: float = 0.0) -> np.ndarray:
     """The sync delay t_d [µs] at which offset o's light is centred in the exposure: t_d = o / v_p − t_o (the box
     of Eq. 33 centred on o; ``scan_speed`` v_p [rows per µs], ``sync_offset`` t_o [µs]). A frame at t_d with

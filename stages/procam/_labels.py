@@ -43,8 +43,7 @@ def label_map(profiles: xr.Dataset, labels: str, image: str, classes: tuple[str,
         if codes.shape != shape:
             raise StageError(Problem(f"the scene renders {codes.shape}, the profiles are {shape}", where=where))
     else:
-        file, _, member = labels.partition(".npz:")
-        file = file + ".npz" if member else labels
+        file, member = label_file(labels)
         if not labels or not os.path.exists(file):
             raise StageError(Problem(f"no label image at {labels!r}", where=where,
                                      fix="give an integer image (.npy, .npz:member, .png, .tif) of codes 1 … n, 0 "
@@ -78,11 +77,19 @@ def label_map(profiles: xr.Dataset, labels: str, image: str, classes: tuple[str,
     return codes.astype(np.int16), names
 
 
+def label_file(label_image: str) -> tuple[str, str]:
+    """(the file, the .npz member or "") a label image setting names: ``labels.npz:member`` or a path.
+
+    >>> label_file("dev/D1.npz:labels"), label_file("codes.png")
+    (('dev/D1.npz', 'labels'), ('codes.png', ''))
+    """
+    file, _, member = label_image.partition(".npz:")
+    return (file + ".npz", member) if member else (label_image, "")
+
+
 def label_precheck(settings) -> list[str]:
     """A stage's ``labels: image`` without a label image file, at validation time."""
-    file = settings.label_image.partition(".npz:")[0] + ".npz" if ".npz:" in settings.label_image \
-        else settings.label_image
-    if settings.labels == "image" and not os.path.isfile(file):
+    if settings.labels == "image" and not os.path.isfile(label_file(settings.label_image)[0]):
         return [f"labels: image needs label_image, an integer label image; {settings.label_image!r} is not a file"]
     return []
 
@@ -91,5 +98,5 @@ def label_identity(settings) -> dict:
     """What a stage's labels are, for provenance: the label image by content, else where they come from."""
     if settings.labels != "image":
         return {"labels": settings.labels}
-    file, _, member = settings.label_image.partition(".npz:")
-    return file_identity(file + ".npz") | {"member": member} if member else file_identity(settings.label_image)
+    file, member = label_file(settings.label_image)
+    return file_identity(file) | ({"member": member} if member else {})

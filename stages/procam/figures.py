@@ -141,15 +141,16 @@ def _grid(count: int) -> tuple[int, int]:
 
 
 def draw_relit(images: list[np.ndarray], titles: list[str], size: tuple[float, float], extra=None,
-                gamma: float = 1.0, censored: np.ndarray | None = None) -> np.ndarray:
-    """Images on one colour scale (0 to the last image's, white's, 99.5th percentile; a power law ``gamma``)
+                gamma: float = 1.0, censored: np.ndarray | None = None, scale_by_last: bool = True) -> np.ndarray:
+    """Images on one colour scale (0 to the last image's, white's, 99.5th percentile, or with ``scale_by_last``
+    false the largest image's; a power law ``gamma``)
     with one colour bar; ``extra(ax, images)`` draws into one more panel after them; ``censored`` pixels
     (:func:`mark_censored`) painted on every image."""
     count = len(images) + (extra is not None)
     rows, cols = _grid(count)
     fig, axes = panels(rows, cols, size=size, squeeze=False)
     axes = axes.ravel()
-    top = display_top(images[-1])
+    top = display_top(images[-1]) if scale_by_last else max(display_top(image) for image in images)
     norm = Normalize(0, top) if gamma == 1 else PowerNorm(gamma, vmin=0, vmax=top)
     for ax, image, title in zip(axes, images, titles, strict=False):
         shown = ax.imshow(image, cmap="gray", norm=norm,

@@ -93,7 +93,8 @@ def profile_frames(source: xr.Dataset, exposure: float | None) -> tuple[xr.DataA
         if not speed:
             raise StageError(Problem("the transport has no scan_speed_px_per_us: its offsets cannot be delays",
                                      fix="wire in the output of demux_plane_to_ray"))
-        t = source["transport"]
+        t = source["transport"].drop_vars("sync_delay", errors="ignore")
+        # the delay from the direct plane, o / v_p: its sync delay less −t_o (offset 0 is the direct light)
         frames = t.assign_coords(offset=t["offset"] / float(speed)).rename(offset="delay")
         censored = (source["censored"] if "censored" in source.data_vars
                     else xr.zeros_like(t.isel(offset=0), dtype=bool))
@@ -136,12 +137,19 @@ def delay_profiles(source: xr.Dataset, /, *, exposure: Positive | None = None, f
     exposure : float or None
         The capture's exposure whose delay sweep is the profile [µs]; None: the capture's only one.
     fold : bool
-        Fold the profile about t_d = 0 (p(t) + p(−t), over t_d ≥ 0; the delays must be symmetric about 0): a
+        Fold the profile about the direct light (p(t) + p(−t), over t ≥ 0; the delays must be symmetric about 0): a
         rectified rig lights rows s ± o alike in a homogeneous medium, so the two halves measure the same light and
-        their sum halves the noise's variance (``selpath.stages.procam._material_features``).
+        their sum halves the noise's variance (``selpath.stages.procam._material_features``). A capture's direct
+        light must arrive at t_d = 0 (a sync offset t_o of 0; one recording another ``sync_offset_us`` is refused);
+        a transport's is offset 0 whatever t_o.
     """
     frames, saturated, what = profile_frames(source, exposure)
     if fold:
+        if what["source_kind"] == "plane_to_ray_capture" and float(source.attrs.get("sync_offset_us", 0.0)):
+            raise StageError(Problem(f"fold: the capture's direct light arrives at t_d = −t_o = "
+                                     f"{-float(source.attrs['sync_offset_us']):g} µs, not 0",
+                                     fix="fold the profiles of its demultiplexed transport (offset 0 is the direct "
+                                         "plane), or fold: false"))
         frames = _folded(frames)
         what = what | {"folded": True}
     frames = frames.chunk({"delay": -1}) if frames.chunks else frames
@@ -161,12 +169,14 @@ def delay_profiles(source: xr.Dataset, /, *, exposure: Positive | None = None, f
              (flags == 0).mean(), floor=USABLE_FLOOR,
              what="pixels with a usable delay profile (light, finite, unsaturated)",
              fix="check that the projector lit the scene and the frames are not all dark, saturated or missing")},
-        coords={"delay": ("delay", delay.values.astype(float), {"units": "us", "long_name": "sync delay t_d"})},
+        coords={"delay": ("delay", delay.values.astype(float), {"units": "us", "long_name": (
+            "sync delay t_d" if what["source_kind"] == "plane_to_ray_capture"
+            else "delay from the direct plane, o / v_p (the sync delay + t_o)")})},
         attrs=keep | what))
 
 
 def _folded(frames: xr.DataArray) -> xr.DataArray:
-    """Frames over delay folded onto t_d ≥ 0 (:func:`selpath.stages.procam._material_features.fold`), lazily."""
+    """Frames over delay folded onto t_d ≥ 0, p(t) + p(−t) (p(0) alone), lazily."""
     try:
         zero = features.zero_of(frames["delay"].values)
     except ValueError as exc:
@@ -192,15 +202,15 @@ def _pixels(profiles: xr.Dataset, index: np.ndarray) -> tuple[np.ndarray, np.nda
     return np.asarray(flat, np.float64).T, np.asarray(area, np.float64)
 
 
-def _fit(values: np.ndarray, truth: np.ndarray, grid: dict, folds: int, blocks: np.ndarray):
+def _fit(values: np.ndarray, truth: np.ndarray, grid: dict, folds: int, blocks: np.ndarray, seed: int):
     """The RBF SVM (after standardising) whose C and γ score best over ``folds`` folds of spatial blocks."""
-    from sklearn.model_selection import GridSearchCV, GroupKFold
+    from sklearn.model_selection import GridSearchCV
     from sklearn.pipeline import Pipeline
     from sklearn.preprocessing import StandardScaler
     from sklearn.svm import SVC
 
     search = GridSearchCV(Pipeline([("scale", StandardScaler()), ("svm", SVC(kernel="rbf"))]), grid,
-                          cv=GroupKFold(folds))
+                          cv=features.block_folds(folds, seed))
     search.fit(values, truth, groups=blocks)
     return search
 
@@ -272,17 +282,17 @@ def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scen
     folds : int
         Folds of the cross-validation over spatial blocks [1].
     seed : int
-        Seed of the pixel draw and of the folds.
+        Seed of the pixel draw and of the folds' shuffle.
     c_grid : tuple of float
         SVM regularisation C to try [1].
     gamma_grid : tuple of float
         RBF width γ to try, in units of 1/(number of delays) [1]: 1 is scikit-learn's ``gamma="scale"`` on
         standardised profiles (when no delay is constant over the training pixels).
     flag_rate : float
-        The share of a trained material's pixels the classifier may flag as unlike every trained class, on data like
-        the training capture's [1]: a pixel is flagged when its mean distance to its 5 nearest training pixels (the
-        SVM's standardised space) exceeds the (1 − flag_rate) quantile of the training pixels' own, each scored out of
-        fold (split conformal; ``selpath.stages.procam._material_features``).
+        The share of the trained materials' pixels (all together) the classifier may flag as unlike every trained
+        class, on data like the training capture's [1]: a pixel is flagged when its mean distance to its 5 nearest
+        training pixels (the SVM's standardised space) exceeds the (1 − flag_rate) quantile of the training pixels'
+        own, each scored out of fold (split conformal; ``selpath.stages.procam._material_features``).
     pool_px : int
         Pool each labelled pixel's frames with its neighbours of the same label over a window of this many pixels
         a side before normalising (1: none) [px]; ``classify_materials`` then pools alike, within superpixels.
@@ -310,13 +320,14 @@ def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scen
     present, truth = np.unique(codes.ravel()[index] - 1, return_inverse=True)
     n_delay = values.shape[1]
     search = _fit(values, truth, {"svm__C": list(c_grid), "svm__gamma": [g / n_delay for g in gamma_grid]},
-                  folds, blocks)
-    baseline = _fit(area[:, None], truth, {"svm__C": list(c_grid), "svm__gamma": list(gamma_grid)}, folds, blocks)
+                  folds, blocks, seed)
+    baseline = _fit(area[:, None], truth, {"svm__C": list(c_grid), "svm__gamma": list(gamma_grid)}, folds, blocks,
+                    seed)
     model = skops.io.dumps({"profile": search.best_estimator_, "brightness": baseline.best_estimator_})
     kept = [names[k] for k in present]
     standard = search.best_estimator_.named_steps["scale"].transform(values)
     centre = np.stack([standard[truth == k].mean(0) for k in range(present.size)])
-    novelty = features.novelty_threshold(standard, blocks, folds, flag_rate)
+    novelty = features.novelty_threshold(standard, truth, blocks, folds, seed, flag_rate)
     mean = np.stack([values[truth == k].mean(0) for k in range(present.size)])
     spread = np.stack([values[truth == k].std(0) for k in range(present.size)])
     keep = {k: v for k, v in profiles.attrs.items() if k not in ("selpath_kind", "simulated_scene")}

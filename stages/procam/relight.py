@@ -178,6 +178,20 @@ def relight_full(transport: xr.Dataset, pattern: np.ndarray) -> xr.DataArray:
                     f"{int(np.count_nonzero(pattern))} of {pattern.size} pattern pixels lit")
 
 
+def pattern_rows(transport: xr.Dataset, space: str, projector_rows: int | None = None) -> int:
+    """The rows a pattern in ``space`` has: the transport's camera-rectified rows (``camera``), or the projector's
+    (``projector``: ``projector_rows``, else the store's ``projector_shape``; ValueError where neither says)."""
+    if space not in ("projector", "camera"):
+        raise ValueError(f"space is {space!r}; expected 'projector' or 'camera'")
+    if space == "camera":
+        return transport.sizes["row"]
+    shape = transport.attrs.get("projector_shape")
+    if projector_rows is None and shape is None:
+        raise ValueError("the transport does not record the projector's rows (attr projector_shape): give "
+                         "projector_rows, or patterns on camera-rectified rows (space: camera)")
+    return int(projector_rows if projector_rows is not None else shape[0])
+
+
 def relight_pattern(transport: xr.Dataset, pattern, *, projector_rows: int | None = None) -> xr.DataArray:
     """The image under ``pattern`` from a ``plane_to_ray_transport`` or ``full_transport`` store: a row pattern
     (1-D) or rows × projector columns (2-D), on camera-rectified rows, or on the projector's ``projector_rows``

@@ -24,7 +24,7 @@ from selpath.pipeline.registry import stage
 from selpath.stages._common import file_identity, require_variables
 from selpath.stages._figures import FIGURE, as_figure
 from selpath.stages.procam.figures import CHECKERBOARD_SIZE, censored_note, censored_of, draw_relit
-from selpath.stages.procam.relight import epipolar_image, non_epipolar_image, relight_pattern
+from selpath.stages.procam.relight import epipolar_image, non_epipolar_image, pattern_rows, relight_pattern
 
 _IMAGE = ("row", "col")
 _CENSORED = Variable(_IMAGE, False, units=None,
@@ -128,16 +128,10 @@ def _transport(transport: xr.Dataset, stage_name: str) -> xr.DataArray:
 
 
 def _pattern_rows(transport: xr.Dataset, projector_rows: int | None, space: str) -> int:
-    """The rows of the patterns' space: the transport's camera rows, or the projector's."""
-    if space == "camera":
-        return transport.sizes["row"]
-    shape = transport.attrs.get("projector_shape")
-    rows = projector_rows if projector_rows is not None else int(shape[0]) if shape is not None else None
-    if rows is None:
-        raise StageError(Problem("the transport does not record the projector's rows (attr projector_shape)",
-                                 where="projector_rows", fix="give projector_rows, or patterns on camera-rectified "
-                                 "rows with space: camera"))
-    return rows
+    try:
+        return pattern_rows(transport, space, projector_rows)
+    except ValueError as exc:
+        raise StageError(Problem(str(exc), where="projector_rows")) from None
 
 
 def _relit(transport: xr.Dataset, pattern: np.ndarray, name: str, projector_rows: int | None) -> xr.DataArray:
@@ -253,14 +247,14 @@ def relit_figure(relit: xr.Dataset, /) -> xr.Dataset:
     caption = f"""The scene relit from its light transport under virtual projector patterns of the workflow's own, as
         the thesis's Fig. 40 relights it under lines (§5.4.1; Fig. 41 and §5.4.2 for 2-D patterns from full transport):
         {"; ".join(f"({chr(97 + i)}) {n}: {described.get(n, '')}" for i, n in enumerate(names))}; all on one
-        colour scale in counts (0 to the 99.5th percentile of the last image), axes in camera pixels.
+        colour scale in counts (0 to the largest of the images' 99.5th percentiles), axes in camera pixels.
         {censored_note(relit)}"""
     censored = censored_of(relit)
 
     def render(*arrays):
         images, mask = arrays[:len(names)], arrays[len(names):]
         return draw_relit([np.asarray(a) for a in images], titles, CHECKERBOARD_SIZE,
-                          censored=np.asarray(mask[0]) if mask else None)
+                          censored=np.asarray(mask[0]) if mask else None, scale_by_last=False)
 
     return as_figure(render, *(relit["image"].isel(pattern=i).data for i in range(len(names))),
                      *([censored] if censored is not None else []), caption=caption, size=CHECKERBOARD_SIZE)

@@ -69,6 +69,10 @@ def test_a_profile_carries_the_sync_delay_of_each_offset(shifted):
     with pytest.raises(ValueError, match="give scan_speed"):
         bare.selpath.sync_delay()
     np.testing.assert_allclose(bare.selpath.sync_delay(scan_speed=0.1, sync_offset=0.0).values, OFFSETS * 10.0)
+    unknown = bare.selpath.profile(row=1, col=1)  # no timing: the profile, without a delay it cannot know
+    assert "sync_delay" not in unknown.coords and "give scan_speed" in unknown.attrs["description"]
+    given = bare.selpath.profile(row=1, col=1, scan_speed=0.1, sync_offset=2.0)
+    np.testing.assert_allclose(given["sync_delay"].values, OFFSETS * 10.0 - 2.0)
 
 
 def test_the_pixel_rule_is_the_figure_stages_rule(shifted):

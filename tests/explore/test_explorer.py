@@ -107,11 +107,13 @@ def test_the_views_numbers_are_the_accessors(folder):
 
 
 def test_a_binned_preview_is_the_bins_mean_of_the_full_views(folder, monkeypatch):
-    """Columns binned by 3 (a budget forced small): each view equals the mean over each bin of the full one."""
+    """Columns binned by 3 (a budget forced small): each view equals the mean over each bin of the full one, NaN
+    cells (a rectified transport's edges) counting as 0 in both."""
     import selpath.explore.views as views
 
     monkeypatch.setattr(views, "PREVIEW_BYTES", 47 * 24 * 32 * 8 // 3 + 1)
-    t = selpath.open_store(find_stores([folder])["transport.zarr"])
+    t = selpath.open_store(find_stores([folder])["transport.zarr"]).load()
+    t["transport"][:, :4, 2:7] = np.nan
     view = views.TransportView(t)
     assert view.bin == 3 and view.cube.shape == (24, 47, 11)  # 32 columns: ten bins of 3, the last of 2 (padded)
     full = t.selpath.epipolar(2).values
@@ -258,3 +260,5 @@ def test_the_page_builds_for_a_notebook_too(folder):
     explorer = Explorer([folder])
     for name in explorer.stores:
         assert isinstance(explorer.panel(name), pn.viewable.Viewable), name
+    assert list(explorer.transports) == ["transport.zarr"]  # the preview is built when a transport is first shown
+    assert explorer.transports["transport.zarr"].capture is explorer.stores["capture.zarr"]
