@@ -8,7 +8,9 @@ so a pydantic error becomes ``scene.yaml:12: camera.rows: …``.
 
 from __future__ import annotations
 
+import difflib
 import os
+import typing
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -143,8 +145,39 @@ def load_yaml_model(path_or_text: str | os.PathLike, model: type[M], *, what: st
         return model.model_validate(raw)
     except pydantic.ValidationError as exc:
         for err in exc.errors():
-            located.add(_document_path(raw, err["loc"]), pydantic_message(err))
+            located.add(_document_path(raw, err["loc"]), pydantic_message(err), _suggestion(err, model))
         raise ConfigError(located.problems) from None
+
+
+def field_names(model: type[pydantic.BaseModel]) -> set[str]:
+    """Every field name (or alias) of ``model`` and of the models its fields hold, through lists, unions and dicts.
+
+    >>> Inner = pydantic.create_model("Inner", pixel_centres=(str, "whole"))
+    >>> Outer = pydantic.create_model("Outer", frames=(list[Inner] | None, None))
+    >>> sorted(field_names(Outer))
+    ['frames', 'pixel_centres']
+    """
+    seen, names = set(), set()
+
+    def visit(annotation: Any) -> None:
+        for argument in typing.get_args(annotation):
+            visit(argument)
+        if isinstance(annotation, type) and issubclass(annotation, pydantic.BaseModel) and annotation not in seen:
+            seen.add(annotation)
+            for name, field in annotation.model_fields.items():
+                names.add(field.alias or name)
+                visit(field.annotation)
+
+    visit(model)
+    return names
+
+
+def _suggestion(err: dict, model: type[pydantic.BaseModel]) -> str:
+    """For a field the model does not know, the known one its name is closest to (a misspelling), if any."""
+    if err["type"] != "extra_forbidden" or not err["loc"]:
+        return ""
+    close = difflib.get_close_matches(str(err["loc"][-1]), sorted(field_names(model)), n=1, cutoff=0.75)
+    return f"did you mean {close[0]!r}?" if close else ""
 
 
 def _document_path(raw: Any, loc: tuple) -> tuple:

@@ -150,6 +150,12 @@ def test_bad_specs_and_frames_are_named_with_their_field(original, tmp_path):
     write(length_unit="furlong")
     with pytest.raises(ConfigError, match="length_unit 'furlong' is not one of"):
         import_capture(spec=str(path))
+    write(pixel_centers="half")  # a misspelt field: named, with the known field its name is closest to
+    with pytest.raises(ConfigError, match=r"pixel_centers: is not a known field \(fix: did you mean 'pixel_centres'"):
+        import_capture(spec=str(path))
+    write(pixel_centres="half", sky="blue")  # nothing close: no guess
+    with pytest.raises(ConfigError, match=r"sky: is not a known field$"):
+        import_capture(spec=str(path))
     write(angles_deg=list(range(23)))
     with pytest.raises(StageError, match="frames.target has 24 frames for 23 angles"):
         import_capture(spec=str(path))
