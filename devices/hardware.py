@@ -16,11 +16,11 @@ from typing import Literal
 
 import pydantic
 
-from selpath.devices.geometry import CAMERA_ATTRS, CameraModel, RigGeometry, camera_attr_problems
 from selpath.devices.manual import ManualLight, ManualSampleChanger
 from selpath.devices.opencv_camera import OpenCVCamera
 from selpath.devices.serial_stage import SerialRotaryStage
 from selpath.devices.tomography_acquire import TomographyRig
+from selpath.geometry.rig import CAMERA_ATTRS, CameraModel, RigGeometry, camera_attr_problems
 from selpath.pipeline.yaml_source import load_yaml_model
 
 
@@ -48,8 +48,8 @@ class CameraConfig(_Model):
 class GeometryConfig(_Model):
     """Rig geometry written into every capture (DESIGN §8); lengths in ``length_unit``.
 
-    The fields are the attrs of :class:`selpath.devices.geometry.RigGeometry` (a test keeps them in step), and which a
-    camera model needs comes from their one declaration, :data:`selpath.devices.geometry.CAMERA_ATTRS`; the principal
+    The fields are the attrs of :class:`selpath.geometry.rig.RigGeometry` (a test keeps them in step), and which a
+    camera model needs comes from their one declaration, :data:`selpath.geometry.rig.CAMERA_ATTRS`; the principal
     point defaults to the sensor's centre.
     """
 

@@ -17,8 +17,9 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 #: folder → the package it installs as (pyproject.toml's package-dir)
 PARTS = {"selpath": "selpath", "pipeline": "selpath.pipeline", "stages": "selpath.stages",
-         "devices": "selpath.devices", "workflows": "selpath.workflows", "explore": "selpath.explore"}
-BARE = ("pipeline", "stages", "devices", "workflows")
+         "devices": "selpath.devices", "geometry": "selpath.geometry", "workflows": "selpath.workflows",
+         "explore": "selpath.explore"}
+BARE = ("pipeline", "stages", "devices", "geometry", "workflows")
 
 
 def module_name(path: Path) -> str:
@@ -95,6 +96,7 @@ def cycles(edges: dict[str, set[str]]) -> list[list[str]]:
 
 @pytest.mark.parametrize(("package", "forbidden"), [
     ("pipeline", ("selpath.stages", "selpath.devices", "selpath.explore")),
+    ("geometry", ("selpath.stages", "selpath.devices", "selpath.explore")),
     ("devices", ("selpath.stages", "selpath.explore")),
     ("stages", ("selpath.explore",)),
     ("stages/tomography", ("selpath.stages.procam",)),
@@ -104,6 +106,23 @@ def test_no_arrow_against_the_layering(package, forbidden):
     wrong = {module: sorted(n for n in names if any(n == f or n.startswith(f + ".") for f in forbidden))
              for module, names in imports(package).items()}
     assert not {m: n for m, n in wrong.items() if n}
+
+
+#: the stage modules whose job is to simulate (acquisition on the simulated rig, ``simulate_*``, the simulated studies)
+#: or to read a simulated capture's truth (phantoms, scene labels): the only ones that may import the simulator
+SIMULATING = {"stages/procam/acquire.py", "stages/procam/acquire_patterns.py", "stages/procam/multiplexing.py",
+              "stages/procam/_scene_truth.py", "stages/tomography/acquire.py", "stages/tomography/simulate.py",
+              "stages/tomography/phantom.py", "stages/tomography/studies.py"}
+
+
+def test_processing_stages_never_import_the_simulator():
+    """Paths, calibration, reconstruction, the scattering model, labels …: the geometry they share with the
+    simulator is ``selpath.geometry``'s, so none of them reaches into ``devices.sim``."""
+    reaching = {module for module, names in imports("stages").items()
+                if any(n == "selpath.devices.sim" or n.startswith("selpath.devices.sim.") for n in names)}
+    assert reaching <= SIMULATING, sorted(reaching - SIMULATING)
+    assert {"stages/tomography/paths.py", "stages/tomography/_walks.py", "stages/procam/_labels.py"}.isdisjoint(
+        reaching)
 
 
 def test_shared_stage_modules_import_neither_instrument():

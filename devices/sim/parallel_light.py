@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from selpath.devices.geometry import OrthographicCamera
+from selpath.geometry.rig import OrthographicCamera
 
 
 @dataclass(frozen=True)
@@ -41,7 +41,7 @@ def chord(x_lab: np.ndarray, centre_x: np.ndarray, radius: float) -> np.ndarray:
 
 
 def column_x(n_cols: int, pixel_size: float) -> np.ndarray:
-    """Lab x of each column's ray (the camera's pixel convention, :mod:`selpath.devices.geometry`)."""
+    """Lab x of each column's ray (the camera's pixel convention, :mod:`selpath.geometry.rig`)."""
     origins, _ = OrthographicCamera(rows=1, cols=n_cols, pixel_size=pixel_size).slice_rays(np.arange(n_cols))
     return origins[:, 0]
 

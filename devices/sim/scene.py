@@ -26,8 +26,8 @@ from typing import Annotated, Any, Literal
 import numpy as np
 import pydantic
 
-from selpath.devices.geometry import OrthographicCamera, PerspectiveCamera, RigGeometry
-from selpath.devices.sim.shapes import Ellipse, Ellipsoid, Polygon, Prism, Solid, convex_polygon
+from selpath.geometry.rig import OrthographicCamera, PerspectiveCamera, RigGeometry
+from selpath.geometry.shapes import Ellipse, Ellipsoid, Polygon, Prism, Solid, convex_polygon
 from selpath.pipeline.yaml_source import load_yaml_model
 
 _TO_MM = {"m": 1000.0, "cm": 10.0, "mm": 1.0, "um": 1e-3}

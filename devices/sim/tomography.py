@@ -1,6 +1,6 @@
 """Frames of a tomography scene: straight paths (shortest-path model, §4.2.3) or Monte Carlo (§4.4.4).
 
-Light model, in the object frame at stage angle φ (conventions in :mod:`selpath.devices.geometry`):
+Light model, in the object frame at stage angle φ (conventions in :mod:`selpath.geometry.rig`):
 
 * The light's central ray enters the object at ``p_l`` (first crossing of the object's surface), where
   the thin skin diffuses it (Lambertian, transmittance T). A **beam** enters at one point; a **sheet**
@@ -34,9 +34,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from selpath.devices.geometry import Camera, RigGeometry, to_lab, to_object
 from selpath.devices.sim.scene import Scene
-from selpath.devices.sim.shapes import Solid, segment_length_inside
+from selpath.geometry.directions import cosine_hemisphere, isotropic
+from selpath.geometry.rig import Camera, RigGeometry, to_lab, to_object
+from selpath.geometry.shapes import Solid, segment_length_inside
 
 SAMPLES = ("target", "reference")
 
@@ -127,25 +128,6 @@ def silhouette(scene: Scene, angle_deg: float, seen: ExitPoints | None = None) -
     """True where the object hides the lit plane behind it, (rows, cols)."""
     geometry = scene.geometry()
     return (seen or exit_points(scene, angle_deg, geometry)).hit.reshape(geometry.camera.rows, geometry.camera.cols)
-
-
-def cosine_hemisphere(normal: np.ndarray, n: int, rng: np.random.Generator) -> np.ndarray:
-    """Lambertian directions about the unit ``normal`` (N, 3)."""
-    u1, u2 = rng.random(n), rng.random(n)
-    r, phi = np.sqrt(u1), 2 * np.pi * u2
-    local = np.stack([r * np.cos(phi), r * np.sin(phi), np.sqrt(1 - u1)], axis=1)
-    helper = np.array([0.0, 0.0, 1.0]) if abs(normal[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
-    e1 = np.cross(normal, helper)
-    e1 /= np.linalg.norm(e1)
-    e2 = np.cross(normal, e1)
-    return local @ np.stack([e1, e2, normal])
-
-
-def isotropic(n: int, rng: np.random.Generator) -> np.ndarray:
-    z = 2 * rng.random(n) - 1
-    phi = 2 * np.pi * rng.random(n)
-    r = np.sqrt(1 - z * z)
-    return np.stack([r * np.cos(phi), r * np.sin(phi), z], axis=1)
 
 
 @dataclass(frozen=True)

@@ -33,13 +33,9 @@ def label_map(profiles: xr.Dataset, labels: str, image: str, classes: tuple[str,
     shape = (profiles.sizes["row"], profiles.sizes["col"])
     labels, image = (image, "") if labels == "image" else (labels, image)
     if labels == "scene":
-        from selpath.devices.sim.procam_transport import Tile
-        from selpath.stages.procam.multiplexing import simulated_scene
+        from selpath.stages.procam._scene_truth import scene_labels
 
-        scene = simulated_scene(profiles, where)
-        tile = Tile.of(scene, 0, scene.rig.camera_rows)
-        names = tuple(obj.name for obj in scene.objects)
-        codes = (tile.label + 1).reshape(tile.shape)
+        codes, names = scene_labels(profiles, where)
         if codes.shape != shape:
             raise StageError(Problem(f"the scene renders {codes.shape}, the profiles are {shape}", where=where))
     else:

@@ -40,6 +40,7 @@ from selpath.pipeline.errors import Problem, StageError
 from selpath.pipeline.kinds import CubeKind, Variable
 from selpath.pipeline.registry import stage
 from selpath.stages._common import require_variables
+from selpath.stages.procam._scene_truth import simulated_scene
 from selpath.stages.procam.acquire_patterns import exposure_window
 from selpath.stages.procam.relight import relight, relight_full
 
@@ -176,16 +177,6 @@ def multiplexing_gain_study(*, lines: Count = 31,
                 "code": ("code", list(codes))},
         attrs={"lines": lines, "gain_counts_per_electron": gain, "read_std_counts": read_std, "trials": trials,
                "seed": seed}))
-
-
-def simulated_scene(capture: xr.Dataset, where: str) -> ProcamScene:
-    """The scene (rig included) a capture of the simulated rig was rendered from: its ``simulated_scene`` attr."""
-    record = capture.attrs.get("simulated_scene")
-    if record is None:
-        raise StageError(Problem("the capture records no simulated scene: the simulator's truth is known only for "
-                                 "captures of the simulated rig", where=where,
-                                 fix="wire in a capture acquired with rig: sim"))
-    return ProcamScene.model_validate(record)
 
 
 def noiseless(scene: ProcamScene) -> ProcamScene:

@@ -19,7 +19,7 @@ import numpy as np
 import scipy.optimize
 import scipy.sparse
 
-from selpath.devices.geometry import RigGeometry, to_lab
+from selpath.geometry.rig import RigGeometry, to_lab
 from selpath.stages._solution import Solution, outcome
 from selpath.stages.tomography._admm import gradient
 from selpath.stages.tomography._projector import Geometry

@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from selpath.devices.geometry import RigGeometry, to_lab
-from selpath.devices.sim.shapes import Prism
+from selpath.geometry.rig import RigGeometry, to_lab
+from selpath.geometry.shapes import Prism
 from selpath.stages.tomography._walks import Walks, beam_entry, random_walks, surface_seen, walk_weights
 
 #: pixels that see the hull more obliquely than this (from its normal) are not compared: their areas are the hull's

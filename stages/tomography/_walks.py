@@ -25,9 +25,9 @@ from dataclasses import dataclass
 import numpy as np
 from skimage.measure import approximate_polygon
 
-from selpath.devices.geometry import RigGeometry, to_object, to_object_xy
-from selpath.devices.sim.shapes import Prism, convex_polygon
-from selpath.devices.sim.tomography import cosine_hemisphere, isotropic
+from selpath.geometry.directions import cosine_hemisphere, isotropic
+from selpath.geometry.rig import RigGeometry, to_object, to_object_xy
+from selpath.geometry.shapes import Prism, convex_polygon
 
 #: a contour is simplified for walking to within this share of a camera pixel at the axis [1]: far below the
 #: hull's own error (about a pixel), and a 360-vertex contour clips ~3× faster with the ~100 vertices left

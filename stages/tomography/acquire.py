@@ -16,11 +16,11 @@ import numpy as np
 import pydantic
 import xarray as xr
 
-from selpath.devices.geometry import RIG_ATTRS, camera_attr_problems
 from selpath.devices.hardware import hardware_rig, load_hardware
 from selpath.devices.sim.rig import simulated_rig
 from selpath.devices.sim.scene import load_scene
 from selpath.devices.tomography_acquire import acquire_tomography as sweep
+from selpath.geometry.rig import RIG_ATTRS, camera_attr_problems
 from selpath.pipeline.constraints import StorePath, memory_problems
 from selpath.pipeline.kinds import ANGLE_UNITS, SENSOR_COUNTS, CubeKind, Variable
 from selpath.pipeline.registry import stage

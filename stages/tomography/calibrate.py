@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 import xarray as xr
 
-from selpath.devices.geometry import saturation_counts
+from selpath.geometry.rig import saturation_counts
 from selpath.pipeline.constraints import Fraction, NonNegative, Positive
 from selpath.pipeline.errors import Problem, StageError
 from selpath.pipeline.kinds import ANGLE_UNITS, FLAGS, CubeKind, Variable

@@ -19,7 +19,7 @@ from skimage.filters import threshold_otsu
 from skimage.measure import label
 from skimage.morphology import remove_small_holes, remove_small_objects
 
-from selpath.devices.geometry import RIG_ATTRS, Camera, RigGeometry, camera_attr_problems, geometry_attrs, to_object_xy
+from selpath.geometry.rig import RIG_ATTRS, Camera, RigGeometry, camera_attr_problems, geometry_attrs, to_object_xy
 from selpath.pipeline.constraints import Index, Positive
 from selpath.pipeline.errors import Problem, StageError
 from selpath.pipeline.kinds import ANGLE_UNITS, CubeKind, Variable
@@ -285,7 +285,7 @@ def visual_hull(silhouettes: xr.Dataset, /) -> xr.Dataset:
 
 def slice_heights(camera: Camera, rows: np.ndarray, unit: str, dim: str = "slice") -> tuple[str, np.ndarray, dict]:
     """The ``z`` coordinate (along ``dim``) of slices seen in camera ``rows``: the height [``unit``, the rig's
-    length unit] where each row sees the rotation axis (:meth:`~selpath.devices.geometry.Camera.axis_height`); z grows
+    length unit] where each row sees the rotation axis (:meth:`~selpath.geometry.rig.Camera.axis_height`); z grows
     upward, so it falls as the row grows."""
     return (dim, camera.axis_height(rows), {"units": unit, "long_name": "slice height z at the rotation axis"})
 

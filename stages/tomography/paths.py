@@ -16,8 +16,8 @@ from __future__ import annotations
 import numpy as np
 import xarray as xr
 
-from selpath.devices.geometry import RIG_ATTRS, RigGeometry, geometry_attrs, to_object_xy
-from selpath.devices.sim.shapes import convex_polygon
+from selpath.geometry.rig import RIG_ATTRS, RigGeometry, geometry_attrs, to_object_xy
+from selpath.geometry.shapes import convex_polygon
 from selpath.pipeline.constraints import Fraction
 from selpath.pipeline.errors import Problem, StageError
 from selpath.pipeline.kinds import ANGLE_UNITS, CubeKind, Variable

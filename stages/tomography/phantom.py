@@ -21,9 +21,9 @@ import numpy as np
 import pydantic
 import xarray as xr
 
-from selpath.devices.geometry import to_object
 from selpath.devices.sim import tomography as tomo
 from selpath.devices.sim.scene import Scene, load_scene
+from selpath.geometry.rig import to_object
 from selpath.pipeline.constraints import Count, Index, NonNegative, Positive, StorePath, memory_problems
 from selpath.pipeline.errors import Problem, StageError
 from selpath.pipeline.registry import stage

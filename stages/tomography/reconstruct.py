@@ -23,7 +23,8 @@ import jax.numpy as jnp
 import numpy as np
 import xarray as xr
 
-from selpath.devices.geometry import geometry_attrs
+from selpath.geometry.rig import geometry_attrs
+from selpath.geometry.shapes import cells_inside, support_function
 from selpath.pipeline.constraints import Count, NonNegative, Positive, memory_problems
 from selpath.pipeline.errors import Problem, StageError
 from selpath.pipeline.kinds import LENGTH_UNITS, CubeKind, Variable
@@ -33,7 +34,7 @@ from selpath.stages.tomography._admm import TVADMM
 from selpath.stages.tomography._filters import ramp_filter
 from selpath.stages.tomography._projector import Geometry, any_nearest, backproject
 from selpath.stages.tomography.hull import contours
-from selpath.stages.tomography.sinogram import observed_share, support_function
+from selpath.stages.tomography.sinogram import observed_share
 
 _SIGMA = "1/{length}"
 RECONSTRUCTION = CubeKind(
@@ -85,29 +86,11 @@ def grid_geometry(sinogram: xr.Dataset, n_pixels: int | None, method: str = "jos
 
 
 def support_mask(vertices: np.ndarray | None, geometry: Geometry) -> np.ndarray:
-    """True on cells whose centre lies inside the convex polygon (counter-clockwise vertices); all True
-    when there is no contour.
-
-    Row by row: a cell at height y is inside where every edge a → b has (b − a) × (p − a) ≥ −1e-12, which for
-    fixed y bounds x from one side (edges running down bound it below, up above; level edges keep or drop the
-    row), so a row is one interval [lo, hi]: O(n·edges + n²), not O(n²·edges). (Not the simulator's Cyrus–Beck
-    clipping, :meth:`~selpath.devices.sim.shapes.Polygon.interval`: it has no tolerance, and a hull's vertices lie on
-    the
-    pixel grid, so cells on its edges are common; clipped, 4 such cells a slice dropped out of the support.)"""
-    centres = geometry.centres
+    """True on cells whose centre lies inside the convex contour (counter-clockwise vertices; edges included, see
+    :func:`~selpath.geometry.shapes.cells_inside`); all True when there is no contour."""
     if vertices is None or len(vertices) < 3:
         return np.ones((geometry.n, geometry.n), dtype=bool)
-    a = np.asarray(vertices, float)
-    b = np.roll(a, -1, axis=0)
-    dx, dy = b[:, 0] - a[:, 0], b[:, 1] - a[:, 1]
-    # per (row y, edge): the cross product is g − dy·x ≥ 0 with g = dx·(y − a_y) + dy·a_x + 1e-12
-    g = dx[None, :] * (centres[:, None] - a[None, :, 1]) + (dy * a[:, 0])[None, :] + 1e-12
-    with np.errstate(divide="ignore", invalid="ignore"):
-        bound = g / dy[None, :]
-    lo = np.max(np.where(dy < 0, bound, -np.inf), axis=1)
-    hi = np.min(np.where(dy > 0, bound, np.inf), axis=1)
-    level = np.all(np.where(dy == 0, g >= 0, True), axis=1)
-    return level[:, None] & (centres[None, :] >= lo[:, None]) & (centres[None, :] <= hi[:, None])
+    return cells_inside(vertices, geometry.centres)
 
 
 def known_zero(vertices: np.ndarray | None, geometry: Geometry) -> np.ndarray:

@@ -3,7 +3,7 @@ seen, and the light's angle θ_l. No calibration target is needed; both come fro
 must show, so a wrong value shows as a contradiction in the data.
 
 **Rotation-axis column** (``axis_column``, the principal point's column: the camera is aimed at the axis,
-:mod:`selpath.devices.geometry`). Each backlit silhouette's outer edge in a camera row is a ray tangent to the object's
+:mod:`selpath.geometry.rig`). Each backlit silhouette's outer edge in a camera row is a ray tangent to the object's
 slice, i.e. a sample ``h = H(ψ)`` of the slice's support function H (the largest ``n(ψ)·p`` over the slice, n the
 tangent's outward normal in the object frame). Over a turn the left edges and the right edges sample the same H;
 seen from a wrong axis column they disagree by twice the error (in length at the axis). The fit minimises, per
@@ -44,8 +44,8 @@ import xarray as xr
 from scipy.ndimage import map_coordinates
 from scipy.optimize import least_squares
 
-from selpath.devices.geometry import RIG_ATTRS, Camera, RigGeometry, camera_attr_problems, geometry_attrs, to_object_xy
-from selpath.devices.sim.shapes import convex_polygon
+from selpath.geometry.rig import RIG_ATTRS, Camera, RigGeometry, camera_attr_problems, geometry_attrs, to_object_xy
+from selpath.geometry.shapes import convex_polygon
 from selpath.pipeline.constraints import Count, NonNegative, Positive
 from selpath.pipeline.errors import Problem, StageError
 from selpath.pipeline.kinds import ANGLE_UNITS, CubeKind, Variable

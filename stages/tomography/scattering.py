@@ -55,7 +55,7 @@ import dask.array as da
 import numpy as np
 import xarray as xr
 
-from selpath.devices.geometry import RigGeometry
+from selpath.geometry.rig import RigGeometry
 from selpath.pipeline.constraints import Count, Index, NonNegative, Positive, memory_problems
 from selpath.pipeline.errors import Problem, StageError
 from selpath.pipeline.registry import stage

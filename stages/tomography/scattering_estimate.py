@@ -20,7 +20,7 @@ import numpy as np
 import pydantic
 import xarray as xr
 
-from selpath.devices.geometry import RigGeometry, geometry_attrs, saturation_counts
+from selpath.geometry.rig import RigGeometry, geometry_attrs, saturation_counts
 from selpath.pipeline.constraints import Count, Index, Positive
 from selpath.pipeline.errors import Problem, StageError
 from selpath.pipeline.kinds import CubeKind, Variable

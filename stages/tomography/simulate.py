@@ -10,10 +10,10 @@ import pydantic
 import xarray as xr
 from dask.base import tokenize
 
-from selpath.devices.geometry import OrthographicCamera
 from selpath.devices.sim import tomography as tomo
 from selpath.devices.sim.parallel_light import Rod, render
 from selpath.devices.sim.scene import load_scene, scene_identity
+from selpath.geometry.rig import OrthographicCamera
 from selpath.pipeline.constraints import Count, Index, NonNegative, Positive, StorePath, memory_problems
 from selpath.pipeline.errors import Problem, StageError
 from selpath.pipeline.registry import stage

@@ -17,7 +17,8 @@ import numpy as np
 import pydantic
 import xarray as xr
 
-from selpath.devices.geometry import RigGeometry, geometry_attrs
+from selpath.geometry.rig import RigGeometry, geometry_attrs
+from selpath.geometry.shapes import support_function
 from selpath.pipeline.constraints import Positive, memory_problems
 from selpath.pipeline.errors import Problem, StageError
 from selpath.pipeline.kinds import ANGLE_UNITS, LENGTH_UNITS, CubeKind, Variable
@@ -331,12 +332,6 @@ def coverage_model(light_angle_deg, fov_deg=None) -> tuple[np.ndarray, np.ndarra
 def optimal_light_angle(fov_deg: float | None = None) -> float:
     """θ_l of largest coverage that keeps the sinogram's centre (Eq. 12 and 19), degrees."""
     return 90.0 if fov_deg is None else (180.0 - fov_deg) / 2
-
-
-def support_function(vertices: np.ndarray, theta_deg: np.ndarray) -> np.ndarray:
-    """h(n) = max over the contour of p·n for the normals n(θ), (n_theta,)."""
-    n = np.stack([np.cos(np.deg2rad(theta_deg)), np.sin(np.deg2rad(theta_deg))], axis=1)
-    return np.max(vertices @ n.T, axis=0)
 
 
 def _coverage_kernel(observed, vertices, n_vertices, *, theta, x):

@@ -87,8 +87,8 @@ def test_frames_are_the_simulator_frames_at_the_commanded_settings(tmp_path):
 def test_rig_changes_reach_the_frames_and_the_record_and_bad_ones_name_the_field(tmp_path):
     """``rig_changes`` (here a dimmer projector and a dark level) change what the rig renders, the capture records
     the scene as simulated, and an unknown or invalid field is refused with its name."""
+    from selpath.stages.procam._scene_truth import simulated_scene
     from selpath.stages.procam.acquire import acquisition_scene
-    from selpath.stages.procam.multiplexing import simulated_scene
 
     path = tmp_path / "scene.yaml"
     path.write_text(SCENE.replace("FRAME", "0 us"))

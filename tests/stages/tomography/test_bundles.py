@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from selpath.devices.sim.shapes import Prism, convex_polygon
+from selpath.geometry.shapes import Prism, convex_polygon
 from selpath.stages._solution import Result
 from selpath.stages.tomography._bundles import (
     Bundles,

@@ -54,7 +54,7 @@ def test_the_bundles_absorption_is_the_simulators_own_at_the_true_sigma(seed0):
     a frame are noisy too). On the 32-grid of the reconstructions the same disc blurred by bilinear interpolation
     reads up to 0.07 higher: a coarse grid's absorber needs less σ to absorb as much."""
     from selpath import workflows
-    from selpath.devices.geometry import RigGeometry
+    from selpath.geometry.rig import RigGeometry
     from selpath.stages.tomography._bundles import forward, trace_bundles
     from selpath.stages.tomography.hull import contours
     from selpath.stages.tomography.phantom import phantom_truth

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from selpath.devices.geometry import OrthographicCamera, RigGeometry
-from selpath.devices.sim.shapes import Ellipse, Prism
+from selpath.geometry.rig import OrthographicCamera, RigGeometry
+from selpath.geometry.shapes import Ellipse, Prism
 from selpath.stages.tomography._walks import beam_entry, exit_weights, random_walks, walk_body, walk_weights
 
 CIRCLE = Prism(Ellipse((0.0, 0.0), (1.0, 1.0), 0.0))

@@ -1,4 +1,4 @@
-"""The camera models of devices.geometry: one declaration of their attrs, projection against back-projection."""
+"""The camera models of selpath.geometry.rig: one declaration of their attrs, projection against back-projection."""
 
 from __future__ import annotations
 
@@ -7,7 +7,8 @@ from dataclasses import fields
 import numpy as np
 import pytest
 
-from selpath.devices.geometry import (
+from selpath.devices.hardware import GeometryConfig
+from selpath.geometry.rig import (
     CAMERA_ATTRS,
     CAMERAS,
     GEOMETRY_ATTRS,
@@ -16,7 +17,6 @@ from selpath.devices.geometry import (
     PerspectiveCamera,
     RigGeometry,
 )
-from selpath.devices.hardware import GeometryConfig
 from selpath.pipeline import StageError
 
 CAMERA_CASES = {
@@ -137,7 +137,7 @@ def test_the_perspective_camera_subtends_the_closed_form_angle():
 def test_an_unknown_light_kind_is_refused_not_taken_for_a_beam():
     import pytest
 
-    from selpath.devices.geometry import OrthographicCamera, RigGeometry
+    from selpath.geometry.rig import OrthographicCamera, RigGeometry
     from selpath.pipeline.errors import StageError
 
     attrs = RigGeometry(OrthographicCamera(rows=4, cols=4, pixel_size=0.1), 30.0).attrs() | {"light_kind": "Sheet"}

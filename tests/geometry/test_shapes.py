@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial import ConvexHull
 
-from selpath.devices.sim.shapes import Ellipse, Ellipsoid, Prism, convex_polygon, segment_length_inside
+from selpath.geometry.shapes import Ellipse, Ellipsoid, Prism, convex_polygon, segment_length_inside
 
 coords = st.floats(-5, 5, allow_nan=False)
 
@@ -122,7 +122,7 @@ def test_a_polygon_clips_many_lines_in_blocks_with_each_lines_own_result():
     """More lines than :data:`CLIP_BLOCK` go in blocks; every line's interval equals that of the line clipped alone
     (to 1e-12: the matrix products round differently by size) and its normals are the same edges', including misses
     and lines that start inside."""
-    from selpath.devices.sim.shapes import CLIP_BLOCK
+    from selpath.geometry.shapes import CLIP_BLOCK
 
     rng = np.random.default_rng(3)
     angle = np.sort(rng.uniform(0, 2 * np.pi, 40))
