@@ -212,12 +212,40 @@ def _silhouette_share(lit: xr.DataArray, mask: xr.DataArray) -> xr.DataArray:
                         "another camera): check them, or set flag_background: false to keep the background unflagged")
 
 
+def _given_silhouettes(capture: xr.Dataset, silhouettes: xr.Dataset, stage_name: str, flag_background: bool,
+                       threshold: float | None) -> xr.DataArray:
+    """The ``silhouettes`` store's masks, checked against the capture's frames: one per angle, the same angles."""
+    problems = []
+    if not flag_background:
+        problems.append(Problem("silhouettes are wired in but flag_background is false",
+                                fix="drop the silhouettes input, or set flag_background: true"))
+    if threshold is not None:
+        problems.append(Problem("silhouette_threshold is set, but the silhouettes wired in were thresholded by the "
+                                "silhouettes stage", fix="set the threshold there (its `threshold`) and drop it here"))
+    require_variables(silhouettes, ("silhouette",), stage_name)
+    mask = sorted_sweep(silhouettes, "angle", stage_name)["silhouette"]
+    frames = capture["target"]
+    if set(mask.dims) != set(frames.dims) or any(mask.sizes[d] != frames.sizes[d] for d in frames.dims):
+        problems.append(Problem(f"the silhouettes are {dict(mask.sizes)}, the target frames {dict(frames.sizes)}",
+                                path="silhouettes", fix="make the silhouettes from this capture"))
+    elif not np.allclose(mask["angle"].values, frames["angle"].values):
+        problems.append(Problem("the silhouettes' angles are not the capture's", path="silhouettes",
+                                fix="make the silhouettes from this capture"))
+    if problems:
+        raise StageError(problems)
+    return mask.astype(bool).drop_vars([c for c in mask.coords if c not in mask.dims]).assign_coords(
+        {d: frames[d] for d in frames.dims if d in frames.coords})
+
+
 def _checked_pair(capture: xr.Dataset, stage_name: str, saturation_level: float | None, min_signal: float,
                   min_signal_relative: float, *, absorption: bool, flag_background: bool = True,
-                  silhouette_threshold: float | None = None) -> tuple[xr.DataArray, xr.DataArray, dict, dict]:
+                  silhouette_threshold: float | None = None, silhouettes: xr.Dataset | None = None
+                  ) -> tuple[xr.DataArray, xr.DataArray, dict, dict]:
     """Absorption (or transmittance) and flags of dark-subtracted target and reference, lazily per tile, the
     usable shares of the input (:mod:`selpath.pipeline.quality`) and the object's shares (plain 0-d variables)."""
     capture = sorted_sweep(capture, "angle", stage_name)
+    given = None if silhouettes is None else _given_silhouettes(capture, silhouettes, stage_name, flag_background,
+                                                                silhouette_threshold)
     background_name = capture.attrs.get("background_subtracted") or ("dark" if "dark" in capture else None)
     require_variables(capture, ("target", "reference") + ((background_name,) if background_name else ()), stage_name)
     _same_frames(capture, background_name, stage_name)
@@ -230,7 +258,14 @@ def _checked_pair(capture: xr.Dataset, stage_name: str, saturation_level: float 
         peak = frame_peak(capture["reference"].astype(dtype), background, subtracted=subtracted, level=level)
         threshold = np.maximum(threshold, min_signal_relative * peak.fillna(np.inf))
     object_mask = xr.DataArray(True)  # without backlit frames (or flag_background off) every pixel is the object's
-    if flag_background and "backlit" in capture:
+    if given is not None:
+        object_mask = given
+        if "backlit" in capture:
+            backlit = capture["backlit"]
+            dark = None if subtracted or not background_name else background
+            object_mask = given | ~np.isfinite(backlit)
+            silhouette_share = _silhouette_share(backlit if dark is None else backlit - dark, given)
+    elif flag_background and "backlit" in capture:
         backlit = capture["backlit"]
         if set(backlit.dims) != set(capture["target"].dims):
             raise StageError(Problem(f"stage {stage_name!r}: backlit has dims {backlit.dims}, target "
@@ -277,7 +312,7 @@ def _checked_pair(capture: xr.Dataset, stage_name: str, saturation_level: float 
         "object_valid_fraction": ((flags == 0).sum() / objects).astype(np.float64),
         "background_fraction": (~on_object).mean().astype(np.float64),
     }
-    if object_mask.ndim:
+    if object_mask.ndim and "backlit" in capture:
         shares["silhouette_fraction"] = silhouette_share
     if background_name and not subtracted:
         shares["dark_fraction"] = usable_share(
@@ -293,6 +328,10 @@ _PAIR_DOCS = """Parameters
     capture : xr.Dataset
         A ``tomography_capture`` store (or one with its ``target``, ``reference`` and ``dark`` frames over
         (angle, row, col) [counts]; ``backlit`` optional, for the background flag), raw or dark-subtracted.
+    silhouettes : xr.Dataset or None
+        A ``silhouettes`` store of this capture (input, optional): its masks say which pixels are the object's,
+        so the frames are thresholded once, by the stage the visual hull reads, and the two cannot disagree
+        (a workflow wires ``silhouettes: $silhouettes``); None: masks made here from ``backlit``.
     saturation_level : float or None
         Raw count at or above which a pixel is saturated [counts]; default: the capture's
         ``saturation_counts`` attr (``saturation_level`` in stores of format ≤ 5), else the integer dtype's maximum.
@@ -311,7 +350,7 @@ _PAIR_DOCS = """Parameters
         object). False: none is.
     silhouette_threshold : float or None
         Backlit counts above dark below which a pixel is on the object, as the ``silhouettes`` stage's
-        ``threshold`` (give both the same); None: Otsu's threshold per frame [counts].
+        ``threshold`` (give both the same); None: Otsu's threshold per frame [counts]. Not with ``silhouettes``.
 
     Besides the result and ``flags``, the shares ``signal_fraction`` (the object's pixels whose reference has
     usable signal; floor 0.1 %), ``usable_fraction`` (of those, pixels whose target is usable too; floor 5 %)
@@ -331,7 +370,7 @@ def _pair_docs(func):
 
 @stage("normalise_reference", kind=TRANSMITTANCE)
 @_pair_docs
-def normalise_reference(capture: xr.Dataset, /, *, saturation_level: Positive | None = None,
+def normalise_reference(capture: xr.Dataset, silhouettes: xr.Dataset | None = None, /, *, saturation_level: Positive | None = None,
                         min_signal: NonNegative = 0.0, min_signal_relative: Fraction = 0.0,
                         flag_background: bool = True, silhouette_threshold: Positive | None = None) -> xr.Dataset:
     """Transmittance I_target / I_reference per pixel (dark-subtracted), with flags for unusable pixels.
@@ -341,13 +380,14 @@ def normalise_reference(capture: xr.Dataset, /, *, saturation_level: Positive | 
     value, flags, attrs, shares = _checked_pair(capture, "normalise_reference", saturation_level, min_signal,
                                                 min_signal_relative, absorption=False,
                                                 flag_background=flag_background,
-                                                silhouette_threshold=silhouette_threshold)
+                                                silhouette_threshold=silhouette_threshold,
+                                                silhouettes=silhouettes)
     return TRANSMITTANCE.label(xr.Dataset({"transmittance": value, "flags": flags, **shares}, attrs=attrs))
 
 
 @stage("absorption", kind=ABSORPTION)
 @_pair_docs
-def absorption(capture: xr.Dataset, /, *, saturation_level: Positive | None = None,
+def absorption(capture: xr.Dataset, silhouettes: xr.Dataset | None = None, /, *, saturation_level: Positive | None = None,
                min_signal: NonNegative = 0.0, min_signal_relative: Fraction = 0.0, flag_background: bool = True,
                silhouette_threshold: Positive | None = None) -> xr.Dataset:
     """Total absorption A = log I_reference − log I_target per pixel (thesis Eq. 3), with flags.
@@ -360,5 +400,6 @@ def absorption(capture: xr.Dataset, /, *, saturation_level: Positive | None = No
     value, flags, attrs, shares = _checked_pair(capture, "absorption", saturation_level, min_signal,
                                                 min_signal_relative, absorption=True,
                                                 flag_background=flag_background,
-                                                silhouette_threshold=silhouette_threshold)
+                                                silhouette_threshold=silhouette_threshold,
+                                                silhouettes=silhouettes)
     return ABSORPTION.label(xr.Dataset({"absorption": value, "flags": flags, **shares}, attrs=attrs))

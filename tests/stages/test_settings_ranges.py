@@ -139,34 +139,34 @@ def test_frames_that_fit_are_not_refused(tmp_path, workflow_text):
 
 SHIPPED = [  # (workflow, old, new, message)
     ("tomography-sim.yaml", "tv_weight: 0.02", "tv_weight: -1",
-     "wf.yaml:47: steps[8].with.tv_weight: setting of stage 'reconstruct_tv' Input should be greater than or equal "
+     "wf.yaml:48: steps[8].with.tv_weight: setting of stage 'reconstruct_tv' Input should be greater than or equal "
      "to 0 (got -1) (fix: expected float ≥ 0)"),
     ("tomography-sim.yaml", "max_iter: 150", "max_iter: 0",
-     "wf.yaml:50: steps[8].with.max_iter: setting of stage 'reconstruct_tv' Input should be greater than or equal "
+     "wf.yaml:51: steps[8].with.max_iter: setting of stage 'reconstruct_tv' Input should be greater than or equal "
      "to 1 (got 0) (fix: expected int ≥ 1, ≤ 1e+06)"),
     ("tomography-sim.yaml", "tol: 0.001", "tol: 0",
-     "wf.yaml:49: steps[8].with.tol: setting of stage 'reconstruct_tv' Input should be greater than 0 (got 0) "
+     "wf.yaml:50: steps[8].with.tol: setting of stage 'reconstruct_tv' Input should be greater than 0 (got 0) "
      "(fix: expected float > 0)"),
     ("tomography-sim.yaml", "bound_slack: 0.1", "rho: 0",
-     "wf.yaml:48: steps[8].with.rho: setting of stage 'reconstruct_tv' Input should be greater than 0 (got 0) "
+     "wf.yaml:49: steps[8].with.rho: setting of stage 'reconstruct_tv' Input should be greater than 0 (got 0) "
      "(fix: expected float > 0)"),
     ("tomography-sim.yaml", "{rays: $rays, n_theta: 180, n_x: 128}", "{rays: $rays, n_theta: 1, n_x: 128}",
-     "wf.yaml:35: steps[5].with.n_theta: setting of stage 'bin_sinogram' Input should be greater than or equal to "
+     "wf.yaml:36: steps[5].with.n_theta: setting of stage 'bin_sinogram' Input should be greater than or equal to "
      "2 (got 1) (fix: expected int ≥ 2 | None)"),
     ("tomography-sim.yaml", "{rays: $rays, n_theta: 180, n_x: 128}", "{rays: $rays, n_theta: 1000000, n_x: 1000000}",
-     "wf.yaml:35: steps[5].with: one slice's binned sinogram (1,000,000 × 1,000,000 bins, sums and counts in "
+     "wf.yaml:36: steps[5].with: one slice's binned sinogram (1,000,000 × 1,000,000 bins, sums and counts in "
      "float64) would take 14.6 TiB, more than 50% of this machine's memory (16.0 GiB) (fix: lower n_theta or n_x)"),
     ("tomography-sim.yaml", "{sinogram: $sinogram, hull: $hull, fill: linear}",
      "{sinogram: $sinogram, hull: $hull, fill: linear, n_pixels: 100000}",
-     "wf.yaml:41: steps[7].with: one 100,000 × 100,000 px slice (float64) would take 74.5 GiB, more than 50% of this "
+     "wf.yaml:42: steps[7].with: one 100,000 × 100,000 px slice (float64) would take 74.5 GiB, more than 50% of this "
      "machine's memory (16.0 GiB) (fix: lower n_pixels)"),
     ("tomography-sim.yaml", "{sinogram: $sinogram, scene: scenes/gelatin-bin.yaml}",
      "{sinogram: $sinogram, scene: scenes/gelatin-bin.yaml, supersample: 100000}",
-     "wf.yaml:53: steps[9].with: the truth raster's sample points (even the smallest (2 × 2 px) grid × 100000² "
+     "wf.yaml:54: steps[9].with: the truth raster's sample points (even the smallest (2 × 2 px) grid × 100000² "
      "samples, 3 float64 coordinates each) would take 894.1 GiB, more than 50% of this machine's memory (16.0 GiB) "
      "(fix: lower n_pixels or supersample)"),
     ("tomography-sim.yaml", "{capture: $capture, angle_index: 90}", "{capture: $capture, angle_index: -1}",
-     "wf.yaml:56: steps[10].with.angle_index: setting of stage 'capture_figure' Input should be greater than or "
+     "wf.yaml:57: steps[10].with.angle_index: setting of stage 'capture_figure' Input should be greater than or "
      "equal to 0 (got -1) (fix: expected int ≥ 0)"),
     ("tomography-sim.yaml", "angles: {start: 0, stop: 360, step: 1}", "angles: {start: 0, stop: 360, step: -1}",
      "wf.yaml:17: steps[0].with.angles.step: setting of stage 'acquire_tomography' Input should be greater than 0 "

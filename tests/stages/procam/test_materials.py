@@ -13,13 +13,8 @@ from selpath.devices.sim.procam_scene import ProcamScene, load_procam_scene
 from selpath.pipeline import StageError
 from selpath.pipeline.quality import enforce
 from selpath.pipeline.store import open_store, to_store
-from selpath.stages.procam.materials import (
-    classify_materials,
-    delay_profiles,
-    load_classifiers,
-    train_material_classifier,
-    wilson_interval,
-)
+from selpath.stages.procam.material_classification import classify_materials, load_classifiers, wilson_interval
+from selpath.stages.procam.materials import delay_profiles, train_material_classifier
 from selpath.stages.procam.multiplexing import noiseless
 from tests.stages.procam.test_demux import capture_of
 

@@ -21,6 +21,7 @@ from selpath.stages.tomography.calibrate import (
     normalise_reference,
     subtract_dark,
 )
+from selpath.stages.tomography.hull import silhouettes
 
 DIMS = ("angle", "row", "col")
 
@@ -270,3 +271,28 @@ def test_the_background_bit_drops_no_ray():
     assert (rays["reason"] == 0).sum() > 100
     xr.testing.assert_identical(rays[["reason", "theta", "x", "absorption"]],
                                 rays_plain[["reason", "theta", "x", "absorption"]])
+
+
+def test_silhouettes_wired_in_give_the_same_flags_and_numbers_as_masks_made_here(disc_capture):
+    """The hull's silhouettes given to absorption: the frames are thresholded once and the result is the default
+    path's, bit for bit (flags, absorption, every share)."""
+    capture, disc, _ = disc_capture
+    masks = silhouettes(capture)
+    here, given = absorption(capture, min_signal=1.0), absorption(capture, masks, min_signal=1.0)
+    xr.testing.assert_identical(here.drop_attrs(), given.drop_attrs())
+    np.testing.assert_array_equal((given["flags"].values & BACKGROUND) > 0, ~disc)
+    # a silhouette that says otherwise is obeyed: the masks, not a second threshold, decide
+    wider = masks.assign(silhouette=masks["silhouette"] | True)
+    assert not (absorption(capture, wider, min_signal=1.0)["flags"].values & BACKGROUND).any()
+    xr.testing.assert_identical(normalise_reference(capture, masks, min_signal=1.0)["flags"], here["flags"])
+
+
+def test_silhouettes_of_another_capture_or_with_a_second_threshold_are_refused(disc_capture):
+    capture, _, _ = disc_capture
+    masks = silhouettes(capture)
+    with pytest.raises(StageError, match="silhouettes' angles are not the capture's"):
+        absorption(capture, masks.assign_coords(angle=masks["angle"] + 1.0))
+    with pytest.raises(StageError, match=r"the silhouettes are \{'angle': 2"):
+        absorption(capture, masks.isel(angle=slice(0, 2)))
+    with pytest.raises(StageError, match="(?s)flag_background is false.*silhouette_threshold is set"):
+        absorption(capture, masks, silhouette_threshold=10.0, flag_background=False)
