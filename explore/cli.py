@@ -8,7 +8,7 @@ from typing import Annotated
 
 import typer
 
-from selpath.pipeline.cli import console, guard
+from selpath.pipeline.cli_common import console, guard
 
 
 def explore(

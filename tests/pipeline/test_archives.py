@@ -221,7 +221,7 @@ def test_inspect_lists_an_archives_stores_with_their_provenance(archive, monkeyp
     assert rows["archive/foreign.zarr"]["workflow"] is None
     from rich.console import Console
 
-    monkeypatch.setattr("selpath.pipeline.cli.console", Console(width=250))  # one line per store
+    monkeypatch.setattr("selpath.pipeline.cli_inspect.console", Console(width=250))  # one line per store
     result = CliRunner().invoke(app, ["inspect", str(archive)])
     assert result.exit_code == 0, result.output
     assert "5 store(s)" in result.output and "outside a workflow" in result.output
