@@ -15,16 +15,12 @@ and only then moved into place (:mod:`selpath.pipeline.outputs`).
 from __future__ import annotations
 
 import datetime as _dt
-import hashlib
 import inspect
-import json
 import math
 import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from importlib.metadata import PackageNotFoundError, version
-from pathlib import Path
 from typing import Any
 
 import xarray as xr
@@ -33,6 +29,7 @@ from rich.markup import escape
 
 from selpath.pipeline.compute import compute, scheduler_session
 from selpath.pipeline.errors import Problem, SelpathError, StageError, StoreError
+from selpath.pipeline.identity import package_versions, step_records, why_changed
 from selpath.pipeline.integrity import (
     PROVENANCE_GROUP,
     BadChunk,
@@ -49,70 +46,6 @@ from selpath.pipeline.quality import ADVISE, FIX, LABEL, WHAT, below_floor, shar
 from selpath.pipeline.registry import resolve_kind
 from selpath.pipeline.spec import OutputSpec, Ref, Step, Workflow, check_output_paths
 from selpath.pipeline.store import forget_frames, missing_frames, open_store, write_store
-
-_PACKAGES = ("selpath", "xarray", "dask", "zarr", "numpy", "jax")
-
-
-def package_versions() -> dict[str, str]:
-    out = {}
-    for name in _PACKAGES:
-        try:
-            out[name] = version(name)
-        except PackageNotFoundError:
-            out[name] = "not installed"
-    return out
-
-
-def _digest(payload: Any) -> str:
-    return hashlib.sha256(json.dumps(payload, sort_keys=True, default=str).encode()).hexdigest()[:32]
-
-
-#: what a step record holds in place of the path of the store an acquisition fills (the output's location is not
-#: part of what the step computes: the demo's folder, rerooted anywhere, keeps its captures)
-OWN_STORE = "<its own output store>"
-
-
-def portable(value: Any, folder: Path) -> Any:
-    """``value`` with every absolute path inside ``folder`` written relative to it (POSIX, ``.`` for the folder
-    itself), recursively through dicts and lists: what a step's identity holds, so that a workflow folder moved,
-    copied or unpacked elsewhere has the same identities. Paths outside the folder stay absolute (the stages that
-    read such files identify them by content as well)."""
-    if isinstance(value, dict):
-        return {k: portable(v, folder) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [portable(v, folder) for v in value]
-    if isinstance(value, str) and os.path.isabs(value) and "://" not in value:
-        path = Path(value)
-        if path == folder or folder in path.parents:
-            return path.relative_to(folder).as_posix()
-    return value
-
-
-def step_records(workflow: Workflow) -> dict[str, dict[str, Any]]:
-    """For each step, what determines its result (stage, settings, inputs, external data) and its hash. Paths
-    inside the workflow's folder are recorded relative to it (:func:`portable`): the identity of a step does not
-    depend on where the folder lies."""
-    records: dict[str, dict[str, Any]] = {}
-    selpath_version = package_versions()["selpath"]
-    folder = Path(workflow.base_dir).resolve()
-    for step_id, step in workflow.steps.items():  # dependency order: inputs are already recorded
-        settings = step.settings.model_dump(mode="json")
-        if step.stage.writes is not None:  # where an acquisition writes is not what it captures
-            own = step.stage.writes(step.settings)
-            settings = {k: OWN_STORE if v == own else v for k, v in settings.items()}
-        settings = portable(settings, folder)
-        external = step.stage.identity(step.settings) if step.stage.identity else None
-        record = {
-            "stage": step.stage.name,
-            "stage_source": step.stage.source,
-            "selpath": selpath_version,
-            "settings": settings,
-            "inputs": {k: {"ref": str(r), "step_hash": records[r.step]["step_hash"]} for k, r in step.inputs.items()},
-            "external": portable(external, folder),
-        }
-        record["step_hash"] = _digest(record)
-        records[step_id] = record
-    return records
 
 
 @dataclass
@@ -139,25 +72,6 @@ class RunReport:
 
     def computed(self) -> list[str]:
         return [s.id for s in self.steps.values() if s.status == "computed"]
-
-
-def _why_changed(stored: dict | None, record: dict, store: str) -> str:
-    if stored is None:
-        return f"no finished output at {store}"
-    old = stored.get("step_record", {})
-    changed = sorted(k for k in set(old.get("settings", {})) | set(record["settings"])
-                     if old.get("settings", {}).get(k) != record["settings"].get(k))
-    if changed:
-        return "settings changed: " + ", ".join(
-            f"{k} {old.get('settings', {}).get(k)!r} -> {record['settings'].get(k)!r}" for k in changed)
-    if old.get("stage") != record["stage"] or old.get("stage_source") != record["stage_source"]:
-        return "stage changed"
-    if old.get("selpath") != record["selpath"]:
-        return f"selpath version changed ({old.get('selpath')} -> {record['selpath']})"
-    inputs = sorted(k for k in record["inputs"] if old.get("inputs", {}).get(k) != record["inputs"][k])
-    if inputs:
-        return "inputs changed: " + ", ".join(record["inputs"][k]["ref"] for k in inputs)
-    return "input data changed"
 
 
 def _select(result: Any, ref: Ref, step: Step) -> xr.Dataset | xr.DataArray:
@@ -251,7 +165,7 @@ class _Graph:
                 return self.results[step_id]
             reasons.append(f"{out.store} has {len(self.damaged[out.store])} bad chunk(s) (--verify)"
                            if out.store in self.damaged else
-                           _why_changed(self._stored[out.store], record, out.store) if self.reuse else
+                           why_changed(self._stored[out.store], record, out.store) if self.reuse else
                            "forced (--force)")
         inputs = {name: _select(self.resolve(ref.step), ref, step) for name, ref in step.inputs.items()}
         own = [o.store for o in self._outputs_of.get(step_id, []) if o.store in self.workflow.self_written]
@@ -272,13 +186,13 @@ class _Graph:
         """Outputs downstream of ``step_id`` are no longer fresh: its store's data changed under the same
         settings (frames captured again after a chunk was lost), so their stored results are out of date."""
         for out in self.workflow.outputs.values():
-            if out.from_ != step_id and step_id in _ancestors(self.workflow, out.from_):
+            if out.from_ != step_id and step_id in self.workflow.ancestors(out.from_):
                 self.report.fresh.discard(out.store)
 
     def unchecked(self, step_id: str) -> list[str]:
         """``step_id`` and the steps upstream of it computed in this run whose usable shares are not yet checked
         (a step read back from a store was checked when it was written)."""
-        return [i for i in _ancestors(self.workflow, step_id)
+        return [i for i in self.workflow.ancestors(step_id)
                 if i not in self.checked and self.report.steps.get(i, StepReport(i, "", "")).status == "computed"]
 
     def finish(self) -> None:
@@ -476,7 +390,7 @@ def _has_missing_frames(store: str) -> bool:
 def _record(workflow: Workflow, records: dict[str, dict[str, Any]], name: str, out: OutputSpec, scheduler: str,
             target: str, usable: dict[str, dict[str, float]] | None = None) -> None:
     """Write an output's provenance into ``target`` (its store, or the staging copy), once its data is complete."""
-    chain = _ancestors(workflow, out.from_)
+    chain = workflow.ancestors(out.from_)
     write_provenance(target, {
         "step_hash": records[out.from_]["step_hash"],
         "step_record": records[out.from_],
@@ -504,16 +418,3 @@ def _save_png(source: str, store: str, kind: CubeKind) -> None:
     staging = f"{png_path(store)}.partial"
     matplotlib.image.imsave(staging, image, format="png", metadata={PNG_MARKER: store})
     os.replace(staging, png_path(store))
-
-
-def _ancestors(workflow: Workflow, step_id: str) -> list[str]:
-    seen: list[str] = []
-
-    def visit(i: str) -> None:
-        if i not in seen:
-            for ref in workflow.steps[i].inputs.values():
-                visit(ref.step)
-            seen.append(i)
-
-    visit(step_id)
-    return seen

@@ -120,6 +120,19 @@ class Workflow:
     #: the registry the workflow was validated against: its stages, and the cube kinds they make
     registry: StageRegistry | None = None
 
+    def ancestors(self, step_id: str) -> list[str]:
+        """The steps ``step_id`` reads, directly or through others, and itself, inputs first."""
+        seen: list[str] = []
+
+        def visit(i: str) -> None:
+            if i not in seen:
+                for ref in self.steps[i].inputs.values():
+                    visit(ref.step)
+                seen.append(i)
+
+        visit(step_id)
+        return seen
+
     def rerooted(self, folder: str | os.PathLike) -> Workflow:
         """The same workflow with every output store (and the stores stages fill) moved into ``folder``."""
         moved = {o.store: str((Path(folder) / Path(o.store).name).resolve()) for o in self.outputs.values()}

@@ -16,7 +16,7 @@ def test_builtin_stages_come_through_the_entry_point_group():
     assert {"absorption", "normalise_reference", "subtract_dark", "subtract_background", "load_store",
             "simulate_parallel_capture"} <= set(names)
     absorption = default_registry()["absorption"]
-    assert absorption.inputs == ("capture",) and absorption.required_inputs == ("capture",)
+    assert absorption.inputs == ("capture", "silhouettes") and absorption.required_inputs == ("capture",)
     assert absorption.params.model_fields["min_signal"].default == 0.0
     assert "[counts]" in absorption.param_docs["min_signal"]
 
