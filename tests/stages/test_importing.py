@@ -13,7 +13,8 @@ from typer.testing import CliRunner
 
 from selpath.pipeline import ConfigError, StageError, load_workflow, open_store, run_workflow
 from selpath.pipeline.cli import app
-from selpath.stages.importing import import_capture, read_frames
+from selpath.stages.frame_files import read_frames
+from selpath.stages.importing import import_capture
 from tests.devices.test_tomography_acquire import make_workflow
 
 runner = CliRunner()
@@ -229,7 +230,7 @@ def test_a_symlinked_spec_is_identified_by_the_frames_it_reads(original, tmp_pat
 def test_an_uncompressed_npz_member_is_memory_mapped_and_a_compressed_one_still_reads(tmp_path):
     """``np.savez`` members are mapped in place (frames read one by one, like a ``.npy``), C or Fortran order;
     ``np.savez_compressed`` ones are inflated whole (the zip cannot be read in pieces); both give the same frames."""
-    from selpath.stages.importing import _npz_stored_member
+    from selpath.stages.frame_files import _npz_stored_member
 
     rng = np.random.default_rng(2)
     frames = rng.integers(0, 4095, (4, 3, 5)).astype(np.uint16)
