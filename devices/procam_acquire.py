@@ -25,10 +25,11 @@ from rich.progress import Progress, TextColumn, TimeElapsedColumn
 
 from selpath.devices.patterns import checkerboard, gray_code_levels, vertical_line, white
 from selpath.devices.protocols import Camera, Projector, SyncController
+from selpath.pipeline.capture_store import create_capture, missing_frames, write_frame
 from selpath.pipeline.compute import BAR_COLUMNS, show_bars
 from selpath.pipeline.errors import DeviceError, Problem, SpecError
 from selpath.pipeline.locks import store_lock
-from selpath.pipeline.store import create_capture, missing_frames, open_store, write_frame
+from selpath.pipeline.store import open_store
 
 #: camera rows per stored chunk of a capture
 CAPTURE_BAND_ROWS = 64

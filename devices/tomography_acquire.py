@@ -1,8 +1,8 @@
 """Acquisition sweeps: drive a rig through its angles and write every frame into a store as it arrives.
 
-The store is pre-allocated (``selpath.pipeline.store.create_capture``) and each frame is a region write followed
+The store is pre-allocated (``selpath.pipeline.capture_store.create_capture``) and each frame is a region write followed
 by its ``written__`` flag, so a sweep killed at any point keeps every finished frame, and running it
-again captures only the missing ones (``selpath.pipeline.store.missing_frames``). A sweep talks only to the
+again captures only the missing ones (``selpath.pipeline.capture_store.missing_frames``). A sweep talks only to the
 protocols of :mod:`selpath.devices.protocols`: the simulated rig and hardware are driven by the same code.
 
 Order, chosen to change samples once and lights as little as possible: the target at each missing
@@ -24,10 +24,11 @@ from rich.progress import Progress, TextColumn, TimeElapsedColumn
 
 from selpath.devices.protocols import Camera, LightSource, RotaryStage, SampleChanger
 from selpath.devices.serial_stage import angular_distance
+from selpath.pipeline.capture_store import create_capture, missing_frames, write_frame
 from selpath.pipeline.compute import BAR_COLUMNS, show_bars
 from selpath.pipeline.errors import DeviceError
 from selpath.pipeline.locks import store_lock
-from selpath.pipeline.store import create_capture, missing_frames, open_store, write_frame
+from selpath.pipeline.store import open_store
 
 KIND = "tomography_capture"
 

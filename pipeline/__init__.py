@@ -5,6 +5,7 @@ The public surface, for notebooks and plugins::
     from selpath.pipeline import open_store, stage, load_workflow, run_workflow  # or: import selpath
 """
 
+from selpath.pipeline.capture_store import create_capture, missing_frames, write_frame
 from selpath.pipeline.constraints import StorePath
 from selpath.pipeline.engine import RunReport, build, run_workflow
 from selpath.pipeline.errors import (
@@ -21,7 +22,7 @@ from selpath.pipeline.kinds import FORMAT_VERSION, CubeKind, Variable
 from selpath.pipeline.provenance import read_provenance, write_provenance
 from selpath.pipeline.registry import Stage, StageRegistry, default_registry, stage
 from selpath.pipeline.spec import Workflow, load_workflow
-from selpath.pipeline.store import create_capture, missing_frames, open_store, to_store, write_frame
+from selpath.pipeline.store import open_store, to_store
 
 __all__ = [
     "FORMAT_VERSION",

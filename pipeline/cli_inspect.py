@@ -14,13 +14,14 @@ import typer
 from rich.markup import escape
 from rich.table import Table
 
+from selpath.pipeline.capture_store import forget_frames, missing_frames
 from selpath.pipeline.cli_common import console, errors, fail, flag, guard
 from selpath.pipeline.errors import SelpathError, StoreError
 from selpath.pipeline.integrity import open_group, resized_chunks, verify_store
 from selpath.pipeline.locks import store_lock
 from selpath.pipeline.provenance import archive_stores, read_provenance
 from selpath.pipeline.registry import resolve_kind
-from selpath.pipeline.store import forget_frames, is_complete, missing_frames, open_store
+from selpath.pipeline.store import is_complete, open_store
 
 #: ``inspect`` computes valid shares by default for stores of at most this many values (reading more takes long)
 VALID_LIMIT = 2e8

@@ -27,6 +27,7 @@ import xarray as xr
 import zarr
 from rich.markup import escape
 
+from selpath.pipeline.capture_store import forget_frames, missing_frames
 from selpath.pipeline.compute import compute, scheduler_session
 from selpath.pipeline.errors import Problem, SelpathError, StageError, StoreError
 from selpath.pipeline.identity import package_versions, step_records, why_changed
@@ -45,7 +46,7 @@ from selpath.pipeline.provenance import read_provenance, write_provenance
 from selpath.pipeline.quality import ADVISE, FIX, LABEL, WHAT, below_floor, shares
 from selpath.pipeline.registry import resolve_kind
 from selpath.pipeline.spec import OutputSpec, Ref, Step, Workflow, check_output_paths
-from selpath.pipeline.store import forget_frames, missing_frames, open_store, write_store
+from selpath.pipeline.store import open_store, write_store
 
 
 @dataclass

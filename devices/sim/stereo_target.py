@@ -236,9 +236,10 @@ def capture_target(scene: StereoTargetScene, store, *, progress: bool = True, lo
     from rich.progress import Progress, TextColumn, TimeElapsedColumn
 
     from selpath.devices.patterns import gray_code_levels
+    from selpath.pipeline.capture_store import create_capture, missing_frames, write_frame
     from selpath.pipeline.compute import BAR_COLUMNS, show_bars
     from selpath.pipeline.locks import store_lock
-    from selpath.pipeline.store import create_capture, missing_frames, open_store, write_frame
+    from selpath.pipeline.store import open_store
 
     rig, board = scene.rig(), scene.board()
     poses = scene.target_poses()

@@ -13,11 +13,12 @@ from selpath.devices.procam_acquire import acquire_full_transport, acquire_plane
 from selpath.devices.sim.procam_rig import simulated_procam_rig
 from selpath.devices.sim.procam_scene import ProcamScene
 from selpath.devices.sim.procam_transport import render_frame
+from selpath.pipeline.capture_store import missing_frames
 from selpath.pipeline.engine import run_workflow
 from selpath.pipeline.errors import SpecError
 from selpath.pipeline.provenance import read_provenance
 from selpath.pipeline.spec import load_workflow
-from selpath.pipeline.store import missing_frames, open_store
+from selpath.pipeline.store import open_store
 
 SCENE = """\
 scene: tiny-candle
@@ -185,8 +186,8 @@ def test_checkerboard_frames_are_the_simulators_and_a_lost_frame_is_captured_aga
     shutter at t_d = 0, t_e = t_p); a frame marked lost is captured again, alone, and comes back identical."""
     from selpath.devices import patterns
     from selpath.devices.procam_acquire import acquire_checkerboards, checkerboard_shifts
+    from selpath.pipeline.capture_store import forget_frames
     from selpath.pipeline.integrity import BadChunk
-    from selpath.pipeline.store import forget_frames
     from selpath.stages.procam.acquire_patterns import exposure_window
 
     scene = small_scene()

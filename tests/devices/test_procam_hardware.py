@@ -21,11 +21,12 @@ from selpath.devices.procam_hardware import load_procam_hardware, procam_hardwar
 from selpath.devices.protocols import SyncLimits
 from selpath.devices.sim.procam_rig import FakeProcamHardware, simulated_procam_rig
 from selpath.devices.sim.procam_scene import ProcamScene
+from selpath.pipeline.capture_store import missing_frames
 from selpath.pipeline.engine import run_workflow
 from selpath.pipeline.errors import DeviceDisconnected, SpecError
 from selpath.pipeline.provenance import read_provenance
 from selpath.pipeline.spec import load_workflow
-from selpath.pipeline.store import missing_frames, open_store
+from selpath.pipeline.store import open_store
 from tests.devices.conftest import written_frames
 
 SCENE = {

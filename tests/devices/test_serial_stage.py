@@ -12,8 +12,9 @@ from selpath.devices.sim.rig import SimCamera, SimLight, SimSampleChanger, simul
 from selpath.devices.sim.scene import Scene
 from selpath.devices.sim.stage_firmware import FakeStageFirmware
 from selpath.devices.tomography_acquire import TomographyRig, acquire_tomography
+from selpath.pipeline.capture_store import missing_frames
 from selpath.pipeline.errors import DeviceDisconnected, DeviceError, DeviceProtocolError, DeviceTimeout
-from selpath.pipeline.store import missing_frames, open_store
+from selpath.pipeline.store import open_store
 
 FAST = dict(timeout_s=0.2, move_timeout_s=0.5)
 

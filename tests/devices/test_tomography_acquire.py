@@ -13,11 +13,12 @@ from selpath import workflows
 from selpath.devices.sim.rig import simulated_rig
 from selpath.devices.sim.scene import load_scene
 from selpath.devices.tomography_acquire import acquire_tomography
+from selpath.pipeline.capture_store import missing_frames
 from selpath.pipeline.engine import run_workflow
 from selpath.pipeline.errors import DeviceError, StoreError
 from selpath.pipeline.provenance import read_provenance
 from selpath.pipeline.spec import load_workflow
-from selpath.pipeline.store import missing_frames, open_store
+from selpath.pipeline.store import open_store
 
 SCENE = """\
 scene: tiny-bin

@@ -15,12 +15,12 @@ import zarr
 from typer.testing import CliRunner
 
 from selpath.pipeline import SpecError, StoreError, load_workflow, open_store, run_workflow, to_store
+from selpath.pipeline.capture_store import missing_frames
 from selpath.pipeline.cli import app
 from selpath.pipeline.integrity import verify_store
 from selpath.pipeline.kinds import LENGTH_UNITS
 from selpath.pipeline.provenance import write_provenance
 from selpath.pipeline.registry import default_registry
-from selpath.pipeline.store import missing_frames
 from tests.devices.test_tomography_acquire import make_workflow
 
 runner = CliRunner()
