@@ -183,7 +183,7 @@ def unreadable_record(path: str | os.PathLike, what: str, exc: Exception) -> Sto
     then cannot tell who wrote the store, from what, or whether it is complete, so it neither trusts nor
     replaces it."""
     return StoreError(Problem(f"its {what} record ({PROVENANCE_GROUP}/zarr.json) cannot be read "
-                              f"({_decode_error(exc)})", where=os.fspath(path),
+                              f"({decode_error(exc)})", where=os.fspath(path),
                               fix="restore the store from a backup; if it can be made again, delete it yourself "
                               "and run again (selpath never deletes a store it cannot identify)"))
 
@@ -298,7 +298,7 @@ class BadChunk:
         return f"{self.variable} {'metadata' if self.chunk is None else f'chunk {self.chunk}'}: {self.reason}"
 
 
-def _decode_error(exc: Exception) -> str:
+def decode_error(exc: Exception) -> str:
     text = str(exc).split("\n")[0][:160]
     return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
 
@@ -322,9 +322,9 @@ def verify_store(path: str | os.PathLike) -> list[BadChunk]:
         manifest = read_manifest(where) or {}
     except StoreError as exc:
         manifest = {}
-        bad.append(BadChunk(PROVENANCE_GROUP, None, f"unreadable ({_decode_error(exc.__cause__ or exc)})"))
+        bad.append(BadChunk(PROVENANCE_GROUP, None, f"unreadable ({decode_error(exc.__cause__ or exc)})"))
     arrays, garbled = _readable_arrays(group, where)
-    bad.extend(BadChunk(name, None, f"unreadable ({_decode_error(exc)})") for name, exc in garbled)
+    bad.extend(BadChunk(name, None, f"unreadable ({decode_error(exc)})") for name, exc in garbled)
     # a variable the manifest records whose array is gone (its zarr.json deleted, or replaced by a group's)
     known = {name for name, _ in arrays} | {name for name, _ in garbled}
     bad.extend(BadChunk(name, None, "missing (the manifest records it; no array of that name reads)")
@@ -359,7 +359,7 @@ def verify_store(path: str | os.PathLike) -> list[BadChunk]:
             try:
                 array.get_block_selection(coords)
             except Exception as exc:  # noqa: BLE001 - zarr and its codecs raise many types for bad bytes
-                bad.append(BadChunk(name, coords, f"corrupt ({_decode_error(exc)})"))
+                bad.append(BadChunk(name, coords, f"corrupt ({decode_error(exc)})"))
     # a chunk replaced by another that decodes (another store's) changed its size: the record names it
     named = {(chunk.variable, chunk.chunk) for chunk in bad}
     bad.extend(chunk for chunk in resized_chunks(where, manifest, listing) or () if (chunk.variable, chunk.chunk)
@@ -397,45 +397,3 @@ def _is_data(array: zarr.Array, flags: Mapping[str, np.ndarray], name: str) -> b
     """A data variable filled after the store is made (a capture's frames), not a coordinate or a flag."""
     return name in flags or (not name.startswith(WRITTEN_PREFIX) and tuple(array.metadata.dimension_names or ())
                              != (name,))
-
-
-# -- reading with chunk-level errors ---------------------------------------------------------------------
-
-
-class CheckedArray:
-    """A lazily indexed store variable whose read errors name the store, variable and chunk.
-
-    Handed to ``dask.array.from_array``: each task reads one block through xarray's decoding; if zarr or
-    a codec fails (checksum mismatch, truncated zstd frame), the chunks under the block are read one by
-    one to find the bad ones, and a StoreError names them.
-    """
-
-    def __init__(self, variable: xr.Variable, where: str, name: str, disk_chunks: tuple[int, ...]):
-        self.variable, self.where, self.name, self.disk_chunks = variable, where, name, disk_chunks
-        self.shape, self.dtype, self.ndim = variable.shape, variable.dtype, variable.ndim
-
-    def __getitem__(self, key: tuple) -> np.ndarray:
-        try:
-            return np.asarray(self.variable[key].values)
-        except StoreError:
-            raise
-        except Exception as exc:  # noqa: BLE001
-            raise StoreError(self._problem(key, exc)) from exc
-
-    def _problem(self, key: tuple, exc: Exception) -> Problem:
-        ranges = []
-        for axis, part in enumerate(key if isinstance(key, tuple) else (key,)):
-            start, stop, _ = part.indices(self.shape[axis]) if isinstance(part, slice) else (part, part + 1, 1)
-            size = self.disk_chunks[axis]
-            ranges.append(range(start // size, max(start // size + 1, -(-stop // size))))
-        bad = []
-        group = open_group(self.where)
-        for coords in itertools.product(*ranges):
-            try:
-                group[self.name].get_block_selection(coords)
-            except Exception as inner:  # noqa: BLE001
-                bad.append(f"{coords} ({_decode_error(inner)})")
-        chunks = ", ".join(bad) if bad else f"in {tuple((r.start, r.stop - 1) for r in ranges)} ({_decode_error(exc)})"
-        return Problem(f"chunk {chunks} cannot be read: the store is corrupt", where=self.where,
-                       path=f"variable {self.name}", fix="restore it from a backup or write it again; "
-                       "`selpath inspect --verify STORE` lists every bad chunk")

@@ -21,6 +21,7 @@ rewritten whenever the manifest or provenance is (:func:`selpath.pipeline.integr
 
 from __future__ import annotations
 
+import itertools
 import os
 import warnings
 from collections.abc import Mapping
@@ -38,9 +39,10 @@ from selpath.pipeline.errors import Problem, StoreError, environment_fault
 from selpath.pipeline.integrity import (
     CHECKSUMMED_FORMAT,
     WRITTEN_PREFIX,
-    CheckedArray,
     absent_chunks,
     compressors,
+    decode_error,
+    open_group,
     read_manifest,
     units_problems,
     write_manifest,
@@ -86,8 +88,47 @@ def processing_chunks(shape: tuple[int, ...], disk: tuple[int, ...], itemsize: i
     return tuple(chunks)
 
 
+class CheckedArray:
+    """A lazily indexed store variable whose read errors name the store, variable and chunk.
+
+    Handed to ``dask.array.from_array``: each task reads one block through xarray's decoding; if zarr or
+    a codec fails (checksum mismatch, truncated zstd frame), the chunks under the block are read one by
+    one to find the bad ones, and a StoreError names them.
+    """
+
+    def __init__(self, variable: xr.Variable, where: str, name: str, disk_chunks: tuple[int, ...]):
+        self.variable, self.where, self.name, self.disk_chunks = variable, where, name, disk_chunks
+        self.shape, self.dtype, self.ndim = variable.shape, variable.dtype, variable.ndim
+
+    def __getitem__(self, key: tuple) -> np.ndarray:
+        try:
+            return np.asarray(self.variable[key].values)
+        except StoreError:
+            raise
+        except Exception as exc:  # noqa: BLE001
+            raise StoreError(self._problem(key, exc)) from exc
+
+    def _problem(self, key: tuple, exc: Exception) -> Problem:
+        ranges = []
+        for axis, part in enumerate(key if isinstance(key, tuple) else (key,)):
+            start, stop, _ = part.indices(self.shape[axis]) if isinstance(part, slice) else (part, part + 1, 1)
+            size = self.disk_chunks[axis]
+            ranges.append(range(start // size, max(start // size + 1, -(-stop // size))))
+        bad = []
+        group = open_group(self.where)
+        for coords in itertools.product(*ranges):
+            try:
+                group[self.name].get_block_selection(coords)
+            except Exception as inner:  # noqa: BLE001
+                bad.append(f"{coords} ({decode_error(inner)})")
+        chunks = ", ".join(bad) if bad else f"in {tuple((r.start, r.stop - 1) for r in ranges)} ({decode_error(exc)})"
+        return Problem(f"chunk {chunks} cannot be read: the store is corrupt", where=self.where,
+                       path=f"variable {self.name}", fix="restore it from a backup or write it again; "
+                       "`selpath inspect --verify STORE` lists every bad chunk")
+
+
 def _open_raw(path: str | os.PathLike) -> xr.Dataset:
-    """The store's cube, each data variable a dask array read through :class:`~selpath.pipeline.integrity.CheckedArray`
+    """The store's cube, each data variable a dask array read through :class:`CheckedArray`
     in processing chunks (whole on-disk chunks), so a corrupt chunk raises a StoreError naming it."""
     where = os.fspath(path)
     if not (remote.exists(where) if remote.is_url(where) else Path(where).exists()):
