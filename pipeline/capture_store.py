@@ -17,7 +17,7 @@ import numpy as np
 import xarray as xr
 import zarr
 
-from selpath.pipeline.errors import Problem, StoreError
+from selpath.pipeline.errors import Problem, SelpathError, StoreError
 from selpath.pipeline.integrity import WRITTEN_PREFIX, BadChunk, drop_chunk_sizes, open_group, write_manifest
 from selpath.pipeline.kinds import CubeKind
 from selpath.pipeline.provenance import jsonable
@@ -162,3 +162,11 @@ def forget_frames(path: str | os.PathLike, bad: Iterable[BadChunk]) -> int:
     for variable, position in sorted(frames):
         group[f"{WRITTEN_PREFIX}{variable}"][position] = False
     return len(frames)
+
+
+def has_missing_frames(store: str) -> bool:
+    """Whether a capture store has frames still to capture (or cannot say which: a store that does not read)."""
+    try:
+        return any(missing_frames(store).values())
+    except SelpathError:
+        return True

@@ -27,9 +27,9 @@ import xarray as xr
 import zarr
 from rich.markup import escape
 
-from selpath.pipeline.capture_store import forget_frames, missing_frames
+from selpath.pipeline.capture_store import forget_frames, has_missing_frames
 from selpath.pipeline.compute import compute, scheduler_session
-from selpath.pipeline.errors import Problem, SelpathError, StageError, StoreError
+from selpath.pipeline.errors import Problem, StageError, StoreError
 from selpath.pipeline.identity import package_versions, step_records, why_changed
 from selpath.pipeline.integrity import (
     PROVENANCE_GROUP,
@@ -118,7 +118,7 @@ class _Graph:
             if reuse and (self._stored[out.store] or {}).get("step_hash") == self.records[out.from_]["step_hash"]:
                 if self._damaged(out, None if verify else _resized(out.store)):
                     continue
-                if out.store in workflow.self_written and _has_missing_frames(out.store):
+                if out.store in workflow.self_written and has_missing_frames(out.store):
                     continue  # a frame's chunk was lost (or marked for recapture): the acquisition resumes
                 self.report.fresh.add(out.store)
 
@@ -145,7 +145,7 @@ class _Graph:
             frames = forget_frames(out.store, bad)  # StoreError where a bad chunk is not a frame
             self.log(f"[yellow]{how}[/]: {escape(out.store)}: {len(bad)} bad chunk(s) ({escape(listed)}); "
                      f"{frames} frame(s) will be captured again")
-            return frames > 0 or _has_missing_frames(out.store)
+            return frames > 0 or has_missing_frames(out.store)
         self.log(f"[yellow]{how}[/]: {escape(out.store)}: {len(bad)} bad chunk(s) ({escape(listed)}); "
                  "it will be computed again")
         return True
@@ -254,7 +254,7 @@ def run_workflow(workflow: Workflow, *, scheduler: str | None = None, progress: 
                     continue
                 began = time.perf_counter()
                 if out.store in workflow.self_written:  # the stage filled it as it ran: record, never rewrite
-                    if not _has_missing_frames(out.store):  # complete: its chunks' sizes, for the checks to come
+                    if not has_missing_frames(out.store):  # complete: its chunks' sizes, for the checks to come
                         record_chunk_sizes(out.store)
                     _record(workflow, graph.records, name, out, scheduler, out.store)
                 else:
@@ -379,13 +379,6 @@ def _resized(store: str) -> list[BadChunk]:
         return resized_chunks(store) or []
     except StoreError as exc:
         return [BadChunk(PROVENANCE_GROUP, None, exc.problems[0].message)]
-
-
-def _has_missing_frames(store: str) -> bool:
-    try:
-        return any(missing_frames(store).values())
-    except SelpathError:
-        return True
 
 
 def _record(workflow: Workflow, records: dict[str, dict[str, Any]], name: str, out: OutputSpec, scheduler: str,

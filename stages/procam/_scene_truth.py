@@ -9,8 +9,8 @@ from __future__ import annotations
 import numpy as np
 import xarray as xr
 
+from selpath.devices.sim.procam_lobes import Tile
 from selpath.devices.sim.procam_scene import ProcamScene
-from selpath.devices.sim.procam_transport import Tile
 from selpath.pipeline.errors import Problem, StageError
 
 

@@ -9,6 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from selpath.devices import patterns
+from selpath.devices.sim import procam_lobes as lobes
 from selpath.devices.sim import procam_transport as tr
 from selpath.devices.sim.procam_scene import ProcamScene
 
@@ -102,17 +103,17 @@ def test_only_named_effects_run():
     def counted(name):
         def wrapper(*args):
             calls[name] = calls.get(name, 0) + 1
-            return tr.EFFECTS[name](*args)
+            return lobes.EFFECTS[name](*args)
         return wrapper
 
-    table = {name: counted(name) for name in tr.EFFECTS}
+    table = {name: counted(name) for name in lobes.EFFECTS}
     direct = scene([{"name": "book", "region": {"kind": "rectangle", "x": [0.2, 0.8], "y": [0.2, 0.8]},
                      "albedo": 0.9}])
     tr.render_frame(direct, 0.0, 170.0, effects=table)
     tr.truth_tile(direct, next(tr.tiles(direct)), OFFSETS, effects=table)
     assert calls == {}
     tr.render_frame(scene(MIXED), 0.0, 170.0, effects=table)
-    assert set(calls) == set(tr.EFFECTS)
+    assert set(calls) == set(lobes.EFFECTS)
 
 
 @pytest.mark.slow  # 11 s: in the slow job, so the default job keeps its 8-minute budget
@@ -126,7 +127,7 @@ def test_full_transport_with_a_vertical_line_matches_the_separable_model():
                                                                        line, width))
     profile = patterns.vertical_line((1, rig.projector_cols), line, width)[0]
     tiles = list(tr.tiles(s))
-    u_direct = np.concatenate([tr.tile_lobes(s, t)[1] for t in tiles])
+    u_direct = np.concatenate([lobes.tile_lobes(s, t)[1] for t in tiles])
     u = u_direct[None, :] + du[:, None]
     lit = np.where((u >= 0) & (u < rig.projector_cols), profile[np.clip(u, 0, rig.projector_cols - 1)], 0.0)
     vertical = np.einsum("k,ukp->up", box_weights(rig, delay, exposure), full)

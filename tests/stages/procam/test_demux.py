@@ -8,6 +8,7 @@ import xarray as xr
 from hypothesis import given
 from hypothesis import strategies as st
 
+from selpath.devices.sim import procam_lobes as lobes
 from selpath.devices.sim import procam_transport as tr
 from selpath.devices.sim.procam_scene import ProcamScene
 from selpath.pipeline.errors import StageError
@@ -148,7 +149,7 @@ def test_epipolar_image_matches_the_simulators_direct_component(noise_free):
     truth0 = s.rig.intensity * np.concatenate([tr.truth_tile(s, t, [0]) for t in tr.tiles(s)], axis=-1)
     truth0 = truth0.reshape(epipolar.shape)
     np.testing.assert_allclose(epipolar, truth0, rtol=0, atol=0.03 * truth0.max())
-    direct_only = tr.render_frame(s, 0.0, s.rig.line_time, effects=dict.fromkeys(tr.EFFECTS, lambda *_: []))
+    direct_only = tr.render_frame(s, 0.0, s.rig.line_time, effects=dict.fromkeys(lobes.EFFECTS, lambda *_: []))
     pure = np.abs(truth0 - direct_only) <= 1e-3  # offset 0 carries direct light only (no lobe reaches it)
     assert pure.mean() > 0.5
     np.testing.assert_allclose(epipolar[pure], direct_only[pure], rtol=0, atol=0.03 * direct_only.max())

@@ -10,6 +10,7 @@ import pytest
 import xarray as xr
 
 from selpath.devices.patterns import vertical_line
+from selpath.devices.sim import procam_lobes as lobes
 from selpath.devices.sim import procam_transport as tr
 from selpath.devices.sim.procam_scene import ProcamScene
 from selpath.pipeline.errors import StageError
@@ -18,7 +19,7 @@ from selpath.stages.procam._demux_solver import DemuxADMM
 from selpath.stages.procam._demux_store import OffsetGrid
 from selpath.stages.procam._illumination import box_overlap, line_cells, line_illumination, plane_to_ray_illumination
 from selpath.stages.procam.demux_full import demux_full
-from selpath.stages.procam.figures import profile_2d_figure, relighting_full_figure
+from selpath.stages.procam.full_figures import profile_2d_figure, relighting_full_figure
 from selpath.stages.procam.relight import cell_average, checkerboard_relight, relight_full
 
 RIG = {"camera_rows": 16, "camera_cols": 24, "projector_rows": 16, "projector_cols": 24, "bits": None}
@@ -61,7 +62,7 @@ def noise_free():
 
 
 def truth_u_direct(s: ProcamScene) -> np.ndarray:
-    return np.concatenate([tr.tile_lobes(s, t)[1] for t in tr.tiles(s)]).reshape(s.rig.camera_rows, -1)
+    return np.concatenate([lobes.tile_lobes(s, t)[1] for t in tr.tiles(s)]).reshape(s.rig.camera_rows, -1)
 
 
 def test_round_trip_reproduces_the_frames(noise_free):
@@ -94,7 +95,7 @@ def test_direct_correspondence_and_light_match_the_simulator(noise_free):
     s, _, out = noise_free
     error = np.abs(out["u_direct"].values - truth_u_direct(s))
     assert np.nanmax(error) <= out.attrs["cell_width_px"], np.nanmax(error)
-    candle = (tr.Tile.of(s, 0, s.rig.camera_rows).label == 0).reshape(s.rig.camera_rows, -1)
+    candle = (lobes.Tile.of(s, 0, s.rig.camera_rows).label == 0).reshape(s.rig.camera_rows, -1)
     assert candle.sum() > 50
     truth = s.rig.intensity * np.concatenate([tr.truth_tile(s, t, out["dv"].values) for t in tr.tiles(s)], axis=-1)
     truth = truth.reshape(-1, *candle.shape)
@@ -126,7 +127,7 @@ def test_relighting_a_2d_pattern_matches_a_global_shutter_render(noise_free):
     (measured: a 12-column period costs 14 % on the candle; a sharp stripe edge is averaged over the cell,
     the resolution the sweep buys)."""
     s, _, out = noise_free
-    candle = (tr.Tile.of(s, 0, s.rig.camera_rows).label == 0).reshape(s.rig.camera_rows, -1)
+    candle = (lobes.Tile.of(s, 0, s.rig.camera_rows).label == 0).reshape(s.rig.camera_rows, -1)
     columns = 0.5 + 0.5 * np.cos(2 * np.pi * np.arange(24) / 24)
     rows = ((np.arange(16) >= 4) & (np.arange(16) < 12)).astype(float)
     pattern = np.outer(rows, columns)
@@ -156,7 +157,7 @@ def test_checkerboard_relighting_matches_the_simulator_away_from_square_edges(no
     u0 = truth_u_direct(s)
     rows = np.arange(16)[:, None] * np.ones((1, 24))
     away = (np.min(np.abs(u0[..., None] - np.array([7.5, 15.5])), axis=-1) >= 2) & (np.abs(rows - 7.5) >= 1.5)
-    candle = (tr.Tile.of(s, 0, s.rig.camera_rows).label == 0).reshape(s.rig.camera_rows, -1)
+    candle = (lobes.Tile.of(s, 0, s.rig.camera_rows).label == 0).reshape(s.rig.camera_rows, -1)
     error = np.abs(relit["checkerboard"].values - truth)
     assert away.sum() >= 150
     assert error[away & ~candle].max() <= 0.05 * truth.max(), error[away & ~candle].max() / truth.max()

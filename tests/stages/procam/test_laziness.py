@@ -7,13 +7,8 @@ import pytest
 
 from selpath.stages.procam.demux import demux_plane_to_ray
 from selpath.stages.procam.demux_full import demux_full
-from selpath.stages.procam.figures import (
-    delay_profile_figure,
-    epipolar_figure,
-    profile_2d_figure,
-    relighting_figure,
-    relighting_full_figure,
-)
+from selpath.stages.procam.figures import delay_profile_figure, epipolar_figure, relighting_figure
+from selpath.stages.procam.full_figures import profile_2d_figure, relighting_full_figure
 from selpath.stages.procam.relight import checkerboard_relight, epipolar_image, non_epipolar_image, relight
 from tests.stages.procam import test_demux, test_demux_full
 

@@ -7,6 +7,7 @@ import pytest
 import xarray as xr
 
 from selpath.devices import patterns
+from selpath.devices.sim import procam_lobes as lobes
 from selpath.devices.sim import procam_transport as tr
 from selpath.devices.sim.procam_scene import ProcamScene
 from selpath.stages.procam.relight import epipolar_image, non_epipolar_image, relight
@@ -52,7 +53,7 @@ def test_sharpened_epipolar_removes_what_a_long_exposure_lets_in(scene_and_truth
     image synthesised from |offset| ≤ 0 does not. Against the simulator's direct-only render."""
     s, transport = scene_and_truth
     long_epipolar = tr.render_frame(s, 0.0, 10 * s.rig.row_period)
-    direct_only = tr.render_frame(s, 0.0, s.rig.line_time, effects=dict.fromkeys(tr.EFFECTS, lambda *_: []))
+    direct_only = tr.render_frame(s, 0.0, s.rig.line_time, effects=dict.fromkeys(lobes.EFFECTS, lambda *_: []))
     sharpened = epipolar_image(transport).compute().values
     candle = (slice(10, 30), slice(8, 22))
     err_long = np.abs(long_epipolar - direct_only)[candle].mean()

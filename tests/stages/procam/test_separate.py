@@ -8,6 +8,7 @@ import pytest
 import xarray as xr
 
 from selpath.devices import patterns
+from selpath.devices.sim import procam_lobes as lobes
 from selpath.devices.sim import procam_transport as tr
 from selpath.devices.sim.procam_scene import ProcamScene
 from selpath.pipeline import StageError
@@ -77,7 +78,7 @@ BROAD = {"name": "corner", "region": {"kind": "rectangle", "x": [0.05, 0.95], "y
 MIRROR = {"name": "mirror", "region": {"kind": "rectangle", "x": [0.05, 0.95], "y": [0.05, 0.95]}, "albedo": 0.8,
           "effects": {"specular_interreflection": {"centre": [0.5, 0.5], "reach": 0.3,
                                                    "displacement": ["12 px", "20 px"], "strength": 0.5}}}
-DIRECT_ONLY = dict.fromkeys(tr.EFFECTS, lambda *_: [])
+DIRECT_ONLY = dict.fromkeys(lobes.EFFECTS, lambda *_: [])
 SQUARE, SHIFTS = 4, [(r, c) for r in (0, 2, 4, 6) for c in (0, 2, 4, 6)]  # 16 half-square steps over a period
 
 
