@@ -169,3 +169,13 @@ def test_every_package_folder_is_installed():
     on_disk = {module_name(init) for part in PARTS for init in (ROOT / part).rglob("__init__.py")}
     assert set(config["packages"]) == on_disk
     assert config["package-dir"] == {package: folder for folder, package in PARTS.items()}
+
+
+#: the most lines a module of the package may have (DESIGN §1: rooms that fit; #56)
+MAX_MODULE_LINES = 420
+
+
+def test_every_module_fits_in_a_room():
+    long = {str(p.relative_to(ROOT)): n for part in PARTS for p in (ROOT / part).rglob("*.py")
+            if (n := len(p.read_text().splitlines())) > MAX_MODULE_LINES}
+    assert not long, f"split these by concern (DESIGN §1): {long}"
