@@ -3,10 +3,10 @@
 On pixels drawn as the throughput benchmark's K = 128 stack's (``benchmarks._demux_sweep.sample``, seed 0: the same
 distribution, clipped frames one-sided), one ``DemuxADMM.solve`` call of the stage's size for a 64-row band of a
 1600-column sensor (``pixels_per_call``: 15 streaming batches of 1024, 15 360 pixels) is timed whole, then again
-phase by phase: each of the solver's module-level kernels and host steps is wrapped here with a timer that waits
-for its result (``jax.block_until_ready``), so the phases add up to the wrapped call and "other" is the host
-bookkeeping between them. Compiles are excluded (a first call compiles). BLAS runs on one thread, as in a
-workflow's compute (``selpath.pipeline.compute.blas_on_one_thread``).
+phase by phase: ``DemuxADMM(timed=True)`` times each of its kernels and host steps, each waiting for its result
+(``jax.block_until_ready``), and returns the seconds in ``stats["phase_seconds"]``, so the phases add up to the
+timed call and "other" is the host bookkeeping between them. Compiles are excluded (a first call compiles). BLAS
+runs on one thread, as in a workflow's compute (``selpath.pipeline.compute.blas_on_one_thread``).
 
 Phases: ``start`` (the unconstrained warm start, clipped), ``start certificate`` (the cheap KKT bound that lets an
 already optimal pixel skip iterating), ``ADMM`` (the streaming batch and its compacted tail), ``polish +
@@ -30,48 +30,13 @@ iterations_in_budget=<e>``
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import time
-from contextlib import contextmanager
 
 import numpy as np
 
-#: (label, object, attribute): the solver's phases as the call makes them, in order
-PHASES = (("start", "kernels", "start"), ("start certificate", "kernels", "gaps"), ("ADMM", "kernels", "stream"),
-          ("ADMM", "kernels", "iterate"), ("polish + certificate", "kernels", "finish"),
-          ("host certificate", "solver", "_certify_partial"), ("exact finish", "solver", "_finish"))
-
-
-@contextmanager
-def timed_phases(totals: dict, calls: dict | None = None):
-    """Wrap the solver's phases (:data:`PHASES`) with timers adding seconds to ``totals`` per label (and, with
-    ``calls``, counting the calls per wrapped attribute's name); restored on exit."""
-    import jax
-
-    import selpath.stages.procam._demux_kernels as kernels
-    from selpath.stages.procam._demux_solver import DemuxADMM
-
-    owners = {"kernels": kernels, "solver": DemuxADMM}
-    saved = []
-
-    def timer(label, name, function):
-        def run(*args, **kwargs):
-            if calls is not None:
-                calls[name] = calls.get(name, 0) + 1
-            start = time.perf_counter()
-            result = jax.block_until_ready(function(*args, **kwargs))
-            totals[label] = totals.get(label, 0.0) + time.perf_counter() - start
-            return result
-        return run
-
-    try:
-        for label, owner, name in PHASES:
-            function = getattr(owners[owner], name)
-            saved.append((owners[owner], name, function))
-            setattr(owners[owner], name, timer(label, name, function))
-        yield totals
-    finally:
-        for owner, name, function in reversed(saved):
-            setattr(owner, name, function)
+#: the solver's phases, as ``DemuxADMM(timed=True)`` names them in ``stats["phase_seconds"]``
+PHASES = ("start", "start certificate", "ADMM", "polish + certificate", "host certificate", "exact finish")
 
 
 def profile(solver, problem, data, clipped, calls: int) -> dict:
@@ -83,17 +48,18 @@ def profile(solver, problem, data, clipped, calls: int) -> dict:
         solution = solver.solve(problem, data, clipped=clipped)
     whole = (time.perf_counter() - start) / calls
     totals: dict = {}
-    with timed_phases(totals):
-        start = time.perf_counter()
-        for _ in range(calls):
-            solver.solve(problem, data, clipped=clipped)
-        wrapped = (time.perf_counter() - start) / calls
+    timed = dataclasses.replace(solver, timed=True)
+    start = time.perf_counter()
+    for _ in range(calls):
+        for label, seconds in timed.solve(problem, data, clipped=clipped).stats["phase_seconds"].items():
+            totals[label] = totals.get(label, 0.0) + seconds
+    timed_call = (time.perf_counter() - start) / calls
     pixels = data.shape[0]
     phases = {label: seconds / calls / pixels * 1e6 for label, seconds in totals.items()}
-    phases["other"] = wrapped / pixels * 1e6 - sum(phases.values())
+    phases["other"] = timed_call / pixels * 1e6 - sum(phases.values())
     unfinished = solver.__class__(**{**solver.__dict__, "finish_rounds": 0}).solve(problem, data, clipped=clipped)
     tail = float(np.mean(unfinished.stats["gap_bound"] > solver.max_gap)) if solver.max_gap < 1 else 0.0
-    return {"us_per_px": whole / pixels * 1e6, "wrapped_us_per_px": wrapped / pixels * 1e6, "phases": phases,
+    return {"us_per_px": whole / pixels * 1e6, "timed_us_per_px": timed_call / pixels * 1e6, "phases": phases,
             "iterations": float(np.mean(solution.stats["iterations"])), "tail": tail,
             "bound_median": float(np.median(solution.stats["gap_bound"])),
             "bound_max": float(np.max(solution.stats["gap_bound"])), "converged": float(np.mean(solution.converged))}
@@ -110,9 +76,9 @@ def main() -> None:
 
     from benchmarks._demux_sweep import FAST, default_cvxpy_seconds, device_line, matrix, sample
     from selpath.pipeline.compute import blas_on_one_thread
+    from selpath.stages.procam._capture_to_transport import pixels_per_call
     from selpath.stages.procam._demux_problem import DemuxProblem
     from selpath.stages.procam._demux_solver import DemuxADMM
-    from selpath.stages.procam._demux_store import pixels_per_call
 
     k = 128
     pixels = args.pixels or pixels_per_call(1600 * 64, k)
@@ -129,12 +95,12 @@ def main() -> None:
     with blas_on_one_thread():
         results = {label: profile(DemuxADMM(**settings), problem, data, clipped, args.calls)
                    for label, settings in (("fast", FAST), ("defaults", {}))}
-    labels = list(dict.fromkeys(label for label, _, _ in PHASES)) + ["other"]
+    labels = [*PHASES, "other"]
     print(f"\nK = {k}, {pixels} px a call, float32, µs/px (one thread calling; XLA's own threads inside):")
     print(f"{'phase':<22}" + "".join(f"{name:>12}" for name in results))
     for label in labels:
         print(f"{label:<22}" + "".join(f"{r['phases'].get(label, 0.0):>12.2f}" for r in results.values()))
-    for label, key, fmt in (("whole call", "us_per_px", ".2f"), ("wrapped call", "wrapped_us_per_px", ".2f"),
+    for label, key, fmt in (("whole call", "us_per_px", ".2f"), ("timed call", "timed_us_per_px", ".2f"),
                             ("mean iterations", "iterations", ".1f"), ("tail > max_gap", "tail", ".1%"),
                             ("bound median", "bound_median", ".1e"), ("bound max", "bound_max", ".1e"),
                             ("converged", "converged", ".1%")):

@@ -3,7 +3,7 @@ precision of its products (for a GPU session: see docs/results.md, "On a GPU").
 
 On the throughput benchmark's K = 128 sweep (``benchmarks.demux_throughput``'s pixels), ``DemuxADMM`` at its defaults
 solves P pixels in one call, for growing P (compiles excluded: the second of two calls); the stage calls it with
-``selpath.stages.procam._demux_store.pixels_per_call`` pixels (16 batches), so this shows what larger calls would give.
+``selpath.stages.procam._capture_to_transport.pixels_per_call`` pixels (16 batches), so this shows what larger calls would give.
 On the
 first 200 pixels it also reports the objective gap against Clarabel's optimum and the certified bound, for the
 defaults, the exact finish on every pixel above gap_tol (``max_gap=1e-4``) and float64 and, with

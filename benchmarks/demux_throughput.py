@@ -70,7 +70,7 @@ def measure(mode: str, args) -> dict:
         enable_compile_cache()
     k = args.k
     if mode in ("selpath", "generate", "io"):
-        from selpath.stages.procam._demux_store import OffsetGrid
+        from selpath.stages.procam._capture_to_transport import OffsetGrid
         from selpath.stages.procam.demux import demux_plane_to_ray
 
         pixels = args.rows * args.cols
@@ -128,9 +128,9 @@ def measure(mode: str, args) -> dict:
 
         import cvxpy as cp
 
+        from selpath.stages.procam._capture_to_transport import solve_pixels
         from selpath.stages.procam._demux_problem import DemuxProblem
         from selpath.stages.procam._demux_solver import DemuxADMM
-        from selpath.stages.procam._demux_store import solve_pixels
 
         a = matrix(k, kept_only=True)
         problem = DemuxProblem.build(a)

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from selpath.stages.procam._demux_problem import DemuxProblem, SeparableDemuxProblem, _dtd_np, _residual, _smoothness
+from selpath.stages.procam._demux_problem import DemuxProblem, SeparableDemuxProblem, _residual
 
 #: golden-section steps of the dual search in :func:`best_dual_value` (the interval shrinks 0.618× per step)
 DUAL_SEARCH_STEPS = 16
@@ -285,8 +285,8 @@ def kkt_bound(problem: DemuxProblem, transport: np.ndarray, data: np.ndarray, we
     if weight is not None:
         weight = (np.asarray(weight) > 0).astype(np.float64)
     residual, _ = _residual(problem, t, data, weight, clipped)
-    gradient = 2.0 * residual @ problem.illumination + 2.0 * problem.alpha * _dtd_np(t) + problem.beta
-    primal = (residual**2).sum(-1) + problem.alpha * _smoothness(problem, t) + problem.beta * t.sum(-1)
+    gradient = 2.0 * problem.adjoint(residual) + 2.0 * problem.alpha * problem.smooth_gradient(t) + problem.beta
+    primal = (residual**2).sum(-1) + problem.alpha * problem.smoothness(t) + problem.beta * t.sum(-1)
     # the frames the objective counts (weight None: all of them, non-finite data as 0 like _residual; the solver
     # always passes its weight, which masks them) less the clipped ones
     kept = np.ones(np.shape(data), bool) if weight is None else weight > 0
@@ -340,29 +340,16 @@ def certified_gap(problem: DemuxProblem | SeparableDemuxProblem, transport: np.n
     w = np.ones_like(target) if weight is None else weight
     e = w if clipped is None else w * ~np.asarray(clipped, bool)
     u = 2.0 * residual
-    if isinstance(problem, SeparableDemuxProblem):
-        cells = t.reshape(-1, *problem.cells)
-        n_u = problem.line_matrix.shape[0]
-
-        def adjoint(r):
-            return np.einsum("ju,pjn,nv->puv", problem.line_matrix, r.reshape(r.shape[0], n_u, -1),
-                             problem.frame_matrix, optimize=True).reshape(t.shape)
-
-        smooth_gradient = _dtd_np(cells).reshape(t.shape)
-    else:
-        def adjoint(r):
-            return r @ problem.illumination
-
-        smooth_gradient = _dtd_np(t)
-    z = adjoint(u) + 2.0 * problem.alpha * smooth_gradient
+    adjoint = problem.adjoint
+    z = adjoint(u) + 2.0 * problem.alpha * problem.smooth_gradient(t)
     a = (u * target * w).sum(-1)
-    b = (residual**2).sum(-1) + problem.alpha * _smoothness(problem, t)
+    b = (residual**2).sum(-1) + problem.alpha * problem.smoothness(t)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         dual = best_dual_value(np, a, b, z, adjoint(e), (e * target).sum(-1), (e * u).sum(-1), e.sum(-1),
                                problem.beta, steps=search_steps)
         primal = b + problem.beta * t.sum(-1)
         gap = np.maximum(primal - dual, 0.0)
         relative = np.where(primal > 0, np.minimum(gap / primal, 1.0), 0.0)
-    if isinstance(problem, DemuxProblem) and problem.definite:
+    if problem.second_order_bound:
         relative = np.minimum(relative, kkt_bound(problem, t, data, weight, clipped, dual_steps=dual_steps))
     return np.where(np.isfinite(relative), relative, 1.0)

@@ -16,7 +16,6 @@ import jax
 import jax.numpy as jnp
 
 from selpath.stages.procam._demux_certificate import DUAL_SEARCH_STEPS, KKT_HELD, best_dual_value, kkt_gap
-from selpath.stages.procam._demux_problem import DenseOperators
 
 
 class Limits(NamedTuple):
@@ -332,7 +331,7 @@ def certified_gap(ops, rows: Rows, t, *, masked: bool, steps: int = DUAL_SEARCH_
     primal = b + beta * jnp.sum(t, axis=-1)
     gap = jnp.maximum(primal - dual, 0.0)
     first_order = jnp.where(primal > 0, jnp.minimum(gap / jnp.maximum(primal, tiny), 1.0), 0.0)
-    if not isinstance(ops, DenseOperators):  # the separable problem keeps the first-order bound only
+    if not ops.SECOND_ORDER:  # the separable problem keeps the first-order bound only
         return first_order
     return jnp.minimum(first_order, kkt_gap(jnp, t, z + rows.beta, lambda d: jnp.sum(d * ops.inverse(d), axis=-1),
                                             primal, applies & (ops.definite > 0), shares, inverse=ops.inverse,

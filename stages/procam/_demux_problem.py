@@ -16,7 +16,10 @@ of shared matrices. The smoothness α acts along dv only (the thesis's ∂T/∂v
 Each problem hands the solver its operators by name (:meth:`DemuxProblem.operators`): a small pytree
 (:class:`DenseOperators`, :class:`KroneckerOperators`) of JAX arrays in the solver's dtype with ``forward``,
 ``adjoint``, ``update``, ``inverse``, ``gram2`` and ``smoothness`` on flat (P, K) iterates, so the jitted
-kernels of :mod:`selpath.stages.procam._demux_kernels` dispatch on its type, never on a string.
+kernels of :mod:`selpath.stages.procam._demux_kernels` call the same methods on either, never asking which it is.
+Each problem also says what it supports: ``second_order_bound`` (the certificate's KKT bound) and ``exact_finish``
+(the active-set finish and the ``max_gap`` cap), and its operators' ``SECOND_ORDER``; its float64 numpy
+``forward``, ``adjoint``, ``smoothness`` and ``smooth_gradient`` serve the host certificate and the objective.
 
 Defaults live here once (:data:`DEFAULT_ALPHA`, :data:`DEFAULT_BETA`, :data:`DEFAULT_RHO_FACTOR`); the stages
 take theirs from them. α (smoothness along the offset) and β (sparsity) are not tomography's TV weight λ;
@@ -87,6 +90,17 @@ class DemuxProblem:
                    definite, float(eigenvalues[0]) if definite else 0.0)
 
     @property
+    def second_order_bound(self) -> bool:
+        """Whether the certificate's KKT bound (second order in T's KKT residual) holds: 2G positive definite."""
+        return self.definite
+
+    @property
+    def exact_finish(self) -> bool:
+        """Whether the exact active-set finish (:mod:`selpath.stages.procam._demux_finish`) and the ``max_gap`` cap
+        apply: they need the second-order bound."""
+        return self.definite
+
+    @property
     def frames(self) -> int:
         return self.illumination.shape[0]
 
@@ -104,6 +118,18 @@ class DemuxProblem:
     def forward(self, transport: np.ndarray, dtype=np.float64) -> np.ndarray:
         """(P, K) transport → (P, N) predicted observations, in ``dtype`` (the reference's float64 by default)."""
         return np.asarray(transport, dtype) @ self.illumination.T.astype(dtype)
+
+    def adjoint(self, residual: np.ndarray) -> np.ndarray:
+        """(P, N) → (P, K): Aᵀ r per pixel, in float64."""
+        return np.asarray(residual, np.float64) @ self.illumination
+
+    def smoothness(self, transport: np.ndarray) -> np.ndarray:
+        """‖D T‖² per pixel."""
+        return (np.diff(transport, axis=-1) ** 2).sum(-1)
+
+    def smooth_gradient(self, transport: np.ndarray) -> np.ndarray:
+        """DᵀD T per pixel (½ the gradient of ‖D T‖²)."""
+        return _dtd_np(np.asarray(transport, np.float64))
 
     def lit_by(self, frames: np.ndarray) -> np.ndarray:
         """(P, N) 0/1 frames → (P, K): how many of them light each offset (A_ik > 0)."""
@@ -155,6 +181,10 @@ class SeparableDemuxProblem:
         inverse = np.linalg.pinv(blocks, hermitian=True)
         return cls(line_matrix, frame_matrix, float(alpha), float(beta), float(rho), basis, update, inverse, smooth)
 
+    #: the Kronecker problem keeps the certificate's first-order bound only: no KKT bound, no exact finish, no cap
+    second_order_bound = False
+    exact_finish = False
+
     @property
     def frames(self) -> int:
         return self.line_matrix.shape[0] * self.frame_matrix.shape[0]
@@ -180,6 +210,22 @@ class SeparableDemuxProblem:
                         optimize=True)
         return out.reshape(t.shape[0], -1)
 
+    def adjoint(self, residual: np.ndarray) -> np.ndarray:
+        """(P, N_u·N_v) → (P, K_u·K_v): (L_u ⊗ L)ᵀ r per pixel, in float64, A never formed."""
+        r = np.asarray(residual, np.float64)
+        r = r.reshape(r.shape[0], self.line_matrix.shape[0], -1)
+        return np.einsum("ju,pjn,nv->puv", self.line_matrix, r, self.frame_matrix, optimize=True).reshape(
+            r.shape[0], -1)
+
+    def smoothness(self, transport: np.ndarray) -> np.ndarray:
+        """‖D T‖² per pixel, along dv."""
+        return (np.diff(transport.reshape(-1, *self.cells), axis=-1) ** 2).sum((-2, -1))
+
+    def smooth_gradient(self, transport: np.ndarray) -> np.ndarray:
+        """DᵀD T per pixel along dv."""
+        t = np.asarray(transport, np.float64)
+        return _dtd_np(t.reshape(-1, *self.cells)).reshape(t.shape)
+
     def lit_by(self, frames: np.ndarray) -> np.ndarray:
         """(P, N_u·N_v) 0/1 frames (line-major) → (P, K_u·K_v): how many of them light each cell."""
         frames = np.asarray(frames, np.float32).reshape(-1, self.line_matrix.shape[0], self.frame_matrix.shape[0])
@@ -203,17 +249,10 @@ def _residual(problem: DemuxProblem | SeparableDemuxProblem, transport: np.ndarr
     return (prediction - target) * w, target
 
 
-def _smoothness(problem: DemuxProblem | SeparableDemuxProblem, transport: np.ndarray) -> np.ndarray:
-    """‖D T‖² per pixel (along dv for the full transport)."""
-    if isinstance(problem, SeparableDemuxProblem):
-        return (np.diff(transport.reshape(-1, *problem.cells), axis=-1) ** 2).sum((-2, -1))
-    return (np.diff(transport, axis=-1) ** 2).sum(-1)
-
-
 def _objective(problem, transport, data, weight, clipped) -> np.ndarray:
     transport = np.asarray(transport, np.float64)
     residual, _ = _residual(problem, transport, data, weight, clipped)
-    return (residual**2).sum(-1) + problem.alpha * _smoothness(problem, transport) + problem.beta * transport.sum(-1)
+    return (residual**2).sum(-1) + problem.alpha * problem.smoothness(transport) + problem.beta * transport.sum(-1)
 
 
 def _dtd_np(t: np.ndarray) -> np.ndarray:
@@ -250,6 +289,9 @@ class DenseOperators(NamedTuple):
     rho: jnp.ndarray
     definite: jnp.ndarray  # 1 where 2G is positive definite (the KKT bound holds), else 0
     dual_step: jnp.ndarray  # λ_min(2G) where definite, else 0 (DemuxProblem.dual_step)
+
+    #: the kernels' certificate adds the KKT bound (where ``definite``): a class constant, static under jit
+    SECOND_ORDER = True
 
     def forward(self, t):
         """A T per pixel: (P, K) → (P, N)."""
@@ -292,6 +334,9 @@ class KroneckerOperators(NamedTuple):
     alpha: jnp.ndarray
     beta: jnp.ndarray
     rho: jnp.ndarray
+
+    #: the first-order bound only (a class constant, static under jit)
+    SECOND_ORDER = False
 
     def _cells(self, v):
         return v.reshape(v.shape[0], self.line.shape[1], self.frame.shape[1])

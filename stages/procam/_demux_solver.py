@@ -73,6 +73,7 @@ finish (an earlier version did, for free accuracy at the same recorded iteration
 
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass
 from typing import ClassVar, NamedTuple
 
@@ -140,6 +141,22 @@ class _Start(NamedTuple):
     gap: np.ndarray
 
 
+class _Clock:
+    """Seconds per phase of one solve (``DemuxADMM(timed=True)``): each timed call waits for its result
+    (``jax.block_until_ready``), so a phase's seconds are its own; untimed, a call runs as it is."""
+
+    def __init__(self, on: bool):
+        self.on, self.seconds = on, {}
+
+    def __call__(self, label: str, function, *args, **kwargs):
+        if not self.on:
+            return function(*args, **kwargs)
+        start = time.perf_counter()
+        result = jax.block_until_ready(function(*args, **kwargs))
+        self.seconds[label] = self.seconds.get(label, 0.0) + time.perf_counter() - start
+        return result
+
+
 @dataclass(frozen=True)
 class DemuxADMM:
     """The batched demultiplexing ADMM: immutable settings; :meth:`solve` returns a :class:`Solution`.
@@ -169,7 +186,9 @@ class DemuxADMM:
     ``slots``: rows of the streaming batch (None: :func:`batch_slots`);
     ``dtype``: ``float32`` or ``float64`` arithmetic (float64 needs ``jax.enable_x64``); ``throw``: raise
     :class:`selpath.stages._solution.SolverError` when a pixel did not converge (default: keep going, the result
-    codes say which).
+    codes say which); ``timed``: return each phase's seconds in ``stats["phase_seconds"]`` (start, start
+    certificate, ADMM, polish + certificate, host certificate, exact finish; each phase waits for its result,
+    so a timed solve is slightly slower: for profiling, ``benchmarks/demux_phases.py``).
 
     The defaults (tol 2e-3, two polish rounds, max_gap 1e-3 with 16 finish rounds) are the cheapest measured to
     meet #25's accuracy goals on every case of ``benchmarks/demux_catalogue.py`` (certified bound: median ≤ 1e-4,
@@ -202,6 +221,16 @@ class DemuxADMM:
     slots: int | None = None
     dtype: str = "float32"
     throw: bool = False
+    timed: bool = False
+
+    #: the settings a transport store records (the stage writes them from the solver it ran, one list): what decides
+    #: the answer, not how the pixels are batched
+    RECORDED: ClassVar[tuple[str, ...]] = ("tol", "gap_tol", "max_gap", "finish_rounds", "dual_steps", "max_iter",
+                                           "polish_iter", "polish_rounds", "dtype")
+
+    def settings(self) -> dict:
+        """:data:`RECORDED`'s settings and their values."""
+        return {name: getattr(self, name) for name in self.RECORDED}
 
     def __post_init__(self):
         if not (self.tol > 0 and 0 <= self.gap_tol <= self.max_gap and self.finish_rounds >= 0 and self.max_iter >= 1
@@ -238,8 +267,10 @@ class DemuxADMM:
         ops = problem.operators(dtype)
         # without clipped frames one column stands for all (broadcast): the pool and batch carry no (P, N) zeros
         flags = clipped if any_clipped else np.zeros((data.shape[0], 1), bool)
+        clock = _Clock(self.timed)
         transport, iterations, done, objective, gap, start = self._run(
-            ops, jnp.asarray(np.where(weight, data, 0.0), dtype), jnp.asarray(weight, dtype), jnp.asarray(flags, dtype),
+            clock, ops, jnp.asarray(np.where(weight, data, 0.0), dtype), jnp.asarray(weight, dtype),
+            jnp.asarray(flags, dtype),
             masked=not bool(weight.all()) or any_clipped, slots=int(self.slots or batch_slots(problem.offsets)))
         transport, objective, gap = np.array(transport), np.array(objective), np.array(gap)
         # a pixel certified at its warm start and never iterated keeps that start where the polish, which accepts
@@ -251,11 +282,13 @@ class DemuxADMM:
             objective[lost] = problem.objective(start.transport[lost], np.where(weight, data, 0.0)[lost],
                                                 weight[lost], clipped[lost]).astype(objective.dtype)
             done[lost] = True
-        if isinstance(problem, DemuxProblem) and problem.definite and (any_clipped or not weight.all()):
-            gap, done = self._certify_partial(problem, data, weight, clipped, transport, gap, np.array(done))
-        proven = self.max_gap < 1 and isinstance(problem, DemuxProblem) and problem.definite
+        if problem.second_order_bound and (any_clipped or not weight.all()):
+            gap, done = clock("host certificate", self._certify_partial, problem, data, weight, clipped, transport,
+                              gap, np.array(done))
+        proven = self.max_gap < 1 and problem.exact_finish
         if self.finish_rounds and proven:
-            transport, objective, gap = self._finish(problem, data, weight, clipped, transport, objective, gap)
+            transport, objective, gap = clock("exact finish", self._finish, problem, data, weight, clipped, transport,
+                                              objective, gap)
         if proven:  # converged means a proven gap of at most max_gap, whatever the residuals said
             done = gap <= self.max_gap
         finite = np.isfinite(transport).all(axis=-1) & np.isfinite(objective)
@@ -268,7 +301,7 @@ class DemuxADMM:
                               result)
         solution = Solution(transport, result.astype(np.int8),
                             {"iterations": np.asarray(iterations), "objective": objective, "gap_bound": gap,
-                             "censored_offsets": censored})
+                             "censored_offsets": censored} | ({"phase_seconds": clock.seconds} if self.timed else {}))
         if self.throw:
             raise_if_failed(solution, "DemuxADMM", items="pixels")
         return solution
@@ -301,7 +334,7 @@ class DemuxADMM:
                                                  clipped[scope]).astype(objective.dtype)
         return transport, objective, gap
 
-    def _run(self, ops, data, weight, clipped, *, masked: bool, slots: int):
+    def _run(self, clock: _Clock, ops, data, weight, clipped, *, masked: bool, slots: int):
         """Start, set aside the pixels certified at their warm start (gap bound ≤ ``gap_tol``: no iteration), stream
         the others through a batch of ``slots`` (:func:`~selpath.stages.procam._demux_kernels.stream`), compact its tail
         (:meth:`_iterate_tail`), finish: (transport, iterations, converged, objective, gap bound, the warm start
@@ -309,8 +342,8 @@ class DemuxADMM:
         converged where its residuals met ``tol`` or where its final certified bound is at most ``gap_tol``."""
         p = data.shape[0]
         slots = min(slots, p)
-        pool, scale, z0 = kernels.start(ops, data, weight, clipped, masked=masked, chunk=slots)
-        start_gap = np.asarray(kernels.gaps(ops, pool, z0, chunk=slots, masked=masked))
+        pool, scale, z0 = clock("start", kernels.start, ops, data, weight, clipped, masked=masked, chunk=slots)
+        start_gap = np.asarray(clock("start certificate", kernels.gaps, ops, pool, z0, chunk=slots, masked=masked))
         certified = start_gap <= self.gap_tol
         order = np.argsort(certified, kind="stable")  # the live pixels first, in their order
         live = int(p - certified.sum())
@@ -318,9 +351,9 @@ class DemuxADMM:
         if live < p:
             pool, z0 = Rows(*(a[order] for a in pool)), z0[order]
         limits = Limits(jnp.asarray(self.tol, data.dtype), jnp.asarray(self.max_iter, jnp.int32))
-        pixel, rows, batch, _, out = kernels.stream(ops, limits, pool, z0, jnp.asarray(live, jnp.int32),
-                                                    check_every=self.check_every, masked=masked, slots=slots)
-        pixel, z, iters, done = self._iterate_tail(ops, limits, np.array(pixel), rows, batch, pool_size=p,
+        pixel, rows, batch, _, out = clock("ADMM", kernels.stream, ops, limits, pool, z0, jnp.asarray(live, jnp.int32),
+                                           check_every=self.check_every, masked=masked, slots=slots)
+        pixel, z, iters, done = self._iterate_tail(clock, ops, limits, np.array(pixel), rows, batch, pool_size=p,
                                                    masked=masked)
         held = pixel < p
         z_out, iters_out, done_out = (np.array(a) for a in out)
@@ -330,14 +363,15 @@ class DemuxADMM:
             inverse = np.argsort(order)
             pool = Rows(*(a[inverse] for a in pool))
             z_out, iters_out, done_out = z_out[inverse], iters_out[inverse], done_out[inverse]
-        transport, objective, gap = kernels.finish(ops, pool, scale, jnp.asarray(z_out),
-                                                   polish_iter=self.polish_iter, polish_rounds=self.polish_rounds,
-                                                   dual_steps=self.dual_steps, masked=masked, chunk=slots)
+        transport, objective, gap = clock("polish + certificate", kernels.finish, ops, pool, scale,
+                                          jnp.asarray(z_out), polish_iter=self.polish_iter,
+                                          polish_rounds=self.polish_rounds, dual_steps=self.dual_steps, masked=masked,
+                                          chunk=slots)
         done_out = done_out | (np.asarray(gap) <= self.gap_tol)
         return transport, iters_out, done_out, objective, gap, start
 
-    def _iterate_tail(self, ops, limits: Limits, pixel: np.ndarray, rows: Rows, batch: Batch, *, pool_size: int,
-                      masked: bool):
+    def _iterate_tail(self, clock: _Clock, ops, limits: Limits, pixel: np.ndarray, rows: Rows, batch: Batch, *,
+                      pool_size: int, masked: bool):
         """The batch's living pixels once the pool is exhausted, gathered into a batch COMPACTION times smaller
         each time all but 1/COMPACTION of them have converged, and iterated on alone (each size compiles once).
         In numpy between the jitted calls (index bookkeeping no jit does cheaply). Returns the batch's (pixel,
@@ -350,8 +384,8 @@ class DemuxADMM:
             size = _batch_size(n)
             padded = np.concatenate([index, np.full(size - n, index[0])])
             pad_done = np.arange(size) >= n  # padding rows count as converged and are never written back
-            part = kernels.iterate(
-                ops, limits, Rows(*(a[padded] for a in rows)),
+            part = clock(
+                "ADMM", kernels.iterate, ops, limits, Rows(*(a[padded] for a in rows)),
                 Batch(State(*(a[padded] for a in state)), iters[padded], done[padded] | pad_done, age[padded]),
                 jnp.asarray(compact_at(size), jnp.int32), check_every=self.check_every, masked=masked)
             for full, new in zip(state, part.state, strict=True):

@@ -23,9 +23,7 @@ from selpath.pipeline.errors import Problem, StageError
 from selpath.pipeline.kinds import PX_UNITS, CubeKind, Variable
 from selpath.pipeline.registry import stage
 from selpath.stages._common import Dtype, DualSteps, FinishRounds, GapTol, MaxGap, MaxIter
-from selpath.stages.procam._demux_problem import DEFAULT_ALPHA, DEFAULT_BETA, DemuxProblem
-from selpath.stages.procam._demux_solver import DemuxADMM
-from selpath.stages.procam._demux_store import (
+from selpath.stages.procam._capture_to_transport import (
     DEMUX_EXTRAS,
     TRANSPORT_ATTRS,
     OffsetGrid,
@@ -38,6 +36,8 @@ from selpath.stages.procam._demux_store import (
     transport_template,
     with_sync_delay,
 )
+from selpath.stages.procam._demux_problem import DEFAULT_ALPHA, DEFAULT_BETA, DemuxProblem
+from selpath.stages.procam._demux_solver import DemuxADMM
 
 
 def _band(block: xr.Dataset, *, solver: DemuxADMM, problem: DemuxProblem, keep: np.ndarray, levels: dict
@@ -192,6 +192,4 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
     out = describe_transport(out, int(keep.sum()), PLANE_TO_RAY_TRANSPORT, gap_tol)
     return out.assign_attrs(transport_attrs(
         capture, timing=timing, delays=delays, exposures=exposures, keep=keep, margin=margin,
-        full_scale=scale, alpha=alpha, beta=beta, tol=tol, gap_tol=gap_tol, max_gap=max_gap,
-        finish_rounds=finish_rounds, dual_steps=dual_steps, max_iter=max_iter, polish_iter=polish_iter,
-        polish_rounds=polish_rounds, dtype=dtype))
+        full_scale=scale, alpha=alpha, beta=beta, **solver.settings()))

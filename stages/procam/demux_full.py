@@ -1,10 +1,10 @@
 """Demultiplexing a line sweep into full transport T(du, dv, row, col) (§5.3.1).
 
 The same per-pixel problem as plane-to-ray (:mod:`selpath.stages.procam.demux`, whose machinery it shares through
-:mod:`selpath.stages.procam._demux_store`) over u-cells × offsets, with the separable illumination L_u ⊗ L of Eq. 38
-(:class:`selpath.stages.procam._demux_problem.SeparableDemuxProblem`: A is never formed). Lazy over bands of camera
-rows;
-each pixel's answer is re-indexed from its direct correspondence u₀, so du = 0 is the direct light.
+:mod:`selpath.stages.procam._capture_to_transport`) over u-cells × offsets, with the separable illumination
+L_u ⊗ L of Eq. 38 (:class:`selpath.stages.procam._demux_problem.SeparableDemuxProblem`: A is never formed). Lazy
+over bands of camera rows; each pixel's answer is re-indexed from its direct correspondence u₀, so du = 0 is the
+direct light.
 """
 
 from __future__ import annotations
@@ -17,9 +17,7 @@ from selpath.pipeline.errors import Problem, StageError
 from selpath.pipeline.kinds import PX_UNITS, CubeKind, Variable
 from selpath.pipeline.registry import stage
 from selpath.stages._common import Dtype, GapTol, MaxIter
-from selpath.stages.procam._demux_problem import DEFAULT_ALPHA, DEFAULT_BETA, SeparableDemuxProblem
-from selpath.stages.procam._demux_solver import DemuxADMM
-from selpath.stages.procam._demux_store import (
+from selpath.stages.procam._capture_to_transport import (
     DEMUX_EXTRAS,
     TRANSPORT_ATTRS,
     OffsetGrid,
@@ -32,6 +30,8 @@ from selpath.stages.procam._demux_store import (
     transport_template,
     with_sync_delay,
 )
+from selpath.stages.procam._demux_problem import DEFAULT_ALPHA, DEFAULT_BETA, SeparableDemuxProblem
+from selpath.stages.procam._demux_solver import DemuxADMM
 from selpath.stages.procam._illumination import line_cells, line_illumination
 
 #: bytes of full transport one dask task may hold (the default rows_per_tile of demux_full follows from it)
@@ -161,9 +161,13 @@ def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, 
     stack = capture[["image"]].chunk({"delay": -1, "exposure": -1, "line": -1, "row": rows_per_tile, "col": -1})
     template = transport_template(capture, ("du", "dv"), (2 * reach + 1, grid.size), stack.chunksizes["row"], dtype,
                                   u_direct=np.float32)
+    # one polish round, as before #25's certified defaults; the Kronecker problem has no second-order bound, so the
+    # solver runs neither the exact finish nor the max_gap cap on it (its `exact_finish`): max_gap 1 only keeps
+    # any gap_tol valid
+    solver = DemuxADMM(tol=tol, gap_tol=gap_tol, max_iter=max_iter, polish_iter=polish_iter, dtype=dtype,
+                       polish_rounds=1, max_gap=1.0)
     out = xr.map_blocks(_band_full, stack.assign_attrs({}), kwargs={
-        "solver": DemuxADMM(tol=tol, gap_tol=gap_tol, max_iter=max_iter, polish_iter=polish_iter, dtype=dtype,
-                            polish_rounds=1, finish_rounds=0, max_gap=1.0),  # as before #25's certified defaults
+        "solver": solver,
         "problem": problem,
         "keep": keep, "levels": {"dark": dark, "full_scale": scale, "saturation": saturation}, "reach": reach,
         "centre_v": int(np.argmin(np.abs(grid))), "cells": cells}, template=template)
@@ -175,7 +179,7 @@ def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, 
     out = describe_transport(out, int(keep.sum()) * capture.sizes["line"], FULL_TRANSPORT, gap_tol)
     return out.assign_attrs(transport_attrs(
         capture, timing=timing, delays=delays, exposures=exposures, keep=keep, margin=margin,
-        full_scale=scale, alpha=alpha, beta=beta, tol=tol, gap_tol=gap_tol, max_iter=max_iter,
-        polish_iter=polish_iter, dtype=dtype,
+        full_scale=scale, alpha=alpha, beta=beta,
+        **{k: v for k, v in solver.settings().items() if k not in ("max_gap", "finish_rounds")},  # (they do not apply)
         line_width_px=width, cell_width_px=step, cells_px=cells.tolist(), lines=int(lines.size),
         **{name: capture.attrs[name] for name in ("projector_shape",) if name in capture.attrs}))

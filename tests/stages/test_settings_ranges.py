@@ -24,7 +24,7 @@ from selpath import workflows
 from selpath.pipeline import SpecError, load_workflow
 from selpath.pipeline.registry import default_registry
 from selpath.stages._sweeps import sweep_count
-from selpath.stages.procam._demux_store import OffsetGrid
+from selpath.stages.procam._capture_to_transport import OffsetGrid
 from selpath.stages.procam.acquire import PixelSweep, TimeSweep
 from selpath.stages.tomography.acquire import AngleSweep
 

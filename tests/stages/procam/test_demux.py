@@ -12,9 +12,9 @@ from selpath.devices.sim import procam_lobes as lobes
 from selpath.devices.sim import procam_transport as tr
 from selpath.devices.sim.procam_scene import ProcamScene
 from selpath.pipeline.errors import StageError
+from selpath.stages.procam._capture_to_transport import POOL_BATCHES, pixels_per_call, solve_pixels
 from selpath.stages.procam._demux_problem import DemuxProblem
 from selpath.stages.procam._demux_solver import DemuxADMM, batch_slots
-from selpath.stages.procam._demux_store import POOL_BATCHES, pixels_per_call, solve_pixels
 from selpath.stages.procam._illumination import plane_to_ray_illumination
 from selpath.stages.procam.demux import demux_plane_to_ray
 

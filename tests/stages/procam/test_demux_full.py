@@ -14,9 +14,9 @@ from selpath.devices.sim import procam_lobes as lobes
 from selpath.devices.sim import procam_transport as tr
 from selpath.devices.sim.procam_scene import ProcamScene
 from selpath.pipeline.errors import StageError
+from selpath.stages.procam._capture_to_transport import OffsetGrid
 from selpath.stages.procam._demux_problem import SeparableDemuxProblem
 from selpath.stages.procam._demux_solver import DemuxADMM
-from selpath.stages.procam._demux_store import OffsetGrid
 from selpath.stages.procam._illumination import box_overlap, line_cells, line_illumination, plane_to_ray_illumination
 from selpath.stages.procam.demux_full import demux_full
 from selpath.stages.procam.full_figures import profile_2d_figure, relighting_full_figure

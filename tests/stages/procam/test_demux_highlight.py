@@ -8,9 +8,9 @@ import pytest
 
 from selpath.devices.sim import procam_transport as tr
 from selpath.devices.sim.procam_scene import ProcamScene
+from selpath.stages.procam._capture_to_transport import solve_pixels
 from selpath.stages.procam._demux_problem import DemuxProblem
 from selpath.stages.procam._demux_solver import DemuxADMM
-from selpath.stages.procam._demux_store import solve_pixels
 from selpath.stages.procam._illumination import plane_to_ray_illumination
 from selpath.stages.procam.demux import demux_plane_to_ray
 from selpath.stages.procam.figures import epipolar_figure, relighting_figure

@@ -194,8 +194,8 @@ def test_float32_does_not_settle_at_zero_where_the_pseudo_inverse_start_is_round
     32 lines over 36 u-cells): (2G)⁺ along the directions only α holds reaches 1.6e10, so in float32 both
     warm starts were rounding noise of size 1e5 and ADMM returned T = 0 for every pixel, flagged converged.
     Now float32 reaches float64's objective within 1 % (measured 0.1 %)."""
+    from selpath.stages.procam._capture_to_transport import sweep_offsets
     from selpath.stages.procam._demux_problem import SeparableDemuxProblem
-    from selpath.stages.procam._demux_store import sweep_offsets
     from selpath.stages.procam._illumination import line_cells, line_illumination
 
     lines = np.arange(5.0, 316.0, 10.0)
