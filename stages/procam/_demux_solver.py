@@ -9,66 +9,37 @@ frame (its observation the clip level y) enters as the one-sided max(0, y − A_
 y, so the problem stays a convex QP and T is never pulled below what the clipped frames prove.
 
 No library solves millions of small QPs that share a Hessian as one matrix–matrix product per iteration
-(CVXPY/Clarabel factorise each problem; optimistix has no bound constraints and the softplus detour was slow,
-DESIGN §6), so this is a batched ADMM in plain JAX (kernels in
-:mod:`selpath.stages.procam._demux_kernels`):
+(CVXPY/Clarabel factorise each problem; optimistix has no bound constraints, DESIGN §6), so this is a batched
+ADMM in plain JAX (kernels in :mod:`selpath.stages.procam._demux_kernels`):
 
-* splitting T = Z with Z ≥ 0 carrying the L1 term: the T-update is (2G + ρI)⁻¹(2Aᵀỹ + ρ(Z − U)) with
-  G = AᵀA + αDᵀD, one shared K × K inverse, so a tile of P pixels costs one (P × K)·(K × K) product per
-  iteration; the Z-update max(0, ·− β/ρ) is exact;
-* a warm start at the unconstrained minimiser, clipped at 0, and Goldstein et al.'s fast ADMM with restart
-  (Nesterov momentum per pixel while the combined residual falls): measured against plain and
-  over-relaxed ADMM, 4–10× fewer iterations to a 1e-4 objective gap; ρ = ``rho_factor`` · λ_max(2G), a
-  setting of the problem, whose factorisation depends on it
-  (:data:`selpath.stages.procam._demux_problem.DEFAULT_RHO_FACTOR`);
-* masked and clipped frames by majorisation: a masked observation is replaced by the current prediction (ỹ = w y +
-  (1 − w) A Z), a clipped one by max(y, A Z), whose fixed points are exactly the optima of the problem with masked
-  frames left out and clipped ones as one-sided penalties, so tiles with neither keep the cheapest path and the
-  others pay two more products per iteration;
-* each pixel is scaled by its largest observation (β with it), so data from 1e-8 to 1e8 run in float32;
-* a final polish: conjugate gradients on the KKT system of the support ADMM found (the free offsets), kept
-  per pixel only where it lowers the objective (OSQP's "solution polishing", batched); with ``polish_rounds``
-  above 1, again with the offsets whose gradient is negative freed as well (active-set steps: one lowers the
-  largest objective gap of the solver tests' float32 solves from 1.7e-5 to 1.6e-6, and the benchmark's median
-  from 6.4e-5 to 5.3e-5, for about 9 % more time per pixel; two rounds are the default since they thin the tail
-  the finish must take, docs/results.md);
-* a certificate beside the answer: :func:`~selpath.stages.procam._demux_kernels.certified_gap` bounds each pixel's
-  relative objective gap from weak duality (in the solver's dtype, at the end: about four iterations' cost, 0.8
-  µs/px at K = 128; at the warm start a cheaper form that is exact at an optimum, 0.5 µs/px; the float64
-  reference is :func:`~selpath.stages.procam._demux_certificate.certified_gap`). A bound, never an estimate: the smaller
-  of a first-order one (every pixel) and, for a fully observed, unclipped pixel of a dense problem, the Lagrangian
-  one of :func:`~selpath.stages.procam._demux_certificate.kkt_gap`, second order in the KKT residual, whose multipliers
-  then climb the dual for ``dual_steps`` (one K × K product each; +21–31 % of a call's time at 10): on float32
-  solves stopped at ``tol`` it is then 0.9–2.8× the true gap at the median on ``benchmarks/demux_catalogue.py``'s
-  cases (without the ascent 1–15×, the first-order one alone 10–200×), but far above it where T's support is off
-  (p99 ~1e-2) (``converged`` means a bound ≤ ``max_gap``, below); a
-  pixel with masked or clipped frames gets the Lagrangian one after the solve, on the host in float64, with its
-  own Hessian by Woodbury from the shared one (:meth:`DemuxADMM._certify_partial`);
-* an exact finish (``finish_rounds``) on the pixels whose bound still exceeds ``max_gap``: primal–dual
-  active-set rounds with float64 solves on each pixel's free offsets (:mod:`selpath.stages.procam._demux_finish`), taken
-  towards ``gap_tol``; on that tail alone (0.4–7 % of the pixels at the defaults) it costs 3–23 % of a call, where
-  on every pixel above ``gap_tol`` (``max_gap=gap_tol``) it costs 2–8× ADMM's time
-  (``benchmarks/demux_catalogue.py``).
+* splitting T = Z, Z ≥ 0 carrying the L1 term: the T-update is one shared (2G + ρI)⁻¹, G = AᵀA + αDᵀD, so P
+  pixels cost one (P × K)·(K × K) product per iteration; the Z-update max(0, · − β/ρ) is exact;
+* a warm start at the unconstrained minimiser clipped at 0, and fast ADMM with restart (Goldstein et al.);
+* masked and clipped frames by majorisation (ỹ = w y + (1 − w) A Z; max(y, A Z) on clipped frames), whose fixed
+  points are exactly the optima of the problem with masked frames left out and clipped ones one-sided;
+* each pixel scaled by its largest observation (β with it), so data from 1e-8 to 1e8 run in float32;
+* a final polish (conjugate gradients on the support's KKT system, ``polish_rounds`` of them with active-set
+  steps), kept per pixel only where it lowers the objective;
+* a certificate beside the answer (:func:`~selpath.stages.procam._demux_kernels.certified_gap`; the float64
+  reference :func:`~selpath.stages.procam._demux_certificate.certified_gap`): a bound on each pixel's relative
+  objective gap from weak duality, and where the problem has the second-order bound
+  (``problem.second_order_bound``) the smaller of it and the KKT bound, tightened by ``dual_steps`` of dual ascent;
+  pixels with masked or clipped frames get theirs on the host (:meth:`DemuxADMM._certify_partial`);
+* an exact finish (``finish_rounds``, where ``problem.exact_finish``) on the pixels whose bound still exceeds
+  ``max_gap``: active-set rounds with float64 solves (:mod:`selpath.stages.procam._demux_finish`).
 
-The full transport (§5.3.1) uses the same iteration with the Kronecker-factored operators of
-:class:`~selpath.stages.procam._demux_problem.SeparableDemuxProblem` (A = L_u ⊗ L, never formed): the kernels apply
-whatever operators the problem hands them (:meth:`~selpath.stages.procam._demux_problem.DemuxProblem.operators`).
+A call's pixels stream through one batch refilled as they converge or reach ``max_iter``
+(:func:`~selpath.stages.procam._demux_kernels.stream`), its tail compacted into smaller batches
+(:meth:`DemuxADMM._iterate_tail`), so a call costs its pixels' mean iterations, not its slowest pixel's.
+:class:`DemuxADMM` returns a :class:`selpath.stages._solution.Solution`: the transport, a result code per pixel
+(converged, censored, unproven, max_steps, nonfinite) and ``stats``.
 
-:class:`DemuxADMM` is the solver: immutable settings, ``solve(problem, data, weight, clipped)`` returning a
-:class:`selpath.stages._solution.Solution` with, per pixel, the transport, a result code (converged when its primal
-and dual residuals met ``tol`` relative, checked every ``check_every`` iterations, or when its certified gap bound
-is at most ``gap_tol``, checked at the warm start, where a pixel so certified is not iterated at all, and after
-the polish; on dense problems with a positive definite 2G instead exactly where its bound is at most ``max_gap``;
-``censored`` when it did
-but some offset's light was seen only clipped (:func:`censored_offsets`); ``unproven`` where the bound exceeds
-``max_gap``; else ``max_steps``, or ``nonfinite``)
-and ``stats`` (``iterations`` to convergence, ``max_iter`` if never; ``objective``; ``gap_bound``, the certified
-bound; ``censored_offsets``). A call's
-pixels stream through one batch whose rows are written out and refilled as their pixels converge or reach
-``max_iter`` (:func:`~selpath.stages.procam._demux_kernels.stream`), and the batch's tail is compacted into smaller
-batches (:meth:`DemuxADMM._iterate_tail`), so a call costs about its pixels' mean iterations, not its slowest
-pixel's. A pixel stops at the check where it meets ``tol``: it is not iterated further while slower pixels
-finish (an earlier version did, for free accuracy at the same recorded iterations).
+What each design choice and default bought, measured: docs/demux-settings.md.
+
+References
+----------
+Thesis §5.2.2 (plane-to-ray), §5.3.1 (full transport); T. Goldstein et al., "Fast alternating direction
+optimization methods", SIAM J. Imaging Sci. 7 (2014).
 """
 
 from __future__ import annotations

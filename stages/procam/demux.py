@@ -104,15 +104,9 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
     beta : float
         Sparsity weight β (thesis: 0.01).
     tol : float
-        Relative primal and dual residual at which a pixel stops iterating (checked every 5 iterations).
-        Measured against a float64 solve at tol 1e-7, gap = relative objective gap (median, p90), mean
-        iterations in brackets. Benchmark stack (K = 128, 4096 px): 5e-3 → 7.0e-5 [20]. Fig. 38 stack (rows
-        140–156 of the procam workflow's capture, K = 253, N = 63, 6400 px): 1e-2 → 6.0e-4 [19]; 5e-3 →
-        2.7e-4, p90 6.2e-4 [38]; 3e-3 → 1.2e-4 [55]; 2e-3 → 6.1e-5, p90 2.3e-4 [72]; 1e-3 → 1.5e-5 [114,
-        4.5 % at the cap]. The default, 2e-3 (5e-3 before #25's certified defaults), with the solver's two polish
-        rounds and the finish below, is the cheapest setting measured to take every case of
-        ``benchmarks/demux_catalogue.py`` to a certified max ≤ ``max_gap`` and median ≤ 1e-4 (narrowly in the 1e8
-        and NaN-frames cases: 9.5e-5 and 9.2e-5).
+        Relative primal and dual residual at which a pixel stops iterating (checked every 5 iterations). The
+        default, 2e-3, is the cheapest measured to meet #25's accuracy goals with the polish and the finish
+        (docs/demux-settings.md).
     gap_tol : float
         The certificate's target, in [0, 1): a pixel whose certified bound on the relative objective gap
         (``gap_bound``) is at most this is certified, and converged whatever its residuals say: checked at the warm
@@ -131,20 +125,13 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
     finish_rounds : int
         Exact active-set rounds after the polish (float64 solves on each pixel's free offsets, masked and clipped
         frames included) for the pixels whose bound exceeds ``max_gap``; in [0, 20]; 0: none (then pixels above
-        ``max_gap`` are left unconverged). Measured (``benchmarks/demux_catalogue.py``, 2048 px per case, this
-        2-core machine, docs/results.md): at the defaults the finish runs on 0.4–7 % of the pixels and brings every
-        one to ``max_gap`` or below; the defaults take 1.3–2.5× the time of the earlier fast ones (tol 5e-3, one
-        polish round, no finish), whose bound reached 4e-3–0.23 and whose true gap's p99 was 1.3e-3 on the
-        benchmark's stack. For the last bit of throughput where proven accuracy does not matter: ``tol: 5e-3,
-        polish_rounds: 1, max_gap: 1, dual_steps: 0``.
+        ``max_gap`` are left unconverged). At the defaults it runs on a few per cent of the pixels
+        (docs/demux-settings.md); ``tol: 5e-3, polish_rounds: 1, max_gap: 1, dual_steps: 0`` trades the proof for
+        throughput.
     dual_steps : int
         Steps of the certificate's dual ascent (projected accelerated gradient on the KKT bound's multipliers, one
         K × K product per pixel each), in [0, 1000]; 0: the fixed multipliers alone. It tightens ``gap_bound``,
-        not ADMM's T (a tighter bound leaves fewer pixels to the finish, whose answers do change). Measured
-        (``benchmarks/demux_catalogue.py``, thesis K = 128, 8192 px, float32, the earlier tol 5e-3), bound
-        median / p99 and certified share: 3.0e-4 / 0.18 / 32 % with 0 steps; 1.1e-4 / 1.1e-2 / 49 % with 10 (the
-        default, +21–28 % of the solve's time at K = 64–256); 9.1e-5 / 8.0e-3 / 52 % with 20; the true gap's
-        median there is 9.0e-5. 0 for the last bit of throughput where proven accuracy does not matter.
+        not ADMM's T (a tighter bound leaves fewer pixels to the finish); measured in docs/demux-settings.md.
     max_iter : int
         Iteration cap, in [1, 1 000 000]; a pixel that reaches it is flagged unconverged unless its certified bound
         is within ``max_gap`` (or, with ``max_gap`` 1, ``gap_tol``). A solver call streams its
@@ -154,8 +141,7 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
         iterations and is kept per pixel only where it lowers the objective.
     polish_rounds : int
         Rounds of that polish, each after the first with an active-set step (the offsets held at 0 whose gradient
-        is negative are freed); ≥ 1. The default 2 cuts the share of pixels left above ``max_gap`` for the finish
-        by a quarter to a half on the catalogue's cases at tol 2e-3, for 1–7 % more time (docs/results.md).
+        is negative are freed); ≥ 1 (docs/demux-settings.md).
     boundary_margin_us : float or None
         Drop frames whose exposure edge is within this many µs of the epipolar row; None: t_p/2 (the edge
         cuts the epipolar row's own line time; widen it by the laser jitter of a real rig).

@@ -189,12 +189,16 @@ def test_click_a_pixel_then_slide_the_delay_then_relight(server, browser, folder
     box = page.evaluate(FRAME_BOX, "frame")
     row, col = 9, 5  # on the candle
     before = page.evaluate(SOURCE, "profile-source")["y"]
+    before_sweep = page.evaluate(SOURCE, "intensity-source")["ys"]
     page.mouse.click(box["left"] + (col + 0.5) * box["width"] / 32, box["top"] + (row + 0.5) * box["height"] / 24)
     profile = _changed(page, "profile-source", "y", before)
+    # the page's sources update one after another: wait for each (under load the second lagged the first)
+    sweep = _changed(page, "intensity-source", "ys", before_sweep)
+    page.wait_for_function(f"() => JSON.stringify(({SOURCE})('marker-source')) === '{{\"x\":[{col}],\"y\":[{row}]}}'",
+                           timeout=20_000)
     assert page.evaluate(SOURCE, "marker-source") == {"x": [col], "y": [row]}, box
     np.testing.assert_allclose(profile["x"], OFFSETS)
     np.testing.assert_allclose(profile["y"], t["transport"].values[:, row, col], rtol=1e-6)
-    sweep = page.evaluate(SOURCE, "intensity-source")
     for k in range(2):
         np.testing.assert_allclose(sweep["ys"][k], capture["image"].values[:, k, row, col], rtol=1e-6)
     # type a delay into the slider's box: the ideal rig's frame at t_d = −68 µs, t_e = 34 µs
