@@ -24,6 +24,7 @@ from selpath.pipeline.constraints import describe
 from selpath.pipeline.engine import RunReport, run_workflow
 from selpath.pipeline.errors import Problem, SelpathError, StoreError
 from selpath.pipeline.kinds import describe_kinds
+from selpath.pipeline.provenance import write_provenance
 from selpath.pipeline.registry import default_registry, plain_text
 from selpath.pipeline.report import report_tables, summary_lines, write_html
 from selpath.pipeline.spec import load_workflow
@@ -117,6 +118,18 @@ def _write_report(workflow, result: RunReport, summary: list[str], tables: list)
     console.print(f"report: {escape(str(page))}")
 
 
+def import_provenance(spec: Path, store: Path, identity: dict) -> dict:
+    """What an imported capture records of how it was made (read by ``selpath inspect``)."""
+    import datetime
+
+    from selpath.pipeline.identity import package_versions
+
+    return {"imported": True, "command": f"selpath import {spec} {store}", "spec": str(spec.resolve()),
+            "spec_text": spec.read_text(), **identity, "output": store.name,
+            "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+            "versions": package_versions()}
+
+
 @command()
 def schema() -> None:
     """Print the workflow file's JSON Schema, with every installed stage's settings, for YAML editors
@@ -131,12 +144,15 @@ def workflows(
     copy: Annotated[Path | None, typer.Option(help="copy every shipped workflow and its scenes into this "
                                               "folder, to run or edit", metavar="DIR")] = None,
 ) -> None:
-    """List the workflows selpath ships (or copy them, with their scenes, to edit)."""
+    """List the workflows selpath ships, one line each with what it does (or copy them, with their scenes, to
+    edit)."""
     if copy is None:
+        width = max(map(len, shipped.names()))
         for name in shipped.names():
-            after = f"  (run {shipped.AFTER[name]} first)" if name in shipped.AFTER else ""
-            console.print(f"{name}  {escape(str(shipped.path(name)))}{after}")
-        console.print("(read-only where selpath is installed: `selpath workflows --copy DIR` to run or edit them)")
+            after = f" (run {shipped.AFTER[name]} first)" if name in shipped.AFTER else ""
+            typer.echo(f"{name:<{width}}  {shipped.describe(name)}{after}")
+        console.print(f"in {escape(str(shipped.folder()))} (read-only where selpath is installed: `selpath workflows "
+                      "--copy DIR` to run or edit them)", soft_wrap=True)
         return
     with guard():
         if copy.exists() and not copy.is_dir():
@@ -172,7 +188,8 @@ def import_(spec: Annotated[Path, typer.Argument(help="import spec (YAML): kind,
 
     The spec says the cube kind, where each variable's frames lie and the geometry or timing the stages read,
     with units (docs/format.md, "Importing captures"). Frames are copied one by one; nothing is written into
-    the sources, and an existing store is never replaced.
+    the sources, and an existing store is never replaced. The store records its provenance: the spec's text, a
+    SHA-256 of the spec and every frame file, the command and selpath's version (`selpath inspect STORE`).
     """
     from selpath.pipeline.store import to_store
 
@@ -180,9 +197,11 @@ def import_(spec: Annotated[Path, typer.Argument(help="import spec (YAML): kind,
         if store.exists():
             raise StoreError(Problem("exists; selpath import writes a new store and never replaces one",
                                      where=str(store), fix="choose another path, or delete that store yourself"))
-        ds = default_registry()["import_capture"].func(spec=str(spec))
+        stage = default_registry()["import_capture"]
+        ds = stage.func(spec=str(spec))
         with dask.config.set(scheduler="threads"):
             to_store(ds, store, ds.attrs["selpath_kind"])
+        write_provenance(store, import_provenance(spec, store, stage.identity(stage.params(spec=str(spec)))))
     sizes = ", ".join(f"{d} {n}" for d, n in ds.sizes.items())
     console.print(f"[green]ok[/]: {escape(str(store))}: {ds.attrs['selpath_kind']} ({escape(sizes)}); "
                   f"variables {escape(', '.join(map(str, ds.data_vars)))}")
@@ -194,12 +213,18 @@ def stages(
                                                show_default=False)] = None,
     all_: Annotated[bool, flag("all", "show every stage in full")] = False,
 ) -> None:
-    """List the registered stages, one line each; NAME (or --all) shows inputs, settings, defaults, units and docs."""
+    """List the registered stages, one line each (a table in a terminal; piped, plain lines: name, module and summary
+    separated by tabs); NAME (or --all) shows inputs, settings, defaults, units and docs."""
     with guard():
         registry = default_registry()
     if name and name not in registry:
         errors.print(f"[bold red]error:[/] unknown stage {escape(repr(name))}; known: {', '.join(registry.names())}")
         raise typer.Exit(2)
+    if not name and not all_ and not console.is_terminal:  # piped or redirected: one plain line a stage, to grep
+        for s in registry:
+            module = s.func.__module__.removeprefix("selpath.stages.")
+            typer.echo(f"{s.name}\t{module}\t{plain_text(s.summary)}")
+        return
     if not name and not all_:
         table = Table(title="stages (selpath stages NAME for one in full)", show_lines=False)
         for column in ("stage", "module", "what it does"):

@@ -108,7 +108,16 @@ def inspect(
     else:
         console.print("chunks: every one has the size it was written with (contents not read: `selpath inspect "
                       "--verify` reads every chunk and checks its checksum)")
-    if provenance:
+    if provenance and provenance.get("imported"):
+        console.print("[underline]provenance[/]")
+        digest = provenance.get("spec_and_frames_sha256") or provenance.get("spec_sha256")
+        for key, value in {"imported": f"by `{provenance.get('command')}`",
+                           "spec": str(provenance.get("spec")),
+                           "spec and frames sha256": str(digest),
+                           "created": f"{provenance.get('created')} with selpath "
+                                      f"{provenance.get('versions', {}).get('selpath')}"}.items():
+            console.print(f"  {key}: {escape(value)}", highlight=False, soft_wrap=True)
+    elif provenance:
         console.print("[underline]provenance[/]")
         step = provenance.get("step_record", {})
         lines = {"workflow": f"{provenance.get('workflow')} ({provenance.get('workflow_source')}), output "
@@ -120,8 +129,8 @@ def inspect(
         for key, value in lines.items():
             console.print(f"  {key}: {escape(value)}", highlight=False, soft_wrap=True)
     else:
-        console.print("provenance: none (written outside a workflow, e.g. by selpath.to_store or another tool, or "
-                      "still being written)")
+        console.print("provenance: none recorded (a store written by selpath.to_store or another tool; a workflow "
+                      "records it once an output is complete, and `selpath import` once the frames are in)")
     if incomplete or bad:
         raise typer.Exit(1)
 

@@ -111,7 +111,8 @@ def archive_stores(folder: str | os.PathLike) -> list[dict[str, Any]]:
             except StoreError as exc:  # one garbled record: listed as such, the others still listed
                 prov, problem = {}, exc.problems[0].message
             found.append({"store": path.relative_to(root).as_posix() or ".", "kind": attrs.get("selpath_kind"),
-                          "workflow": prov.get("workflow"), "output": prov.get("output"),
+                          "workflow": "(selpath import)" if prov.get("imported") else prov.get("workflow"),
+                          "output": prov.get("output"),
                           "stage": (prov.get("step_record") or {}).get("stage"), "created": prov.get("created"),
                           "problem": problem})
             return

@@ -221,8 +221,15 @@ def test_a_report_never_replaces_a_file_selpath_did_not_write(tmp_path, small_wo
 def test_shipped_workflows_are_listed_and_copied_with_their_scenes(tmp_path):
     from selpath import workflows
 
-    listed = runner.invoke(app, ["workflows"], env={"COLUMNS": "300"})
+    listed = runner.invoke(app, ["workflows"], env={"COLUMNS": "80"})
     assert listed.exit_code == 0 and all(name in listed.output for name in workflows.names())
+    # one line each, starting with the name and saying what it does, in the file's own words
+    lines = {line.split()[0]: line for line in listed.output.splitlines() if line.split() and
+             line.split()[0] in workflows.names()}
+    assert set(lines) == set(workflows.names())
+    assert "Thesis §4.4.3: any convex shape works" in lines["tomography-triangle"]
+    assert "Optical tomography on the simulated rig (thesis §4.4.2)" in lines["tomography-sim"]
+    assert workflows.describe("procam-rectify-sim") == "Are the sync rows epipolar?"
     copied = runner.invoke(app, ["workflows", "--copy", str(tmp_path / "mine")])
     assert copied.exit_code == 0, copied.output
     assert "procam-materials-apply" in listed.output and "(run procam-materials first)" in listed.output
@@ -252,12 +259,14 @@ def test_version_short_stage_list_and_plural(small_workflow):
 
     shown = runner.invoke(app, ["--version"])
     assert shown.exit_code == 0 and shown.output.strip() == f"selpath {version('selpath')}"
-    listed = runner.invoke(app, ["stages"], env={"COLUMNS": "300"})
+    listed = runner.invoke(app, ["stages"], env={"COLUMNS": "80"})
     from selpath.pipeline.registry import default_registry
 
     names = [s.name for s in default_registry()]
-    rows = [line for line in listed.output.splitlines() if any(f"│ {n} " in line for n in names)]
-    assert listed.exit_code == 0 and len(rows) == len(names)  # one line each
+    # piped (not a terminal): one plain line a stage, name, module and summary split by tabs, however narrow
+    rows = [line.split("\t") for line in listed.output.splitlines()]
+    assert listed.exit_code == 0 and [r[0] for r in rows] == names and all(len(r) == 3 for r in rows)
+    assert dict((r[0], r[1]) for r in rows)["absorption"] == "tomography.calibrate"
     assert "settings" not in listed.output  # no settings without NAME or --all
     full = runner.invoke(app, ["stages", "--all"], env={"COLUMNS": "300"})
     assert sum(line.strip().startswith("inputs (data") for line in full.output.splitlines()) == sum(

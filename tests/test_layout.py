@@ -179,3 +179,15 @@ def test_every_module_fits_in_a_room():
     long = {str(p.relative_to(ROOT)): n for part in PARTS for p in (ROOT / part).rglob("*.py")
             if (n := len(p.read_text().splitlines())) > MAX_MODULE_LINES}
     assert not long, f"split these by concern (DESIGN §1): {long}"
+
+
+def test_no_test_module_imports_another():
+    """What tests share lives in tests/helpers (and conftest fixtures), never in a test module another imports:
+    importing a test module runs its module-level setup and collects its tests twice in a reader's head."""
+    importing = {}
+    for path in sorted((ROOT / "tests").rglob("*.py")):
+        names = _imported(ast.parse(path.read_text(), str(path)))
+        others = sorted(n for n in names if re.search(r"(^|\.)test_\w+$", n) and n.startswith("tests."))
+        if others:
+            importing[str(path.relative_to(ROOT))] = others
+    assert not importing

@@ -33,6 +33,28 @@ def path(name: str) -> Path:
     return _shipped(folder(), name, "workflow")
 
 
+def describe(name: str, width: int = 110) -> str:
+    """What the shipped workflow ``name`` does, from its opening comment: the first clause (to a colon, or a full
+    stop or question mark outside parentheses), with the next one where the first only cites the thesis or an
+    issue ("Thesis §4.4.3: any convex shape works"); cut at ``width`` characters."""
+    lines = []
+    for line in path(name).read_text().splitlines():
+        if not line.startswith("#"):
+            break
+        lines.append(line.lstrip("#").strip())
+    text, clauses, depth, start = " ".join(lines), [], 0, 0
+    for i, char in enumerate(text):
+        depth += (char == "(") - (char == ")")
+        ends = char == ":" or (char in ".?" and (i + 1 == len(text) or text[i + 1] == " "))
+        if depth == 0 and ends and not text[max(0, i - 3):i].endswith(("Fig", "Figs", "e.g", "i.e")):
+            clauses.append(text[start:i + (char == "?")].strip())
+            start = i + 1
+            if len(clauses) == 2 or not clauses[0].startswith(("Thesis", "Issue")):
+                break
+    said = ": ".join(clauses) if clauses else text
+    return said if len(said) <= width else said[:width - 1].rstrip() + "…"
+
+
 def scene(name: str) -> Path:
     """The file of the shipped scene ``name`` (``gelatin-bin`` or ``gelatin-bin.yaml``)."""
     return _shipped(folder() / "scenes", name, "scene")

@@ -20,7 +20,6 @@ from selpath.devices.procam_acquire import acquire_full_transport, acquire_plane
 from selpath.devices.procam_hardware import load_procam_hardware, procam_hardware_rig
 from selpath.devices.protocols import SyncLimits
 from selpath.devices.sim.procam_rig import FakeProcamHardware, simulated_procam_rig
-from selpath.devices.sim.procam_scene import ProcamScene
 from selpath.pipeline.capture_store import missing_frames
 from selpath.pipeline.engine import run_workflow
 from selpath.pipeline.errors import DeviceDisconnected, SpecError
@@ -28,20 +27,9 @@ from selpath.pipeline.provenance import read_provenance
 from selpath.pipeline.spec import load_workflow
 from selpath.pipeline.store import open_store
 from tests.devices.conftest import written_frames
+from tests.helpers.procam_hardware import scene
 
-SCENE = {
-    "scene": "tiny-candle", "background": {"albedo": 0.4},
-    "objects": [{"name": "candle", "region": {"kind": "rectangle", "x": [0.2, 0.6], "y": [0.2, 0.8]}, "albedo": 0.9,
-                 "effects": {"subsurface": {"width": "3 px", "fraction": 0.6}}}],
-    "rig": {"camera_rows": 24, "camera_cols": 32, "projector_rows": 16, "projector_cols": 32,
-            "noise": {"gain": 1.0, "read_std": 2.0, "seed": 3}, "jitter": {"std": "2 us"}},
-}
 DELAYS, EXPOSURES = [-68.0, -34.0, 0.0, 34.0], [85.0, 170.0]
-
-
-def scene(**rig) -> ProcamScene:
-    spec = {**SCENE, "rig": SCENE["rig"] | rig}
-    return ProcamScene.model_validate(spec)
 
 
 def rig_file(folder: Path, port: str, **changes) -> Path:

@@ -9,7 +9,7 @@ import pytest
 from selpath.devices.procam_acquire import acquire_plane_to_ray
 from selpath.devices.sim.procam_rig import simulated_procam_rig
 from selpath.stages.procam.demux import demux_plane_to_ray
-from tests.stages.procam.test_demux_highlight import DELAYS, highlight_scene, truth_of
+from tests.helpers.highlight import DELAYS, highlight_scene, truth_of
 
 REQUESTED = [510.0, 850.0]  # the thesis's longer exposures: a bright lobe clips in both at t_d = 0
 

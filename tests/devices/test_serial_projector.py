@@ -12,7 +12,7 @@ from selpath.devices.serial_line import SerialLine
 from selpath.devices.serial_projector import SyncLineProjector, quantise
 from selpath.devices.sim.procam_rig import FakeProcamHardware
 from selpath.pipeline.errors import DeviceError
-from tests.devices.test_procam_hardware import scene
+from tests.helpers.procam_hardware import scene
 
 
 def _projector(hardware: FakeProcamHardware, timeout_s: float = 0.3) -> SyncLineProjector:

@@ -21,8 +21,8 @@ from selpath.stages.tomography.paths import align_paths
 from selpath.stages.tomography.reconstruct import fbp, reconstruct_tv
 from selpath.stages.tomography.simulate import simulate_parallel_capture
 from selpath.stages.tomography.sinogram import bin_sinogram
-from tests.stages.tomography.test_tomography_processing import capture as simulated
-from tests.stages.tomography.test_tomography_processing import cylinder_camera, make_scene
+from tests.helpers.tomography import capture as simulated
+from tests.helpers.tomography import cylinder_camera, make_scene
 
 
 @pytest.fixture(scope="module")

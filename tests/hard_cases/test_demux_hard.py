@@ -199,7 +199,7 @@ def test_a_pixel_certified_at_its_warm_start_stays_certified_beside_live_ones():
     """Review finding: the final polish keeps any lower objective, which can raise a set-aside pixel's bound above
     a loose gap_tol, and that never-iterated pixel came back unconverged with 0 iterations (29 of 799 at gap_tol
     1e-3). Now it keeps its certified start. Mixed set-aside and live pixels, a small batch (slots 64)."""
-    from tests.stages.procam.test_demux_solver import CASES, sparse_transport, sweep_matrix
+    from tests.helpers.demux_cases import CASES, sparse_transport, sweep_matrix
 
     delays, exposures, offsets = CASES["well-posed"]
     a = sweep_matrix(delays, exposures, offsets)

@@ -8,9 +8,6 @@ import os
 import shutil
 import stat
 import tarfile
-import tempfile
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +16,7 @@ import pytest
 from selpath.pipeline import StoreError, load_workflow, open_store, run_workflow, to_store
 from selpath.pipeline.integrity import verify_store
 from selpath.pipeline.provenance import content_digest, read_provenance, store_identity
+from tests.helpers.permissions import unprivileged_folder
 
 REPROCESS = """\
 workflow: reprocess
@@ -124,7 +122,7 @@ def test_a_changed_foreign_store_is_recomputed_and_a_damaged_one_is_named(archiv
         _run(archive)
 
 
-def _damage(store: Path, variable: str) -> None:
+def damage(store: Path, variable: str) -> None:
     """Flip one byte in the middle of the first chunk of ``variable``."""
     chunk = sorted(p for p in (store / variable).rglob("*") if p.is_file() and p.name != "zarr.json")[0]
     data = bytearray(chunk.read_bytes())
@@ -141,7 +139,7 @@ def test_one_damaged_byte_after_a_move_is_found_by_verify_and_recomputed(archive
     shutil.move(archive, moved)
     result = moved / "out" / "absorption.zarr"
     before = open_store(result)["absorption"].values
-    _damage(result, "absorption")
+    damage(result, "absorption")
     workflow = load_workflow(moved / "small.yaml")
     assert {i: s.status for i, s in run_workflow(workflow, progress=False).steps.items()} == \
         {"capture": "reused", "absorption": "reused"}
@@ -235,39 +233,6 @@ def test_inspect_lists_an_archives_stores_with_their_provenance(archive, monkeyp
     assert rows["out/absorption.zarr"]["problem"] is None
     result = CliRunner().invoke(app, ["inspect", str(archive)])
     assert result.exit_code == 0 and "provenance record unreadable" in result.output, result.output
-
-
-def _unprivileged() -> list[str] | None:
-    """The command prefix that runs a process as ``nobody`` without capabilities (setpriv), if this runs as root,
-    setpriv exists and this Python and selpath are readable to that user; else None."""
-    import subprocess
-    import sys
-
-    setpriv = shutil.which("setpriv")
-    if os.geteuid() != 0 or setpriv is None:
-        return None
-    prefix = [setpriv, "--reuid=65534", "--regid=65534", "--clear-groups"]
-    probe = subprocess.run([*prefix, sys.executable, "-c", "import selpath.pipeline.cli, selpath.stages"],
-                           capture_output=True, cwd="/", env={"HOME": "/tmp", "PATH": os.environ.get("PATH", "")})
-    return prefix if probe.returncode == 0 else None
-
-
-@contextmanager
-def unprivileged_folder() -> Iterator[tuple[list[str], Path]]:
-    """(the command prefix that runs as uid 65534, a fresh root-owned folder under /tmp it may read); skips the test
-    where that cannot be; the folder goes afterwards, whatever modes the test gave its contents."""
-    prefix = _unprivileged()
-    if prefix is None:
-        pytest.skip("needs root, setpriv, and a Python that uid 65534 may run (.ci/run makes its venv so)")
-    base = Path(tempfile.mkdtemp(dir="/tmp", prefix="selpath-ro-"))
-    try:
-        base.chmod(0o755)
-        yield prefix, base
-    finally:
-        for path in [base, *base.rglob("*")]:
-            if path.is_dir():
-                path.chmod(0o755)
-        shutil.rmtree(base, ignore_errors=True)
 
 
 def test_a_user_without_write_permission_reprocesses_a_read_only_archive(archive, tmp_path_factory):

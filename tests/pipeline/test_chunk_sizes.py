@@ -15,8 +15,8 @@ from typer.testing import CliRunner
 from selpath.pipeline import load_workflow, open_store, run_workflow, to_store
 from selpath.pipeline.cli import app
 from selpath.pipeline.integrity import CHUNK_BYTES, read_manifest, resized_chunks, verify_store
-from tests.devices.test_tomography_acquire import make_workflow
-from tests.pipeline.test_corruption import _damage, minimal
+from tests.helpers.acquisition import make_workflow
+from tests.helpers.stores import damage_chunk, minimal
 
 runner = CliRunner()
 ENV = {"COLUMNS": "200"}
@@ -55,7 +55,7 @@ def test_inspect_names_a_chunk_whose_size_changed_without_verify(tmp_path, damag
     to_store(ds.chunk(dict.fromkeys(ds.dims, 2)), store, "reconstruction")
     chunk = store / "sigma" / "c" / "1" / "0"
     size = chunk.stat().st_size
-    _damage(chunk, "truncate") if damage == "truncate" else _lengthen(chunk)
+    damage_chunk(chunk, "truncate") if damage == "truncate" else _lengthen(chunk)
     bad = resized_chunks(store)
     assert [(b.variable, b.chunk) for b in bad] == [("sigma", (1, 0))]
     assert f"written as {size:,}" in bad[0].reason and "changed since it was written" in bad[0].reason
@@ -80,7 +80,7 @@ def test_a_chunk_changed_in_place_is_found_by_verify_and_inspect_says_it_read_no
     store = tmp_path / "r.zarr"
     ds = minimal("reconstruction")
     to_store(ds.chunk(dict.fromkeys(ds.dims, 2)), store, "reconstruction")
-    _damage(store / "sigma" / "c" / "1" / "0", "garbage")  # same size, other bytes
+    damage_chunk(store / "sigma" / "c" / "1" / "0", "garbage")  # same size, other bytes
     assert resized_chunks(store) == []
     shown = runner.invoke(app, ["inspect", str(store), "--no-valid"], env=ENV)
     assert shown.exit_code == 0 and "contents not read" in shown.output and "--verify" in shown.output
@@ -96,7 +96,7 @@ def test_a_rerun_captures_again_the_frame_under_a_truncated_chunk(tmp_path):
     store = tmp_path / "capture.zarr"
     assert resized_chunks(store) == []  # the engine recorded the capture's sizes once its last frame landed
     clean = open_store(store).load()
-    _damage(store / "target" / "c" / "5" / "0" / "0", "truncate")
+    damage_chunk(store / "target" / "c" / "5" / "0" / "0", "truncate")
     shown = runner.invoke(app, ["inspect", str(store)], env=ENV)
     assert shown.exit_code == 1 and "target chunk (5, 0, 0)" in shown.output, shown.output
 
@@ -129,7 +129,7 @@ def test_frames_marked_for_capture_drop_the_record_until_the_capture_is_complete
     path = make_workflow(tmp_path)
     run_workflow(load_workflow(path), progress=False)
     store = tmp_path / "capture.zarr"
-    _damage(store / "target" / "c" / "5" / "0" / "0", "garbage")
+    damage_chunk(store / "target" / "c" / "5" / "0" / "0", "garbage")
     shown = runner.invoke(app, ["inspect", str(store), "--verify", "--recapture"], env=ENV)
     assert shown.exit_code == 1 and "marked 1 frame(s) as not captured" in shown.output, shown.output
     assert resized_chunks(store) is None

@@ -8,7 +8,6 @@ import os
 import re
 from pathlib import Path
 
-import numpy as np
 import pytest
 import xarray as xr
 import zarr
@@ -18,51 +17,16 @@ from selpath.pipeline import SpecError, StoreError, load_workflow, open_store, r
 from selpath.pipeline.capture_store import missing_frames
 from selpath.pipeline.cli import app
 from selpath.pipeline.integrity import verify_store
-from selpath.pipeline.kinds import LENGTH_UNITS
 from selpath.pipeline.provenance import write_provenance
-from selpath.pipeline.registry import default_registry
-from tests.devices.test_tomography_acquire import make_workflow
+from tests.helpers.acquisition import make_workflow
+from tests.helpers.stores import KINDS, damage_chunk, minimal
 
 runner = CliRunner()
-#: every installed kind (selpath's own are declared beside the stages that make them)
-KINDS = default_registry().kinds
-SIZES = {"angle": 3, "row": 4, "col": 5, "vertex": 3, "xy": 2, "slice": 2, "delay": 3, "exposure": 2, "line": 2,
-         "offset": 3, "du": 2, "dv": 3, "theta": 4, "x": 5, "y": 5, "rgba": 4, "light_angle": 2, "method": 2,
-         "iteration": 3, "shift": 2, "max_delay": 2, "signal": 2, "code": 2, "pattern": 2,
-         "light_angle_trial": 3, "pose": 2, "i": 3, "j": 3, "k": 5, "m": 4, "byte": 64, "material": 3, "view": 3,
-         "site": 2, "distance": 4, "render": 2,
-         "candidate": 3, "distance_bin": 4, "band": 2, "sample": 3}
-
-
-def minimal(kind: str) -> xr.Dataset:
-    """A small valid cube of ``kind`` built from its schema: every variable, coordinate unit and attr."""
-    spec = KINDS[kind]
-    rng = np.random.default_rng(0)
-    ds = xr.Dataset({name: (var.dims, rng.random(tuple(SIZES[d] for d in var.dims)).astype(np.float32))
-                     for name, var in spec.variables.items()})
-    for dim, units in spec.coord_units.items():
-        unit = "mm" if units == LENGTH_UNITS else sorted(units)[0]
-        ds = ds.assign_coords({dim: (dim, np.arange(SIZES[dim], dtype=float), {"units": unit})})
-    attrs = dict.fromkeys(spec.attrs, 1.0)
-    if "camera_model" in attrs:
-        attrs.update(camera_model="orthographic", pixel_size=0.1, length_unit="mm")
-    return ds.assign_attrs(attrs)
 
 
 def _chunk_file(store: Path, variable: str) -> Path:
     files = sorted(p for p in (store / variable).rglob("*") if p.is_file() and p.name != "zarr.json")
     return files[len(files) // 2]
-
-
-def _damage(path: Path, how: str) -> None:
-    data = path.read_bytes()
-    if how == "truncate":
-        path.write_bytes(data[: len(data) // 2])
-    elif how == "garbage":
-        middle = len(data) // 2
-        path.write_bytes(data[:middle] + bytes(255 - b for b in data[middle:middle + 8]) + data[middle + 8:])
-    else:
-        path.unlink()
 
 
 @pytest.mark.parametrize("how", ["truncate", "garbage", "delete"])
@@ -74,7 +38,7 @@ def test_a_bad_chunk_of_any_kind_is_named_and_never_read(tmp_path, kind, how):
     variable = next(iter(KINDS[kind].variables))
     chunk = _chunk_file(store, variable)
     index = tuple(int(p) for p in chunk.relative_to(store / variable / "c").parts)
-    _damage(chunk, how)
+    damage_chunk(chunk, how)
 
     assert [(b.variable, b.chunk, b.reason.split(" ")[0]) for b in verify_store(store)] == [
         (variable, index, "missing" if how == "delete" else "corrupt")]
@@ -99,13 +63,13 @@ def test_a_corrupt_capture_frame_is_captured_again_on_resume(tmp_path):
     run_workflow(load_workflow(path), progress=False)
     store = tmp_path / "capture.zarr"
     clean = open_store(store).load()
-    _damage(store / "target" / "c" / "5" / "0" / "0", "garbage")
+    damage_chunk(store / "target" / "c" / "5" / "0" / "0", "garbage")
     with pytest.raises(StoreError, match=r"variable target: chunk \(5, 0, 0\) \(.*\) cannot be read"):
         open_store(store)["target"].load()
     shown = runner.invoke(app, ["inspect", str(store), "--verify", "--recapture"], env={"COLUMNS": "200"})
     assert shown.exit_code == 1 and "marked 1 frame(s) as not captured" in shown.output, shown.output
     assert missing_frames(store)["target"] == [{"angle": 75.0}]
-    _damage(store / "reference" / "c" / "7" / "0" / "0", "delete")
+    damage_chunk(store / "reference" / "c" / "7" / "0" / "0", "delete")
     assert missing_frames(store)["reference"] == [{"angle": 105.0}]
 
     report = run_workflow(load_workflow(path), progress=False)
@@ -121,7 +85,7 @@ def test_run_with_verify_captures_again_only_the_frames_under_bad_chunks(tmp_pat
     run_workflow(load_workflow(path), progress=False)
     store = tmp_path / "capture.zarr"
     clean = open_store(store).load()
-    _damage(store / "target" / "c" / "5" / "0" / "0", "garbage")
+    damage_chunk(store / "target" / "c" / "5" / "0" / "0", "garbage")
     assert run_workflow(load_workflow(path), progress=False).computed() == []  # trusted without --verify
     lines: list[str] = []
     report = run_workflow(load_workflow(path), progress=False, verify=True, log=lines.append)

@@ -17,7 +17,7 @@ from selpath.pipeline import EnvironmentFault, SpecError, load_workflow
 from selpath.pipeline.cli import app
 from selpath.pipeline.errors import environment_fault
 from tests.conftest import SMALL_WORKFLOW
-from tests.pipeline.test_archives import unprivileged_folder
+from tests.helpers.permissions import unprivileged_folder
 
 runner = CliRunner()
 ENV = {"COLUMNS": "200"}

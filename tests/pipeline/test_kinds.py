@@ -115,7 +115,7 @@ def test_a_kind_outside_the_stages_declarations_is_refused_by_name(small_workflo
 def test_opening_a_store_imports_the_module_that_declares_its_kind_alone(tmp_path):
     """A store names where its kind was declared (``selpath_kind_module``): opening it imports that module, not every
     installed stage package (which takes seconds: JAX, OpenCV, scikit-learn …)."""
-    from tests.pipeline.test_corruption import minimal
+    from tests.helpers.stores import minimal
 
     store = tmp_path / "a.zarr"
     to_store(minimal("absorption"), store, "absorption")
@@ -128,7 +128,7 @@ def test_opening_a_store_imports_the_module_that_declares_its_kind_alone(tmp_pat
 
 
 def test_a_hint_naming_a_module_outside_the_installed_packages_is_never_imported(tmp_path):
-    from tests.pipeline.test_corruption import minimal
+    from tests.helpers.stores import minimal
 
     store = tmp_path / "a.zarr"
     to_store(minimal("absorption"), store, "absorption")

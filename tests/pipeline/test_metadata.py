@@ -11,7 +11,7 @@ import zarr
 from selpath.pipeline import StoreError, open_store, to_store
 from selpath.pipeline.kinds import FORMAT_VERSION
 from selpath.pipeline.store import IncompleteStoreWarning
-from tests.pipeline.test_corruption import KINDS, minimal
+from tests.helpers.stores import KINDS, minimal
 
 
 def expected(kind: str, length: str = "mm") -> dict[str, tuple[str | None, str]]:
@@ -95,7 +95,7 @@ def test_a_current_store_in_wrong_units_is_refused_naming_the_variable(tmp_path)
 
 def test_stage_outputs_carry_the_metadata_before_they_are_stored():
     """In a notebook, without a store: the sinogram and coverage no longer inherit θ's attrs."""
-    from tests.stages.tomography.test_tomography_processing import lazy_chain
+    from tests.helpers.tomography import lazy_chain
 
     _, hull, sino, cover = lazy_chain()
     for ds, kind in ((hull, "hull"), (sino, "sinogram"), (cover, "coverage")):

@@ -27,7 +27,7 @@ from selpath.pipeline import (
     write_provenance,
 )
 from selpath.pipeline.integrity import open_group, verify_store
-from tests.devices.test_tomography_acquire import make_workflow
+from tests.helpers.acquisition import make_workflow
 
 GEOMETRY = {"camera_model": "orthographic", "pixel_size": 0.1, "light_angle_deg": 45.0, "length_unit": "mm"}
 

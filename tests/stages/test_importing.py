@@ -15,7 +15,7 @@ from selpath.pipeline import ConfigError, StageError, load_workflow, open_store,
 from selpath.pipeline.cli import app
 from selpath.stages.frame_files import read_frames
 from selpath.stages.importing import import_capture
-from tests.devices.test_tomography_acquire import make_workflow
+from tests.helpers.acquisition import make_workflow
 
 runner = CliRunner()
 
@@ -65,6 +65,19 @@ def test_a_tomography_capture_from_four_file_formats_imports_as_the_rig_wrote_it
     np.testing.assert_array_equal(imported["angle"].values, original["angle"].values)
     assert imported.attrs["principal_point_px"] == list(original.attrs["principal_point_px"])  # j + 0.5 → j
     assert "light_distance" not in imported.attrs  # and nothing downstream needs it (the same absorption, below)
+    # the store says where it came from: the spec's text, a digest of the spec and frames, the command
+    from selpath.pipeline.provenance import read_provenance
+    from selpath.stages.importing import spec_identity
+
+    record = read_provenance(tmp_path / "imported.zarr")
+    assert record["imported"] and record["spec_text"] == (tmp_path / "spec.yaml").read_text()
+    assert record["spec_and_frames_sha256"] == spec_identity(
+        type("S", (), {"spec": str(tmp_path / "spec.yaml")}))["spec_and_frames_sha256"]
+    assert record["command"].startswith("selpath import ") and record["versions"]["selpath"]
+    inspected = runner.invoke(app, ["inspect", str(tmp_path / "imported.zarr")], env={"COLUMNS": "300"})
+    assert inspected.exit_code == 0, inspected.output
+    assert "imported: by `selpath import" in inspected.output and record["spec_and_frames_sha256"] in inspected.output
+    assert "provenance: none" not in inspected.output
     # the stages read it as they read the rig's own store: the same absorption, the same hull
     workflow = tmp_path / "reprocess.yaml"
     workflow.write_text("workflow: reprocess\nsteps:\n"

@@ -10,8 +10,8 @@ from selpath.devices.sim.procam_scene import ProcamScene
 from selpath.pipeline import StageError
 from selpath.stages.procam._mesh import rasterise, sphere
 from selpath.stages.procam.appearance import fit_scattering_profile, render_appearance, shade
-from tests.stages.procam.test_demux import capture_of
-from tests.stages.procam.test_materials import SWEEP, materials
+from tests.helpers.materials import SWEEP, materials
+from tests.helpers.procam import capture_of
 
 
 def test_the_fit_recovers_the_simulators_lobe():

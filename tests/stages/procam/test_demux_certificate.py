@@ -12,7 +12,7 @@ import pytest
 
 from selpath.stages.procam._demux_problem import DemuxProblem
 from selpath.stages.procam._demux_solver import DemuxADMM
-from tests.stages.procam.test_demux_solver import CASES, cvxpy_optimum, sparse_transport, sweep_matrix
+from tests.helpers.demux_cases import CASES, cvxpy_optimum, sparse_transport, sweep_matrix
 
 
 @pytest.mark.parametrize("case", CASES)

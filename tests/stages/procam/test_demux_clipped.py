@@ -12,7 +12,7 @@ from selpath.stages._solution import Result
 from selpath.stages.procam._demux_certificate import certified_gap
 from selpath.stages.procam._demux_problem import DemuxProblem
 from selpath.stages.procam._demux_solver import DemuxADMM, censored_offsets
-from tests.stages.procam.test_demux_solver import sparse_transport, sweep_matrix
+from tests.helpers.demux_cases import sparse_transport, sweep_matrix
 
 # the thesis's sweep in miniature: delays every 2 rows, exposures of 1, 3 and 5 rows, offsets −8…8
 DELAYS, EXPOSURES, OFFSETS = np.arange(-136, 137, 34.0), [17.0, 51.0, 85.0], np.arange(-8, 9)

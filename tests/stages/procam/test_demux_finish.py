@@ -10,7 +10,7 @@ from selpath.stages._solution import Result, SolverError
 from selpath.stages.procam._demux_certificate import certified_gap
 from selpath.stages.procam._demux_problem import DemuxProblem
 from selpath.stages.procam._demux_solver import DemuxADMM
-from tests.stages.procam.test_demux_solver import CASES, cvxpy_optimum, sparse_transport, sweep_matrix
+from tests.helpers.demux_cases import CASES, cvxpy_optimum, sparse_transport, sweep_matrix
 
 #: the hard cases' slow sweep: 9 delays 5 rows apart, exposures of 10 and 30 rows over 65 offsets (a clean pixel
 #: needs thousands of ADMM iterations at tol 1e-4)

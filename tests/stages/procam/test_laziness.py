@@ -10,17 +10,17 @@ from selpath.stages.procam.demux_full import demux_full
 from selpath.stages.procam.figures import delay_profile_figure, epipolar_figure, relighting_figure
 from selpath.stages.procam.full_figures import profile_2d_figure, relighting_full_figure
 from selpath.stages.procam.relight import checkerboard_relight, epipolar_image, non_epipolar_image, relight
-from tests.stages.procam import test_demux, test_demux_full
+from tests.helpers import full_transport, procam
 
 
 @pytest.fixture(scope="module")
 def plane_capture():
-    return test_demux.capture_of(test_demux.scene()).chunk({"row": 8})
+    return procam.capture_of(procam.scene()).chunk({"row": 8})
 
 
 @pytest.fixture(scope="module")
 def full_capture():
-    return test_demux_full.full_capture(test_demux_full.scene()).chunk({"row": 8})
+    return full_transport.full_capture(full_transport.scene()).chunk({"row": 8})
 
 
 def test_plane_to_ray_demultiplexing_relighting_and_figures_stay_lazy(plane_capture, no_compute):
@@ -36,7 +36,7 @@ def test_plane_to_ray_demultiplexing_relighting_and_figures_stay_lazy(plane_capt
 
 
 def test_full_demultiplexing_relighting_and_figures_stay_lazy(full_capture, no_compute):
-    transport = demux_full(full_capture, offsets=test_demux_full.GRID, max_iter=5)
+    transport = demux_full(full_capture, offsets=full_transport.GRID, max_iter=5)
     assert transport["transport"].chunks is not None
     checkerboard_relight(transport, 4, 24)
     profile_2d_figure(transport, pixels={"a": (0.3, 0.5)})

@@ -9,18 +9,15 @@ import scipy.stats
 import xarray as xr
 
 from selpath import workflows
-from selpath.devices.sim.procam_scene import ProcamScene, load_procam_scene
+from selpath.devices.sim.procam_scene import ProcamScene
 from selpath.pipeline import StageError
 from selpath.pipeline.quality import enforce
 from selpath.pipeline.store import open_store, to_store
 from selpath.stages.procam.material_classification import classify_materials, load_classifiers, wilson_interval
 from selpath.stages.procam.materials import delay_profiles, train_material_classifier
 from selpath.stages.procam.multiplexing import noiseless
-from tests.stages.procam.test_demux import capture_of
-
-#: the materials capture's sweep: ±340 µs every 17 µs (one camera row per step) at t_e = 170 µs
-SWEEP = np.arange(-340.0, 341.0, 17.0)
-SENSOR = {"camera_rows": 120, "camera_cols": 160}
+from tests.helpers.materials import SWEEP, materials
+from tests.helpers.procam import capture_of
 
 
 def lobe_scene(widths, fractions, albedos=None, **rig) -> ProcamScene:
@@ -66,15 +63,6 @@ def test_area_normalised_profiles_cancel_albedo():
     dim, bright = profiles.isel(row=48, col=64), profiles.isel(row=48, col=192)
     np.testing.assert_allclose(dim["profile"].values, bright["profile"].values, rtol=1e-5)
     assert bright["area"].item() / dim["area"].item() == pytest.approx(3.0, rel=1e-5)
-
-
-def materials(name: str, seed: int) -> xr.Dataset:
-    """A capture of a shipped materials scene over the sweep, with the noise drawn from ``seed``, recording its scene
-    as the simulated rig does."""
-    s = load_procam_scene(workflows.scene(name))
-    s = s.with_rig(**SENSOR, noise=s.rig.noise.model_copy(update={"seed": seed}))
-    capture = capture_of(s, SWEEP, np.array([170.0]))
-    return capture.assign_attrs(simulated_scene=s.model_dump(mode="json"))
 
 
 @pytest.fixture(scope="module")

@@ -78,7 +78,7 @@ def test_a_line_relit_from_the_true_transport_is_the_truth_and_single_captures_m
     and 20·log10(50) = 34 dB (read-limited: one readout for 50 scans' light)."""
     from selpath.devices.sim import procam_transport as tr
     from selpath.stages.procam.multiplexing import line_relighting_snr
-    from tests.stages.procam.test_demux import scene
+    from tests.helpers.procam import scene
 
     s = scene(intensity=5.0, dark_level=20.0, noise={"gain": 1.0, "read_std": 3.0})
     rows = s.rig.camera_rows
@@ -112,7 +112,7 @@ def test_projector_patterns_rectify_onto_the_camera_rows_asked_for():
     taller and shorter than the sensor; a pattern that splits camera rows sharing a projector row is refused."""
     from selpath.devices.sim.procam_transport import on_camera_rows
     from selpath.stages.procam.multiplexing import line_pattern, projector_pattern
-    from tests.stages.procam.test_demux import scene
+    from tests.helpers.procam import scene
 
     for projector_rows in (97, 40, 13):
         s = scene(projector_rows=projector_rows)

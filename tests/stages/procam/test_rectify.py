@@ -101,7 +101,7 @@ def test_a_planted_misalignment_is_measured_warned_of_and_rectified_out_of_the_t
     both within 3 standard errors (and 0.02 rows, 0.05°), warns with the numbers, and the demultiplexed transport's
     direct peak moves from a median |offset| of about 0.6 rows to under 0.1 after rectification (goal 0.25)."""
     from selpath.stages.procam.demux import demux_plane_to_ray
-    from tests.stages.procam.test_demux import capture_of
+    from tests.helpers.procam import capture_of
 
     s = scene(misalignment={"roll": "1.5 deg", "shift": "0.6 px"}, noise={"gain": 1.0, "read_std": 2.0})
     correspondence = decode_gray_code(codes(s, tmp_path)).compute()

@@ -10,7 +10,7 @@ from selpath.devices.sim import procam_transport as tr
 from selpath.pipeline import StageError
 from selpath.stages.procam.demux import demux_plane_to_ray
 from selpath.stages.procam.short_range import short_range_images
-from tests.stages.procam.test_demux import capture_of, scene
+from tests.helpers.procam import capture_of, scene
 
 RANGES = (0.0, 68.0, 136.0, 272.0)  # µs: 0, 4, 8 and 16 rows at v_p = 1/17 rows/µs
 OFFSETS = np.arange(-23, 24)

@@ -14,7 +14,7 @@ from selpath.pipeline import StageError
 from selpath.stages.procam.acquire import TimeSweep
 from selpath.stages.procam.demux import demux_plane_to_ray
 from selpath.stages.procam.vein import choose_delay
-from tests.stages.procam.test_demux import capture_of
+from tests.helpers.procam import capture_of
 
 OFFSETS = np.arange(-60, 61)
 

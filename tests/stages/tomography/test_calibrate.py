@@ -254,8 +254,8 @@ def test_the_background_bit_drops_no_ray():
     flags (off the silhouette) already gave no ray (reason 1). Noisy background, perspective camera."""
     from selpath.stages.tomography.hull import silhouettes, visual_hull
     from selpath.stages.tomography.paths import align_paths
-    from tests.stages.tomography.test_tomography_processing import capture as simulated
-    from tests.stages.tomography.test_tomography_processing import make_scene
+    from tests.helpers.tomography import capture as simulated
+    from tests.helpers.tomography import make_scene
 
     camera = {"model": "perspective", "rows": 2, "cols": 160, "distance": "60 mm", "fov": "24 deg"}
     scene = make_scene({"kind": "ellipse", "semi_axes": ["10 mm", "7 mm"], "angle": "20 deg"}, camera, 45.0)

@@ -13,8 +13,8 @@ from selpath.stages._figures import DPI, SIZE_IN
 from selpath.stages.tomography.figures import capture_figure, coverage_figure, sinogram_figure
 from selpath.stages.tomography.reconstruct import fbp, reconstruct_tv
 from selpath.stages.tomography.reconstruction_figures import convergence_figure, reconstruction_figure
-from tests.stages.tomography.test_reconstruct import sinogram
-from tests.stages.tomography.test_tomography_processing import lazy_chain
+from tests.helpers.sinograms import sinogram
+from tests.helpers.tomography import lazy_chain
 
 
 def test_figure_stages_stay_lazy_and_draw_rgba_images(no_compute):
