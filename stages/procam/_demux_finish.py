@@ -26,7 +26,7 @@ import numpy as np
 
 from selpath.stages.procam._demux_certificate import DUAL_STEPS, certified_gap
 from selpath.stages.procam._demux_problem import DemuxProblem
-from selpath.stages.procam._illumination import difference_operator
+from selpath.stages.procam._illumination import smoothness_matrix
 
 #: the active-set rule's weight on T against λ: large, so an offset with light stays free whatever its gradient
 KAPPA = 1e3
@@ -63,7 +63,7 @@ def active_set_finish(problem: DemuxProblem, transport: np.ndarray, data: np.nda
     y = y / scale
     beta = problem.beta / scale
     a = problem.illumination
-    smooth = 2.0 * problem.alpha * _dtd(a.shape[1])
+    smooth = 2.0 * problem.alpha * smoothness_matrix(a.shape[1])
     t = transport[todo].astype(np.float64) / scale
     # start from the float64 bound of the incoming answer (the solver's is float32 and may read low), so every
     # returned bound of these pixels is a float64 one of the returned transport
@@ -106,11 +106,6 @@ def active_set_finish(problem: DemuxProblem, transport: np.ndarray, data: np.nda
         best_t[back], final[back] = transport[todo[back]], incoming[incoming < final[changed]]
     transport[todo], bound[todo] = best_t, final
     return transport, bound
-
-
-def _dtd(k: int) -> np.ndarray:
-    d = difference_operator(k)
-    return d.T @ d
 
 
 def _solve_free(problem: DemuxProblem, frames: np.ndarray, y: np.ndarray, beta: np.ndarray, free: np.ndarray,

@@ -42,7 +42,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from selpath.stages.procam._illumination import difference_operator
+from selpath.stages.procam._illumination import smoothness_matrix
 
 #: smoothness weight α of the thesis (§5.2.2), on images scaled to [0, 1]
 DEFAULT_ALPHA = 0.01
@@ -79,8 +79,7 @@ class DemuxProblem:
         if alpha < 0 or beta < 0 or rho_factor <= 0:
             raise ValueError(f"need alpha ≥ 0, beta ≥ 0, rho_factor > 0 (got {alpha}, {beta}, {rho_factor})")
         k = illumination.shape[1]
-        d = difference_operator(k)
-        gram2 = 2.0 * (illumination.T @ illumination + alpha * d.T @ d)
+        gram2 = 2.0 * (illumination.T @ illumination + alpha * smoothness_matrix(k))
         eigenvalues = np.linalg.eigvalsh(gram2) if k else np.ones(1)
         top = float(eigenvalues[-1])
         rho = rho_factor * max(top, np.finfo(float).tiny)
@@ -170,8 +169,7 @@ class SeparableDemuxProblem:
         if alpha < 0 or beta < 0 or rho_factor <= 0:
             raise ValueError(f"need alpha ≥ 0, beta ≥ 0, rho_factor > 0 (got {alpha}, {beta}, {rho_factor})")
         k_v = frame_matrix.shape[1]
-        d = difference_operator(k_v)
-        smooth = d.T @ d
+        smooth = smoothness_matrix(k_v)
         lam, basis = np.linalg.eigh(line_matrix.T @ line_matrix)
         lam = np.clip(lam, 0.0, None)
         blocks = 2.0 * (lam[:, None, None] * (frame_matrix.T @ frame_matrix)[None] + alpha * smooth[None])

@@ -89,6 +89,13 @@ def difference_operator(size: int) -> np.ndarray:
     return np.diff(np.eye(size), axis=0)
 
 
+def smoothness_matrix(size: int) -> np.ndarray:
+    """DᵀD, (K, K): the Hessian of ‖D T‖² over two, D the first differences (:func:`difference_operator`); the one
+    place the demultiplexer's problems and its exact finish form it."""
+    d = difference_operator(size)
+    return d.T @ d
+
+
 def line_cells(lines, line_width: float, step: float | None = None) -> tuple[np.ndarray, float]:
     """(centres [projector columns], width) of the u-cells a line sweep resolves: cells of width ``step``
     (None: the spacing of the lines) tiling every column some line lights, from the first line's left edge."""
