@@ -171,7 +171,7 @@ def compute(collections: Sequence[Any], *, scheduler: str, client: Any = None, p
     optimize = len(collections) == 1
     if client is not None:
         futures = client.compute(list(collections), optimize_graph=optimize)
-        if progress:
+        if show_bars(progress):  # on a terminal only: in a log file its text bars are noise (49 kB against 7)
             from distributed import progress as distributed_progress
 
             distributed_progress(futures, notebook=False)
@@ -184,3 +184,14 @@ def compute(collections: Sequence[Any], *, scheduler: str, client: Any = None, p
         with Progress(*BAR_COLUMNS, TextColumn("tasks"), TimeElapsedColumn(), transient=True,
                       disable=not show_bars(True)) as bar, _RichCallback(bar, description):
             return dask.compute(*collections, scheduler=local, optimize_graph=optimize)
+
+
+def scheduler_line(scheduler: str, client: Any) -> str:
+    """What ran the computation, for the run's log: the local scheduler, or the cluster's address, workers and
+    dashboard (``DASK_SCHEDULER_ADDRESS`` wins over the workflow's scheduler, as in :func:`scheduler_session`)."""
+    if client is None:
+        return f"scheduler: {scheduler} (this process)"
+    info = client.scheduler_info()
+    workers = len(info.get("workers", {}))
+    return (f"scheduler: {info.get('address', scheduler)} ({workers} worker{'s' if workers != 1 else ''}; "
+            f"dashboard {client.dashboard_link})")

@@ -28,7 +28,7 @@ import zarr
 from rich.markup import escape
 
 from selpath.pipeline.capture_store import forget_frames, has_missing_frames
-from selpath.pipeline.compute import compute, scheduler_session
+from selpath.pipeline.compute import compute, scheduler_line, scheduler_session
 from selpath.pipeline.errors import Problem, StageError, StoreError
 from selpath.pipeline.identity import package_versions, step_records, why_changed
 from selpath.pipeline.integrity import (
@@ -248,6 +248,7 @@ def run_workflow(workflow: Workflow, *, scheduler: str | None = None, progress: 
         order = list(workflow.steps)  # dependency order
         outputs = sorted(workflow.outputs.items(), key=lambda item: order.index(item[1].from_))
         with scheduler_session(scheduler) as client:
+            log(f"[dim]{escape(scheduler_line(scheduler, client))}[/]")
             for number, (name, out) in enumerate(outputs, 1):
                 result = graph.resolve(out.from_)
                 if out.store in graph.report.fresh:

@@ -137,14 +137,32 @@ def test_same_outputs_on_a_two_worker_process_cluster(small_workflow, tmp_path, 
         xr.testing.assert_identical(a, b)
 
 
-def test_dask_scheduler_address_overrides(small_workflow, tmp_path, monkeypatch, synchronous_outputs):
+def test_dask_scheduler_address_overrides(small_workflow, tmp_path, monkeypatch, synchronous_outputs, capsys):
     from distributed import LocalCluster
 
     with LocalCluster(n_workers=1, processes=False, dashboard_address=None) as cluster:
         monkeypatch.setenv("DASK_SCHEDULER_ADDRESS", cluster.scheduler_address)
-        remote = _run_copy(small_workflow, tmp_path / "tcp")
+        folder = tmp_path / "tcp"
+        folder.mkdir()
+        shutil.copy(small_workflow, folder / "wf.yaml")
+        lines: list[str] = []
+        # progress asked for, but the output is not a terminal: distributed's text bars stay out of it
+        report = run_workflow(load_workflow(folder / "wf.yaml"), progress=True, log=lines.append)
+        remote = _outputs(report)
+    # the log names what ran the computation: the cluster's address and its one worker
+    assert any(line.startswith(f"[dim]scheduler: {cluster.scheduler_address} (1 worker;") for line in lines), lines
+    printed = capsys.readouterr()
+    assert "[####" not in printed.out + printed.err and "% Completed" not in printed.out + printed.err
     for a, b in zip(synchronous_outputs, remote, strict=True):
         xr.testing.assert_identical(a, b)
+
+
+def test_the_log_names_a_local_scheduler(small_workflow, tmp_path):
+    (tmp_path / "wf").mkdir()
+    shutil.copy(small_workflow, tmp_path / "wf" / "wf.yaml")
+    lines: list[str] = []
+    run_workflow(load_workflow(tmp_path / "wf" / "wf.yaml"), scheduler="threads", progress=False, log=lines.append)
+    assert "[dim]scheduler: threads (this process)[/]" in lines
 
 
 @stage("scaled_transmittance")
