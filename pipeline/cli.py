@@ -119,15 +119,13 @@ def _write_report(workflow, result: RunReport, summary: list[str], tables: list)
 
 
 def import_provenance(spec: Path, store: Path, identity: dict) -> dict:
-    """What an imported capture records of how it was made (read by ``selpath inspect``)."""
-    import datetime
-
+    """What an imported capture records of how it was made (read by ``selpath inspect``): no time and no absolute
+    path, so that importing the same frames with the same spec gives the same store, whose content identifies it
+    to the steps that read it (:func:`selpath.pipeline.provenance.store_identity`)."""
     from selpath.pipeline.identity import package_versions
 
-    return {"imported": True, "command": f"selpath import {spec} {store}", "spec": str(spec.resolve()),
-            "spec_text": spec.read_text(), **identity, "output": store.name,
-            "created": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
-            "versions": package_versions()}
+    return {"imported": True, "command": f"selpath import {spec.name} {store.name}", "spec": spec.name,
+            "spec_text": spec.read_text(), **identity, "output": store.name, "versions": package_versions()}
 
 
 @command()

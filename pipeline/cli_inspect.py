@@ -114,8 +114,7 @@ def inspect(
         for key, value in {"imported": f"by `{provenance.get('command')}`",
                            "spec": str(provenance.get("spec")),
                            "spec and frames sha256": str(digest),
-                           "created": f"{provenance.get('created')} with selpath "
-                                      f"{provenance.get('versions', {}).get('selpath')}"}.items():
+                           "selpath": str(provenance.get("versions", {}).get("selpath"))}.items():
             console.print(f"  {key}: {escape(value)}", highlight=False, soft_wrap=True)
     elif provenance:
         console.print("[underline]provenance[/]")

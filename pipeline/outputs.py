@@ -168,6 +168,9 @@ def _ownership(out: OutputPath, path: Path | str, names: list[str] | None = None
                  "identify", exc.problems[0].fix)]
     names = [p.name for p in Path(path).iterdir()] if names is None else names
     capture = any(name.startswith("written__") for name in names)
+    if provenance is not None and provenance.get("imported"):
+        return [(f"output {out.name!r} of workflow {out.workflow!r}: {path} holds a capture imported with "
+                 "`selpath import`; selpath never replaces it", "choose another path, or delete that store yourself")]
     if provenance is not None:
         owner = (provenance.get("workflow"), provenance.get("output"))
         if owner != (out.workflow, out.name) and not (out.replace and not out.self_written):

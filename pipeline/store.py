@@ -1,4 +1,5 @@
-"""Zarr stores of capture cubes: open with a schema check, write lazily (frame by frame: :mod:`selpath.pipeline.capture_store`).
+"""Zarr stores of capture cubes: open with a schema check, write lazily (frame by frame:
+:mod:`selpath.pipeline.capture_store`).
 
 Layout of a store (zarr v3 group; see ``docs/format.md``):
 
@@ -316,6 +317,9 @@ def _replace_problem(path: str | os.PathLike) -> Problem | None:
     if "://" in where or not Path(where).is_dir():
         return None
     provenance = read_provenance(where)
+    if provenance is not None and provenance.get("imported"):
+        return Problem("holds a capture imported with `selpath import`; to_store does not replace it", where=where,
+                       fix="write to another path, or pass replace=True to replace it")
     if provenance is not None:
         return Problem(f"holds output {provenance.get('output')!r} of workflow {provenance.get('workflow')!r}; "
                        "to_store does not replace a workflow's output", where=where,

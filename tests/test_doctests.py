@@ -10,12 +10,12 @@ import pkgutil
 import pytest
 
 import selpath
-from selpath import devices, explore, pipeline, stages, workflows
+from selpath import devices, explore, geometry, pipeline, stages, workflows
 
 
 def modules() -> list[str]:
     names = ["selpath"]
-    for package in (pipeline, stages, devices, workflows, explore):
+    for package in (pipeline, stages, devices, geometry, workflows, explore):
         names.append(package.__name__)
         names += [m.name for m in pkgutil.walk_packages(package.__path__, f"{package.__name__}.")]
     return sorted(n for n in names if not n.endswith("__main__"))

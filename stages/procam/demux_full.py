@@ -162,8 +162,8 @@ def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, 
     template = transport_template(capture, ("du", "dv"), (2 * reach + 1, grid.size), stack.chunksizes["row"], dtype,
                                   u_direct=np.float32)
     # one polish round, as before #25's certified defaults; the Kronecker problem has no second-order bound, so the
-    # solver runs neither the exact finish nor the max_gap cap on it (its `exact_finish`): max_gap 1 only keeps
-    # any gap_tol valid
+    # solver runs neither the KKT bound's ascent, the exact finish nor the max_gap cap on it (its `exact_finish`):
+    # max_gap 1 only keeps any gap_tol valid, and the store does not record those three settings
     solver = DemuxADMM(tol=tol, gap_tol=gap_tol, max_iter=max_iter, polish_iter=polish_iter, dtype=dtype,
                        polish_rounds=1, max_gap=1.0)
     out = xr.map_blocks(_band_full, stack.assign_attrs({}), kwargs={
@@ -180,6 +180,6 @@ def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, 
     return out.assign_attrs(transport_attrs(
         capture, timing=timing, delays=delays, exposures=exposures, keep=keep, margin=margin,
         full_scale=scale, alpha=alpha, beta=beta,
-        **{k: v for k, v in solver.settings().items() if k not in ("max_gap", "finish_rounds")},  # (they do not apply)
+        **{k: v for k, v in solver.settings().items() if k not in ("max_gap", "finish_rounds", "dual_steps")},
         line_width_px=width, cell_width_px=step, cells_px=cells.tolist(), lines=int(lines.size),
         **{name: capture.attrs[name] for name in ("projector_shape",) if name in capture.attrs}))

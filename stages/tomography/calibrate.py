@@ -214,7 +214,8 @@ def _silhouette_share(lit: xr.DataArray, mask: xr.DataArray) -> xr.DataArray:
 
 def _given_silhouettes(capture: xr.Dataset, silhouettes: xr.Dataset, stage_name: str, flag_background: bool,
                        threshold: float | None) -> xr.DataArray:
-    """The ``silhouettes`` store's masks, checked against the capture's frames: one per angle, the same angles."""
+    """The ``silhouettes`` store's masks, checked against the capture's frames: one per angle, the same angles. (The
+    silhouettes stage subtracts the capture's ``dark``: give it the raw capture, as the shipped workflows do.)"""
     problems = []
     if not flag_background:
         problems.append(Problem("silhouettes are wired in but flag_background is false",
@@ -222,7 +223,10 @@ def _given_silhouettes(capture: xr.Dataset, silhouettes: xr.Dataset, stage_name:
     if threshold is not None:
         problems.append(Problem("silhouette_threshold is set, but the silhouettes wired in were thresholded by the "
                                 "silhouettes stage", fix="set the threshold there (its `threshold`) and drop it here"))
-    require_variables(silhouettes, ("silhouette",), stage_name)
+    if "silhouette" not in silhouettes.data_vars:
+        raise StageError([*problems, Problem(f"the silhouettes input has no `silhouette` variable (it has "
+                                             f"{sorted(map(str, silhouettes.data_vars))})", path="silhouettes",
+                                             fix="wire in the silhouettes stage's output")])
     mask = sorted_sweep(silhouettes, "angle", stage_name)["silhouette"]
     frames = capture["target"]
     if set(mask.dims) != set(frames.dims) or any(mask.sizes[d] != frames.sizes[d] for d in frames.dims):
@@ -244,11 +248,11 @@ def _checked_pair(capture: xr.Dataset, stage_name: str, saturation_level: float 
     """Absorption (or transmittance) and flags of dark-subtracted target and reference, lazily per tile, the
     usable shares of the input (:mod:`selpath.pipeline.quality`) and the object's shares (plain 0-d variables)."""
     capture = sorted_sweep(capture, "angle", stage_name)
-    given = None if silhouettes is None else _given_silhouettes(capture, silhouettes, stage_name, flag_background,
-                                                                silhouette_threshold)
     background_name = capture.attrs.get("background_subtracted") or ("dark" if "dark" in capture else None)
     require_variables(capture, ("target", "reference") + ((background_name,) if background_name else ()), stage_name)
     _same_frames(capture, background_name, stage_name)
+    given = None if silhouettes is None else _given_silhouettes(capture, silhouettes, stage_name, flag_background,
+                                                                silhouette_threshold)
     level = _saturation_level(capture, saturation_level)
     subtracted = bool(capture.attrs.get("background_subtracted"))
     background = capture[background_name] if background_name else xr.DataArray(0.0)
@@ -370,9 +374,10 @@ def _pair_docs(func):
 
 @stage("normalise_reference", kind=TRANSMITTANCE)
 @_pair_docs
-def normalise_reference(capture: xr.Dataset, silhouettes: xr.Dataset | None = None, /, *, saturation_level: Positive | None = None,
-                        min_signal: NonNegative = 0.0, min_signal_relative: Fraction = 0.0,
-                        flag_background: bool = True, silhouette_threshold: Positive | None = None) -> xr.Dataset:
+def normalise_reference(capture: xr.Dataset, silhouettes: xr.Dataset | None = None, /, *,
+                        saturation_level: Positive | None = None, min_signal: NonNegative = 0.0,
+                        min_signal_relative: Fraction = 0.0, flag_background: bool = True,
+                        silhouette_threshold: Positive | None = None) -> xr.Dataset:
     """Transmittance I_target / I_reference per pixel (dark-subtracted), with flags for unusable pixels.
 
     {pair}
@@ -387,8 +392,9 @@ def normalise_reference(capture: xr.Dataset, silhouettes: xr.Dataset | None = No
 
 @stage("absorption", kind=ABSORPTION)
 @_pair_docs
-def absorption(capture: xr.Dataset, silhouettes: xr.Dataset | None = None, /, *, saturation_level: Positive | None = None,
-               min_signal: NonNegative = 0.0, min_signal_relative: Fraction = 0.0, flag_background: bool = True,
+def absorption(capture: xr.Dataset, silhouettes: xr.Dataset | None = None, /, *,
+               saturation_level: Positive | None = None, min_signal: NonNegative = 0.0,
+               min_signal_relative: Fraction = 0.0, flag_background: bool = True,
                silhouette_threshold: Positive | None = None) -> xr.Dataset:
     """Total absorption A = log I_reference − log I_target per pixel (thesis Eq. 3), with flags.
 

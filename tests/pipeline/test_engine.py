@@ -157,6 +157,20 @@ def test_dask_scheduler_address_overrides(small_workflow, tmp_path, monkeypatch,
         xr.testing.assert_identical(a, b)
 
 
+def test_the_scheduler_line_of_a_cluster_without_a_dashboard():
+    from selpath.pipeline.compute import scheduler_line
+
+    class NoDashboard:  # a scheduler started without bokeh: distributed's dashboard_link raises KeyError
+        def scheduler_info(self):
+            return {"address": "tcp://10.0.0.1:8786", "workers": {"a": {}, "b": {}}, "services": {}}
+
+        @property
+        def dashboard_link(self):
+            raise KeyError("dashboard")
+
+    assert scheduler_line("tcp://10.0.0.1:8786", NoDashboard()) == "scheduler: tcp://10.0.0.1:8786 (2 workers)"
+
+
 def test_the_log_names_a_local_scheduler(small_workflow, tmp_path):
     (tmp_path / "wf").mkdir()
     shutil.copy(small_workflow, tmp_path / "wf" / "wf.yaml")

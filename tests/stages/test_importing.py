@@ -13,6 +13,7 @@ from typer.testing import CliRunner
 
 from selpath.pipeline import ConfigError, StageError, load_workflow, open_store, run_workflow
 from selpath.pipeline.cli import app
+from selpath.pipeline.errors import StoreError
 from selpath.stages.frame_files import read_frames
 from selpath.stages.importing import import_capture
 from tests.helpers.acquisition import make_workflow
@@ -78,6 +79,17 @@ def test_a_tomography_capture_from_four_file_formats_imports_as_the_rig_wrote_it
     assert inspected.exit_code == 0, inspected.output
     assert "imported: by `selpath import" in inspected.output and record["spec_and_frames_sha256"] in inspected.output
     assert "provenance: none" not in inspected.output
+    # the same frames imported again (elsewhere, under the same name) are the same store, byte for byte: what reads it
+    # keeps its identity; and nothing replaces an imported capture without being told to
+    from selpath.pipeline.provenance import content_digest
+    from selpath.pipeline.store import to_store
+
+    (tmp_path / "again").mkdir()
+    again = runner.invoke(app, ["import", str(tmp_path / "spec.yaml"), str(tmp_path / "again" / "imported.zarr")])
+    assert again.exit_code == 0, again.output
+    assert content_digest(tmp_path / "again" / "imported.zarr") == content_digest(tmp_path / "imported.zarr")
+    with pytest.raises(StoreError, match="holds a capture imported with `selpath import`"):
+        to_store(imported, tmp_path / "imported.zarr", "tomography_capture")
     # the stages read it as they read the rig's own store: the same absorption, the same hull
     workflow = tmp_path / "reprocess.yaml"
     workflow.write_text("workflow: reprocess\nsteps:\n"

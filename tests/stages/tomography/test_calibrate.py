@@ -296,3 +296,7 @@ def test_silhouettes_of_another_capture_or_with_a_second_threshold_are_refused(d
         absorption(capture, masks.isel(angle=slice(0, 2)))
     with pytest.raises(StageError, match="(?s)flag_background is false.*silhouette_threshold is set"):
         absorption(capture, masks, silhouette_threshold=10.0, flag_background=False)
+    with pytest.raises(StageError, match="has no `silhouette` variable"):
+        absorption(capture, masks.rename(silhouette="mask"))
+    with pytest.raises(StageError, match="target"):  # the capture's own problem, named, before the masks are read
+        absorption(capture.drop_vars("target"), masks)
