@@ -193,8 +193,6 @@ def scheduler_line(scheduler: str, client: Any) -> str:
         return f"scheduler: {scheduler} (this process)"
     info = client.scheduler_info()
     workers = len(info.get("workers", {}))
-    try:  # a scheduler without a dashboard (no bokeh, or turned off) has no link: say nothing of it
-        dashboard = f"; dashboard {client.dashboard_link}" if info.get("services", {}).get("dashboard") else ""
-    except (KeyError, AttributeError):
-        dashboard = ""
+    # a scheduler without a dashboard (no bokeh, or turned off) has no link: say nothing of it
+    dashboard = f"; dashboard {client.dashboard_link}" if info.get("services", {}).get("dashboard") else ""
     return f"scheduler: {info.get('address', scheduler)} ({workers} worker{'s' if workers != 1 else ''}{dashboard})"

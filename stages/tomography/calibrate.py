@@ -262,26 +262,24 @@ def _checked_pair(capture: xr.Dataset, stage_name: str, saturation_level: float 
         peak = frame_peak(capture["reference"].astype(dtype), background, subtracted=subtracted, level=level)
         threshold = np.maximum(threshold, min_signal_relative * peak.fillna(np.inf))
     object_mask = xr.DataArray(True)  # without backlit frames (or flag_background off) every pixel is the object's
-    if given is not None:
-        object_mask = given
-        if "backlit" in capture:
-            backlit = capture["backlit"]
-            dark = None if subtracted or not background_name else background
-            object_mask = given | ~np.isfinite(backlit)
-            silhouette_share = _silhouette_share(backlit if dark is None else backlit - dark, given)
-    elif flag_background and "backlit" in capture:
-        backlit = capture["backlit"]
+    backlit = capture["backlit"] if "backlit" in capture else None
+    mask = given
+    if given is None and flag_background and backlit is not None:
         if set(backlit.dims) != set(capture["target"].dims):
             raise StageError(Problem(f"stage {stage_name!r}: backlit has dims {backlit.dims}, target "
                                      f"{capture['target'].dims}; they must match to flag the background",
                                      path="backlit", fix="film a backlit frame at every angle of the target, or set "
                                      "flag_background: false"))
-        # backlit frames were dark-subtracted with the others (subtract_background's default variables); a pixel
-        # whose backlit value is missing (NaN, inf: e.g. a frame never filmed) is not known to be off the object
-        dark = None if subtracted or not background_name else background
-        mask = object_masks(backlit, dark, threshold=silhouette_threshold)
-        object_mask = mask | ~np.isfinite(backlit)
-        silhouette_share = _silhouette_share(backlit if dark is None else backlit - dark, mask)
+        mask = object_masks(backlit, None if subtracted or not background_name else background,
+                            threshold=silhouette_threshold)
+    if mask is not None:
+        object_mask = mask
+        if backlit is not None:
+            # backlit frames were dark-subtracted with the others (subtract_background's default variables); a pixel
+            # whose backlit value is missing (NaN, inf: e.g. a frame never filmed) is not known to be off the object
+            dark = None if subtracted or not background_name else background
+            object_mask = mask | ~np.isfinite(backlit)
+            silhouette_share = _silhouette_share(backlit if dark is None else backlit - dark, mask)
     value, flags = xr.apply_ufunc(
         _pair_kernel, capture["target"], capture["reference"], background, threshold, object_mask,
         kwargs=dict(subtracted=subtracted, level=level, dtype=dtype, absorption=absorption),
