@@ -11,6 +11,12 @@ pixels unlike every trained material.
 - **Folding.** A rectified rig lights row s + o and row s − o alike in a homogeneous medium, so the profile at
   +t_d and −t_d (about the direct light's delay) measure the same light: their sum halves the noise's variance
   (:func:`zero_of` finds the fold; ``delay_profiles`` folds).
+- **Smoothing the class probabilities.** Pooling averages profiles; the SVM's class probabilities (Platt's) are
+  then filtered over a neighbourhood by a guided filter (He, Sun and Tang 2013; OpenCV's ``ximgproc.guidedFilter``)
+  whose guide is the log of the regular image: a soft spatial prior that follows the image's edges (an object's
+  boundary is an edge in brightness), where a hard segmentation cuts a slab's edge strips into regions of their own.
+  :func:`guided_smooth`; its radius is ``train_material_classifier``'s ``smooth_px`` (docs/results.md: chosen by
+  cross-validation over row bands of the dev set's training placement).
 - **Spatial blocks.** Neighbouring pixels share light and noise, so cross-validation over random pixels leaks:
   folds are bands of rows (:func:`row_blocks`), as a new capture shares no pixel with the training one.
 - **Unlike training.** A pixel's distance to its nearest training pixels (k = 5, in the SVM's standardised space) is
@@ -26,6 +32,8 @@ from scipy.ndimage import uniform_filter
 
 #: spatial blocks of the cross-validation per fold (bands of rows over the labelled pixels' span)
 BLOCKS_PER_FOLD = 2
+#: the guided filter's regularisation ε, on the guide's [0, 1] scale (docs/results.md: 1e-2 and 1e-3 within a point)
+GUIDED_EPS = 1e-2
 #: neighbours whose mean distance scores a pixel's novelty
 NEIGHBOURS = 5
 
@@ -59,6 +67,32 @@ def pool(frames: np.ndarray, regions: np.ndarray, window: int) -> np.ndarray:
         here = inside > 0
         out[:, rows, cols][:, here] = total[:, here] / count[here]
     return out
+
+
+def guided_smooth(scores: np.ndarray, area: np.ndarray, usable: np.ndarray, radius: int,
+                  eps: float = GUIDED_EPS) -> np.ndarray:
+    """Each class's score map of ``scores`` (row, col, class) filtered by a guided filter of ``radius`` [px] whose
+    guide is log ``area`` (the regular image) scaled to [0, 1] over the ``usable`` pixels (so ``eps`` means the same
+    on any intensity scale); unusable pixels keep their scores out of the guide's range (its minimum) and score 0.
+    Radius 0: unchanged.
+
+    >>> scores = np.zeros((8, 8, 2), np.float32); scores[..., 0] = 1.0; scores[3, 3] = (0.0, 1.0)
+    >>> area = np.full((8, 8), 100.0); usable = np.ones((8, 8), bool)
+    >>> [round(float(v), 2) for v in guided_smooth(scores, area, usable, 2)[3, 3]]  # an odd pixel: outvoted 24 to 1
+    [0.96, 0.04]
+    """
+    if radius <= 0:
+        return scores
+    import cv2
+
+    log = np.log(np.where(usable & (area > 0), area, np.nan))
+    low, high = np.nanmin(log, initial=np.inf), np.nanmax(log, initial=-np.inf)
+    if not np.isfinite(low):
+        return scores
+    guide = np.where(np.isfinite(log), (log - low) / max(high - low, 1e-12), 0.0).astype(np.float32)
+    values = np.where(usable[..., None], scores, 0.0).astype(np.float32)
+    return np.stack([cv2.ximgproc.guidedFilter(guide, np.ascontiguousarray(values[..., k]), int(radius), eps)
+                     for k in range(values.shape[-1])], axis=-1)
 
 
 def zero_of(delays: np.ndarray) -> int:

@@ -14,7 +14,7 @@ import hashlib
 import numpy as np
 import xarray as xr
 
-from selpath.pipeline.constraints import Count, StorePath
+from selpath.pipeline.constraints import Count, Index, StorePath
 from selpath.pipeline.errors import Problem, StageError
 from selpath.pipeline.kinds import CubeKind, Variable
 from selpath.pipeline.quality import usable_share
@@ -33,24 +33,28 @@ MATERIAL_CLASSIFICATION = CubeKind(
                "accuracy": Variable(("material",), required=False, units="1",
                                     long_name="share of the class's pixels classified right")},
 )
+#: scikit-learn's own types a calibrated classifier holds, which skops 0.16 does not list as trusted (plain
+#: estimators, their parameters as arrays: nothing that runs code on load)
+ALSO_TRUSTED = ("sklearn.calibration._CalibratedClassifier", "sklearn.calibration._SigmoidCalibration")
 #: the normal quantile of the accuracies' 95 % confidence intervals
 Z95 = 1.959963984540054
 
 
 def load_classifiers(classifier: xr.Dataset) -> dict:
-    """The profile and brightness classifiers of a ``material_classifier`` store, loaded with skops's trusted types
-    only (a store that names any other type is refused)."""
+    """The profile and brightness classifiers (and with ``smooth_px`` the calibrated one) of a ``material_classifier``
+    store, loaded with skops's trusted types and :data:`ALSO_TRUSTED` only (a store that names any other type is
+    refused)."""
     import skops.io
 
     data = np.asarray(classifier["model"].values, np.uint8).tobytes()
     if hashlib.sha256(data).hexdigest() != classifier["model"].attrs.get("sha256"):
         raise StageError(Problem("the classifier's model does not match its recorded sha256: the store is "
                                  "corrupt or was edited", where="classifier", fix="train it again"))
-    untrusted = skops.io.get_untrusted_types(data=data)
+    untrusted = sorted(set(skops.io.get_untrusted_types(data=data)) - set(ALSO_TRUSTED))
     if untrusted:
         raise StageError(Problem(f"the classifier's model names types skops does not trust: {untrusted}",
                                  where="classifier", fix="train the classifier with train_material_classifier"))
-    return skops.io.loads(data)
+    return skops.io.loads(data, trusted=list(ALSO_TRUSTED))
 
 
 def _predict(model, features: np.ndarray) -> np.ndarray:
@@ -61,6 +65,20 @@ def _predict(model, features: np.ndarray) -> np.ndarray:
     if ok.any():
         out[ok] = model.predict(flat[ok])
     return out.reshape(features.shape[:-1])
+
+
+def _smoothed_labels(model, profile: xr.DataArray, area: np.ndarray, usable: np.ndarray, radius: int) -> np.ndarray:
+    """Class index per pixel: the most probable class after the class probabilities of ``profile`` (row, col,
+    delay) are guided-filtered over ``radius`` px (guide: log ``area``); −1 where the profile is not finite."""
+    values = np.asarray(profile.transpose("row", "col", "delay").values, np.float64)
+    flat = values.reshape(-1, values.shape[-1])
+    ok = np.isfinite(flat).all(axis=1)
+    scores = np.zeros((flat.shape[0], len(model.classes_)), np.float32)
+    if ok.any():
+        scores[ok] = model.predict_proba(flat[ok])
+    ok = ok.reshape(values.shape[:2])
+    smooth = features.guided_smooth(scores.reshape(*values.shape[:2], -1), area, ok & usable, radius)
+    return np.where(ok, np.asarray(model.classes_)[smooth.argmax(axis=-1)], -1).astype(np.int16)
 
 
 def _distance(model, values: np.ndarray, measure) -> np.ndarray:
@@ -129,7 +147,8 @@ def _scores(truth: xr.DataArray, predicted: xr.DataArray, n: int, prefix: str) -
 @stage("classify_materials", kind=MATERIAL_CLASSIFICATION, precheck=label_precheck, identity=label_identity)
 def classify_materials(profiles: xr.Dataset, classifier: xr.Dataset, /, *, labels: Labels | None = None,
                        label_image: StorePath = "", classes: tuple[str, ...] | None = None,
-                       pool_px: Count | None = None, superpixel_px: Count = 300) -> xr.Dataset:
+                       pool_px: Count | None = None, superpixel_px: Count = 300,
+                       smooth_px: Index | None = None) -> xr.Dataset:
     """Classify every pixel of a capture by its delay profile, and by brightness alone (§5.4.9, Figs. 51c, 52).
 
     Returns ``label`` and ``brightness_label`` over (row, col) (index into ``material``; −1: no usable profile), the
@@ -161,6 +180,11 @@ def classify_materials(profiles: xr.Dataset, classifier: xr.Dataset, /, *, label
         cols × 8 bytes) and classifies it at once; without it the classification is lazy, band by band.
     superpixel_px : int
         The superpixels' size when pooling (SLIC on the standardised profiles) [px].
+    smooth_px : int or None
+        Filter the class probabilities with a guided filter of this radius, guided by the log of the regular image,
+        before each pixel takes its most probable class [px] (``selpath.stages.procam._material_features``); None:
+        the classifier's own ``smooth_px`` (0: none). Needs a classifier trained with ``smooth_px`` > 0 (it carries
+        Platt probabilities); like pooling it reads the whole frame's profiles into memory.
     """
     require_variables(profiles, ("profile", "area", "flags"), "classify_materials")
     require_variables(classifier, ("model", "mean_profile"), "classify_materials")
@@ -190,7 +214,18 @@ def classify_materials(profiles: xr.Dataset, classifier: xr.Dataset, /, *, label
         area = xr.DataArray(np.where(usable, total, np.nan), dims=("row", "col"))
     profile = profile.chunk({"delay": -1}) if profile.chunks else profile
     out = dict(output_dtypes=[np.int16], dask="parallelized")
-    label = xr.apply_ufunc(lambda x: _predict(models["profile"], x), profile, input_core_dims=[["delay"]], **out)
+    smooth_px = int(classifier.attrs.get("smooth_px", 0)) if smooth_px is None else smooth_px
+    if smooth_px > 0:
+        if "probability" not in models:
+            raise StageError(Problem(f"smooth_px {smooth_px} filters class probabilities; this classifier was "
+                                     "trained without them", where="classifier",
+                                     fix="train it with smooth_px > 0, or classify with smooth_px: 0"))
+        usable = np.asarray(profiles["flags"].values) == 0
+        label = xr.DataArray(_smoothed_labels(models["probability"], profile, np.asarray(profiles["area"].values),
+                                              usable, smooth_px), dims=FRAME)
+    else:
+        label = xr.apply_ufunc(lambda x: _predict(models["profile"], x), profile, input_core_dims=[["delay"]],
+                               **out)
     bright = xr.apply_ufunc(lambda x: _predict(models["brightness"], x[..., None]), area, **out)
     result = {}
     novelty = _novelty_measure(classifier)
@@ -232,4 +267,5 @@ def classify_materials(profiles: xr.Dataset, classifier: xr.Dataset, /, *, label
                         "true_material": ("true_material", names, {"long_name": "true class"})},
         attrs=keep | {"model_sha256": classifier["model"].attrs.get("sha256"),
                       "training_scene": classifier.attrs.get("training_scene", ""),
-                      "labels": (label_image if labels == "image" else labels) or ""}))
+                      "labels": (label_image if labels == "image" else labels) or "",
+                      "pool_px": pool_px, "smooth_px": smooth_px}))

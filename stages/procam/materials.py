@@ -246,7 +246,7 @@ def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scen
                               folds: Annotated[int, pydantic.Field(ge=2, le=20)] = 5, seed: Index = 0,
                               c_grid: Grid = C_GRID, gamma_grid: Grid = GAMMA_GRID,
                               flag_rate: Annotated[float, pydantic.Field(gt=0.0, lt=0.5)] = 0.01,
-                              pool_px: Count = 1) -> xr.Dataset:
+                              pool_px: Count = 1, smooth_px: Index = 0) -> xr.Dataset:
     """Train an RBF-kernel SVM on labelled pixels' delay profiles, and the brightness-only baseline (§5.4.9).
 
     Hyper-parameters by cross-validation over ``folds`` folds of spatial blocks (2 × folds bands of rows over the
@@ -286,6 +286,13 @@ def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scen
     pool_px : int
         Pool each labelled pixel's frames with its neighbours of the same label over a window of this many pixels
         a side before normalising (1: none) [px]; ``classify_materials`` then pools alike, within superpixels.
+    smooth_px : int
+        ``classify_materials`` filters the SVM's class probabilities with a guided filter of this radius (the
+        regular image's log as the guide, so it stops at edges in brightness) before taking each pixel's most
+        probable class (0: none, the SVM's own decision) [px]. Above 0 the model also holds the chosen SVM's
+        class probabilities (Platt's sigmoids fitted on out-of-fold decisions over the same spatial blocks,
+        scikit-learn's ``CalibratedClassifierCV``). On the materials dev set 4 px was chosen by
+        cross-validation over row bands of the training placement (docs/results.md).
     """
     import sklearn
     import skops.io
@@ -313,7 +320,15 @@ def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scen
                   folds, blocks, seed)
     baseline = _fit(area[:, None], truth, {"svm__C": list(c_grid), "svm__gamma": list(gamma_grid)}, folds, blocks,
                     seed)
-    model = skops.io.dumps({"profile": search.best_estimator_, "brightness": baseline.best_estimator_})
+    models = {"profile": search.best_estimator_, "brightness": baseline.best_estimator_}
+    if smooth_px > 0:  # class probabilities for the guided filter: Platt's sigmoids fitted out of fold, over blocks
+        from sklearn.base import clone
+        from sklearn.calibration import CalibratedClassifierCV
+
+        models["probability"] = CalibratedClassifierCV(
+            clone(search.best_estimator_), method="sigmoid", ensemble=False,
+            cv=list(features.block_folds(folds, seed).split(values, truth, groups=blocks))).fit(values, truth)
+    model = skops.io.dumps(models)
     kept = [names[k] for k in present]
     standard = search.best_estimator_.named_steps["scale"].transform(values)
     centre = np.stack([standard[truth == k].mean(0) for k in range(present.size)])
@@ -346,5 +361,6 @@ def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scen
                       "brightness_gamma": float(baseline.best_params_["svm__gamma"]),
                       "folds": folds, "seed": seed, "samples_per_class": samples_per_class,
                       "novelty_distance": novelty, "flag_rate": flag_rate, "pool_px": pool_px,
+                      "smooth_px": smooth_px,
                       "labels": label_image if labels == "image" else labels, "training_scene": scene.get("scene", ""),
                       "scikit_learn_version": sklearn.__version__, "skops_version": skops.__version__}))

@@ -172,6 +172,48 @@ def test_pooling_is_the_mean_over_the_window_within_the_region():
     np.testing.assert_allclose(pool(frames, regions, 5), expected, rtol=1e-12)
 
 
+def test_the_guided_filter_is_he_et_al_s_formula():
+    """Against the guided filter written from its paper (He, Sun and Tang 2013, Alg. 1: box means of radius r, a =
+    cov(I, p) / (var(I) + ε), b = mean(p) − a·mean(I), q = mean(a)·I + mean(b)) on the pixels whose windows lie
+    inside the frame (the borders differ in how they are padded); the guide is log area scaled to [0, 1]."""
+    from scipy.ndimage import uniform_filter
+
+    from selpath.stages.procam._material_features import guided_smooth
+
+    rng = np.random.default_rng(1)
+    area = np.exp(rng.normal(5.0, 1.0, (40, 50)))
+    scores = rng.random((40, 50, 3)).astype(np.float32)
+    r, eps = 3, 1e-2
+    guide = (np.log(area) - np.log(area).min()) / np.ptp(np.log(area))
+
+    def mean(x):
+        return uniform_filter(x, size=2 * r + 1, mode="reflect")
+
+    got = guided_smooth(scores, area, np.ones((40, 50), bool), r, eps)
+    inner = (slice(2 * r, -2 * r), slice(2 * r, -2 * r))
+    for k in range(3):
+        p = scores[..., k].astype(float)
+        a = (mean(guide * p) - mean(guide) * mean(p)) / (mean(guide**2) - mean(guide) ** 2 + eps)
+        b = mean(p) - a * mean(guide)
+        np.testing.assert_allclose(got[..., k][inner], (mean(a) * guide + mean(b))[inner], atol=2e-5)
+
+
+def test_smoothed_probabilities_classify_a_new_capture_and_travel_in_the_store(trained, tmp_path):
+    """A classifier trained with smooth_px carries calibrated probabilities (two scikit-learn calibration types
+    skops does not list, trusted by name) and classifies the simulator's new capture at the thesis's 90 % per class
+    through its store; classifying with smooth_px a classifier trained without is refused."""
+    profiles, classifier = trained
+    smoothing = train_material_classifier(profiles, samples_per_class=200, seed=0, smooth_px=2)
+    path = tmp_path / "classifier.zarr"
+    to_store(smoothing, path, "material_classifier")
+    scored = classify_materials(delay_profiles(materials("white-materials-shuffled", 10)), open_store(path),
+                                labels="scene").compute()
+    assert scored.attrs["smooth_px"] == 2
+    assert scored["accuracy"].min() >= 0.9, scored["accuracy"].values
+    with pytest.raises(StageError, match="trained without them"):
+        classify_materials(profiles, classifier, smooth_px=2)
+
+
 def test_the_flag_rate_holds_on_a_capture_like_the_training_one(trained):
     """The same scene, another noise draw: the materials' pixels flagged are about flag_rate (1 %; measured 0.9 %),
     at most 3 % here."""

@@ -43,7 +43,7 @@ def _spec(placement: str) -> str:
         """)
 
 
-def _steps(name: str, fold: bool, pool: int) -> str:
+def _steps(name: str, fold: bool, pool: int, smooth: int = 0) -> str:
     return textwrap.dedent(f"""\
           - id: {name}_d1
             stage: delay_profiles
@@ -54,7 +54,7 @@ def _steps(name: str, fold: bool, pool: int) -> str:
           - id: {name}_classifier
             stage: train_material_classifier
             with: {{profiles: ${name}_d1, labels: image, label_image: {DEV}/D1-materials-sweep.npz:labels,
-                    classes: {CLASSES}, samples_per_class: 600, pool_px: {pool}}}
+                    classes: {CLASSES}, samples_per_class: 600, pool_px: {pool}, smooth_px: {smooth}}}
           - id: {name}
             stage: classify_materials
             with: {{profiles: ${name}_d2, classifier: ${name}_classifier, labels: image,
@@ -78,15 +78,17 @@ def scored(tmp_path_factory):
           stage: load_store
           with: {store: D2.zarr}
         """), "  ")
-    workflow += textwrap.indent(_steps("plain", False, 1) + _steps("pooled", True, 15), "  ") + textwrap.dedent("""\
+    workflow += textwrap.indent(_steps("plain", False, 1) + _steps("pooled", True, 15)
+                               + _steps("smoothed", True, 15, 4), "  ") + textwrap.dedent("""\
         outputs:
           plain: {from: plain, store: out/plain.zarr}
           pooled: {from: pooled, store: out/pooled.zarr}
           pooled_classifier: {from: pooled_classifier, store: out/pooled-classifier.zarr}
+          smoothed: {from: smoothed, store: out/smoothed.zarr}
         """)
     (folder / "wf.yaml").write_text(workflow)
     selpath.run(folder / "wf.yaml")
-    return {name: selpath.open_store(folder / f"out/{name}.zarr").load() for name in ("plain", "pooled")}
+    return {name: selpath.open_store(folder / f"out/{name}.zarr").load() for name in ("plain", "pooled", "smoothed")}
 
 
 def test_pooling_within_objects_lifts_every_class_over_the_plain_pipeline(scored):
@@ -97,6 +99,17 @@ def test_pooling_within_objects_lifts_every_class_over_the_plain_pipeline(scored
     assert float(pooled["overall_accuracy"]) >= 0.66, float(pooled["overall_accuracy"])
     assert float(pooled["accuracy"].min()) >= 0.45, pooled["accuracy"].values
     assert float(pooled["overall_accuracy"]) >= float(plain["overall_accuracy"]) + 0.12
+
+
+def test_smoothing_the_class_probabilities_lifts_the_pooled_pipeline(scored):
+    """Measured in one run: pooled 71.4 % (worst class 53.0 %); its class probabilities guided-filtered over 4 px
+    (the radius the training placement's cross-validation over row bands chose) 76.7 % (worst 57.3 %, the absorbing
+    m5), every class but m6 up (m6 91 → 89 %)."""
+    pooled, smoothed = scored["pooled"], scored["smoothed"]
+    assert float(smoothed["overall_accuracy"]) >= float(pooled["overall_accuracy"]) + 0.03
+    assert float(smoothed["overall_accuracy"]) >= 0.73, float(smoothed["overall_accuracy"])
+    assert float(smoothed["accuracy"].min()) >= 0.5, smoothed["accuracy"].values
+    assert smoothed.attrs["smooth_px"] == 4 and pooled.attrs["smooth_px"] == 0
 
 
 def test_the_never_trained_background_is_flagged(scored):
