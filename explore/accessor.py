@@ -23,7 +23,7 @@ import numpy as np
 import xarray as xr
 
 from selpath.stages._common import pixel_at
-from selpath.stages.procam._illumination import SYNC_DELAY_ATTRS, offset_delay
+from selpath.stages.procam._illumination import SYNC_DELAY_ATTRS, RigTiming, offset_delay
 from selpath.stages.procam.relight import (
     epipolar_image,
     ideal_frame,
@@ -141,7 +141,8 @@ class SelpathDataset(_Common):
         t = self._transport()
         return "offset" if "offset" in t.dims else "dv"
 
-    def _timing(self, scan_speed: float | None, sync_offset: float | None, line_time: float | None = 0.0) -> dict:
+    def _timing(self, scan_speed: float | None, sync_offset: float | None,
+                line_time: float | None = 0.0) -> RigTiming:
         attrs = self._obj.attrs
         timing = {"scan_speed": scan_speed if scan_speed is not None else attrs.get("scan_speed_px_per_us"),
                   "sync_offset": sync_offset if sync_offset is not None else attrs.get("sync_offset_us", 0.0),
@@ -150,7 +151,7 @@ class SelpathDataset(_Common):
         if missing:
             raise ValueError(f"the store does not record {', '.join(missing)} (attrs scan_speed_px_per_us, "
                              f"line_time_us): give {', '.join(missing)} [rows per µs, µs]")
-        return {k: float(v) for k, v in timing.items()}
+        return RigTiming(**{k: float(v) for k, v in timing.items()})
 
     def sync_delay(self, *, scan_speed: float | None = None, sync_offset: float | None = None) -> xr.DataArray:
         """The sync delay t_d [µs] at which each offset's light is centred in the exposure, t_d = o / v_p − t_o:
@@ -160,8 +161,7 @@ class SelpathDataset(_Common):
         if "sync_delay" in self._obj.coords and scan_speed is None and sync_offset is None:
             return self._obj["sync_delay"]
         timing = self._timing(scan_speed, sync_offset)
-        values = offset_delay(self._obj[dim].values, scan_speed=timing["scan_speed"],
-                              sync_offset=timing["sync_offset"])
+        values = offset_delay(self._obj[dim].values, scan_speed=timing.scan_speed, sync_offset=timing.sync_offset)
         return xr.DataArray(values, dims=dim, coords={dim: self._obj[dim]}, name="sync_delay",
                             attrs=dict(SYNC_DELAY_ATTRS))
 
@@ -191,7 +191,7 @@ class SelpathDataset(_Common):
         if "offset" not in t.dims:
             raise ValueError("ideal_frame needs a plane-to-ray transport (dims offset, row, col)")
         timing = self._timing(scan_speed, sync_offset, line_time)
-        return ideal_frame(t, delay, exposure, **timing)
+        return ideal_frame(t, delay, exposure, **timing.keywords())
 
     def epipolar(self, band: int = 0) -> xr.DataArray:
         """Light from the epipolar planes |offset| ≤ ``band`` [rows] (Eq. 35; 0: the sharpened epipolar image)."""

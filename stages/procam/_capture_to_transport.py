@@ -11,7 +11,7 @@ certified) the engine logs.
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import ClassVar
 
 import dask.array as da
@@ -29,6 +29,7 @@ from selpath.stages.procam._demux_problem import DemuxProblem, SeparableDemuxPro
 from selpath.stages.procam._demux_solver import DemuxADMM, batch_slots, observed
 from selpath.stages.procam._illumination import (
     SYNC_DELAY_ATTRS,
+    RigTiming,
     epipolar_boundary,
     offset_delay,
     plane_to_ray_illumination,
@@ -71,7 +72,33 @@ def sweep_offsets(delays, exposures, *, scan_speed: float, line_time: float, syn
     return np.arange(int(np.floor(low * scan_speed)), int(np.ceil(high * scan_speed)) + 1)
 
 
-def rig_timing(capture: xr.Dataset, calibration: xr.Dataset | None, sync_offset: float | None) -> dict:
+@dataclass(frozen=True)
+class Levels:
+    """The counts that scale raw frames to [0, 1]: ``dark`` level, ``full_scale`` (counts above dark of a
+    saturated pixel) and the ``saturation`` level (frames at or above it are clipped observations)."""
+
+    dark: float
+    full_scale: float
+    saturation: float
+
+
+@dataclass(frozen=True)
+class SweepFrames:
+    """A delay–exposure sweep as the demultiplexer sees it: ``delays`` and ``exposures`` [µs] over the capture's
+    (delay, exposure) grid, which frames it keeps, ``keep`` (those clear of the epipolar boundary by ``margin`` [µs]),
+    the ``offsets`` it solves for [rows] and the kept frames' illumination ``matrix`` (frames × offsets)."""
+
+    delays: np.ndarray
+    exposures: np.ndarray
+    keep: np.ndarray
+    margin: float
+    offsets: np.ndarray
+    matrix: np.ndarray
+
+
+def rig_timing(capture: xr.Dataset, calibration: xr.Dataset | None, sync_offset: float | None) -> RigTiming:
+    """The capture's nominal timing, or a scan calibration's (which wins), with ``sync_offset`` [µs] winning over
+    both where given."""
     attrs = capture.attrs
     for name in ("scan_speed_px_per_us", "line_time_us"):
         if name not in attrs:
@@ -82,11 +109,11 @@ def rig_timing(capture: xr.Dataset, calibration: xr.Dataset | None, sync_offset:
         speed, offset = float(calibration.attrs["scan_speed_px_per_us"]), float(calibration.attrs["sync_offset_us"])
     if sync_offset is not None:
         offset = sync_offset
-    return {"scan_speed": speed, "line_time": float(attrs["line_time_us"]), "sync_offset": offset}
+    return RigTiming(scan_speed=speed, line_time=float(attrs["line_time_us"]), sync_offset=offset)
 
 
-def levels_of(capture: xr.Dataset, full_scale: float | None) -> tuple[float, float, float]:
-    """(dark level, full scale, saturation level) in counts."""
+def levels_of(capture: xr.Dataset, full_scale: float | None) -> Levels:
+    """The capture's levels in counts (``full_scale`` given: it, else saturation − dark)."""
     dark = float(capture.attrs.get("dark_level_counts", 0.0))
     saturation = float(capture.attrs.get("saturation_counts", np.inf))
     if full_scale is None:
@@ -97,20 +124,23 @@ def levels_of(capture: xr.Dataset, full_scale: float | None) -> tuple[float, flo
         full_scale = saturation - dark
     if not full_scale > 0:
         raise StageError(Problem(f"full_scale is {full_scale}; it must be positive", fix="set full_scale > 0"))
-    return dark, float(full_scale), saturation
+    return Levels(dark=dark, full_scale=float(full_scale), saturation=saturation)
 
 
-def sweep_illumination(capture: xr.Dataset, timing: dict, boundary_margin_us: float | None, offsets: OffsetGrid | None):
-    """(delays, exposures, kept frames, margin, offset grid, illumination matrix) of a delay–exposure sweep."""
+def sweep_illumination(capture: xr.Dataset, timing: RigTiming, boundary_margin_us: float | None,
+                       offsets: OffsetGrid | None) -> SweepFrames:
+    """The capture's sweep: its frames clear of the epipolar boundary, the offset grid (``offsets``, else every
+    offset some kept frame lights) and the kept frames' illumination matrix."""
     delays, exposures = np.meshgrid(capture["delay"].values, capture["exposure"].values, indexing="ij")
-    margin = timing["line_time"] / 2 if boundary_margin_us is None else boundary_margin_us
-    keep = ~epipolar_boundary(delays, exposures, sync_offset=timing["sync_offset"], margin=margin)
+    margin = timing.line_time / 2 if boundary_margin_us is None else boundary_margin_us
+    keep = ~epipolar_boundary(delays, exposures, sync_offset=timing.sync_offset, margin=margin)
     if keep.sum() == 0:
         raise StageError(Problem(f"every frame lies within {margin} µs of the epipolar boundary",
                                  fix="lower boundary_margin_us, or sweep delays away from ±t_e/2"))
-    grid = offsets.values() if offsets is not None else sweep_offsets(delays[keep], exposures[keep], **timing)
-    matrix = plane_to_ray_illumination(delays[keep], exposures[keep], grid, **timing)
-    return delays, exposures, keep, margin, grid, matrix
+    grid = offsets.values() if offsets is not None else sweep_offsets(delays[keep], exposures[keep],
+                                                                      **timing.keywords())
+    matrix = plane_to_ray_illumination(delays[keep], exposures[keep], grid, **timing.keywords())
+    return SweepFrames(delays=delays, exposures=exposures, keep=keep, margin=margin, offsets=grid, matrix=matrix)
 
 
 def solve_pixels(solver: DemuxADMM, problem: DemuxProblem | SeparableDemuxProblem, data: np.ndarray,
@@ -152,12 +182,12 @@ def solve_pixels(solver: DemuxADMM, problem: DemuxProblem | SeparableDemuxProble
 
 
 def solve_band(solver: DemuxADMM, problem: DemuxProblem | SeparableDemuxProblem, frames: np.ndarray,
-               shape: tuple[int, int], *, dark: float, full_scale: float, saturation: float
-               ) -> tuple[np.ndarray, dict]:
+               shape: tuple[int, int], levels: Levels) -> tuple[np.ndarray, dict]:
     """Solve a band's (P, N) raw frames: (T (P, K) in counts, the per-pixel variables beside it).
 
     A frame at or above ``saturation`` is kept as a clipped observation (its light is at least the clip level,
     a one-sided penalty); a non-finite one is masked."""
+    dark, full_scale, saturation = levels.dark, levels.full_scale, levels.saturation
     finite = np.isfinite(frames)
     clipped = finite & (frames >= saturation)
     data = np.where(finite, (np.where(clipped, saturation, frames) - dark) / full_scale, 0.0)
@@ -236,23 +266,24 @@ TRANSPORT_ATTRS = {
 CAPTURE_ATTRS = ("rig", "scene", "effects", "simulated_scene", "projector_shape")
 
 
-def with_sync_delay(out: xr.Dataset, dim: str, timing: dict) -> xr.Dataset:
+def with_sync_delay(out: xr.Dataset, dim: str, timing: RigTiming) -> xr.Dataset:
     """``out`` with a ``sync_delay`` coordinate [µs] along its offset dim ``dim``: the delay t_d = o / v_p − t_o at
     which each offset's light is centred in the exposure (:func:`~selpath.stages.procam._illumination.offset_delay`,
     from the v_p and t_o the demultiplexing used), so a profile plots over the capture's own delay axis."""
-    delay = offset_delay(out[dim].values, scan_speed=timing["scan_speed"], sync_offset=timing["sync_offset"])
+    delay = offset_delay(out[dim].values, scan_speed=timing.scan_speed, sync_offset=timing.sync_offset)
     return out.assign_coords(sync_delay=(dim, delay, dict(SYNC_DELAY_ATTRS)))
 
 
-def transport_attrs(capture: xr.Dataset, *, timing: dict, delays, exposures, keep, margin: float,
-                    full_scale: float, **settings) -> dict:
+def transport_attrs(capture: xr.Dataset, *, timing: RigTiming, sweep: SweepFrames, full_scale: float,
+                    **settings) -> dict:
     """The attrs every transport store records: what it was captured of, its settings, the timing used and the
     frames dropped."""
-    dropped = [[float(d), float(e)] for d, e in zip(delays[~keep], exposures[~keep], strict=True)]
+    dropped = [[float(d), float(e)] for d, e in zip(sweep.delays[~sweep.keep], sweep.exposures[~sweep.keep],
+                                                     strict=True)]
     return {**{k: capture.attrs[k] for k in CAPTURE_ATTRS if k in capture.attrs}, **settings,
-            "scan_speed_px_per_us": timing["scan_speed"], "line_time_us": timing["line_time"],
-            "sync_offset_us": timing["sync_offset"],
-            "full_scale_counts": full_scale, "frames_dropped": dropped, "boundary_margin_us": margin}
+            "scan_speed_px_per_us": timing.scan_speed, "line_time_us": timing.line_time,
+            "sync_offset_us": timing.sync_offset,
+            "full_scale_counts": full_scale, "frames_dropped": dropped, "boundary_margin_us": sweep.margin}
 
 
 #: floor of ``usable_fraction``: below it most observations are saturated or missing, and T is a guess

@@ -13,7 +13,24 @@ depends only on the sweep, never on the pixel: the one matrix every pixel's demu
 
 from __future__ import annotations
 
+from dataclasses import asdict, dataclass
+
 import numpy as np
+
+
+@dataclass(frozen=True)
+class RigTiming:
+    """The scan timing a demultiplexing uses: v_p ``scan_speed`` [camera rows per µs], t_p ``line_time`` [µs] and
+    t_o ``sync_offset`` [µs] (the light of offset o is centred in the exposure at t_d = o / v_p − t_o)."""
+
+    scan_speed: float
+    line_time: float
+    sync_offset: float
+
+    def keywords(self) -> dict[str, float]:
+        """The three as the illumination model's keyword arguments
+        (:mod:`selpath.stages.procam._illumination`)."""
+        return asdict(self)
 
 
 def box_overlap(low_a, high_a, low_b, high_b) -> np.ndarray:

@@ -26,6 +26,7 @@ from selpath.stages._common import Dtype, DualSteps, FinishRounds, GapTol, MaxGa
 from selpath.stages.procam._capture_to_transport import (
     DEMUX_EXTRAS,
     TRANSPORT_ATTRS,
+    Levels,
     OffsetGrid,
     describe_transport,
     levels_of,
@@ -40,12 +41,12 @@ from selpath.stages.procam._demux_problem import DEFAULT_ALPHA, DEFAULT_BETA, De
 from selpath.stages.procam._demux_solver import DemuxADMM
 
 
-def _band(block: xr.Dataset, *, solver: DemuxADMM, problem: DemuxProblem, keep: np.ndarray, levels: dict
+def _band(block: xr.Dataset, *, solver: DemuxADMM, problem: DemuxProblem, keep: np.ndarray, levels: Levels
           ) -> xr.Dataset:
     image = block["image"].transpose("delay", "exposure", "row", "col").values
     shape = image.shape[-2:]
     frames = image.reshape(-1, shape[0] * shape[1])[keep.ravel()].T  # (P, N kept)
-    transport, per_pixel = solve_band(solver, problem, frames, shape, **levels)
+    transport, per_pixel = solve_band(solver, problem, frames, shape, levels)
     return xr.Dataset({"transport": (("offset", "row", "col"),
                                      transport.T.reshape(-1, *shape).astype(solver.dtype)),
                        **per_pixel}, coords={name: block[name] for name in ("row", "col") if name in block.coords})
@@ -163,19 +164,18 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
         raise StageError(Problem("this capture has a line dimension (a full-transport sweep)",
                                  fix="use demux_full for (delay, exposure, line, row, col) captures"))
     timing = rig_timing(capture, scan_calibration, sync_offset_us)
-    dark, scale, saturation = levels_of(capture, full_scale)
-    delays, exposures, keep, margin, grid, matrix = sweep_illumination(capture, timing, boundary_margin_us, offsets)
-    problem = DemuxProblem.build(matrix, alpha=alpha, beta=beta)
+    levels = levels_of(capture, full_scale)
+    sweep = sweep_illumination(capture, timing, boundary_margin_us, offsets)
+    grid = sweep.offsets
+    problem = DemuxProblem.build(sweep.matrix, alpha=alpha, beta=beta)
     stack = capture[["image"]].chunk({"delay": -1, "exposure": -1, "row": rows_per_tile, "col": -1})
     template = transport_template(capture, ("offset",), (grid.size,), stack.chunksizes["row"], dtype)
-    levels = {"dark": dark, "full_scale": scale, "saturation": saturation}
     solver = DemuxADMM(tol=tol, gap_tol=gap_tol, max_gap=max_gap, finish_rounds=finish_rounds, dual_steps=dual_steps,
                        max_iter=max_iter, polish_iter=polish_iter, polish_rounds=polish_rounds, dtype=dtype)
     out = xr.map_blocks(_band, stack.assign_attrs({}), kwargs={
-        "solver": solver, "problem": problem, "keep": keep, "levels": levels}, template=template)
+        "solver": solver, "problem": problem, "keep": sweep.keep, "levels": levels}, template=template)
     out = out.assign_coords(offset=("offset", grid, {"units": "px", "long_name": "projector row − camera row"}))
     out = with_sync_delay(out, "offset", timing)
-    out = describe_transport(out, int(keep.sum()), PLANE_TO_RAY_TRANSPORT, gap_tol)
-    return out.assign_attrs(transport_attrs(
-        capture, timing=timing, delays=delays, exposures=exposures, keep=keep, margin=margin,
-        full_scale=scale, alpha=alpha, beta=beta, **solver.settings()))
+    out = describe_transport(out, int(sweep.keep.sum()), PLANE_TO_RAY_TRANSPORT, gap_tol)
+    return out.assign_attrs(transport_attrs(capture, timing=timing, sweep=sweep, full_scale=levels.full_scale,
+                                            alpha=alpha, beta=beta, **solver.settings()))

@@ -20,6 +20,7 @@ from selpath.stages._common import Dtype, GapTol, MaxIter
 from selpath.stages.procam._capture_to_transport import (
     DEMUX_EXTRAS,
     TRANSPORT_ATTRS,
+    Levels,
     OffsetGrid,
     describe_transport,
     levels_of,
@@ -39,12 +40,12 @@ FULL_TILE_BYTES = 64 * 2**20
 
 
 def _band_full(block: xr.Dataset, *, solver: DemuxADMM, problem: SeparableDemuxProblem, keep: np.ndarray,
-               levels: dict, reach: int, centre_v: int, cells: np.ndarray) -> xr.Dataset:
+               levels: Levels, reach: int, centre_v: int, cells: np.ndarray) -> xr.Dataset:
     image = block["image"].transpose("line", "delay", "exposure", "row", "col").values
     n_lines, rows, cols = image.shape[0], *image.shape[-2:]
     frames = image.reshape(n_lines, -1, rows * cols)[:, keep.ravel()].reshape(-1, rows * cols).T  # line-major
     shape = (rows, cols)
-    transport, per_pixel = solve_band(solver, problem, frames, shape, **levels)
+    transport, per_pixel = solve_band(solver, problem, frames, shape, levels)
     k_u, k_v = problem.cells
     absolute = transport.reshape(-1, k_u, k_v)  # (P, u-cell, dv)
     # the direct correspondence u₀: the brightest u-cell on the epipolar row (dv = 0)
@@ -139,9 +140,9 @@ def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, 
         raise StageError(Problem("the capture has no attr 'line_width_px'", where="capture",
                                  fix="acquire with acquire_full_transport, or add the attr (docs/format.md)"))
     timing = rig_timing(capture, scan_calibration, sync_offset_us)
-    dark, scale, saturation = levels_of(capture, full_scale)
+    levels = levels_of(capture, full_scale)
     sweep = sweep_illumination(capture, timing, boundary_margin_us, offsets)
-    delays, exposures, keep, margin, grid, frame_matrix = sweep
+    keep, grid = sweep.keep, sweep.offsets
     lines, width = capture["line"].values, float(capture.attrs["line_width_px"])
     if lines.size > 1 and not np.allclose(np.diff(lines), np.diff(lines)[0]) and cell_width_px is None:
         raise StageError(Problem("the line positions are not evenly spaced, so the u-cell width is ambiguous",
@@ -150,7 +151,7 @@ def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, 
         cells, step = line_cells(lines, width, cell_width_px)
     except ValueError as error:
         raise StageError(Problem(str(error), where="capture line sweep", fix="set cell_width_px > 0")) from None
-    problem = SeparableDemuxProblem.build(line_illumination(lines, width, cells, step), frame_matrix,
+    problem = SeparableDemuxProblem.build(line_illumination(lines, width, cells, step), sweep.matrix,
                                           alpha=alpha, beta=beta)
     k_u = cells.size
     reach = k_u - 1 if du_reach_px is None else min(int(np.floor(du_reach_px / step)), k_u - 1)
@@ -169,7 +170,7 @@ def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, 
     out = xr.map_blocks(_band_full, stack.assign_attrs({}), kwargs={
         "solver": solver,
         "problem": problem,
-        "keep": keep, "levels": {"dark": dark, "full_scale": scale, "saturation": saturation}, "reach": reach,
+        "keep": keep, "levels": levels, "reach": reach,
         "centre_v": int(np.argmin(np.abs(grid))), "cells": cells}, template=template)
     out = out.assign_coords(
         du=("du", np.arange(-reach, reach + 1) * step, {"units": "px", "long_name": "projector column − u₀"}),
@@ -178,8 +179,7 @@ def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, 
     out["transport"].attrs = {"description": f"light from a {step:g}-column u-cell; NaN where no line reached"}
     out = describe_transport(out, int(keep.sum()) * capture.sizes["line"], FULL_TRANSPORT, gap_tol)
     return out.assign_attrs(transport_attrs(
-        capture, timing=timing, delays=delays, exposures=exposures, keep=keep, margin=margin,
-        full_scale=scale, alpha=alpha, beta=beta,
+        capture, timing=timing, sweep=sweep, full_scale=levels.full_scale, alpha=alpha, beta=beta,
         **{k: v for k, v in solver.settings().items() if k not in ("max_gap", "finish_rounds", "dual_steps")},
         line_width_px=width, cell_width_px=step, cells_px=cells.tolist(), lines=int(lines.size),
         **{name: capture.attrs[name] for name in ("projector_shape",) if name in capture.attrs}))
