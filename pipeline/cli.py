@@ -131,7 +131,7 @@ def import_provenance(spec: Path, store: Path, identity: dict) -> dict:
 @command()
 def schema() -> None:
     """Print the workflow file's JSON Schema, with every installed stage's settings, for YAML editors
-    (``selpath schema > workflow.schema.json``; see the README)."""
+    (``selpath schema > workflow.schema.json``; docs/tutorials/workflows.md)."""
     from selpath.pipeline.workflow_schema import workflow_schema
 
     print(json.dumps(workflow_schema(), indent=1, ensure_ascii=False))

@@ -84,13 +84,16 @@ def _bounds(metadata) -> list[str]:
 
 
 def _type_text(annotation: Any) -> str:
-    """``int``, ``float > 0``, ``float > 0 | None``, ``tuple[float, ...]``: a type with its ranges."""
+    """``int``, ``float > 0``, ``float > 0 | None``, ``tuple[float, ...]``, ``'scene' | 'image'``: a type with its
+    ranges, or the values it may take."""
     if typing.get_origin(annotation) is typing.Annotated:
         base, *metadata = typing.get_args(annotation)
         bounds = _bounds(metadata)
         return f"{_type_text(base)} {', '.join(bounds)}" if bounds else _type_text(base)
     if typing.get_origin(annotation) in (typing.Union, types.UnionType):
         return " | ".join("None" if a is type(None) else _type_text(a) for a in typing.get_args(annotation))
+    if typing.get_origin(annotation) is typing.Literal:  # the values a setting may take, as a workflow writes them
+        return " | ".join(repr(v) if isinstance(v, str) else str(v) for v in typing.get_args(annotation))
     return getattr(annotation, "__name__", None) or str(annotation).replace("typing.", "")
 
 

@@ -326,7 +326,7 @@ def _output_kind(workflow: Workflow, name: str, out: OutputSpec, data: xr.Datase
         makes = f"makes {' or '.join(declared)}" if declared else "declares none"
         raise StageError(Problem(f"the result of step {out.from_!r} {what}; its stage {stage.name!r} {makes}",
                                  path=f"outputs.{name}", fix="set `kind:` on the output, or label the result with a "
-                                 "kind its stage declares (@stage(..., kind=...), README: Writing a stage)"))
+                                 "kind its stage declares (@stage(..., kind=...): docs/tutorials/plugins.md)"))
     try:
         return resolve_kind(kind, workflow.registry)
     except StoreError as exc:

@@ -23,7 +23,7 @@ and, on every store's Dataset and its variables, the ``.selpath`` accessor (:mod
     transport.selpath.profile(x=0.5, y=0.4)                        # T over offset, with sync delay [µs]
     transport.selpath.relight(line=360).selpath.plot()             # the scene under one projector row
 
-For a plugin, :func:`stage` with :class:`CubeKind` and :class:`Variable` (README, "Writing a stage").
+For a plugin, :func:`stage` with :class:`CubeKind` and :class:`Variable` (docs/tutorials/plugins.md).
 """
 
 from __future__ import annotations

@@ -106,8 +106,9 @@ def test_demo_acquires_on_the_simulated_rig_into_its_own_folder(tmp_path):
 
 
 def _the_readmes_accessor_tour_runs_on_the_demo(out):
-    """The README's ``.selpath`` block, as a user pastes it, on the demo's stores (its paths made the test's)."""
-    text = (Path(__file__).resolve().parents[1] / "README.md").read_text()
+    """The exploring tutorial's ``.selpath`` block (docs/tutorials/exploring.md), as a user pastes it, on the demo's
+    stores (its paths made the test's)."""
+    text = (Path(__file__).resolve().parents[1] / "docs" / "tutorials" / "exploring.md").read_text()
     block = text.split("DataArray (`selpath.explore.accessor`")[1].split("```python")[1].split("```")[0]
     namespace = {"selpath": selpath}
     exec(block.replace("selpath-demo/", f"{out}/"), namespace)  # the README's own code

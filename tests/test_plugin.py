@@ -1,5 +1,5 @@
-"""The README's plugin example, installed as a package of its own, stores its output in a workflow like a built-in
-stage does: the code and pyproject.toml are read from the README itself, built with pip (offline, into a folder of
+"""The plugin tutorial's example (docs/tutorials/plugins.md), installed as a package of its own, stores its output in
+a workflow like a built-in stage does: the code and pyproject.toml are read from the tutorial itself, built with pip (offline, into a folder of
 their own) and found by the real entry-point machinery in a fresh interpreter."""
 
 from __future__ import annotations
@@ -22,10 +22,8 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def readme_blocks() -> dict[str, str]:
-    """The python, toml and yaml blocks of the README's "Writing a stage" section."""
-    text = (ROOT / "README.md").read_text()
-    section = text[text.index("## Writing a stage"):]
-    section = section[:section.index("\n## ", 4)]
+    """The python, toml and yaml blocks of the plugin tutorial."""
+    section = (ROOT / "docs" / "tutorials" / "plugins.md").read_text()
     return {lang: code for lang, code in re.findall(r"```(\w+)\n(.*?)```", section, flags=re.S)}
 
 

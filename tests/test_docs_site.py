@@ -1,0 +1,87 @@
+"""The documentation site (docs/, Sphinx with MyST): every registered stage, cube kind and shipped workflow has a
+page generated from the code, each setting's row saying what the registry says, and the check .ci/docs runs on the
+built site (every page in headless Chromium) catches what it must. .ci/docs itself builds the site with warnings as
+errors, its notebooks executed and every shipped workflow run for the gallery."""
+
+from __future__ import annotations
+
+import shutil
+import sys
+from pathlib import Path
+
+import pytest
+
+from selpath import workflows
+from selpath.pipeline.constraints import describe
+from selpath.pipeline.reference import _cell, markdown, write_pages
+from selpath.pipeline.registry import default_registry
+
+ROOT = Path(__file__).resolve().parents[1]
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+
+
+@pytest.fixture(scope="module")
+def pages(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("generated")
+    return folder, write_pages(folder)
+
+
+def test_every_stage_kind_and_shipped_workflow_has_its_page(pages):
+    folder, written = pages
+    registry = default_registry()
+    assert {p.stem for p in (folder / "stages").glob("*.md")} == set(registry.names()) | {"index"}
+    assert {p.stem for p in (folder / "kinds").glob("*.md")} == set(registry.kinds) | {"index"}
+    assert {p.stem for p in (folder / "workflows").glob("*.md")} == set(workflows.names()) | {"index"}
+    assert len(written) == len(registry.names()) + len(registry.kinds) + len(workflows.names()) + 3
+    index = (folder / "stages" / "index.md").read_text()
+    assert all(f"[`{name}`]({name}.md)" in index for name in registry.names())
+
+
+def test_a_stage_page_says_what_the_registry_says(pages):
+    """Every setting of classify_materials is a row with its type and range, its default and its description, as
+    `selpath stages classify_materials` prints them; the Parameters section is not repeated below."""
+    folder, _ = pages
+    stage = default_registry()["classify_materials"]
+    page = (folder / "stages" / "classify_materials.md").read_text()
+    for name, field in stage.params.model_fields.items():
+        default = "required" if field.is_required() else f"`{field.default!r}`"
+        row = next(line for line in page.splitlines() if line.startswith(f"| `{name}` |"))
+        assert f"| {_cell(describe(field))} | {default} |" in row, row
+        assert markdown(" ".join(field.description.split()))[:40] in row
+    assert "| `labels` | 'scene' \\| 'image' \\| None | `None` |" in page
+    assert "| `profiles` | required |" in page and "[`material_classification`]" in page
+    assert "----------" not in page and "Parameters" not in page
+
+
+def test_a_workflow_page_cites_the_thesis_and_links_each_step_to_its_stage(pages):
+    folder, _ = pages
+    page = (folder / "workflows" / "procam-vein.md").read_text()
+    assert "**Thesis** §5.4.7, Fig. 49" in page
+    assert "| `choice` | [`choose_delay`](../stages/choose_delay.md) |" in page
+    assert workflows.path("procam-vein").read_text().rstrip() in page
+
+
+def test_docstring_markup_becomes_markdown():
+    assert markdown(":func:`~selpath.a.b` and :class:`x.Y` and ``z``") == "`b` and `x.Y` and `z`"
+
+
+@pytest.mark.skipif(CHROMIUM is None, reason="no Chromium here (.ci/run installs Debian's chromium)")
+def test_the_site_check_names_console_errors_and_requests_off_the_machine(tmp_path):
+    """docs/check_site.py, which .ci/docs runs on the built site: a clean page passes; a page whose script throws, one
+    that logs an error and one that asks for a file off the machine are each named with what went wrong."""
+    sys.path.insert(0, str(ROOT / "docs"))
+    try:
+        from check_site import problems
+    finally:
+        sys.path.remove(str(ROOT / "docs"))
+    (tmp_path / "clean.html").write_text("<html><body><p>fine</p></body></html>")
+    (tmp_path / "throws.html").write_text("<html><body><script>undefined_name()</script></body></html>")
+    (tmp_path / "logs.html").write_text("<html><body><script>console.error('broken')</script></body></html>")
+    (tmp_path / "fetches.html").write_text("<html><head><link rel=stylesheet href='https://example.invalid/a.css'>"
+                                           "</head><body></body></html>")
+    (tmp_path / "_static").mkdir()
+    (tmp_path / "_static" / "macros.html").write_text("<script>undefined_name()</script>")  # not a page: skipped
+    found = problems(tmp_path, CHROMIUM)
+    assert set(found) == {"throws.html", "logs.html", "fetches.html"}, found
+    assert "undefined_name" in " ".join(found["throws.html"]) and "broken" in " ".join(found["logs.html"])
+    assert "request off the machine: https://example.invalid/a.css" in found["fetches.html"]
