@@ -85,3 +85,18 @@ def test_the_site_check_names_console_errors_and_requests_off_the_machine(tmp_pa
     assert set(found) == {"throws.html", "logs.html", "fetches.html"}, found
     assert "undefined_name" in " ".join(found["throws.html"]) and "broken" in " ".join(found["logs.html"])
     assert "request off the machine: https://example.invalid/a.css" in found["fetches.html"]
+
+
+def test_the_project_files_agree_with_the_package():
+    """CITATION.cff (validated against the CFF 1.2.0 schema with cffconvert 2.0 when written) names the package's
+    version and licence; LICENSE is the BSD-3-Clause text pyproject.toml declares."""
+    import tomllib
+
+    import yaml
+
+    citation = yaml.safe_load((ROOT / "CITATION.cff").read_text())
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    assert citation["cff-version"] == "1.2.0" and citation["title"].startswith("selpath")
+    assert str(citation["version"]) == project["version"] and citation["license"] == project["license"]["text"]
+    assert all(ref["authors"] and ref["title"] for ref in citation["references"])
+    assert "Redistribution and use in source and binary forms" in (ROOT / "LICENSE").read_text()
