@@ -53,10 +53,36 @@ nb_execution_raise_on_error = True
 nb_merge_streams = True
 
 
+def _formats() -> dict:
+    """The file formats whose reference pages are generated from their models: the simulators' scene files and the
+    hardware rig files."""
+    from selpath.devices.hardware import HardwareRigConfig
+    from selpath.devices.procam_hardware import ProcamHardwareConfig
+    from selpath.devices.sim.procam_scene import ProcamScene
+    from selpath.devices.sim.scene import Scene
+
+    units = ("Every length, angle, duration and coefficient carries its unit as text (`\"20 mm\"`, `\"45 deg\"`, "
+             "`\"0.15 /mm\"`); a bare number where a unit is needed is an error naming the field. ")
+    return {
+        "scene": ("Tomography scene files", units + "The tomography simulator reads these files "
+                  "(`workflows/scenes/*.yaml`; `acquire_tomography` with `rig: sim`, `simulate_capture`); lengths "
+                  "are converted to mm, angles to degrees. The shipped `gelatin-bin.yaml` is an example.", Scene),
+        "procam-scene": ("Projector–camera scene files", units + "The projector–camera simulator reads these files "
+                         "(`acquire_plane_to_ray` and the other procam acquisitions with `rig: sim`); the shipped "
+                         "`book-candle-mirrorball.yaml` is an example.", ProcamScene),
+        "tomography-rig": ("Tomography rig files", "`acquire_tomography` with `rig: hardware` reads this file: the "
+                           "rotary stage, the camera and the geometry every capture records "
+                           "([devices](../../devices.md)).", HardwareRigConfig),
+        "procam-rig": ("Projector–camera rig files", "The procam acquisitions with `rig: hardware` read this file: "
+                       "the sync controller, the camera and the scan timing ([devices](../../devices.md)).",
+                       ProcamHardwareConfig),
+    }
+
+
 def _generate(app) -> None:
     """Write the generated pages and copy the notebooks in, before Sphinx reads the sources."""
     runs = os.environ.get("SELPATH_DOCS_RUNS")
-    write_pages(DOCS / "generated", runs=Path(runs) if runs else None)
+    write_pages(DOCS / "generated", runs=Path(runs) if runs else None, formats=_formats())
     target = DOCS / "generated" / "notebooks"
     target.mkdir(parents=True, exist_ok=True)
     for notebook in sorted((ROOT / "notebooks").glob("*.ipynb")):

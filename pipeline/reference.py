@@ -115,6 +115,87 @@ def kind_page(kind: CubeKind, makers: list[str]) -> str:
     return "\n".join(lines)
 
 
+def _annotation_text(annotation, queue: list) -> str:
+    """A field's type for people: a quantity as what it is with an example and its units, a nested model as a link
+    to its section (queued to be described), tuples and lists spelt out, ranges after the type."""
+    import types
+    import typing
+
+    import pydantic
+
+    origin, args = typing.get_origin(annotation), typing.get_args(annotation)
+    if origin is typing.Annotated:
+        base, *metadata = args
+        quantity = next((m for m in metadata if hasattr(m, "example") and hasattr(m, "units")), None)
+        bounds = [m for item in metadata for m in (getattr(item, "metadata", None) or [item])]
+        limits = ", ".join(f"{symbol} {getattr(m, attr):g}" for m in bounds for attr, symbol in
+                           (("gt", ">"), ("ge", "≥"), ("lt", "<"), ("le", "≤")) if hasattr(m, attr)
+                           and type(m).__name__.lower() == attr)
+        text = (f"{quantity.what} (`{quantity.example}`; {', '.join(quantity.units)})" if quantity
+                else _annotation_text(base, queue))
+        return f"{text} {limits}" if limits else text
+    if origin in (typing.Union, types.UnionType):
+        return " or ".join("null" if a is type(None) else _annotation_text(a, queue) for a in args)
+    if origin is typing.Literal:
+        return " or ".join(f"`{v}`" for v in args)
+    if origin is tuple:
+        return "[" + ", ".join(_annotation_text(a, queue) for a in args if a is not Ellipsis) + (
+            ", …]" if Ellipsis in args else "]")
+    if origin in (list, typing.List):  # noqa: UP006 (what typing.get_origin returns for list[...])
+        return f"list of {_annotation_text(args[0], queue)}"
+    if isinstance(annotation, type) and issubclass(annotation, pydantic.BaseModel):
+        if annotation not in queue:
+            queue.append(annotation)
+        return f"[{annotation.__name__}](#{annotation.__name__.lower()})"
+    return getattr(annotation, "__name__", str(annotation))
+
+
+def _default_text(field, annotation) -> str:
+    """A field's default as a file would write it: a quantity with its canonical unit (``0 mm``)."""
+    import typing
+
+    import pydantic
+
+    value = field.get_default(call_default_factory=True)
+    if isinstance(value, pydantic.BaseModel):
+        return "its defaults"
+    metadata = typing.get_args(annotation)[1:] if typing.get_origin(annotation) is typing.Annotated else ()
+    quantity = next((m for m in metadata if hasattr(m, "canonical")), None)
+    if quantity is not None and isinstance(value, float):
+        return f"`{value:g} {quantity.canonical}`"
+    return f"`{value!r}`"
+
+
+def pydantic_doc() -> str | None:
+    """pydantic's own BaseModel docstring (a model without one of its own inherits none: ``__doc__`` is None)."""
+    import pydantic
+
+    return pydantic.BaseModel.__doc__
+
+
+def model_page(title: str, intro: str, model) -> str:
+    """A file format defined by a pydantic ``model`` (a scene file, a rig file): one section per model class
+    reachable from it, one row per field with its type (quantities with their units), default and description."""
+    order, lines = [model], [f"# {title}", "", intro, ""]
+    for current in order:  # grows as fields name further models (each described once, in the order first met)
+        doc = inspect.cleandoc(current.__doc__ or "")
+        lines += [f"## {current.__name__}", ""]
+        if doc and current.__doc__ is not pydantic_doc():
+            lines += [markdown(doc.split("\n\n")[0].replace("\n", " ")), ""]
+        lines += ["| field | type | default | what it is |", "|---|---|---|---|"]
+        for name, field in current.model_fields.items():
+            annotation = field.annotation
+            if field.metadata:  # constraints pydantic moved off the annotation
+                import typing
+
+                annotation = typing.Annotated[(annotation, *field.metadata)]
+            default = "required" if field.is_required() else _default_text(field, annotation)
+            lines.append(f"| `{name}` | {_cell(_annotation_text(annotation, order))} | {_cell(default)} | "
+                         f"{_cell(field.description or '')} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
 def _opening(text: str) -> str:
     """A workflow file's opening comment, as one paragraph."""
     lines = []
@@ -210,11 +291,12 @@ def read_run(name: str, runs: Path, images: Path) -> Run | None:
 
 
 def write_pages(folder: Path, registry: StageRegistry | None = None, workflows: dict[str, Path] | None = None,
-                runs: Path | None = None) -> list[Path]:
+                runs: Path | None = None, formats: dict[str, tuple[str, str, type]] | None = None) -> list[Path]:
     """Write every stage's, kind's and workflow's page under ``folder`` (``stages/``, ``kinds/``, ``workflows/``,
     each with an ``index.md``), replacing what was there; the paths written. ``workflows``: name → file (default:
     the shipped ones); ``runs``: a folder where they were run (:func:`read_run`), whose times, summaries and
-    figures the gallery then shows."""
+    figures the gallery then shows; ``formats``: file name → (title, introduction, pydantic model) of the file
+    formats to describe (:func:`model_page`, under ``formats/``)."""
     from selpath import workflows as shipped
 
     registry = default_registry() if registry is None else registry
@@ -260,4 +342,6 @@ def write_pages(folder: Path, registry: StageRegistry | None = None, workflows: 
               f"{'—' if done[n] is None else f'{done[n].seconds:.0f} s'} |" for n, p in workflows.items()]
     index += ["", "```{toctree}", ":hidden:", "", *workflows, "```", ""]
     write(folder / "workflows" / "index.md", "\n".join(index))
+    for name, (title, intro, model) in (formats or {}).items():
+        write(folder / "formats" / f"{name}.md", model_page(title, intro, model))
     return written

@@ -100,3 +100,34 @@ def test_the_project_files_agree_with_the_package():
     assert str(citation["version"]) == project["version"] and citation["license"] == project["license"]["text"]
     assert all(ref["authors"] and ref["title"] for ref in citation["references"])
     assert "Redistribution and use in source and binary forms" in (ROOT / "LICENSE").read_text()
+
+
+def test_a_file_format_page_gives_every_field_its_unit_and_every_model_its_section():
+    """The tomography scene file's page (docs/conf.py generates it from the model selpath.devices.sim.scene.Scene): every model
+    reachable from Scene has its section, a length field its units and example, a default its canonical unit."""
+    import typing
+
+    import pydantic
+
+    from selpath.devices.sim.scene import Scene
+    from selpath.pipeline.reference import model_page
+
+    page = model_page("Scene files", "intro", Scene)
+    reachable, stack = set(), [Scene]
+    while stack:  # every model class a field's annotation names, however nested (brute force over the annotations)
+        model = stack.pop()
+        if model in reachable:
+            continue
+        reachable.add(model)
+        for field in model.model_fields.values():
+            todo = [field.annotation]
+            while todo:
+                a = todo.pop()
+                if isinstance(a, type) and issubclass(a, pydantic.BaseModel):
+                    stack.append(a)
+                todo.extend(typing.get_args(a))
+    assert {line[3:] for line in page.splitlines() if line.startswith("## ")} == {m.__name__ for m in reachable}
+    light = page[page.index("## Light"):].split("## ", 2)[1]
+    assert "| `distance` | a length (`20 mm`; m, cm, mm, um) > 0 | required |" in light
+    assert "| `height` | a length (`20 mm`; m, cm, mm, um) | `0 mm` |" in light
+    assert "[SceneObject](#sceneobject)" in page and "| `sensor` | [Sensor](#sensor) | its defaults |" in page

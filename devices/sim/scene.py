@@ -55,12 +55,24 @@ def unit_parser(units: dict[str, float], example: str, what: str):
     return pydantic.BeforeValidator(parse)
 
 
+@dataclasses.dataclass(frozen=True)
+class Quantity:
+    """What a quantity field reads, for people and for the generated docs (``selpath.pipeline.reference``): ``what``
+    it is, an ``example``, the ``units`` it accepts and the ``canonical`` one the simulator works in."""
+
+    what: str
+    example: str
+    units: tuple[str, ...]
+    canonical: str
+
+
 def quantity(units: dict[str, float], example: str, what: str):
     """A float read as ``<number> <unit>`` (:func:`unit_parser`) and dumped to JSON in the canonical unit (the one
     of factor 1), so that a model dumped with ``model_dump(mode="json")`` validates again."""
     canonical = next(unit for unit, factor in units.items() if factor == 1.0)
     serializer = pydantic.PlainSerializer(lambda value: f"{value!r} {canonical}", when_used="json")
-    return Annotated[float, unit_parser(units, example, what), serializer]
+    return Annotated[float, unit_parser(units, example, what), serializer,
+                     Quantity(what, example, tuple(units), canonical)]
 
 
 Length = quantity(_TO_MM, "20 mm", "a length")
