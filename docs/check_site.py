@@ -16,6 +16,7 @@ def problems(site: Path, chromium: str) -> dict[str, list[str]]:
     """Page (relative path) → what went wrong loading it; empty when every page loads cleanly."""
     from playwright.sync_api import sync_playwright
 
+    site = Path(site).resolve()  # a file:// address needs an absolute path
     pages = sorted(p for p in site.rglob("*.html") if "_static" not in p.relative_to(site).parts)  # (theme macros)
     found: dict[str, list[str]] = {}
     with sync_playwright() as playwright:
@@ -39,7 +40,7 @@ def problems(site: Path, chromium: str) -> dict[str, list[str]]:
 
 
 def main() -> int:
-    site = Path(sys.argv[1] if len(sys.argv) > 1 else "docs/_build/html")
+    site = Path(sys.argv[1] if len(sys.argv) > 1 else "docs/_build/html").resolve()
     chromium = shutil.which("chromium") or shutil.which("chromium-browser")
     if chromium is None:
         print("no Chromium: install Debian's chromium package (apt-get install chromium)", file=sys.stderr)

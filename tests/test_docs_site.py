@@ -66,7 +66,7 @@ def test_docstring_markup_becomes_markdown():
 
 
 @pytest.mark.skipif(CHROMIUM is None, reason="no Chromium here (.ci/run installs Debian's chromium)")
-def test_the_site_check_names_console_errors_and_requests_off_the_machine(tmp_path):
+def test_the_site_check_names_console_errors_and_requests_off_the_machine(tmp_path, monkeypatch):
     """docs/check_site.py, which .ci/docs runs on the built site: a clean page passes; a page whose script throws, one
     that logs an error and one that asks for a file off the machine are each named with what went wrong."""
     sys.path.insert(0, str(ROOT / "docs"))
@@ -81,7 +81,8 @@ def test_the_site_check_names_console_errors_and_requests_off_the_machine(tmp_pa
                                            "</head><body></body></html>")
     (tmp_path / "_static").mkdir()
     (tmp_path / "_static" / "macros.html").write_text("<script>undefined_name()</script>")  # not a page: skipped
-    found = problems(tmp_path, CHROMIUM)
+    monkeypatch.chdir(tmp_path.parent)  # as .ci/docs gives it: a path relative to the working folder
+    found = problems(Path(tmp_path.name), CHROMIUM)
     assert set(found) == {"throws.html", "logs.html", "fetches.html"}, found
     assert "undefined_name" in " ".join(found["throws.html"]) and "broken" in " ".join(found["logs.html"])
     assert "request off the machine: https://example.invalid/a.css" in found["fetches.html"]
@@ -103,8 +104,9 @@ def test_the_project_files_agree_with_the_package():
 
 
 def test_a_file_format_page_gives_every_field_its_unit_and_every_model_its_section():
-    """The tomography scene file's page (docs/conf.py generates it from the model selpath.devices.sim.scene.Scene): every model
-    reachable from Scene has its section, a length field its units and example, a default its canonical unit."""
+    """The tomography scene file's page (docs/conf.py generates it from the model selpath.devices.sim.scene.Scene):
+    every model reachable from Scene has its section, a length field its units and example, a default its canonical
+    unit."""
     import typing
 
     import pydantic
