@@ -85,9 +85,12 @@ def _generate(app) -> None:
     write_pages(DOCS / "generated", runs=Path(runs) if runs else None, formats=_formats())
     target = DOCS / "generated" / "notebooks"
     target.mkdir(parents=True, exist_ok=True)
-    for notebook in sorted((ROOT / "notebooks").glob("*.ipynb")):
+    sources = sorted((ROOT / "notebooks").glob("*.ipynb"))
+    for notebook in sources:
         if not (target / notebook.name).is_file() or (target / notebook.name).read_bytes() != notebook.read_bytes():
             shutil.copyfile(notebook, target / notebook.name)
+    for stale in set(target.glob("*.ipynb")) - {target / n.name for n in sources}:  # a notebook renamed or removed
+        stale.unlink()
     os.environ.setdefault("SELPATH_DEMO", str(DOCS / "_build" / "notebook-runs"))
 
 

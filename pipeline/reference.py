@@ -2,7 +2,7 @@
 does, its data inputs, its settings with their types, ranges, defaults and units, the kinds it makes and their
 variables), one per cube kind, and one per shipped workflow (what it reproduces, its steps, its outputs and the
 summary lines of its report). ``docs/conf.py`` writes them when the site is built (:func:`write_pages`), so they
-cannot drift from the code; ``tests/test_reference.py`` checks that every stage, kind and shipped workflow has one.
+cannot drift from the code; ``tests/test_docs_site.py`` checks that every stage, kind and shipped workflow has one.
 
 Pages are MyST Markdown. A docstring's reST (``:func:`x```, ````x````) becomes Markdown code spans; its numpydoc
 ``Parameters`` section is not repeated (each setting's row carries its description).
@@ -293,7 +293,8 @@ def read_run(name: str, runs: Path, images: Path) -> Run | None:
 def write_pages(folder: Path, registry: StageRegistry | None = None, workflows: dict[str, Path] | None = None,
                 runs: Path | None = None, formats: dict[str, tuple[str, str, type]] | None = None) -> list[Path]:
     """Write every stage's, kind's and workflow's page under ``folder`` (``stages/``, ``kinds/``, ``workflows/``,
-    each with an ``index.md``), replacing what was there; the paths written. ``workflows``: name → file (default:
+    each with an ``index.md``), replacing what was there (pages and figures of what no longer exists are removed);
+    the paths written. ``workflows``: name → file (default:
     the shipped ones); ``runs``: a folder where they were run (:func:`read_run`), whose times, summaries and
     figures the gallery then shows; ``formats``: file name → (title, introduction, pydantic model) of the file
     formats to describe (:func:`model_page`, under ``formats/``)."""
@@ -344,4 +345,15 @@ def write_pages(folder: Path, registry: StageRegistry | None = None, workflows: 
     write(folder / "workflows" / "index.md", "\n".join(index))
     for name, (title, intro, model) in (formats or {}).items():
         write(folder / "formats" / f"{name}.md", model_page(title, intro, model))
+    # what an earlier build wrote for a stage, kind, workflow or format that is gone (renamed, a plugin removed):
+    # Sphinx would read it and warn that no toctree holds it
+    kept = set(written) | {folder / "workflows" / "figures" / name for name, run in done.items() if run and run.figures}
+    for part in ("stages", "kinds", "workflows", "formats"):
+        for stale in sorted((folder / part).glob("*.md")) if (folder / part).is_dir() else ():
+            if stale not in kept:
+                stale.unlink()
+    figures = folder / "workflows" / "figures"
+    for stale in sorted(figures.iterdir()) if figures.is_dir() else ():
+        if stale not in kept:
+            shutil.rmtree(stale)
     return written

@@ -37,6 +37,22 @@ def test_every_stage_kind_and_shipped_workflow_has_its_page(pages):
     assert all(f"[`{name}`]({name}.md)" in index for name in registry.names())
 
 
+def test_pages_of_what_no_longer_exists_are_removed(tmp_path):
+    """A stage, kind or workflow gone since the last build (renamed, a plugin uninstalled) leaves no page behind:
+    Sphinx would read it and warn that no toctree holds it. A file of another kind is left alone."""
+    write_pages(tmp_path)
+    (tmp_path / "stages" / "renamed_stage.md").write_text("# old")
+    (tmp_path / "workflows" / "old-workflow.md").write_text("# old")
+    (tmp_path / "workflows" / "figures" / "old-workflow").mkdir(parents=True)
+    (tmp_path / "stages" / "notes.txt").write_text("kept")
+    written = write_pages(tmp_path)
+    assert not (tmp_path / "stages" / "renamed_stage.md").exists()
+    assert not (tmp_path / "workflows" / "old-workflow.md").exists()
+    assert not (tmp_path / "workflows" / "figures" / "old-workflow").exists()
+    assert (tmp_path / "stages" / "notes.txt").exists()
+    assert set(written) == set(tmp_path.rglob("*.md"))
+
+
 def test_a_stage_page_says_what_the_registry_says(pages):
     """Every setting of classify_materials is a row with its type and range, its default and its description, as
     `selpath stages classify_materials` prints them; the Parameters section is not repeated below."""

@@ -73,7 +73,7 @@ def guided_smooth(scores: np.ndarray, area: np.ndarray, usable: np.ndarray, radi
                   eps: float = GUIDED_EPS) -> np.ndarray:
     """Each class's score map of ``scores`` (row, col, class) filtered by a guided filter of ``radius`` [px] whose
     guide is log ``area`` (the regular image) scaled to [0, 1] over the ``usable`` pixels (so ``eps`` means the same
-    on any intensity scale); unusable pixels keep their scores out of the guide's range (its minimum) and score 0.
+    on any intensity scale); unusable pixels take the guide's minimum and score 0 in every class.
     Radius 0: unchanged.
 
     >>> scores = np.zeros((8, 8, 2), np.float32); scores[..., 0] = 1.0; scores[3, 3] = (0.0, 1.0)

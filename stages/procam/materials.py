@@ -315,6 +315,13 @@ def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scen
     # classes are indexed among those with training pixels (a label code no pixel carries is not a class): the
     # stored ``material`` coordinate and the SVMs' outputs then agree
     present, truth = np.unique(codes.ravel()[index] - 1, return_inverse=True)
+    splits = list(features.block_folds(folds, seed).split(values, truth, groups=blocks)) if smooth_px > 0 else []
+    if smooth_px > 0:  # a fold without a class would calibrate that class on placeholders (or fail inside sklearn)
+        lacking = sorted({names[present[k]] for fit, _ in splits for k in set(range(present.size)) - set(truth[fit])})
+        if lacking:
+            raise StageError(Problem(f"smooth_px: calibrating the class probabilities needs every class in every "
+                                     f"fold's training bands; {lacking} lie in too few bands of rows",
+                                     fix="label them over more rows, lower folds, or smooth_px: 0"))
     n_delay = values.shape[1]
     search = _fit(values, truth, {"svm__C": list(c_grid), "svm__gamma": [g / n_delay for g in gamma_grid]},
                   folds, blocks, seed)
@@ -325,9 +332,8 @@ def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scen
         from sklearn.base import clone
         from sklearn.calibration import CalibratedClassifierCV
 
-        models["probability"] = CalibratedClassifierCV(
-            clone(search.best_estimator_), method="sigmoid", ensemble=False,
-            cv=list(features.block_folds(folds, seed).split(values, truth, groups=blocks))).fit(values, truth)
+        models["probability"] = CalibratedClassifierCV(clone(search.best_estimator_), method="sigmoid",
+                                                       ensemble=False, cv=splits).fit(values, truth)
     model = skops.io.dumps(models)
     kept = [names[k] for k in present]
     standard = search.best_estimator_.named_steps["scale"].transform(values)

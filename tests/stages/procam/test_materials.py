@@ -214,6 +214,21 @@ def test_smoothed_probabilities_classify_a_new_capture_and_travel_in_the_store(t
         classify_materials(profiles, classifier, smooth_px=2)
 
 
+def test_smoothing_refuses_a_class_some_fold_cannot_calibrate(trained, tmp_path):
+    """A class labelled on one row lies in one band of rows, so a fold's training bands miss it and its Platt
+    sigmoid would be fitted on placeholders: refused before anything is fitted, naming the class."""
+    profiles, _ = trained
+    codes = np.zeros((profiles.sizes["row"], profiles.sizes["col"]), np.int16)
+    codes[20:100, 10:60] = 1
+    codes[20:100, 200:250] = 2
+    codes[50, 100:140] = 3
+    np.save(tmp_path / "labels.npy", codes)
+    settings = dict(labels="image", label_image=str(tmp_path / "labels.npy"), classes=("wide", "also wide", "one row"),
+                    samples_per_class=200)
+    with pytest.raises(StageError, match=r"\['one row'\] lie in too few bands of rows"):
+        train_material_classifier(profiles, **settings, smooth_px=2)
+
+
 def test_the_flag_rate_holds_on_a_capture_like_the_training_one(trained):
     """The same scene, another noise draw: the materials' pixels flagged are about flag_rate (1 %; measured 0.9 %),
     at most 3 % here."""
