@@ -77,7 +77,8 @@ def memory_problems(nbytes: float, what: str, fix: str = "") -> list[str]:
 _BOUNDS = ((Gt, "gt", ">"), (Ge, "ge", "≥"), (Lt, "lt", "<"), (Le, "le", "≤"))
 
 
-def _bounds(metadata) -> list[str]:
+def bounds_text(metadata) -> list[str]:
+    """A field's ranges as text (``> 0``, ``≤ 1``), from its annotation's metadata (pydantic's or annotated-types')."""
     items = [m for item in metadata for m in (getattr(item, "metadata", None) or [item])]  # Field(gt=0) holds Gt
     return [f"{symbol} {getattr(item, attr):g}" for item in items for cls, attr, symbol in _BOUNDS
             if isinstance(item, cls)]
@@ -88,7 +89,7 @@ def _type_text(annotation: Any) -> str:
     ranges, or the values it may take."""
     if typing.get_origin(annotation) is typing.Annotated:
         base, *metadata = typing.get_args(annotation)
-        bounds = _bounds(metadata)
+        bounds = bounds_text(metadata)
         return f"{_type_text(base)} {', '.join(bounds)}" if bounds else _type_text(base)
     if typing.get_origin(annotation) in (typing.Union, types.UnionType):
         return " | ".join("None" if a is type(None) else _type_text(a) for a in typing.get_args(annotation))
@@ -100,5 +101,5 @@ def _type_text(annotation: Any) -> str:
 def describe(field: Any) -> str:
     """A setting's type with its range, e.g. ``int ≥ 1`` or ``float ≥ 0, ≤ 1``, for ``selpath stages``."""
     text = _type_text(field.annotation)
-    bounds = _bounds(field.metadata)
+    bounds = bounds_text(field.metadata)
     return f"{text} {', '.join(bounds)}" if bounds else text

@@ -19,11 +19,10 @@ from pathlib import Path
 
 import yaml
 
-from selpath.pipeline.constraints import describe
+from selpath.pipeline.constraints import bounds_text, describe
 from selpath.pipeline.kinds import CubeKind
-from selpath.pipeline.registry import Stage, StageRegistry, default_registry
+from selpath.pipeline.registry import ROLE, Stage, StageRegistry, default_registry
 
-_ROLE = re.compile(r":[a-z]+(?::[a-z]+)?:`~?([^`]+)`")
 _SECTION = re.compile(r"^(\S[^\n]*)\n-{3,}\s*$", re.MULTILINE)
 #: the thesis's sections as a workflow's opening comment cites them (``§5.4.7``, ``Fig. 49``)
 _THESIS = re.compile(r"(?:§\s?\d+(?:\.\d+)*|Figs?\. \d+(?:[–-]\d+)?)")
@@ -35,7 +34,7 @@ def markdown(doc: str) -> str:
     >>> markdown("see :func:`~selpath.x.pool` and ``keep``")
     'see `pool` and `keep`'
     """
-    text = _ROLE.sub(lambda m: f"`{m.group(1).rsplit('.', 1)[-1] if m.group(0).count('~') else m.group(1)}`", doc)
+    text = ROLE.sub(lambda m: f"`{m.group(1).rsplit('.', 1)[-1] if m.group(0).count('~') else m.group(1)}`", doc)
     return re.sub(r"``([^`]+)``", r"`\1`", text)
 
 
@@ -127,10 +126,7 @@ def _annotation_text(annotation, queue: list) -> str:
     if origin is typing.Annotated:
         base, *metadata = args
         quantity = next((m for m in metadata if hasattr(m, "example") and hasattr(m, "units")), None)
-        bounds = [m for item in metadata for m in (getattr(item, "metadata", None) or [item])]
-        limits = ", ".join(f"{symbol} {getattr(m, attr):g}" for m in bounds for attr, symbol in
-                           (("gt", ">"), ("ge", "≥"), ("lt", "<"), ("le", "≤")) if hasattr(m, attr)
-                           and type(m).__name__.lower() == attr)
+        limits = ", ".join(bounds_text(metadata))
         text = (f"{quantity.what} (`{quantity.example}`; {', '.join(quantity.units)})" if quantity
                 else _annotation_text(base, queue))
         return f"{text} {limits}" if limits else text

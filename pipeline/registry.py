@@ -72,12 +72,12 @@ class Stage:
         return self.func(*args, **kwargs)
 
 
-_ROLE = re.compile(r":(?:func|class|mod|data|meth|attr|obj|exc):`~?([^`]+)`")
+ROLE = re.compile(r":(?:func|class|mod|data|meth|attr|obj|exc):`~?([^`]+)`")
 
 
 def plain_text(doc: str) -> str:
     """Docstring text for people: reST roles (``:func:`x```) and literals (````x````) as plain ``x``."""
-    return _ROLE.sub(lambda m: m.group(1).rsplit(".", 1)[-1] if m.group(0).count("~") else m.group(1),
+    return ROLE.sub(lambda m: m.group(1).rsplit(".", 1)[-1] if m.group(0).count("~") else m.group(1),
                      doc).replace("``", "")
 
 

@@ -221,6 +221,7 @@ def classify_materials(profiles: xr.Dataset, classifier: xr.Dataset, /, *, label
                                      "trained without them", where="classifier",
                                      fix="train it with smooth_px > 0, or classify with smooth_px: 0"))
         usable = np.asarray(profiles["flags"].values) == 0
+        profile = profile.load()  # read once: the probabilities and the novelty distance below both use it
         label = xr.DataArray(_smoothed_labels(models["probability"], profile, np.asarray(profiles["area"].values),
                                               usable, smooth_px), dims=FRAME)
     else:
