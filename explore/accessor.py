@@ -1,8 +1,8 @@
 """The ``.selpath`` accessor: selpath's cubes in the thesis's terms, on any store's Dataset and its variables.
 
-``import selpath`` registers it. Every method reads lazily and returns a labelled result (``units``, ``long_name``
-and a ``description`` of how it was made); nothing writes. What a store cannot know (a v_p for a transport made
-outside selpath, the projector's rows) is an explicit argument.
+``import selpath`` registers it (once xarray is imported). Every method reads lazily and returns a labelled result
+(``units``, ``long_name`` and a ``description`` of how it was made); nothing writes. What a store cannot know (a v_p
+for a transport made outside selpath, the projector's rows) is an explicit argument.
 
 One rule addresses pixels everywhere: ``row``/``col`` are array indices; ``x``/``y`` are the workflows' image
 fractions, each in [0, 1], and name the pixel ``row = min(⌊y·rows⌋, rows − 1)``, ``col = min(⌊x·cols⌋, cols − 1)``
@@ -19,19 +19,16 @@ fractions, each in [0, 1], and name the pixel ``row = min(⌊y·rows⌋, rows �
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 import xarray as xr
 
-from selpath.stages._common import pixel_at
-from selpath.stages.procam._illumination import SYNC_DELAY_ATTRS, RigTiming, offset_delay
-from selpath.stages.procam.relight import (
-    epipolar_image,
-    ideal_frame,
-    labelled,
-    non_epipolar_image,
-    pattern_rows,
-    relight_pattern,
-)
+if TYPE_CHECKING:
+    from selpath.stages.procam._illumination import RigTiming
+
+# The stages each method calls are imported by the method: this module is imported the moment xarray is (to register
+# the accessor), so it imports nothing of selpath's at its top (selpath/_after_import.py)
 
 #: the variable each kind is about, where a method needs one and none is named
 MAIN = {"plane_to_ray_transport": "transport", "full_transport": "transport", "plane_to_ray_capture": "image",
@@ -66,6 +63,8 @@ class _Common:
         if x is not None:
             if not (0 <= x <= 1 and 0 <= y <= 1):
                 raise ValueError(f"x = {x}, y = {y}: image fractions are in [0, 1]")
+            from selpath.stages._common import pixel_at
+
             return pixel_at(self._obj, (x, y))
         if not (0 <= row < sizes["row"] and 0 <= col < sizes["col"]):
             raise ValueError(f"pixel (row {row}, col {col}) is outside the {sizes['row']} × {sizes['col']} frame")
@@ -143,6 +142,8 @@ class SelpathDataset(_Common):
 
     def _timing(self, scan_speed: float | None, sync_offset: float | None,
                 line_time: float | None = 0.0) -> RigTiming:
+        from selpath.stages.procam._illumination import RigTiming
+
         attrs = self._obj.attrs
         timing = {"scan_speed": scan_speed if scan_speed is not None else attrs.get("scan_speed_px_per_us"),
                   "sync_offset": sync_offset if sync_offset is not None else attrs.get("sync_offset_us", 0.0),
@@ -157,6 +158,8 @@ class SelpathDataset(_Common):
         """The sync delay t_d [µs] at which each offset's light is centred in the exposure, t_d = o / v_p − t_o:
         the store's ``sync_delay`` coordinate, or computed from ``scan_speed`` v_p [rows/µs] and ``sync_offset``
         t_o [µs] (default: the store's attrs)."""
+        from selpath.stages.procam._illumination import SYNC_DELAY_ATTRS, offset_delay
+
         dim = self._offset_dim()
         if "sync_delay" in self._obj.coords and scan_speed is None and sync_offset is None:
             return self._obj["sync_delay"]
@@ -187,6 +190,8 @@ class SelpathDataset(_Common):
         """The frame an ideal rig records at sync delay ``delay`` and exposure ``exposure`` [µs] (no noise,
         clipping or jitter), through the illumination model the demultiplexer inverts
         (:func:`selpath.stages.procam.relight.ideal_frame`); timing from the store's attrs unless given."""
+        from selpath.stages.procam.relight import ideal_frame
+
         t = self._transport()
         if "offset" not in t.dims:
             raise ValueError("ideal_frame needs a plane-to-ray transport (dims offset, row, col)")
@@ -195,13 +200,19 @@ class SelpathDataset(_Common):
 
     def epipolar(self, band: int = 0) -> xr.DataArray:
         """Light from the epipolar planes |offset| ≤ ``band`` [rows] (Eq. 35; 0: the sharpened epipolar image)."""
+        from selpath.stages.procam.relight import epipolar_image
+
         return epipolar_image(self._plane_to_ray(), band)
 
     def non_epipolar(self, band: int = 0) -> xr.DataArray:
         """Light from the planes |offset| > ``band`` [rows] (Eq. 36)."""
+        from selpath.stages.procam.relight import non_epipolar_image
+
         return non_epipolar_image(self._plane_to_ray(), band)
 
     def _plane_to_ray(self) -> xr.DataArray:
+        from selpath.stages.procam.relight import labelled
+
         t = self._transport()
         if "du" in t.dims:
             t = labelled(t.sum("du").rename(dv="offset"), t, "transport summed over du", "")
@@ -214,6 +225,8 @@ class SelpathDataset(_Common):
         ``projector``: on the projector's rows (``projector_rows``, else the store's ``projector_shape``), averaged
         onto the camera rows each covers; ``camera``: on the transport's camera-rectified rows. A plane-to-ray
         transport takes row patterns (it holds no column); a full transport any 2-D pattern."""
+        from selpath.stages.procam.relight import pattern_rows, relight_pattern
+
         self._transport()
         n_rows = pattern_rows(self._obj, space, projector_rows)
         given = [pattern is not None, line is not None, rows is not None]

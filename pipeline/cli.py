@@ -6,28 +6,24 @@ import functools
 import json
 import shutil
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
-import dask
 import typer
 import typer.core
 import typer.models
 from rich.markup import escape
-from rich.padding import Padding
 from rich.table import Table
 
 from selpath import workflows as shipped
 from selpath.pipeline.cli_common import Command, Group, console, errors, fail, flag, guard
 from selpath.pipeline.cli_inspect import inspect
-from selpath.pipeline.compute import enable_compile_cache
-from selpath.pipeline.constraints import describe
-from selpath.pipeline.engine import RunReport, run_workflow
 from selpath.pipeline.errors import Problem, SelpathError, StoreError
-from selpath.pipeline.kinds import describe_kinds
-from selpath.pipeline.provenance import write_provenance
-from selpath.pipeline.registry import default_registry, plain_text
-from selpath.pipeline.report import report_tables, summary_lines, write_html
-from selpath.pipeline.spec import load_workflow
+
+if TYPE_CHECKING:
+    from selpath.pipeline.engine import RunReport
+
+# Each command imports what it runs (the engine, stores, the stage registry) when it runs: `--help`, `--version` and
+# a mistyped command answer without importing xarray, dask or JAX (benchmarks/cli_startup.py)
 
 # docstrings and help texts are Markdown: ``code`` renders as code, never as raw backticks
 app = typer.Typer(help="selpath: selected light path measurement, from capture to science.", cls=Group,
@@ -67,6 +63,8 @@ def _print_report(report: RunReport) -> None:
 
 def _print_results(workflow) -> tuple[list[str], list]:
     """The ``report:`` section's summary lines and tables, printed; returned for the page."""
+    from selpath.pipeline.report import report_tables, summary_lines
+
     summary, tables = summary_lines(workflow), report_tables(workflow)
     for line in summary:
         console.print(escape(line), highlight=False)
@@ -97,6 +95,10 @@ def run(
     Prints one heading per step (why it runs), then the steps' table and the `report:` section's summary and
     tables.
     """
+    from selpath.pipeline.compute import enable_compile_cache
+    from selpath.pipeline.engine import run_workflow
+    from selpath.pipeline.spec import load_workflow
+
     enable_compile_cache()
     if not file.exists() and file.suffix == "" and file.name in shipped.names():
         fail(SelpathError(f"{file} is a shipped workflow, not a file here: copy it to run it where its stores "
@@ -114,6 +116,8 @@ def run(
 
 
 def _write_report(workflow, result: RunReport, summary: list[str], tables: list) -> None:
+    from selpath.pipeline.report import write_html
+
     page = write_html(workflow, result, summary=summary, tables=tables)
     console.print(f"report: {escape(str(page))}")
 
@@ -170,6 +174,8 @@ def workflows(
 def validate(file: Annotated[Path, typer.Argument(help="workflow YAML file", metavar="FILE",
                                                  show_default=False)]) -> None:
     """Check a workflow without running it; lists every problem with file:line and the fix."""
+    from selpath.pipeline.spec import load_workflow
+
     with guard():
         workflow = load_workflow(file)
     steps = len(workflow.steps)
@@ -189,6 +195,10 @@ def import_(spec: Annotated[Path, typer.Argument(help="import spec (YAML): kind,
     the sources, and an existing store is never replaced. The store records its provenance: the spec's text, a
     SHA-256 of the spec and every frame file, the command and selpath's version (`selpath inspect STORE`).
     """
+    import dask
+
+    from selpath.pipeline.provenance import write_provenance
+    from selpath.pipeline.registry import default_registry
     from selpath.pipeline.store import to_store
 
     with guard():
@@ -213,6 +223,8 @@ def stages(
 ) -> None:
     """List the registered stages, one line each (a table in a terminal; piped, plain lines: name, module and summary
     separated by tabs); NAME (or --all) shows inputs, settings, defaults, units and docs."""
+    from selpath.pipeline.registry import default_registry, plain_text
+
     with guard():
         registry = default_registry()
     if name and name not in registry:
@@ -239,6 +251,11 @@ def stages(
 def _print_stage(s) -> None:
     """One stage in full: its summary, the kinds it makes, then each input and setting with its type, default and
     description."""
+    from rich.padding import Padding
+
+    from selpath.pipeline.constraints import describe
+    from selpath.pipeline.registry import plain_text
+
     console.print(f"[bold]{escape(s.name)}[/]  [dim]({escape(s.source)})[/]")
     console.print(escape(plain_text(s.summary)), highlight=False)
     makes = " or ".join(k.name for k in s.kinds) or "any kind (its result's selpath_kind attr names it)"
@@ -266,6 +283,9 @@ def kinds(
 ) -> None:
     """List the cube kinds the installed stages make (selpath's and plugins'), one line each; NAME shows its
     variables with dims and units, its coordinates' units and its required attrs."""
+    from selpath.pipeline.kinds import describe_kinds
+    from selpath.pipeline.registry import default_registry
+
     with guard():
         registry = default_registry()
     known = registry.kinds
@@ -286,6 +306,8 @@ def kinds(
 
 
 def _print_kind(kind, makers: list[str]) -> None:
+    from rich.padding import Padding
+
     console.print(f"[bold]{escape(kind.name)}[/]  [dim](made by {escape(', '.join(makers))})[/]")
     console.print(escape(kind.description), highlight=False)
     console.print("\n  [underline]variables[/]")
@@ -325,6 +347,10 @@ def demo(
 
     Writes every store and figure under `--out`, and each workflow's HTML report beside them.
     """
+    from selpath.pipeline.compute import enable_compile_cache
+    from selpath.pipeline.engine import run_workflow
+    from selpath.pipeline.spec import load_workflow
+
     enable_compile_cache()
     names = list(shipped.DEMO) if instrument == "all" else [instrument]
     if any(name not in shipped.DEMO for name in names):

@@ -8,20 +8,15 @@ import warnings
 from pathlib import Path
 from typing import Annotated
 
-import dask
-import numpy as np
 import typer
 from rich.markup import escape
 from rich.table import Table
 
-from selpath.pipeline.capture_store import forget_frames, missing_frames
 from selpath.pipeline.cli_common import console, errors, fail, flag, guard
 from selpath.pipeline.errors import SelpathError, StoreError
-from selpath.pipeline.integrity import open_group, resized_chunks, verify_store
-from selpath.pipeline.locks import store_lock
-from selpath.pipeline.provenance import archive_stores, read_provenance
-from selpath.pipeline.registry import resolve_kind
-from selpath.pipeline.store import is_complete, open_store
+
+# what reads stores (numpy, dask, zarr, xarray) is imported by the function that reads: the command line answers
+# --help and --version without them
 
 #: ``inspect`` computes valid shares by default for stores of at most this many values (reading more takes long)
 VALID_LIMIT = 2e8
@@ -29,6 +24,8 @@ VALID_LIMIT = 2e8
 
 def _print_archive(folder: Path) -> None:
     """One table of the stores under ``folder`` and where each came from (``selpath inspect FOLDER``)."""
+    from selpath.pipeline.provenance import archive_stores
+
     stores = archive_stores(folder)
     if not stores:
         fail(SelpathError(f"{folder} holds no selpath store (a folder whose zarr.json carries selpath_format)"))
@@ -64,6 +61,13 @@ def inspect(
     recorded size (with --verify: every chunk readable); 1: incomplete (frames missing, or no record that writing
     finished) or bad chunks; 2: it cannot be opened or breaks its kind's schema.
     """
+    import numpy as np
+
+    from selpath.pipeline.capture_store import missing_frames
+    from selpath.pipeline.integrity import resized_chunks, verify_store
+    from selpath.pipeline.provenance import read_provenance
+    from selpath.pipeline.store import is_complete, open_store
+
     if store.is_dir() and not (store / "zarr.json").exists():
         _print_archive(store)
         return
@@ -136,7 +140,12 @@ def inspect(
 
 def _describe_store(path: Path, ds, valid: bool | None, readable: bool) -> None:
     """Kind, dims, coordinates with units, attrs and each variable with units and valid share."""
+    import dask
+    import numpy as np
+
+    from selpath.pipeline.integrity import open_group
     from selpath.pipeline.quality import valid_shares
+    from selpath.pipeline.registry import resolve_kind
 
     kind = ds.attrs.get("selpath_kind")
     about = resolve_kind(kind, module=ds.attrs.get("selpath_kind_module")).description  # (opened: a known kind)
@@ -193,6 +202,9 @@ def _scalar_text(value) -> str:
 
 
 def _print_bad(bad: list, recapture_store: Path | bool, how: str = "verify") -> None:
+    from selpath.pipeline.capture_store import forget_frames
+    from selpath.pipeline.locks import store_lock
+
     console.print(f"{how}: {'[green]every chunk reads[/]' if not bad else f'[red]{len(bad)} bad chunk(s)[/]'}")
     for chunk in bad:
         console.print(f"  {escape(str(chunk))}")

@@ -30,6 +30,7 @@ from typing import Any
 import pydantic
 import xarray as xr
 
+from selpath.pipeline import manifest
 from selpath.pipeline.errors import Problem, SelpathError, StoreError
 from selpath.pipeline.kinds import CubeKind
 
@@ -263,8 +264,28 @@ class StageRegistry:
 
 @functools.cache
 def default_registry() -> StageRegistry:
-    """The stages installed in this environment (entry-point group ``selpath.stages``) and their kinds, cached."""
-    return StageRegistry.from_entry_points()
+    """The stages installed in this environment (entry-point group ``selpath.stages``) and their kinds, cached; the
+    installation's manifest of where each is declared is kept for :func:`registry_for`."""
+    registry = StageRegistry.from_entry_points()
+    manifest.write(ENTRY_POINT_GROUP, {s.name: s.func.__module__ for s in registry},
+                   {name: source.split(":")[0] for name, (_, source) in registry._kinds.items()})
+    return registry
+
+
+def registry_for(names: Iterable[str]) -> StageRegistry:
+    """A registry that holds the installed stages ``names`` (and every kind their modules declare), importing only
+    the modules that declare them where the installation's manifest (:mod:`selpath.pipeline.manifest`) says which;
+    else, or where a name is unknown to the manifest or its module, every installed stage (:func:`default_registry`,
+    which also names the unknown ones' nearest matches)."""
+    names = set(names)
+    known = manifest.read(ENTRY_POINT_GROUP)
+    if known is None or not names <= known["stages"].keys():
+        return default_registry()
+    try:
+        registry = StageRegistry.from_modules(sorted({known["stages"][n] for n in names}))
+    except Exception:  # noqa: BLE001 - a module that fails: the full registry names it and why
+        return default_registry()
+    return registry if all(n in registry for n in names) else default_registry()
 
 
 def resolve_kind(kind: str | CubeKind, registry: StageRegistry | None = None, *, module: str | None = None) -> CubeKind:

@@ -24,7 +24,7 @@ import pydantic
 from selpath.pipeline.constraints import PathMarker, describe
 from selpath.pipeline.errors import Problem, SpecError
 from selpath.pipeline.outputs import OutputPath, output_problems
-from selpath.pipeline.registry import Stage, StageRegistry, default_registry
+from selpath.pipeline.registry import Stage, StageRegistry, default_registry, registry_for
 from selpath.pipeline.remote import is_url, local_path, url_problems
 from selpath.pipeline.report_spec import ReportSpec, report_problems
 from selpath.pipeline.yaml_source import Located, format_path, parse_yaml, pydantic_message, read_source
@@ -151,8 +151,10 @@ class Workflow:
 
 def load_workflow(path_or_text: str | os.PathLike, registry: StageRegistry | None = None,
                   *, source: str | None = None) -> Workflow:
-    """Read, validate and wire a workflow file (or YAML text). Raises one SpecError listing every problem."""
-    registry = default_registry() if registry is None else registry
+    """Read, validate and wire a workflow file (or YAML text). Raises one SpecError listing every problem.
+
+    ``registry``: the stages to validate against; by default the installed stages the file names
+    (:func:`~selpath.pipeline.registry.registry_for`: only the modules declaring them are imported)."""
     text, source, base_dir = read_source(path_or_text, source)
     raw, located = parse_yaml(text, source)
     if not isinstance(raw, dict):
@@ -164,6 +166,8 @@ def load_workflow(path_or_text: str | os.PathLike, registry: StageRegistry | Non
             loc = tuple("with" if p == "with_" else "from" if p == "from_" else p for p in err["loc"])
             located.add(loc, pydantic_message(err))
         raise SpecError(located.problems) from None
+    if registry is None:  # the installed stages the file names: only their modules are imported (a manifest says which)
+        registry = registry_for(step.stage for step in spec.steps)
     steps = _check_steps(spec, raw, registry, located, base_dir)
     outputs = _check_outputs(spec, steps, located, base_dir, registry)
     self_written = _self_written_outputs(steps, outputs, located)

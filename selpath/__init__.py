@@ -24,29 +24,31 @@ and, on every store's Dataset and its variables, the ``.selpath`` accessor (:mod
     transport.selpath.relight(line=360).selpath.plot()             # the scene under one projector row
 
 For a plugin, :func:`stage` with :class:`CubeKind` and :class:`Variable` (docs/tutorials/plugins.md).
+
+``import selpath`` imports nothing heavy: each name here is imported when first used (SPEC 1's lazy loading, with
+``lazy_loader``), so that ``selpath --version`` and ``--help`` answer at once. The accessor is registered as soon as
+xarray is imported, before or after selpath (:mod:`selpath._after_import`).
 """
 
 from __future__ import annotations
 
 import os
+import sys
 from importlib.metadata import PackageNotFoundError, version
 
-import selpath.explore.accessor  # noqa: F401  (registers the .selpath accessor on xarray objects)
-from selpath.pipeline.engine import RunReport, run_workflow
-from selpath.pipeline.errors import (
-    ConfigError,
-    DeviceError,
-    EnvironmentFault,
-    Problem,
-    SelpathError,
-    SpecError,
-    StageError,
-    StoreError,
-)
-from selpath.pipeline.kinds import FORMAT_VERSION, CubeKind, Variable
-from selpath.pipeline.registry import StageRegistry, default_registry, stage
-from selpath.pipeline.spec import Workflow, load_workflow
-from selpath.pipeline.store import open_store, to_store
+import lazy_loader
+
+from selpath._after_import import after_import
+
+__getattr__, _, _lazy = lazy_loader.attach(__name__, submod_attrs={
+    "pipeline.engine": ["RunReport", "run_workflow"],
+    "pipeline.errors": ["ConfigError", "DeviceError", "EnvironmentFault", "Problem", "SelpathError", "SpecError",
+                        "StageError", "StoreError"],
+    "pipeline.kinds": ["FORMAT_VERSION", "CubeKind", "Variable"],
+    "pipeline.registry": ["StageRegistry", "default_registry", "stage"],
+    "pipeline.spec": ["Workflow", "load_workflow"],
+    "pipeline.store": ["open_store", "to_store"],
+})
 
 try:
     __version__ = version("selpath")
@@ -54,36 +56,30 @@ except PackageNotFoundError:  # a source tree that was never installed
     __version__ = "0+unknown"
 
 
+def _register_accessor() -> None:
+    import selpath.explore.accessor  # noqa: F401, PLC0415  (registers the .selpath accessor on xarray objects)
+
+
+after_import("xarray", _register_accessor)
+if os.environ.get("EAGER_IMPORT"):  # lazy_loader's switch: import everything now (tests check every name resolves)
+    for _name in _lazy:
+        getattr(sys.modules[__name__], _name)
+
+
 def run(file: str | os.PathLike, *, scheduler: str | None = None, force: bool = False, verify: bool = False,
-        progress: bool = False) -> RunReport:
+        progress: bool = False):
     """Validate and run the workflow ``file`` as ``selpath run FILE`` does: stale outputs are written, up-to-date
     ones reused. ``scheduler`` overrides the workflow's; ``force`` recomputes every output; ``verify`` reads every
     chunk of the outputs it would reuse first. Returns the :class:`RunReport` (which steps ran, what was written).
     Raises :class:`SpecError` for a file that does not validate (every problem at once)."""
+    from selpath.pipeline.engine import run_workflow
+    from selpath.pipeline.spec import load_workflow
+
     return run_workflow(load_workflow(file), scheduler=scheduler, reuse=not force, verify=verify, progress=progress)
 
 
-__all__ = [
-    "FORMAT_VERSION",
-    "ConfigError",
-    "CubeKind",
-    "DeviceError",
-    "EnvironmentFault",
-    "Problem",
-    "RunReport",
-    "SelpathError",
-    "SpecError",
-    "StageError",
-    "StageRegistry",
-    "StoreError",
-    "Variable",
-    "Workflow",
-    "__version__",
-    "default_registry",
-    "load_workflow",
-    "open_store",
-    "run",
-    "run_workflow",
-    "stage",
-    "to_store",
-]
+__all__ = sorted([*_lazy, "__version__", "run"])
+
+
+def __dir__() -> list[str]:
+    return list(__all__)

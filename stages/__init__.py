@@ -7,7 +7,7 @@ the solvers' :class:`Solution`, :class:`Result` codes and :class:`SolverError`, 
 :class:`UnsortedSweepWarning` a stage gives when it sorts a sweep.
 """
 
-from selpath.stages._common import UnsortedSweepWarning
-from selpath.stages._solution import Result, Solution, SolverError
+import lazy_loader
 
-__all__ = ["Result", "Solution", "SolverError", "UnsortedSweepWarning"]
+__getattr__, __dir__, __all__ = lazy_loader.attach(__name__, submod_attrs={
+    "_common": ["UnsortedSweepWarning"], "_solution": ["Result", "Solution", "SolverError"]})

@@ -41,6 +41,13 @@ SMALL_WORKFLOW = textwrap.dedent("""\
     """)
 
 
+@pytest.fixture(autouse=True, scope="session")
+def manifest_cache(tmp_path_factory):
+    """The stage manifest (selpath.pipeline.manifest) is kept in ~/.cache; tests keep theirs, and the commands they
+    start theirs, in a folder of the test run."""
+    os.environ["SELPATH_MANIFEST_CACHE"] = str(tmp_path_factory.mktemp("manifests"))
+
+
 @pytest.fixture(autouse=True)
 def no_compile_cache(monkeypatch):
     """The command line keeps compiled kernels in ~/.cache; tests leave the home folder (and JAX's config) alone."""

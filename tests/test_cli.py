@@ -176,7 +176,7 @@ def test_help_is_rendered_not_raw(command):
 def test_errors_keep_bracketed_text_and_never_show_a_traceback(tmp_path, monkeypatch):
     """Rich markup ate `[degree]` in errors ("expected one of  (fix…)"); an unexpected exception printed a
     traceback. Both now reach the user as one plain message."""
-    import selpath.pipeline.cli as cli
+    import selpath.pipeline.spec as spec
 
     store = tmp_path / "x.zarr"
     shown = runner.invoke(app, ["inspect", str(store)])
@@ -185,7 +185,7 @@ def test_errors_keep_bracketed_text_and_never_show_a_traceback(tmp_path, monkeyp
     def broken(*args, **kwargs):
         raise ValueError("units must be one of [degree] or [rad]")
 
-    monkeypatch.setattr(cli, "load_workflow", broken)
+    monkeypatch.setattr(spec, "load_workflow", broken)  # the command imports it when it runs
     result = runner.invoke(app, ["validate", str(tmp_path / "wf.yaml")])
     assert result.exit_code == 3 and "Traceback" not in result.output
     assert "unexpected ValueError: units must be one of [degree] or [rad] (this is a bug" in result.output.replace(

@@ -1,0 +1,93 @@
+"""Which installed module declares each stage and each cube kind, kept on disk, so that a command needing a few stages
+imports only their modules (the idea of napari's npe2 manifests, made here by importing every module once).
+
+A manifest maps stage names and cube kind names to the module (one named by a ``selpath.stages`` entry point) that
+declares them. The first full registry an installation builds (:func:`~selpath.pipeline.registry.default_registry`)
+writes it to ``$XDG_CACHE_HOME/selpath/manifests`` (``~/.cache/selpath/manifests``; the environment variable
+``SELPATH_MANIFEST_CACHE`` names another folder, or ``off``). Its file is named by a key made of the installed entry
+points, their distributions' versions, and the size and modification time of every module they name: installing,
+removing or editing a stage package gives a new key and so a new manifest, never a stale one. Even so it is only a
+hint: a stage it does not name, or that its module no longer declares, is looked for among every installed stage
+(:func:`~selpath.pipeline.registry.registry_for`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import json
+import os
+import tempfile
+from importlib.metadata import entry_points
+from pathlib import Path
+
+FORMAT = 1
+
+
+def folder() -> Path | None:
+    """Where manifests are kept; None when ``SELPATH_MANIFEST_CACHE=off``."""
+    setting = os.environ.get("SELPATH_MANIFEST_CACHE", "")
+    if setting.lower() == "off":
+        return None
+    if setting:
+        return Path(setting)
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "selpath" / "manifests"
+
+
+def _module_stamp(module: str) -> list:
+    """The module's file, size and modification time, found without importing it (only its parent packages)."""
+    try:
+        spec = importlib.util.find_spec(module)
+    except (ImportError, ValueError):  # a parent package fails to import: the full registry will say why
+        return [module, "unfindable"]
+    origin = getattr(spec, "origin", None)
+    if not origin or not os.path.exists(origin):
+        return [module, str(origin)]
+    stat = os.stat(origin)
+    return [module, origin, stat.st_size, stat.st_mtime_ns]
+
+
+def key(group: str) -> str:
+    """A digest of what the entry-point ``group`` installs: the entry points, their distributions and module files."""
+    points = sorted(entry_points(group=group), key=lambda e: (e.name, e.value))
+    record = [[p.name, p.value, p.dist.name if p.dist else "", p.dist.version if p.dist else "",
+               _module_stamp(p.value.split(":")[0])] for p in points]
+    text = json.dumps([FORMAT, group, record], sort_keys=True)
+    return hashlib.sha256(text.encode()).hexdigest()[:32]
+
+
+def _path(group: str) -> Path | None:
+    where = folder()
+    return None if where is None else where / f"{group}-{key(group)}.json"
+
+
+def read(group: str) -> dict[str, dict[str, str]] | None:
+    """The manifest of what ``group`` installs now (``{"stages": {name: module}, "kinds": {name: module}}``), or None
+    when none is kept for it (never written, unreadable, or the cache is off)."""
+    path = _path(group)
+    try:
+        data = json.loads(path.read_text()) if path is not None else None
+    except (OSError, ValueError):
+        return None
+    if not isinstance(data, dict) or not all(isinstance(data.get(k), dict) for k in ("stages", "kinds")):
+        return None
+    return {"stages": data["stages"], "kinds": data["kinds"]}
+
+
+def write(group: str, stages: dict[str, str], kinds: dict[str, str]) -> None:
+    """Keep the manifest of ``group``: stage and kind names → the module declaring each. A cache: a folder that cannot
+    be written (a read-only home) is passed over silently, and a manifest is replaced whole, never half-written."""
+    path = _path(group)
+    if path is None or read(group) == {"stages": stages, "kinds": kinds}:
+        return
+    text = json.dumps({"format": FORMAT, "stages": dict(sorted(stages.items())), "kinds": dict(sorted(kinds.items()))},
+                      indent=1)
+    handle = None
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile("w", dir=path.parent, suffix=".tmp", delete=False) as handle:
+            handle.write(text)
+        os.replace(handle.name, path)
+    except OSError:
+        if handle is not None:
+            Path(handle.name).unlink(missing_ok=True)

@@ -1,0 +1,152 @@
+"""What starting selpath imports (#57): ``import selpath`` and ``selpath --version``/``--help`` import no labelled-array
+or solver library; the ``.selpath`` accessor is there whenever xarray is, whichever came first; ``validate`` imports
+only the modules of the stages a workflow names (the manifest), and a manifest that lies costs time, never a wrong
+answer. Each check runs in a fresh interpreter (what is imported is the assertion; times are in
+benchmarks/cli_startup.py)."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import pytest
+
+from selpath import workflows
+from selpath.pipeline import manifest
+from selpath.pipeline.registry import ENTRY_POINT_GROUP, default_registry
+
+# (pydantic is not among them: typer imports it to render a command's help)
+HEAVY = ("xarray", "dask", "zarr", "jax", "numpy", "scipy", "matplotlib", "sklearn", "cv2")
+
+
+def _python(code: str, **env: str) -> dict:
+    """Run ``code`` in a fresh interpreter; it prints one JSON line, returned."""
+    done = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], capture_output=True, text=True,
+                          env={**os.environ, **env}, check=False)
+    assert done.returncode == 0, done.stderr[-3000:]
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def _heavy_imported() -> str:
+    return f"sorted({{m.split('.')[0] for m in sys.modules}} & set({HEAVY!r}))"
+
+
+@pytest.mark.parametrize("argv", [["--version"], ["--help"], ["validate", "--help"], ["nonsense"]])
+def test_the_command_line_answers_without_heavy_imports(argv):
+    seen = _python(f"""
+        import contextlib, io, json, sys
+        sys.argv = ["selpath", *{argv!r}]
+        from selpath.pipeline.cli import main
+        out = io.StringIO()
+        with contextlib.redirect_stdout(out), contextlib.redirect_stderr(out):
+            try:
+                main()
+            except SystemExit as exit:
+                code = exit.code
+        print(json.dumps({{"heavy": {_heavy_imported()}, "out": out.getvalue(), "code": code}}))
+        """)
+    assert seen["heavy"] == []
+    if argv == ["--version"]:
+        from selpath import __version__
+
+        assert seen["out"].strip() == f"selpath {__version__}" and seen["code"] == 0
+    elif argv == ["nonsense"]:
+        assert seen["code"] == 2 and "nonsense" in seen["out"]
+    else:
+        assert seen["code"] == 0 and "validate" in seen["out"]
+
+
+@pytest.mark.parametrize("order", ["selpath first", "xarray first", "a stage module first"])
+def test_the_accessor_is_there_whenever_xarray_is(order):
+    first = {"selpath first": "import selpath", "xarray first": "import xarray, selpath",
+             "a stage module first": "import selpath.stages.tomography.calibrate"}[order]
+    seen = _python(f"""
+        import json, sys
+        {first}
+        heavy = {_heavy_imported()}
+        import numpy as np, xarray as xr
+        T = xr.Dataset({{"transport": (("offset", "row", "col"), np.ones((3, 4, 5)))}}, coords={{"offset": [-1, 0, 1]}})
+        print(json.dumps({{"heavy": heavy, "pixel": T.selpath.pixel(x=0.5, y=1.0),
+                           "array": type(T.transport.selpath).__name__}}))
+        """)
+    assert seen["pixel"] == [3, 2] and seen["array"] == "SelpathArray"
+    if order == "selpath first":
+        assert seen["heavy"] == []
+
+
+def test_every_lazy_name_resolves():
+    """lazy_loader's EAGER_IMPORT imports every name at once: a name listed but missing fails here, not in a
+    user's notebook."""
+    seen = _python("""
+        import json, selpath, selpath.pipeline, selpath.stages
+        names = {m.__name__: [n for n in m.__all__ if getattr(m, n, None) is None] for m in
+                 (selpath, selpath.pipeline, selpath.stages)}
+        print(json.dumps({"missing": names, "dir": sorted(dir(selpath)) == sorted(selpath.__all__),
+                          "run": callable(selpath.run), "stage": selpath.stage.__module__}))
+        """, EAGER_IMPORT="1")
+    assert seen["missing"] == {"selpath": [], "selpath.pipeline": [], "selpath.stages": []}
+    assert seen["dir"] and seen["run"] and seen["stage"] == "selpath.pipeline.registry"
+
+
+def _validate_imports(path) -> dict:
+    return _python(f"""
+        import json, sys
+        from selpath.pipeline.spec import load_workflow
+        workflow = load_workflow({str(path)!r})
+        print(json.dumps({{"modules": sorted(m for m in sys.modules if m.startswith("selpath.stages.")),
+                           "stages": sorted(s.stage.name for s in workflow.steps.values())}}))
+        """)
+
+
+def test_validation_imports_only_the_stages_a_workflow_names(tmp_path, monkeypatch):
+    monkeypatch.setenv("SELPATH_MANIFEST_CACHE", str(tmp_path / "manifests"))
+    path = workflows.path("tomography-sim")
+    cold = _validate_imports(path)  # no manifest yet: every installed stage module, and the manifest is written
+    assert "selpath.stages.procam.demux" in cold["modules"]
+    assert list((tmp_path / "manifests").glob(f"{ENTRY_POINT_GROUP}-*.json"))
+    warm = _validate_imports(path)
+    assert warm["stages"] == cold["stages"]
+    assert "selpath.stages.procam.demux" not in warm["modules"]
+    assert "selpath.stages.tomography.reconstruct" in warm["modules"]
+    assert not any(m.startswith("selpath.stages.procam.") for m in warm["modules"])
+
+
+def test_a_manifest_that_lies_costs_time_never_an_answer(tmp_path, monkeypatch, small_workflow):
+    """A manifest naming the wrong module, or missing a stage: the full registry is consulted and the workflow
+    validates as it would have; an unknown stage still gets its did-you-mean."""
+    monkeypatch.setenv("SELPATH_MANIFEST_CACHE", str(tmp_path))
+    registry = default_registry()
+    stages = {s.name: "selpath.stages.io" for s in registry}  # every stage said to be in the wrong module
+    manifest.write(ENTRY_POINT_GROUP, stages, {})
+    assert manifest.read(ENTRY_POINT_GROUP)["stages"]["absorption"] == "selpath.stages.io"
+    from selpath.pipeline.spec import load_workflow
+
+    workflow = load_workflow(small_workflow)
+    assert workflow.steps["absorption"].stage is registry["absorption"]
+    manifest.write(ENTRY_POINT_GROUP, {"absorption": "selpath.stages.tomography.calibrate"}, {})  # one stage missing
+    assert load_workflow(small_workflow).steps["capture"].stage is registry["simulate_parallel_capture"]
+    text = small_workflow.read_text().replace("stage: absorption", "stage: absorptoin")
+    with pytest.raises(Exception, match="did you mean 'absorption'"):
+        load_workflow(text, source="typo.yaml")
+
+
+def test_the_manifest_key_changes_when_a_stage_module_changes(tmp_path, monkeypatch):
+    """Editing a stage module (its size or time) gives a new key, so its manifest is made again."""
+    module = tmp_path / "selpath_key_probe.py"
+    module.write_text("X = 1\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+
+    class Point:
+        name, value, dist = "probe", "selpath_key_probe", None
+
+    monkeypatch.setattr(manifest, "entry_points", lambda group: [Point()])
+    before = manifest.key("probe-group")
+    assert manifest.key("probe-group") == before
+    module.write_text("X = 22\n")
+    assert manifest.key("probe-group") != before
+    monkeypatch.setenv("SELPATH_MANIFEST_CACHE", "off")
+    manifest.write("probe-group", {"a": "b"}, {})
+    assert manifest.read("probe-group") is None
