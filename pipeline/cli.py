@@ -213,6 +213,21 @@ def import_(spec: Annotated[Path, typer.Argument(help="import spec (YAML): kind,
     sizes = ", ".join(f"{d} {n}" for d, n in ds.sizes.items())
     console.print(f"[green]ok[/]: {escape(str(store))}: {ds.attrs['selpath_kind']} ({escape(sizes)}); "
                   f"variables {escape(', '.join(map(str, ds.data_vars)))}")
+    _advise(store)
+
+
+def _advise(store: Path) -> None:
+    """The imported kind's data checks (what the frames contradict of the spec), printed as warnings; the store is
+    kept either way."""
+    from selpath.pipeline.registry import resolve_kind
+    from selpath.pipeline.store import open_store
+
+    with guard():
+        ds = open_store(store)
+        kind = resolve_kind(ds.attrs["selpath_kind"], module=ds.attrs.get("selpath_kind_module"))
+        for check in kind.data_checks:
+            for advice in check(ds):
+                errors.print(f"[yellow]warning:[/] {escape(advice)}", highlight=False, soft_wrap=True)
 
 
 @command()

@@ -101,6 +101,10 @@ class CubeKind:
     attrs: Mapping[str, str] = field(default_factory=dict)
     #: extra checks on attr values; each returns problems
     attr_checks: tuple[Callable[[Mapping], list[str]], ...] = ()
+    #: checks of a store's data against what its attrs state (a stated geometry its frames contradict), run by
+    #: ``selpath import`` once the frames are in: each takes the opened store and returns advice, one paragraph
+    #: each (what disagrees, by how much, the likely cause, the fix). They read data: workflows do not run them
+    data_checks: tuple[Callable[[xr.Dataset], list[str]], ...] = ()
     description: str = ""
     #: dims a cube may add before its variables' own, to stack cubes (sinograms and reconstructions: ``slice``)
     batch_dims: tuple[str, ...] = ()

@@ -26,6 +26,7 @@ from selpath.pipeline.kinds import ANGLE_UNITS, SENSOR_COUNTS, CubeKind, Variabl
 from selpath.pipeline.registry import stage
 from selpath.stages._common import read_file, sweep_log
 from selpath.stages._sweeps import Sweep
+from selpath.stages.tomography._axis_check import stated_axis_advice
 
 #: frames of the rotating object (DESIGN §2): what ``acquire_tomography``, the simulators and ``import_capture`` make
 TOMOGRAPHY_CAPTURE = CubeKind(
@@ -42,6 +43,7 @@ TOMOGRAPHY_CAPTURE = CubeKind(
     coord_units={"angle": ANGLE_UNITS},
     attrs=RIG_ATTRS,
     attr_checks=(camera_attr_problems,),
+    data_checks=(stated_axis_advice,),
 )
 
 

@@ -47,13 +47,14 @@ from selpath.pipeline.errors import Problem, StageError
 from selpath.pipeline.kinds import ANGLE_UNITS, CubeKind, Variable
 from selpath.pipeline.registry import stage
 from selpath.stages._common import require_variables, sorted_sweep
+from selpath.stages.tomography._axis_check import all_edges, full_turn, spread
 from selpath.stages.tomography._rig_fits import (
     Fit,
     LightData,
     fit_axis_column,
     fit_light_angle,
     light_slice_data,
-    silhouette_edges,
+    silhouette_edges,  # noqa: F401  (the module docstring names it; the tests import it here)
     with_axis,
 )
 from selpath.stages.tomography.acquire import TOMOGRAPHY_CAPTURE
@@ -101,16 +102,10 @@ MIN_PROFILE_DEPTH = 0.25
 
 # -- the stages ---------------------------------------------------------------------------------------------
 def _full_turn(angles: np.ndarray, what: str) -> None:
-    steps = np.diff(angles)
-    if len(angles) < 8 or not np.allclose(steps, steps[0], rtol=0, atol=1e-6) or \
-            abs(len(angles) * steps[0] - 360.0) > FULL_TURN_TOLERANCE * 360 + 1e-6:
+    if not full_turn(angles, FULL_TURN_TOLERANCE):
         raise StageError(Problem(f"calibrate_rig: {what} needs a full turn in equal steps; the capture's angles "
                                  f"are {angles[:3].round(3).tolist()} … {angles[-2:].round(3).tolist()} "
                                  f"({len(angles)} views)", fix="capture 0 ≤ φ < 360° in equal steps"))
-
-
-def _spread(n: int, count: int) -> np.ndarray:
-    return np.unique(np.linspace(0, n - 1, min(count, n)).round().astype(int))
 
 
 @stage("calibrate_rig", kind=RIG_CALIBRATION)
@@ -150,20 +145,20 @@ def calibrate_rig(capture: xr.Dataset, /, *, axis: bool = True, light_angle: boo
     angles = capture["angle"].values.astype(float)
     _full_turn(angles, "calibration")
     require_variables(capture, ("backlit",), "calibrate_rig")
-    edges = _all_edges(capture)  # one pass over the backlit frames serves both fits
+    edges = all_edges(capture)  # one pass over the backlit frames serves both fits
     geometry, axis_fit = stated, None
     if axis:
         candidates = np.flatnonzero(np.isfinite(edges).any(axis=(0, 2)))
         if not len(candidates):
             raise StageError(Problem("calibrate_rig: no backlit frame shows the object inside the image",
                                      fix="check the backlit and dark frames"))
-        axis_fit = fit_axis_column(edges[:, candidates[_spread(len(candidates), rows)]], angles, stated.camera)
+        axis_fit = fit_axis_column(edges[:, candidates[spread(len(candidates), rows)]], angles, stated.camera)
         geometry = dataclasses.replace(stated, camera=with_axis(stated.camera, axis_fit.value[0]))
     light_fit, profile = None, None
     if light_angle:
         require_variables(capture, ("target", "reference"), "calibrate_rig")
         lit = geometry.lit_rows()
-        lit = lit[_spread(len(lit), max(1, min(rows, 8)))]
+        lit = lit[spread(len(lit), max(1, min(rows, 8)))]
         flags_ok = absorption_stage(capture.isel(row=lit), min_signal=min_signal)
         values = flags_ok["absorption"].transpose("angle", "row", "col").values.astype(float)
         valid = (flags_ok["flags"].transpose("angle", "row", "col").values == 0) & np.isfinite(values)
@@ -204,16 +199,6 @@ def calibrate_rig(capture: xr.Dataset, /, *, axis: bool = True, light_angle: boo
         profile = (trials, cost, pairs)
         geometry = dataclasses.replace(geometry, light_angle_deg=theta_l)
     return _calibration_dataset(capture, stated, geometry, axis_fit, light_fit, profile)
-
-
-def _all_edges(capture: xr.Dataset) -> np.ndarray:
-    """:func:`silhouette_edges` of every backlit frame (dark subtracted), (angle, row, 2), lazily one task per angle
-    chunk and computed at once (the edges are small: two numbers per row and view)."""
-    signal = capture["backlit"] - capture["dark"] if "dark" in capture else capture["backlit"]
-    edges = xr.apply_ufunc(silhouette_edges, signal.transpose("angle", "row", "col").chunk({"row": -1, "col": -1}),
-                           input_core_dims=[["row", "col"]], output_core_dims=[["row", "side"]], dask="parallelized",
-                           output_dtypes=[np.float64], dask_gufunc_kwargs={"output_sizes": {"side": 2}})
-    return np.asarray(edges.transpose("angle", "row", "side").values)
 
 
 def _calibration_dataset(capture, stated: RigGeometry, geometry: RigGeometry, axis_fit: Fit | None,

@@ -6,6 +6,8 @@ within 3σ. The truth is the simulator's own geometry (``Scene.geometry``), neve
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 import xarray as xr
@@ -152,3 +154,69 @@ def test_bad_captures_say_why(miscalibrated):
     other = cap.assign_attrs(focal_length_px=cap.attrs["focal_length_px"] * 1.1)
     with pytest.raises(StageError, match="another rig"):
         apply_rig_calibration(other, cal)
+
+
+# -- the stated axis against the frames, at import (#57) ----------------------------------------------------------
+@pytest.mark.parametrize(("offset", "says"), [
+    (0.0, None), (0.03, None),  # within its uncertainty (measured ± 0.05 px): nothing to say
+    (-0.5, "state pixel_centres: half"),  # a renderer's principal point read in selpath's convention
+    (0.5, "leave pixel_centres out"),  # the other way round
+    (0.2, "correct principal_point_px"), (3.7, "correct principal_point_px")])
+def test_a_stated_axis_its_frames_contradict_is_named_with_its_likely_cause(offset, says):
+    """The axis's true column is (COLS − 1)/2 + offset, the records say (COLS − 1)/2: the advice names the offset
+    (the simulator's truth, within 3 of its stated uncertainties) and, for half a pixel, the convention."""
+    from selpath.stages.tomography._axis_check import stated_axis_advice
+
+    advice = stated_axis_advice(capture(scene(offset=offset), angles=np.arange(0.0, 360.0, 2.0)))
+    if says is None:
+        assert advice == []
+        return
+    (text,) = advice
+    assert says in text and "calibrate_rig" in text
+    found, std = (float(v) for v in re.search(r"is ([\d.]+) ± ([\d.]+) px", text).groups())
+    assert abs(found - abs(offset)) <= 3 * std
+    assert ("left" if offset > 0 else "right") in text
+
+
+def test_the_axis_check_says_nothing_where_the_frames_cannot_tell():
+    """A partial turn, no backlit frames, and an object centred on the axis (its edges never move, so their
+    quantisation, ± 0.29 px, hides half a pixel): no advice, never a false one."""
+    from selpath.stages.tomography._axis_check import stated_axis_advice
+
+    cap = capture(scene(offset=-0.5), angles=np.arange(0.0, 360.0, 2.0))
+    assert stated_axis_advice(cap.isel(angle=slice(0, 120))) == []
+    assert stated_axis_advice(cap.drop_vars("backlit")) == []
+    centred = capture(scene(offset=-0.5, centre=("0 mm", "0 mm")), angles=np.arange(0.0, 360.0, 2.0))
+    assert stated_axis_advice(centred) == []
+
+
+def test_selpath_import_warns_of_a_forgotten_pixel_centre_convention(tmp_path):
+    """Frames and a spec as a renderer writes them (principal point in its convention, pixel j centred at j + ½):
+    imported without ``pixel_centres: half``, the command warns and names it, and keeps the store; with it, no
+    warning."""
+    import yaml
+    from typer.testing import CliRunner
+
+    from selpath.pipeline.cli import app
+
+    spec = scene(offset=0.0, stated_angle=45.0)
+    cap = capture(spec, angles=np.arange(0.0, 360.0, 4.0)).compute()
+    for name in ("target", "reference", "backlit", "dark"):
+        np.save(tmp_path / f"{name}.npy", cap[name].values)
+    keep = ("camera_model", "light_angle_deg", "length_unit", "focal_length_px", "camera_distance", "light_kind",
+            "beam_height", "saturation_counts")
+    rendered = {"kind": "tomography_capture", "frames": {n: f"{n}.npy" for n in ("target", "reference", "backlit",
+                                                                                "dark")},
+                "angles_deg": {"start_deg": 0.0, "step_deg": 4.0, "count": cap.sizes["angle"]},
+                "principal_point_px": [float(v) + 0.5 for v in cap.attrs["principal_point_px"]],
+                **{k: cap.attrs[k].item() if hasattr(cap.attrs[k], "item") else cap.attrs[k] for k in keep}}
+    runner = CliRunner()
+    for convention, warned in ((None, True), ("half", False)):
+        text = dict(rendered) | ({"pixel_centres": convention} if convention else {})
+        (tmp_path / "spec.yaml").write_text(yaml.safe_dump(text, sort_keys=False))
+        store = tmp_path / f"imported-{convention}.zarr"
+        shown = runner.invoke(app, ["import", str(tmp_path / "spec.yaml"), str(store)], env={"COLUMNS": "300"})
+        assert shown.exit_code == 0, shown.output
+        assert store.exists() and ("warning:" in shown.output) == warned, shown.output
+        if warned:
+            assert "Half a pixel" in shown.output and "pixel_centres: half" in shown.output
