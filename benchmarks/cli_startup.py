@@ -1,9 +1,10 @@
 """How long the command line takes before it does anything (#57): ``selpath --version``, ``selpath --help``,
-``selpath validate`` on shipped workflows and ``import selpath``, each in a fresh interpreter (cold: nothing of
-selpath imported), the median of ``--runs``. Peers measured in the same run: the bare interpreter, and importing
-xarray alone (the floor of any command that must read a workflow's labelled arrays). The stage manifest is built
-once first (``selpath.pipeline.manifest``), as after the first command of an installation. Prints one line each, then
-``cli_startup: version_s=… help_s=… validate_tomography_s=… validate_procam_s=… import_s=…``.
+``selpath stages`` and ``selpath kinds`` (piped: plain lines), ``selpath validate`` on shipped workflows and
+``import selpath``, each in a fresh interpreter (cold: nothing of selpath imported), the median of ``--runs``. Peers
+measured in the same run: the bare interpreter, and importing xarray alone (the floor of any command that must read
+a workflow's labelled arrays). The stage manifest is built once first (``selpath.pipeline.manifest``), as after the
+first command of an installation. Prints one line each, then ``cli_startup: version_s=… help_s=… stages_s=…
+kinds_s=… validate_tomography_s=… validate_procam_s=… import_s=…``.
 
     python -m benchmarks.cli_startup [--runs 5]
 """
@@ -45,6 +46,8 @@ def main() -> None:
         "xarray": [*python, "import xarray"],
         "version": [*cli, "--version"],
         "help": [*cli, "--help"],
+        "stages": [*cli, "stages"],
+        "kinds": [*cli, "kinds"],
         "validate_tomography": [*cli, "validate", str(workflows.path("tomography-sim"))],
         "validate_procam": [*cli, "validate", str(workflows.path("procam-sim"))],
         "import": [*python, "import selpath"],

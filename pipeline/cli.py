@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import difflib
 import functools
 import json
 import shutil
@@ -198,14 +199,14 @@ def import_(spec: Annotated[Path, typer.Argument(help="import spec (YAML): kind,
     import dask
 
     from selpath.pipeline.provenance import write_provenance
-    from selpath.pipeline.registry import default_registry
+    from selpath.pipeline.registry import registry_for
     from selpath.pipeline.store import to_store
 
     with guard():
         if store.exists():
             raise StoreError(Problem("exists; selpath import writes a new store and never replaces one",
                                      where=str(store), fix="choose another path, or delete that store yourself"))
-        stage = default_registry()["import_capture"]
+        stage = registry_for(["import_capture"])["import_capture"]
         ds = stage.func(spec=str(spec))
         with dask.config.set(scheduler="threads"):
             to_store(ds, store, ds.attrs["selpath_kind"])
@@ -238,27 +239,32 @@ def stages(
 ) -> None:
     """List the registered stages, one line each (a table in a terminal; piped, plain lines: name, module and summary
     separated by tabs); NAME (or --all) shows inputs, settings, defaults, units and docs."""
-    from selpath.pipeline.registry import default_registry, plain_text
+    from selpath.pipeline.manifest import installed
 
     with guard():
-        registry = default_registry()
-    if name and name not in registry:
-        errors.print(f"[bold red]error:[/] unknown stage {escape(repr(name))}; known: {', '.join(registry.names())}")
+        known = installed()["stages"]  # the manifest: no stage module imported to list them
+    if name and name not in known:
+        close = difflib.get_close_matches(name, list(known), n=3)
+        errors.print(f"[bold red]error:[/] unknown stage {escape(repr(name))}; "
+                     + (f"did you mean {' or '.join(map(repr, close))}?" if close else f"known: {', '.join(known)}"))
         raise typer.Exit(2)
-    if not name and not all_ and not console.is_terminal:  # piped or redirected: one plain line a stage, to grep
-        for s in registry:
-            module = s.func.__module__.removeprefix("selpath.stages.")
-            typer.echo(f"{s.name}\t{module}\t{plain_text(s.summary)}")
-        return
     if not name and not all_:
+        rows = [(n, s["module"].removeprefix("selpath.stages."), s["summary"]) for n, s in sorted(known.items())]
+        if not console.is_terminal:  # piped or redirected: one plain line a stage, to grep
+            for row in rows:
+                typer.echo("\t".join(row))
+            return
         table = Table(title="stages (selpath stages NAME for one in full)", show_lines=False)
         for column in ("stage", "module", "what it does"):
             table.add_column(column, overflow="fold")
-        for s in registry:
-            module = s.func.__module__.removeprefix("selpath.stages.")
-            table.add_row(s.name, escape(module), escape(plain_text(s.summary)))
+        for row in rows:
+            table.add_row(*map(escape, row))
         console.print(table)
         return
+    from selpath.pipeline.registry import default_registry, registry_for
+
+    with guard():
+        registry = registry_for([name]) if name else default_registry()
     for s in [registry[name]] if name else list(registry):
         _print_stage(s)
 
@@ -296,27 +302,39 @@ def kinds(
                                                show_default=False)] = None,
     markdown: Annotated[bool, flag("markdown", "print every kind as the Markdown table of docs/format.md")] = False,
 ) -> None:
-    """List the cube kinds the installed stages make (selpath's and plugins'), one line each; NAME shows its
-    variables with dims and units, its coordinates' units and its required attrs."""
-    from selpath.pipeline.kinds import describe_kinds
-    from selpath.pipeline.registry import default_registry
+    """List the cube kinds the installed stages make (selpath's and plugins'), one line each (a table in a terminal;
+    piped, plain lines: kind, makers and description separated by tabs); NAME shows its variables with dims and
+    units, its coordinates' units and its required attrs."""
+    from selpath.pipeline.manifest import installed
 
     with guard():
-        registry = default_registry()
-    known = registry.kinds
+        index = installed()  # the manifest: no stage module imported to list them
+    makers = {kind: sorted(n for n, s in index["stages"].items() if kind in s["kinds"]) for kind in index["kinds"]}
     if markdown:
-        print(describe_kinds(known.values()))
+        from selpath.pipeline.kinds import describe_kinds
+        from selpath.pipeline.registry import default_registry
+
+        with guard():
+            print(describe_kinds(default_registry().kinds.values()))
         return
     if name is not None:
-        if name not in known:
-            fail(SelpathError(f"unknown cube kind {name!r}; installed: {', '.join(known)}"))
-        _print_kind(known[name], registry.makers(name))
+        if name not in index["kinds"]:
+            fail(SelpathError(f"unknown cube kind {name!r}; installed: {', '.join(sorted(index['kinds']))}"))
+        from selpath.pipeline.registry import resolve_kind
+
+        with guard():
+            _print_kind(resolve_kind(name, module=index["kinds"][name]["module"]), makers[name])
+        return
+    rows = [(kind, ", ".join(makers[kind]), about["description"]) for kind, about in sorted(index["kinds"].items())]
+    if not console.is_terminal:  # piped or redirected: one plain line a kind, to grep
+        for row in rows:
+            typer.echo("\t".join(row))
         return
     table = Table(title="cube kinds (selpath kinds NAME for one in full)")
     for column in ("kind", "made by", "what it holds"):
         table.add_column(column, overflow="fold")
-    for kind in known.values():
-        table.add_row(kind.name, escape(", ".join(registry.makers(kind.name))), escape(kind.description))
+    for row in rows:
+        table.add_row(*map(escape, row))
     console.print(table)
 
 

@@ -2,13 +2,15 @@
 imports only their modules (the idea of napari's npe2 manifests, made here by importing every module once).
 
 A manifest maps stage names and cube kind names to the module (one named by a ``selpath.stages`` entry point) that
-declares them. The first full registry an installation builds (:func:`~selpath.pipeline.registry.default_registry`)
-writes it to ``$XDG_CACHE_HOME/selpath/manifests`` (``~/.cache/selpath/manifests``; the environment variable
-``SELPATH_MANIFEST_CACHE`` names another folder, or ``off``). Its file is named by a key made of the installed entry
-points, their distributions' versions, and the size and modification time of every module they name: installing,
-removing or editing a stage package gives a new key and so a new manifest, never a stale one. Even so it is only a
-hint: a stage it does not name, or that its module no longer declares, is looked for among every installed stage
-(:func:`~selpath.pipeline.registry.registry_for`).
+declares them, with each stage's summary and kinds and each kind's description: enough to list them
+(``selpath stages``, ``selpath kinds``) without importing any. The first full registry an installation builds
+(:func:`~selpath.pipeline.registry.default_registry`) writes it to ``$XDG_CACHE_HOME/selpath/manifests``
+(``~/.cache/selpath/manifests``; the environment variable ``SELPATH_MANIFEST_CACHE`` names another folder, or
+``off``). Its file is named by a key made of the installed entry points, their distributions' versions, and the size
+and modification time of every module they name: installing, removing or editing a stage module gives a new key and
+so a new manifest. A kind declared in a module no entry point names, edited in place, can leave its description
+stale until then; the modules are still only a hint: a stage the manifest does not name, or that its module no
+longer declares, is looked for among every installed stage (:func:`~selpath.pipeline.registry.registry_for`).
 """
 
 from __future__ import annotations
@@ -21,7 +23,9 @@ import tempfile
 from importlib.metadata import entry_points
 from pathlib import Path
 
-FORMAT = 1
+FORMAT = 2
+#: the entry-point group whose modules declare stages (selpath's own and plugins')
+GROUP = "selpath.stages"
 
 
 def folder() -> Path | None:
@@ -61,12 +65,13 @@ def _path(group: str) -> Path | None:
     return None if where is None else where / f"{group}-{key(group)}.json"
 
 
-def read(group: str) -> dict[str, dict[str, str]] | None:
-    """The manifest of what ``group`` installs now (``{"stages": {name: module}, "kinds": {name: module}}``), or None
-    when none is kept for it (never written, unreadable, or the cache is off)."""
+def read(group: str) -> dict[str, dict[str, dict]] | None:
+    """The manifest of what ``group`` installs now: ``{"stages": {name: {"module", "summary", "kinds"}}, "kinds":
+    {name: {"module", "description"}}}``; None when none is kept for it (never written, unreadable, or the cache is
+    off)."""
     path = _path(group)
     try:
-        data = json.loads(path.read_text()) if path is not None else None
+        data = json.loads(path.read_text(encoding="utf-8")) if path is not None else None
     except (OSError, ValueError):
         return None
     if not isinstance(data, dict) or not all(isinstance(data.get(k), dict) for k in ("stages", "kinds")):
@@ -74,20 +79,31 @@ def read(group: str) -> dict[str, dict[str, str]] | None:
     return {"stages": data["stages"], "kinds": data["kinds"]}
 
 
-def write(group: str, stages: dict[str, str], kinds: dict[str, str]) -> None:
-    """Keep the manifest of ``group``: stage and kind names → the module declaring each. A cache: a folder that cannot
-    be written (a read-only home) is passed over silently, and a manifest is replaced whole, never half-written."""
+def write(group: str, index: dict[str, dict[str, dict]]) -> None:
+    """Keep ``index`` (as :func:`read` returns it) as the manifest of ``group``. A cache: a folder that cannot be
+    written (a read-only home) is passed over silently, and a manifest is replaced whole, never half-written."""
     path = _path(group)
-    if path is None or read(group) == {"stages": stages, "kinds": kinds}:
+    if path is None or read(group) == index:
         return
-    text = json.dumps({"format": FORMAT, "stages": dict(sorted(stages.items())), "kinds": dict(sorted(kinds.items()))},
-                      indent=1)
+    text = json.dumps({"format": FORMAT} | index, indent=1, sort_keys=True, ensure_ascii=False)
     handle = None
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile("w", dir=path.parent, suffix=".tmp", delete=False) as handle:
+        with tempfile.NamedTemporaryFile("w", dir=path.parent, suffix=".tmp", delete=False,
+                                         encoding="utf-8") as handle:
             handle.write(text)
         os.replace(handle.name, path)
     except OSError:
         if handle is not None:
             Path(handle.name).unlink(missing_ok=True)
+
+
+def installed(group: str = GROUP) -> dict[str, dict[str, dict]]:
+    """Every installed stage and kind as :func:`read` gives them, without importing a stage module where the
+    installation's manifest is kept; else from every stage, imported (which keeps the manifest)."""
+    known = read(group)
+    if known is None:
+        from selpath.pipeline.registry import StageRegistry, default_registry, index  # (it imports this module)
+
+        known = index(default_registry() if group == GROUP else StageRegistry.from_entry_points(group))
+    return known

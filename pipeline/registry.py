@@ -34,7 +34,7 @@ from selpath.pipeline import manifest
 from selpath.pipeline.errors import Problem, SelpathError, StoreError
 from selpath.pipeline.kinds import CubeKind
 
-ENTRY_POINT_GROUP = "selpath.stages"
+ENTRY_POINT_GROUP = manifest.GROUP
 _MARK = "__selpath_stage__"
 _NAME = re.compile(r"^[a-z][a-z0-9_]*$")
 _DATA_TYPES = (xr.Dataset, xr.DataArray)
@@ -267,9 +267,17 @@ def default_registry() -> StageRegistry:
     """The stages installed in this environment (entry-point group ``selpath.stages``) and their kinds, cached; the
     installation's manifest of where each is declared is kept for :func:`registry_for`."""
     registry = StageRegistry.from_entry_points()
-    manifest.write(ENTRY_POINT_GROUP, {s.name: s.func.__module__ for s in registry},
-                   {name: source.split(":")[0] for name, (_, source) in registry._kinds.items()})
+    manifest.write(ENTRY_POINT_GROUP, index(registry))
     return registry
+
+
+def index(registry: StageRegistry) -> dict[str, dict[str, dict]]:
+    """What a manifest keeps of ``registry`` (:func:`selpath.pipeline.manifest.read`): each stage's module, plain-text
+    summary and kinds; each kind's module (where it was declared) and description."""
+    return {"stages": {s.name: {"module": s.func.__module__, "summary": plain_text(s.summary),
+                                "kinds": [k.name for k in s.kinds]} for s in registry},
+            "kinds": {name: {"module": kind.module or source.split(":")[0], "description": kind.description}
+                      for name, (kind, source) in registry._kinds.items()}}
 
 
 def registry_for(names: Iterable[str]) -> StageRegistry:
@@ -282,7 +290,7 @@ def registry_for(names: Iterable[str]) -> StageRegistry:
     if known is None or not names <= known["stages"].keys():
         return default_registry()
     try:
-        registry = StageRegistry.from_modules(sorted({known["stages"][n] for n in names}))
+        registry = StageRegistry.from_modules(sorted({known["stages"][n]["module"] for n in names}))
     except Exception:  # noqa: BLE001 - a module that fails: the full registry names it and why
         return default_registry()
     return registry if all(n in registry for n in names) else default_registry()

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import atexit
 import os
+import shutil
+import tempfile
 import textwrap
 from pathlib import Path
 
@@ -14,6 +17,12 @@ import pytest
 # workers set 80, some shells export it) would freeze every console at that width first.
 os.environ.pop("COLUMNS", None)
 os.environ.pop("LINES", None)
+
+# The stage manifest (selpath.pipeline.manifest) is kept in ~/.cache: the tests, and the commands they start, keep
+# theirs in a folder of their own from the start (collection may build the registry), removed at the end.
+_MANIFESTS = tempfile.mkdtemp(prefix="selpath-test-manifests-")
+os.environ["SELPATH_MANIFEST_CACHE"] = _MANIFESTS
+atexit.register(shutil.rmtree, _MANIFESTS, ignore_errors=True)
 
 SMALL_WORKFLOW = textwrap.dedent("""\
     workflow: small-absorption
@@ -39,13 +48,6 @@ SMALL_WORKFLOW = textwrap.dedent("""\
       capture: {from: capture, store: out/capture.zarr}
       absorption: {from: absorption, store: out/absorption.zarr}
     """)
-
-
-@pytest.fixture(autouse=True, scope="session")
-def manifest_cache(tmp_path_factory):
-    """The stage manifest (selpath.pipeline.manifest) is kept in ~/.cache; tests keep theirs, and the commands they
-    start theirs, in a folder of the test run."""
-    os.environ["SELPATH_MANIFEST_CACHE"] = str(tmp_path_factory.mktemp("manifests"))
 
 
 @pytest.fixture(autouse=True)

@@ -34,9 +34,10 @@ def _heavy_imported() -> str:
     return f"sorted({{m.split('.')[0] for m in sys.modules}} & set({HEAVY!r}))"
 
 
-@pytest.mark.parametrize("argv", [["--version"], ["--help"], ["validate", "--help"], ["nonsense"]])
-def test_the_command_line_answers_without_heavy_imports(argv):
-    seen = _python(f"""
+def _cli(argv: list[str], **env: str) -> dict:
+    """``selpath *argv`` in a fresh interpreter: its output, exit code, the heavy libraries and the stage modules
+    (not packages: those are light, as tested here) it imported."""
+    return _python(f"""
         import contextlib, io, json, sys
         sys.argv = ["selpath", *{argv!r}]
         from selpath.pipeline.cli import main
@@ -46,8 +47,15 @@ def test_the_command_line_answers_without_heavy_imports(argv):
                 main()
             except SystemExit as exit:
                 code = exit.code
-        print(json.dumps({{"heavy": {_heavy_imported()}, "out": out.getvalue(), "code": code}}))
-        """)
+        print(json.dumps({{"heavy": {_heavy_imported()}, "out": out.getvalue(), "code": code,
+                           "stages": sorted(m for m, module in sys.modules.items() if m.startswith("selpath.stages.")
+                                            and not hasattr(module, "__path__"))}}))
+        """, **env)
+
+
+@pytest.mark.parametrize("argv", [["--version"], ["--help"], ["validate", "--help"], ["nonsense"]])
+def test_the_command_line_answers_without_heavy_imports(argv):
+    seen = _cli(argv)
     assert seen["heavy"] == []
     if argv == ["--version"]:
         from selpath import __version__
@@ -119,14 +127,15 @@ def test_a_manifest_that_lies_costs_time_never_an_answer(tmp_path, monkeypatch, 
     validates as it would have; an unknown stage still gets its did-you-mean."""
     monkeypatch.setenv("SELPATH_MANIFEST_CACHE", str(tmp_path))
     registry = default_registry()
-    stages = {s.name: "selpath.stages.io" for s in registry}  # every stage said to be in the wrong module
-    manifest.write(ENTRY_POINT_GROUP, stages, {})
-    assert manifest.read(ENTRY_POINT_GROUP)["stages"]["absorption"] == "selpath.stages.io"
+    wrong = {s.name: {"module": "selpath.stages.io", "summary": "", "kinds": []} for s in registry}
+    manifest.write(ENTRY_POINT_GROUP, {"stages": wrong, "kinds": {}})  # every stage said to be in the wrong module
+    assert manifest.read(ENTRY_POINT_GROUP)["stages"]["absorption"]["module"] == "selpath.stages.io"
     from selpath.pipeline.spec import load_workflow
 
     workflow = load_workflow(small_workflow)
     assert workflow.steps["absorption"].stage is registry["absorption"]
-    manifest.write(ENTRY_POINT_GROUP, {"absorption": "selpath.stages.tomography.calibrate"}, {})  # one stage missing
+    calibrate = {"module": "selpath.stages.tomography.calibrate", "summary": "", "kinds": []}
+    manifest.write(ENTRY_POINT_GROUP, {"stages": {"absorption": calibrate}, "kinds": {}})  # the other stage missing
     assert load_workflow(small_workflow).steps["capture"].stage is registry["simulate_parallel_capture"]
     text = small_workflow.read_text().replace("stage: absorption", "stage: absorptoin")
     with pytest.raises(Exception, match="did you mean 'absorption'"):
@@ -148,5 +157,27 @@ def test_the_manifest_key_changes_when_a_stage_module_changes(tmp_path, monkeypa
     module.write_text("X = 22\n")
     assert manifest.key("probe-group") != before
     monkeypatch.setenv("SELPATH_MANIFEST_CACHE", "off")
-    manifest.write("probe-group", {"a": "b"}, {})
+    manifest.write("probe-group", {"stages": {}, "kinds": {}})
     assert manifest.read("probe-group") is None
+
+
+@pytest.mark.parametrize("argv", [["stages"], ["kinds"], ["stages", "absorptoin"]])
+def test_listing_stages_and_kinds_imports_none_of_them(argv):
+    """With the installation's manifest kept, ``selpath stages`` and ``selpath kinds`` list every stage and kind from
+    it: the same names, summaries and makers as the registry, and no stage module, xarray or JAX imported."""
+    from selpath.pipeline.registry import index
+
+    registry = default_registry()
+    manifest.write(ENTRY_POINT_GROUP, index(registry))
+    seen = _cli(argv, COLUMNS="400")
+    assert seen["heavy"] == [] and seen["stages"] == []
+    if argv == ["stages"]:  # piped: one plain line a stage
+        lines = [line.split("\t") for line in seen["out"].splitlines()]
+        assert [line[0] for line in lines] == registry.names()
+        assert lines[0][2] == index(registry)["stages"][lines[0][0]]["summary"]
+    elif argv == ["kinds"]:
+        rows = {line.split("\t")[0]: line.split("\t")[1:] for line in seen["out"].splitlines()}
+        assert rows == {name: [", ".join(sorted(registry.makers(name))), kind.description]
+                        for name, kind in registry.kinds.items()}
+    else:
+        assert seen["code"] == 2 and "did you mean 'absorption'?" in seen["out"]
