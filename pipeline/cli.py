@@ -17,8 +17,9 @@ from rich.table import Table
 
 from selpath import workflows as shipped
 from selpath.pipeline.cli_common import Command, Group, console, errors, fail, flag, guard
+from selpath.pipeline.cli_import import import_
 from selpath.pipeline.cli_inspect import inspect
-from selpath.pipeline.errors import Problem, SelpathError, StoreError
+from selpath.pipeline.errors import SelpathError
 
 if TYPE_CHECKING:
     from selpath.pipeline.engine import RunReport
@@ -123,16 +124,6 @@ def _write_report(workflow, result: RunReport, summary: list[str], tables: list)
     console.print(f"report: {escape(str(page))}")
 
 
-def import_provenance(spec: Path, store: Path, identity: dict) -> dict:
-    """What an imported capture records of how it was made (read by ``selpath inspect``): no time and no absolute
-    path, so that importing the same frames with the same spec gives the same store, whose content identifies it
-    to the steps that read it (:func:`selpath.pipeline.provenance.store_identity`)."""
-    from selpath.pipeline.identity import package_versions
-
-    return {"imported": True, "command": f"selpath import {spec.name} {store.name}", "spec": spec.name,
-            "spec_text": spec.read_text(), **identity, "output": store.name, "versions": package_versions()}
-
-
 @command()
 def schema() -> None:
     """Print the workflow file's JSON Schema, with every installed stage's settings, for YAML editors
@@ -184,51 +175,20 @@ def validate(file: Annotated[Path, typer.Argument(help="workflow YAML file", met
                   + escape(", ".join(f"{n} -> {o.store}" for n, o in workflow.outputs.items())))
 
 
-@command("import")
-def import_(spec: Annotated[Path, typer.Argument(help="import spec (YAML): kind, frames, geometry or timing",
-                                                 metavar="SPEC", show_default=False)],
-            store: Annotated[Path, typer.Argument(help="capture store to write (a new .zarr path)", metavar="STORE",
-                                                  show_default=False)]) -> None:
-    """Turn frames made elsewhere (TIFF/PNG folders, .npy/.npz, HDF5) into a checked capture store.
-
-    The spec says the cube kind, where each variable's frames lie and the geometry or timing the stages read,
-    with units (docs/format.md, "Importing captures"). Frames are copied one by one; nothing is written into
-    the sources, and an existing store is never replaced. The store records its provenance: the spec's text, a
-    SHA-256 of the spec and every frame file, the command and selpath's version (`selpath inspect STORE`).
-    """
-    import dask
-
-    from selpath.pipeline.provenance import write_provenance
-    from selpath.pipeline.registry import registry_for
-    from selpath.pipeline.store import to_store
-
-    with guard():
-        if store.exists():
-            raise StoreError(Problem("exists; selpath import writes a new store and never replaces one",
-                                     where=str(store), fix="choose another path, or delete that store yourself"))
-        stage = registry_for(["import_capture"])["import_capture"]
-        ds = stage.func(spec=str(spec))
-        with dask.config.set(scheduler="threads"):
-            to_store(ds, store, ds.attrs["selpath_kind"])
-        write_provenance(store, import_provenance(spec, store, stage.identity(stage.params(spec=str(spec)))))
-    sizes = ", ".join(f"{d} {n}" for d, n in ds.sizes.items())
-    console.print(f"[green]ok[/]: {escape(str(store))}: {ds.attrs['selpath_kind']} ({escape(sizes)}); "
-                  f"variables {escape(', '.join(map(str, ds.data_vars)))}")
-    _advise(store)
+command("import")(import_)
 
 
-def _advise(store: Path) -> None:
-    """The imported kind's data checks (what the frames contradict of the spec), printed as warnings; the store is
-    kept either way."""
-    from selpath.pipeline.registry import resolve_kind
-    from selpath.pipeline.store import open_store
+def _installed() -> dict[str, dict[str, dict]]:
+    """Every installed stage and kind as the installation's manifest keeps them (no stage module imported); where
+    none is kept, from every stage, imported (which keeps it)."""
+    from selpath.pipeline import manifest
 
-    with guard():
-        ds = open_store(store)
-        kind = resolve_kind(ds.attrs["selpath_kind"], module=ds.attrs.get("selpath_kind_module"))
-        for check in kind.data_checks:
-            for advice in check(ds):
-                errors.print(f"[yellow]warning:[/] {escape(advice)}", highlight=False, soft_wrap=True)
+    known = manifest.read(manifest.GROUP)
+    if known is None:
+        from selpath.pipeline.registry import default_registry, index
+
+        known = index(default_registry())
+    return known
 
 
 @command()
@@ -239,10 +199,8 @@ def stages(
 ) -> None:
     """List the registered stages, one line each (a table in a terminal; piped, plain lines: name, module and summary
     separated by tabs); NAME (or --all) shows inputs, settings, defaults, units and docs."""
-    from selpath.pipeline.manifest import installed
-
     with guard():
-        known = installed()["stages"]  # the manifest: no stage module imported to list them
+        known = _installed()["stages"]  # the manifest: no stage module imported to list them
     if name and name not in known:
         close = difflib.get_close_matches(name, list(known), n=3)
         errors.print(f"[bold red]error:[/] unknown stage {escape(repr(name))}; "
@@ -305,10 +263,8 @@ def kinds(
     """List the cube kinds the installed stages make (selpath's and plugins'), one line each (a table in a terminal;
     piped, plain lines: kind, makers and description separated by tabs); NAME shows its variables with dims and
     units, its coordinates' units and its required attrs."""
-    from selpath.pipeline.manifest import installed
-
     with guard():
-        index = installed()  # the manifest: no stage module imported to list them
+        index = _installed()  # the manifest: no stage module imported to list them
     makers = {kind: sorted(n for n, s in index["stages"].items() if kind in s["kinds"]) for kind in index["kinds"]}
     if markdown:
         from selpath.pipeline.kinds import describe_kinds

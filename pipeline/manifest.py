@@ -97,13 +97,3 @@ def write(group: str, index: dict[str, dict[str, dict]]) -> None:
         if handle is not None:
             Path(handle.name).unlink(missing_ok=True)
 
-
-def installed(group: str = GROUP) -> dict[str, dict[str, dict]]:
-    """Every installed stage and kind as :func:`read` gives them, without importing a stage module where the
-    installation's manifest is kept; else from every stage, imported (which keeps the manifest)."""
-    known = read(group)
-    if known is None:
-        from selpath.pipeline.registry import StageRegistry, default_registry, index  # (it imports this module)
-
-        known = index(default_registry() if group == GROUP else StageRegistry.from_entry_points(group))
-    return known
