@@ -48,6 +48,7 @@ def make_workflow(folder: Path, frame_interval: str = "0 us") -> Path:
     return folder / "workflow.yaml"
 
 
+@pytest.mark.slow  # the default job's 8 minutes; the tomography acquisition's SIGKILL test stays in it
 def test_sigkill_mid_sweep_then_rerun_gives_the_uninterrupted_store(tmp_path, kill_mid_sweep):
     run_workflow(load_workflow(make_workflow(tmp_path / "uninterrupted")), progress=False)
     want = open_store(tmp_path / "uninterrupted" / "capture.zarr", keep_flags=True).load()

@@ -192,6 +192,7 @@ with FakeProcamHardware(scene) as hardware:
 """
 
 
+@pytest.mark.slow  # the default job's 8 minutes; the tomography acquisition's SIGKILL test stays in it
 def test_sigkill_mid_hardware_sweep_then_rerun_gives_the_uninterrupted_store(tmp_path, fake_camera):
     """A real SIGKILL of a `run_workflow` process driving the fake controller through its pseudo-terminal (the rig
     file names a stable link to it, as /dev/serial/by-id/… does); run again, only the missing frames are

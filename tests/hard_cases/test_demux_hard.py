@@ -171,6 +171,7 @@ def test_clipped_frames_at_extreme_scales_in_float32(scale):
                                problem.objective(base.value, data, clipped=clipped), rtol=1e-3)
 
 
+@pytest.mark.slow  # the default job's 8 minutes
 def test_exactly_optimal_pixels_stop_at_once_and_are_converged():
     """The demux-solver issue's case: data scaled by 1e-8 with β not rescaled, so β outweighs all the light and
     T = 0 is exactly optimal (∇f(0) = β − 2Aᵀy ≥ 0: the KKT conditions hold). The residual test never passes at

@@ -83,6 +83,7 @@ def test_an_archive_on_object_storage_is_reprocessed_as_a_local_one_is(tmp_path,
     assert again.steps["absorption"].status == "reused"
 
 
+@pytest.mark.slow  # the default job's 8 minutes; a cluster's reading is in test_engine's default tests too
 def test_a_processes_cluster_reads_the_same_remote_store(tmp_path, s3):
     fs, bucket = s3
     url = _archive(tmp_path, fs, bucket)

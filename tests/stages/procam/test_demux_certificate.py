@@ -15,7 +15,8 @@ from selpath.stages.procam._demux_solver import DemuxADMM
 from tests.helpers.demux_cases import CASES, cvxpy_optimum, sparse_transport, sweep_matrix
 
 
-@pytest.mark.parametrize("case", CASES)
+# the well-posed case in the default job, the others in the slow one (the default job's 8 minutes)
+@pytest.mark.parametrize("case", [pytest.param(c, marks=() if c == "well-posed" else pytest.mark.slow) for c in CASES])
 def test_the_certified_gap_bounds_the_true_gap_and_is_tight_at_an_optimum(case):
     """``gap_bound`` ≥ (f(T) − f*)/f(T) for every pixel, against Clarabel's f* (to its accuracy, 1e-6), at the
     defaults and at 5 iterations, and with data and β scaled together by 1e-6 or 1e6; on float64 solves

@@ -112,6 +112,7 @@ def test_censored_is_set_exactly_where_an_offsets_light_was_seen_only_clipped():
     assert np.all(ours.result[~clipped.any(1)] == int(Result.converged))
 
 
+@pytest.mark.slow  # the default job's 8 minutes; the clipped problem against CVXPY stays in it
 def test_clip_free_pixels_reach_their_own_optimum_beside_clipped_ones():
     """Pixels without a clipped frame solved in one call with clipped ones (the majorised path, (P, N) flags)
     reach the optimum they reach alone (the plain path): objectives within 1e-6 in float64."""

@@ -53,7 +53,9 @@ def rmse(a, b):
 
 
 @pytest.mark.parametrize(("n", "n_theta", "n_x", "seed", "method"), [
-    (5, 1, 2, 0, "joseph"), (16, 7, 11, 1, "joseph"), (9, 12, 20, 2, "binary"), (24, 3, 5, 3, "binary")])
+    # one grid of each method in the default job, two more in the slow one (each shape is an XLA compile, ~20 s)
+    (5, 1, 2, 0, "joseph"), pytest.param(16, 7, 11, 1, "joseph", marks=pytest.mark.slow),
+    pytest.param(9, 12, 20, 2, "binary", marks=pytest.mark.slow), (24, 3, 5, 3, "binary")])
 def test_every_projectors_adjoint_is_its_forward_maps_transpose(n, n_theta, n_x, seed, method):
     """⟨Rx, y⟩ = ⟨x, Rᵀy⟩ in float64 to 1e-12 relative for the three projectors the solvers use, on a batch of two
     slices: the walk (its adjoint JAX's transpose of its forward, so this checks the batching around it), the
