@@ -239,6 +239,8 @@ def _print_stage(s) -> None:
     console.print(escape(plain_text(s.summary)), highlight=False)
     makes = " or ".join(k.name for k in s.kinds) or "any kind (its result's selpath_kind attr names it)"
     console.print(f"  [underline]result[/]: {escape(makes)}", highlight=False)
+    if s.returns:
+        console.print(Padding(escape(plain_text(s.returns)), (0, 0, 0, 6)), highlight=False)
     sections = (("inputs (data: $step or $step.variable)", [
         (i, "required" if i in s.required_inputs else "optional", s.param_docs.get(i, "")) for i in s.inputs]),
         ("settings", [(n, f"{describe(f)} = {'required' if f.is_required() else repr(f.default)}", f.description or "")

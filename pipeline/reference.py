@@ -43,6 +43,21 @@ def _cell(text: str) -> str:
     return markdown(" ".join(str(text).split())).replace("|", "\\|") or "—"
 
 
+def _entries(section: str) -> str:
+    """A numpydoc section of ``type`` lines, each with its indented description (Returns, Raises), as one paragraph
+    per entry: ``type``: description. Text in another shape is kept as it is."""
+    entries, current = [], None
+    for line in section.splitlines():
+        if line and not line.startswith(" "):
+            current = [f"`{line.strip()}`:", []]
+            entries.append(current)
+        elif current is not None and line.strip():
+            current[1].append(line.strip())
+        elif line.strip():
+            return section
+    return "\n\n".join(f"{head} {' '.join(text)}" for head, text in entries) if entries else section
+
+
 def _body(stage: Stage) -> str:
     """The stage's docstring after its summary, without the Parameters section (the tables carry it)."""
     doc = inspect.cleandoc(stage.func.__doc__ or "")
@@ -54,7 +69,7 @@ def _body(stage: Stage) -> str:
     for i, match in enumerate(sections):
         end = sections[i + 1].start() if i + 1 < len(sections) else len(rest)
         if match.group(1).strip() != "Parameters":
-            kept.append(f"**{match.group(1).strip()}**\n\n" + rest[match.end():end].strip("\n"))
+            kept.append(f"**{match.group(1).strip()}**\n\n" + _entries(rest[match.end():end].strip("\n")))
     return markdown("\n\n".join(part.strip() for part in kept if part.strip()))
 
 

@@ -66,6 +66,13 @@ class Stage:
     kinds: tuple[CubeKind, ...] = ()
 
     @property
+    def returns(self) -> str:
+        """The description in the docstring's numpydoc ``Returns`` section, on one line ("" where it has none)."""
+        doc = inspect.cleandoc(self.func.__doc__ or "")
+        found = re.search(r"^Returns\n-{3,}\n[^\n]*\n((?:[ \t]+\S[^\n]*\n?)+)", doc, re.M)
+        return " ".join(line.strip() for line in found.group(1).splitlines()) if found else ""
+
+    @property
     def source(self) -> str:
         return f"{self.func.__module__}:{self.func.__qualname__}"
 

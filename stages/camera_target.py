@@ -78,17 +78,20 @@ def distortion_shift(matrix: np.ndarray, distortion: np.ndarray, box: tuple[floa
 def calibrate_camera(target: xr.Dataset, /) -> xr.Dataset:
     """A camera's intrinsics from frames of a checkerboard target at several poses (OpenCV ``calibrateCamera``).
 
-    Returns ``camera_matrix`` (i, j) [px], ``distortion`` (k: k1, k2, p1, p2, k3) and per pose ``pose_used`` and
-    ``pose_rms_px``; attrs ``focal_length_px`` (the mean of fx and fy), ``principal_point_px`` [cx, cy] (pixel
-    centres at whole numbers), their standard deviations (``*_std_px``), ``pixel_aspect`` (fy / fx),
-    ``reprojection_rms_px``, ``distortion_max_px`` (how far the distortion moves a pixel within the area the board's
-    corners covered; k3 is held at 0) and ``sensor_px`` [rows, cols].
-
     Parameters
     ----------
     target : xr.Dataset
         Frames of the board: a ``stereo_target_capture`` (white − black of each pose) or ``image`` over (pose, row,
         col); attrs ``board_corners`` [columns, rows of inner corners] and ``board_square_mm``.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``camera_calibration`` cube: ``camera_matrix`` (i, j) [px], ``distortion`` (k: k1, k2, p1, p2, k3) and per
+        pose ``pose_used`` and ``pose_rms_px``; attrs ``focal_length_px`` (the mean of fx and fy),
+        ``principal_point_px`` [cx, cy] (pixel centres at whole numbers), their standard deviations (``*_std_px``),
+        ``pixel_aspect`` (fy / fx), ``reprojection_rms_px``, ``distortion_max_px`` (how far the distortion moves a pixel
+        within the area the board's corners covered; k3 is held at 0) and ``sensor_px`` [rows, cols].
     """
     require_variables(target, ("image",), "calibrate_camera")
     missing = [a for a in ("board_corners", "board_square_mm") if a not in target.attrs]
@@ -144,6 +147,12 @@ def apply_camera_calibration(capture: xr.Dataset, calibration: xr.Dataset, /) ->
         ``principal_point_px`` where stated).
     calibration : xr.Dataset
         A ``calibrate_camera`` result of the same camera.
+
+    Returns
+    -------
+    xr.Dataset
+        The capture unchanged but for its attrs: ``focal_length_px`` and the principal point's row from the calibration,
+        the stated values kept (``stated_focal_length_px``, ``stated_principal_point_px``); its kind is the capture's.
     """
     if calibration.attrs.get("selpath_kind") != CAMERA_CALIBRATION.name:
         raise StageError(Problem("the calibration is not a calibrate_camera result (selpath_kind "

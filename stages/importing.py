@@ -283,6 +283,12 @@ def import_capture(*, spec: StorePath) -> xr.Dataset:
         (where each variable's frames lie: a folder or glob of TIFF/PNG files, a multi-page TIFF, ``.npy``,
         ``file.npz:member`` or ``file.h5:/dataset``, relative to the spec's folder) and the geometry or timing
         the stages read, with units (docs/format.md, "Importing captures").
+
+    Returns
+    -------
+    xr.Dataset
+        The capture as the kind its spec names (``tomography_capture``, ``plane_to_ray_capture`` or
+        ``full_transport_capture``), lazily one task per frame, with the spec's geometry or timing in its attrs.
     """
     parsed = read_spec(spec)
     base = Path(spec).resolve().parent

@@ -36,5 +36,10 @@ def load_store(*, store: StorePath, kind: str | None = None) -> xr.Dataset:
         Path of the zarr store, relative to the workflow file's folder.
     kind : str or None
         Cube kind the store must hold (default: the store's own ``selpath_kind``).
+
+    Returns
+    -------
+    xr.Dataset
+        The store's Dataset, lazy and checked against its kind (any kind: its ``selpath_kind`` attr names it).
     """
     return open_store(store, kind)

@@ -192,7 +192,10 @@ def _acquisition(name: str, kind: CubeKind):
     shares (rig, sensor, rig changes, progress) are documented once, here."""
 
     def register(func):
-        func.__doc__ = func.__doc__.rstrip() + "\n" + _SHARED_DOCS
+        doc = func.__doc__.rstrip()
+        at = doc.find("\n\n    Returns\n")  # the shared settings end the Parameters section, before Returns
+        shared = _SHARED_DOCS.rstrip()
+        func.__doc__ = (doc + "\n" + _SHARED_DOCS) if at < 0 else (doc[:at] + "\n" + shared + doc[at:] + "\n")
         return stage(name, kind=kind, precheck=_precheck, identity=acquisition_identity,
                      writes=lambda settings: settings.store, variables=lambda settings: ["image"])(func)
 
@@ -249,6 +252,12 @@ def acquire_plane_to_ray(
         sweep). The log and the store's ``hdr_*`` attrs state what was tried and what it cost in captures; a
         highlight that clips within one line time gets nothing added (only attenuation helps). ``off``: the
         exposures as given.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``plane_to_ray_capture`` cube: the store ``store``: ``image`` [counts] over (delay, exposure, row, col),
+        written frame by frame and opened lazily, with the rig's timing in its attrs.
     """
     with acquisition_rig(rig, scene, hardware, sensor, rig_changes) as instruments:
         return plane_sweep(instruments, store, delays.values(), exposures, hdr=hdr == "auto", progress=progress,
@@ -291,6 +300,12 @@ def acquire_full_transport(
         Line centres l_p {start, stop, step} [px], stop included (stop ≥ start), at most 100 000 lines.
     line_width : float
         Line width l_w [px].
+
+    Returns
+    -------
+    xr.Dataset
+        A ``full_transport_capture`` cube: the store ``store``: ``image`` [counts] over (delay, exposure, line, row,
+        col), written frame by frame and opened lazily, with the rig's timing in its attrs.
     """
     with acquisition_rig(rig, scene, hardware, sensor, rig_changes) as instruments:
         return full_sweep(instruments, store, delays.values(), exposures, lines.values(), line_width,
@@ -325,6 +340,12 @@ def acquire_scan_calibration(
         inside the sensor.
     exposures : list of float
         Exposures [µs]; each must exceed t_p plus one row period for a fully lit row.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``plane_to_ray_capture`` cube: the store ``store``: ``image`` [counts] over (delay, exposure, row, col), taken
+        in global-shutter mode, for ``calibrate_scan_speed``.
     """
     with _simulated_rig(scene, sensor, rig_changes) as instruments:
         if not hasattr(instruments.camera, "set_shutter"):

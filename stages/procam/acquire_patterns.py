@@ -128,6 +128,12 @@ def acquire_checkerboards(
         Changes to the scene's rig (as for ``acquire_plane_to_ray``).
     progress : bool
         Show a progress bar.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``checkerboard_capture`` cube: the store ``store``: ``image`` [counts] over (shift, row, col) with each
+        shift's board offset (``shift_row``, ``shift_col``), written frame by frame and opened lazily.
     """
     if shifts_per_axis < 2:
         raise SelpathError(f"shifts_per_axis is {shifts_per_axis}: at least 2 are needed, so that every pixel of "
@@ -191,6 +197,12 @@ def acquire_gray_code(
         Changes to the scene's rig (``rig: sim``), as for ``acquire_plane_to_ray``.
     progress : bool
         Show a progress bar.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``gray_code_capture`` cube: the store ``store``: ``image`` [counts] over (pattern, row, col), white, black and
+        the Gray codes, written frame by frame and opened lazily.
     """
     with acquisition_rig(rig, scene, hardware, sensor, rig_changes) as instruments:
         attrs = instruments.attrs
@@ -225,5 +237,11 @@ def acquire_stereo_target(*, store: StorePath, scene: StorePath, progress: bool 
         projector's pose (baseline, roll, pitch, yaw), the board and its poses, light and noise.
     progress : bool
         Show a progress bar.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``stereo_target_capture`` cube: the store ``store``: ``image`` [counts] over (pose, pattern, row, col),
+        written frame by frame and opened lazily.
     """
     return capture_target(load_stereo_target(scene), store, progress=progress, log=sweep_log(progress))

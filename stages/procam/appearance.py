@@ -80,11 +80,6 @@ def fit_scattering_profile(capture: xr.Dataset, /, *, material: str, labels: Lab
                            max_distance: Annotated[int, pydantic.Field(ge=1, le=1000)] = 40) -> xr.Dataset:
     """Fit a material's scattering profile R(d) = (1 − f)·δ + f·Laplace(w) to its mean delay profile (§5.4.8).
 
-    Returns ``profile`` R over distance 0 … ``max_distance`` [1 per px: cell masses, summing to 1 over both signs],
-    the material's mean delay profile ``measured`` and the fit's ``model`` over delay [counts]; attrs ``fraction``
-    f and ``width_px`` w with their standard errors, and the fit's RMS residual. Refused: a material with no usable
-    pixel, a capture of several exposures without ``exposure``.
-
     Parameters
     ----------
     capture : xr.Dataset
@@ -98,6 +93,18 @@ def fit_scattering_profile(capture: xr.Dataset, /, *, material: str, labels: Lab
         The exposure whose delay sweep is fitted [µs]; None: the capture's only one.
     max_distance : int
         The distances R is reported over [px].
+
+    Returns
+    -------
+    xr.Dataset
+        A ``scattering_profile`` cube: ``profile`` R over distance 0 … ``max_distance`` [1 per px: cell masses, summing
+        to 1 over both signs], the material's mean delay profile ``measured`` and the fit's ``model`` over delay
+        [counts]; attrs ``fraction`` f and ``width_px`` w with their standard errors, and the fit's RMS residual.
+
+    Raises
+    ------
+    StageError
+        A material with no usable pixel, a capture of several exposures without ``exposure``.
     """
     frames, saturated, what = profile_frames(capture, exposure)
     if what["source_kind"] != "plane_to_ray_capture":
@@ -177,9 +184,6 @@ def render_appearance(profile: xr.Dataset, /, *, mesh: Literal["teapot", "sphere
                       fraction: Fraction | None = None) -> xr.Dataset:
     """Render a mesh under a directional light with and without the captured subsurface scattering (§5.4.8, Fig. 50).
 
-    Returns ``image`` over (render, row, col) [1: irradiance of a white surface, plus the highlight]: ``lambertian``
-    and ``subsurface``, and the silhouette ``mask``. Lazy: rendered when computed.
-
     Parameters
     ----------
     profile : xr.Dataset
@@ -198,6 +202,12 @@ def render_appearance(profile: xr.Dataset, /, *, mesh: Literal["teapot", "sphere
         The Blinn–Phong highlight added to both images: its strength [1] and exponent [1].
     fraction : float or None
         Replace the fitted share f (0: R = δ, the Lambertian render); None: the profile's.
+
+    Returns
+    -------
+    xr.Dataset
+        An ``appearance_render`` cube: ``image`` over (render, row, col) [1: irradiance of a white surface, plus the
+        highlight]: ``lambertian`` and ``subsurface``, and the silhouette ``mask``. Lazy: rendered when computed.
     """
     if not {"fraction", "width_px"} <= set(profile.attrs):
         raise StageError(Problem("the profile has no fitted fraction and width_px", where="profile",

@@ -48,6 +48,12 @@ def separation_figure(floodlit: xr.Dataset, epipolar: xr.Dataset, /) -> xr.Datas
         A ``direct_global`` store (``separate_direct_global``) of floodlit (global-shutter) checkerboards.
     epipolar : xr.Dataset
         A ``direct_global`` store of epipolar checkerboards (t_d = 0, t_e = t_p).
+
+    Returns
+    -------
+    xr.Dataset
+        A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
+        ``<store>.png``.
     """
     for name, ds in (("floodlit", floodlit), ("epipolar", epipolar)):
         if not {"direct", "global"} <= set(ds.data_vars):
@@ -95,6 +101,12 @@ def short_range_figure(short_range: xr.Dataset, /) -> xr.Dataset:
     ----------
     short_range : xr.Dataset
         A ``short_range`` store (``short_range_images``).
+
+    Returns
+    -------
+    xr.Dataset
+        A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
+        ``<store>.png``.
     """
     if "image" not in short_range or "max_delay" not in short_range.dims:
         raise StageError(Problem("not a short_range store", where="short_range",
@@ -147,6 +159,12 @@ def line_relighting_figure(study: xr.Dataset, /) -> xr.Dataset:
     ----------
     study : xr.Dataset
         A ``line_relighting_snr`` store (``line_relighting_snr``).
+
+    Returns
+    -------
+    xr.Dataset
+        A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
+        ``<store>.png``.
     """
     if study.attrs.get("selpath_kind") != "line_relighting_snr" or "image" not in study:
         raise StageError(Problem("not a line_relighting_snr store", where="study",
@@ -205,6 +223,12 @@ def multiplexed_relighting_figure(simplex: xr.Dataset, multiplexed: xr.Dataset, 
         A ``relighting_snr`` store (``full_relighting_snr``) of the simplex sweep.
     multiplexed : xr.Dataset
         A ``relighting_snr`` store of the multiplexed sweep, relit under the same checkerboard.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
+        ``<store>.png``.
     """
     for name, ds in (("simplex", simplex), ("multiplexed", multiplexed)):
         if ds.attrs.get("selpath_kind") != "relighting_snr":
@@ -296,6 +320,12 @@ def transport_matrix_figure(transport: xr.Dataset, /, *,
         Named camera columns, as fractions of the image width [1] (e.g. ``disco ball: 0.2``).
     gamma : float
         Colour ∝ counts^gamma [1], so that weak off-diagonal light shows beside the direct diagonal.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
+        ``<store>.png``.
     """
     if "transport" not in transport or not ({"offset", "row", "col"} <= set(transport["transport"].dims)
                                             or {"du", "dv", "row", "col"} <= set(transport["transport"].dims)):

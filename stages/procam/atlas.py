@@ -54,11 +54,6 @@ def material_atlas(transport: xr.Dataset, /, *, pixels: Pixels,
                    reach: Annotated[int, pydantic.Field(ge=1, le=500)] = 20, floor: Fraction = 0.02) -> xr.Dataset:
     """2-D transport profiles of named pixels, each scaled to its maximum, with their extents (§5.4.10, Fig. 53).
 
-    Returns ``profile`` over (site, du, dv) [1], ``extent`` over site and ``extent_map`` over (row, col) [px: RMS
-    distance of the light from the direct correspondence], and the white image ``image`` (Σ T) [counts]. Refused:
-    a transport whose du or dv range does not reach ``reach``, cells wider than 1 px along du or dv (the window
-    would not be in pixels).
-
     Parameters
     ----------
     transport : xr.Dataset
@@ -70,6 +65,19 @@ def material_atlas(transport: xr.Dataset, /, *, pixels: Pixels,
         Half-width of the window [px]: the thesis's 41 × 41 profiles are reach 20.
     floor : float
         Cells below this share of a profile's maximum are left out of its extent [1] (0: every cell).
+
+    Returns
+    -------
+    xr.Dataset
+        A ``material_atlas`` cube: ``profile`` over (site, du, dv) [1], ``extent`` over site and ``extent_map`` over
+        (row, col) [px: RMS distance of the light from the direct correspondence], and the white image ``image`` (Σ T)
+        [counts].
+
+    Raises
+    ------
+    StageError
+        A transport whose du or dv range does not reach ``reach``, cells wider than 1 px along du or dv (the window
+        would not be in pixels).
     """
     require_variables(transport, ("transport",), "material_atlas")
     t = transport["transport"]

@@ -72,6 +72,13 @@ def calibrate_scan_speed(capture: xr.Dataset, /, *, min_rows: NonNegative = 2.0)
         (delay, exposure, row, col), delay and exposure [µs]; attr ``line_time_us`` (``scan_speed_px_per_us``: start).
     min_rows : float
         Frames counting fewer illuminated rows are left out (the peak row is not fully exposed there).
+
+    Returns
+    -------
+    xr.Dataset
+        A ``scan_calibration`` cube: each frame's lit-band ``count`` and ``centroid`` [px] over (delay, exposure) with
+        the fits' ``fitted_count`` and ``fitted_centroid``; v_p and t_o in attrs (``scan_speed_px_per_us``,
+        ``sync_offset_us``) with their standard errors (``scan_speed_std``, ``sync_offset_std``).
     """
     # one pass over the frames: the column average of every frame, (delay, exposure, row)
     profiles = capture["image"].mean("col").transpose("delay", "exposure", "row").values

@@ -132,6 +132,13 @@ def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, 
         As for ``demux_plane_to_ray``.
     rows_per_tile : int or None
         Camera rows per dask task; None: as many as keep a task's transport within 64 MiB.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``full_transport`` cube: ``transport`` T over (du, dv, row, col) [counts: the image of one u-cell lit for a
+        line time], lazily per row band, with the solver's ``converged``, ``iterations``, ``gap_bound`` and the clipping
+        flags per pixel.
     """
     if "line" not in capture.dims:
         raise StageError(Problem("this capture has no line dimension (a plane-to-ray sweep)",

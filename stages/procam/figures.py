@@ -76,6 +76,12 @@ def delay_profile_figure(capture: xr.Dataset, transport: xr.Dataset, /, *,
         name → [x, y] in image fractions (the scene files' units), each in [0, 1]; at least one pixel.
     exposure : float or None
         Exposure whose delay sweep is drawn [µs]; None: the shortest.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
+        ``<store>.png``.
     """
     exposure = float(capture["exposure"].min()) if exposure is None else exposure
     if exposure not in capture["exposure"].values:
@@ -182,6 +188,12 @@ def relighting_figure(transport: xr.Dataset, /, *, lines: tuple[Fraction, ...] =
         Line centres as fractions of the image height, each in [0, 1].
     line_rows : int
         Line width in projector rows.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
+        ``<store>.png``.
     """
     t = transport["transport"]
     rows = t.sizes["row"]
@@ -272,6 +284,12 @@ def epipolar_figure(capture: xr.Dataset, transport: xr.Dataset, /, *, exposure: 
         Offsets kept by the sharpened image: |offset| ≤ half_width rows.
     row : float
         Cross-section row, as a fraction of the image height, in [0, 1].
+
+    Returns
+    -------
+    xr.Dataset
+        A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
+        ``<store>.png``.
     """
     if 0.0 not in capture["delay"].values:
         raise StageError(Problem("the capture has no frame at delay 0 (the epipolar frame)",

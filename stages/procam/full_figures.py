@@ -85,6 +85,12 @@ def profile_2d_figure(transport: xr.Dataset, /, *, pixels: Pixels) -> xr.Dataset
         ``cell_width_px`` attr.
     pixels : dict
         name → [x, y] in image fractions (the scene files' units), each in [0, 1]; at least one pixel.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
+        ``<store>.png``.
     """
     t = _full(transport)["transport"]
     at = {name: pixel_at(transport, where) for name, where in pixels.items()}
@@ -122,6 +128,12 @@ def relighting_full_figure(transport: xr.Dataset, /, *, square_px: Count | None 
         Checkerboard square [projector px]; None: four u-cells (T resolves a pattern only to a cell).
     projector_cols : int or None
         Projector columns; None: the capture's projector_shape, else up to the last u-cell's edge.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
+        ``<store>.png``.
     """
     _full(transport)
     step, cells = float(transport.attrs["cell_width_px"]), transport.attrs["cells_px"]

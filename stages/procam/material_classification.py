@@ -151,15 +151,6 @@ def classify_materials(profiles: xr.Dataset, classifier: xr.Dataset, /, *, label
                        smooth_px: Index | None = None) -> xr.Dataset:
     """Classify every pixel of a capture by its delay profile, and by brightness alone (§5.4.9, Figs. 51c, 52).
 
-    Returns ``label`` and ``brightness_label`` over (row, col) (index into ``material``; −1: no usable profile), the
-    regular image ``image`` [counts], and ``unlike_training`` (a pixel whose mean distance to its 5 nearest training
-    pixels exceeds the classifier's calibrated ``novelty_distance``, the (1 − ``flag_rate``) quantile of the training
-    pixels' own out of fold: no trained material, e.g. the background; its label is still the SVM's) with that
-    distance ``novelty_distance``; with pooling, ``pooled_area``; with ``labels``, the truth ``true_label``,
-    ``confusion`` over (true_material, material), per-class ``accuracy`` with its 95 % Wilson interval and
-    ``overall_accuracy``, and the same for the brightness baseline (``brightness_`` prefix). Refused: profiles over
-    other delays, another source kind or exposure than the classifier's, a model store whose hash does not match.
-
     Parameters
     ----------
     profiles : xr.Dataset
@@ -185,6 +176,24 @@ def classify_materials(profiles: xr.Dataset, classifier: xr.Dataset, /, *, label
         before each pixel takes its most probable class [px] (``selpath.stages.procam._material_features``); None:
         the classifier's own ``smooth_px`` (0: none). Needs a classifier trained with ``smooth_px`` > 0 (it carries
         Platt probabilities); like pooling it reads the whole frame's profiles into memory.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``material_classification`` cube: ``label`` and ``brightness_label`` over (row, col) (index into ``material``;
+        −1: no usable profile), the regular image ``image`` [counts], and ``unlike_training`` (a pixel whose mean
+        distance to its 5 nearest training pixels exceeds the classifier's calibrated ``novelty_distance``, the (1 −
+        ``flag_rate``) quantile of the training pixels' own out of fold: no trained material, e.g. the background; its
+        label is still the SVM's) with that distance ``novelty_distance``; with pooling, ``pooled_area``; with
+        ``labels``, the truth ``true_label``, ``confusion`` over (true_material, material), per-class ``accuracy`` with
+        its 95 % Wilson interval and ``overall_accuracy``, and the same for the brightness baseline (``brightness_``
+        prefix).
+
+    Raises
+    ------
+    StageError
+        Profiles over other delays, another source kind or exposure than the classifier's, a model store whose hash does
+        not match.
     """
     require_variables(profiles, ("profile", "area", "flags"), "classify_materials")
     require_variables(classifier, ("model", "mean_profile"), "classify_materials")

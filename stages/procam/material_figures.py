@@ -68,6 +68,12 @@ def material_figure(classification: xr.Dataset, classifier: xr.Dataset, /) -> xr
         A ``material_classification`` store (``classify_materials``); scored (with its ``confusion``) or not.
     classifier : xr.Dataset
         The ``material_classifier`` store that classified it (its mean training profiles are drawn).
+
+    Returns
+    -------
+    xr.Dataset
+        A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
+        ``<store>.png``.
     """
     require_variables(classification, ("label", "image"), "material_figure")
     require_variables(classifier, ("mean_profile",), "material_figure")
@@ -132,6 +138,12 @@ def vein_figure(choice: xr.Dataset, /) -> xr.Dataset:
     ----------
     choice : xr.Dataset
         A ``delay_choice`` store (``choose_delay``).
+
+    Returns
+    -------
+    xr.Dataset
+        A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
+        ``<store>.png``.
     """
     require_variables(choice, ("image", "contrast", "contrast_of"), "vein_figure")
     a = choice.attrs
@@ -195,6 +207,12 @@ def atlas_figure(atlas: xr.Dataset, /) -> xr.Dataset:
     ----------
     atlas : xr.Dataset
         A ``material_atlas`` store (``material_atlas``).
+
+    Returns
+    -------
+    xr.Dataset
+        A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
+        ``<store>.png``.
     """
     require_variables(atlas, ("profile", "extent", "image"), "atlas_figure")
     reach = atlas.attrs.get("reach_px", "?")
@@ -253,6 +271,12 @@ def appearance_figure(profile: xr.Dataset, render: xr.Dataset, /) -> xr.Dataset:
         A ``scattering_profile`` store (``fit_scattering_profile``).
     render : xr.Dataset
         An ``appearance_render`` store (``render_appearance``) of that profile.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
+        ``<store>.png``.
     """
     require_variables(profile, ("profile",), "appearance_figure")
     require_variables(render, ("image",), "appearance_figure")

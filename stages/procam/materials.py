@@ -113,11 +113,6 @@ def profile_frames(source: xr.Dataset, exposure: float | None) -> tuple[xr.DataA
 def delay_profiles(source: xr.Dataset, /, *, exposure: Positive | None = None, fold: bool = False) -> xr.Dataset:
     """Per-pixel delay profiles normalised by their area, so albedo cancels (§5.4.9, Fig. 51b).
 
-    Returns ``profile`` over (delay, row, col) [1, summing to 1 over delay], ``area`` [counts: the profile's sum,
-    the regular image], ``rms_delay`` [µs: √(Σ profile·t_d²), the profile's spread about t_d = 0] and ``flags``
-    (saturated, nonfinite, no_light: area ≤ 0); flagged pixels' profiles are NaN. Refused when under 1 % of the
-    pixels have a usable profile.
-
     Parameters
     ----------
     source : xr.Dataset
@@ -132,6 +127,18 @@ def delay_profiles(source: xr.Dataset, /, *, exposure: Positive | None = None, f
         their sum halves the noise's variance (``selpath.stages.procam._material_features``). A capture's direct
         light must arrive at t_d = 0 (a sync offset t_o of 0; one recording another ``sync_offset_us`` is refused);
         a transport's is offset 0 whatever t_o.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``delay_profiles`` cube: ``profile`` over (delay, row, col) [1, summing to 1 over delay], ``area`` [counts:
+        the profile's sum, the regular image], ``rms_delay`` [µs: √(Σ profile·t_d²), the profile's spread about t_d = 0]
+        and ``flags`` (saturated, nonfinite, no_light: area ≤ 0); flagged pixels' profiles are NaN.
+
+    Raises
+    ------
+    StageError
+        When under 1 % of the pixels have a usable profile.
     """
     frames, saturated, what = profile_frames(source, exposure)
     if fold:
@@ -250,10 +257,7 @@ def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scen
     """Train an RBF-kernel SVM on labelled pixels' delay profiles, and the brightness-only baseline (§5.4.9).
 
     Hyper-parameters by cross-validation over ``folds`` folds of spatial blocks (2 × folds bands of rows over the
-    training pixels' span: neighbouring pixels share light and noise, so random folds would leak). Returns the
-    ``model`` (a skops archive, bytes), the mean and spread of each class's profiles (Fig. 51b), the pixels used and
-    both classifiers' cross-validated accuracy; attrs the chosen C and γ and what the model was trained on.
-    Refused: fewer than 2 classes, a class with fewer usable labelled pixels than folds, no labelled pixel.
+    training pixels' span: neighbouring pixels share light and noise, so random folds would leak).
 
     Parameters
     ----------
@@ -293,6 +297,18 @@ def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scen
         class probabilities (Platt's sigmoids fitted on out-of-fold decisions over the same spatial blocks,
         scikit-learn's ``CalibratedClassifierCV``). On the materials dev set 4 px was chosen by
         cross-validation over row bands of the training placement (docs/results.md).
+
+    Returns
+    -------
+    xr.Dataset
+        A ``material_classifier`` cube: the ``model`` (a skops archive, bytes), the mean and spread of each class's
+        profiles (Fig. 51b), the pixels used and both classifiers' cross-validated accuracy; attrs the chosen C and γ
+        and what the model was trained on.
+
+    Raises
+    ------
+    StageError
+        Fewer than 2 classes, a class with fewer usable labelled pixels than folds, no labelled pixel.
     """
     import sklearn
     import skops.io

@@ -150,6 +150,12 @@ def multiplexing_gain_study(*, lines: Count = 31,
         Simulated measurements per signal level and code.
     seed : int
         Seed of the simulated noise.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``multiplexing_study`` cube: ``predicted_gain_db`` and ``measured_gain_db`` [dB] of multiplexed codes over
+        simplex, over (signal, code).
     """
     try:
         s = s_matrix(lines)
@@ -230,6 +236,12 @@ def line_relighting_snr(capture: xr.Dataset, transport: xr.Dataset, /, *, line: 
         Exposures of the single-line captures, in projector scans (frames) [1].
     lit_fraction : float
         Pixels whose true value is at least this fraction of the brightest count as lit [1].
+
+    Returns
+    -------
+    xr.Dataset
+        A ``line_relighting_snr`` cube: the relit line ``image`` over (method, row, col) and its ``truth`` (row, col)
+        [counts], ``snr_db`` per method and, where the noise model predicts it, ``predicted_snr_db``.
     """
     require_variables(transport, ("transport",), "line_relighting_snr")
     scene = simulated_scene(capture, "capture")
@@ -312,6 +324,12 @@ def full_relighting_snr(capture: xr.Dataset, transport: xr.Dataset, /, *, square
         Checkerboard square [projector px], a whole number of u-cells; None: four u-cells.
     lit_fraction : float
         Pixels whose true value is at least this fraction of the brightest count as lit [1].
+
+    Returns
+    -------
+    xr.Dataset
+        A ``relighting_snr`` cube: the relit ``image`` and its ``truth`` [counts] over (pattern, row, col), and
+        ``snr_db`` per pattern.
     """
     require_variables(transport, ("transport", "u_direct"), "full_relighting_snr")
     scene = simulated_scene(capture, "capture")

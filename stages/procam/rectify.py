@@ -168,8 +168,7 @@ def decode_gray_code(capture: xr.Dataset, /, *, min_lit: Fraction = 0.02, min_co
 
     A camera with fewer pixels than the projector along an axis cannot resolve that axis's finest stripes: those bits
     are left out (:func:`resolved_drop`; attr ``bits_unresolved`` [rows, cols]) and positions are found in blocks of
-    2^dropped projector pixels. Returns ``projector_col`` and ``projector_row`` [projector px, pixel centres at whole
-    numbers, sub-pixel] over (row, col), NaN where undecoded, and the usable share ``decoded_fraction`` (floor 5 %).
+    2^dropped projector pixels.
 
     Parameters
     ----------
@@ -188,6 +187,13 @@ def decode_gray_code(capture: xr.Dataset, /, *, min_lit: Fraction = 0.02, min_co
         Least significant bits per axis to leave out; None: those finer than the camera's pixels if it saw the whole
         projector (:func:`resolved_drop` of the two sizes). Give it for a camera that sees part of the projector
         magnified (none unresolved: [0, 0]).
+
+    Returns
+    -------
+    xr.Dataset
+        A ``projector_correspondence`` cube: ``projector_col`` and ``projector_row`` [projector px, pixel centres at
+        whole numbers, sub-pixel] over (row, col), NaN where undecoded, and the usable share ``decoded_fraction`` (floor
+        5 %).
     """
     require_variables(capture, ("image",), "decode_gray_code")
     attrs = capture.attrs
@@ -299,12 +305,6 @@ def epipolar_alignment(correspondence: xr.Dataset, /, *, tolerance_rows: Positiv
 
     A UserWarning gives the numbers when they are not.
 
-    Returns ``measured`` (δ of each decoded pixel, NaN elsewhere) and ``model`` (the fit at every pixel) [camera
-    rows] over (row, col); attrs ``shift_rows``, ``roll_deg`` (the projector's rows turned against the camera's:
-    turn it by −roll to rectify the rig), ``row_slope`` (δ per camera row: a row-scale mismatch), their standard
-    errors (``*_std``), ``median_abs_rows`` and ``p90_abs_rows`` (of the model over the decoded pixels),
-    ``residual_rows`` (robust spread of measured − model: the codes' quantisation) and ``tolerance_rows``.
-
     Parameters
     ----------
     correspondence : xr.Dataset
@@ -317,6 +317,16 @@ def epipolar_alignment(correspondence: xr.Dataset, /, *, tolerance_rows: Positiv
         The fit uses the pixels whose code is at least this sharp (``code_sharpness`` [1]: global light such as
         subsurface scattering blurs a code and biases its sub-pixel position, by up to 0.2 rows in the tests); all
         decoded pixels when fewer than 100 are. Attr ``fit_pixels`` says how many were used.
+
+    Returns
+    -------
+    xr.Dataset
+        An ``epipolar_alignment`` cube: ``measured`` (δ of each decoded pixel, NaN elsewhere) and ``model`` (the fit at
+        every pixel) [camera rows] over (row, col); attrs ``shift_rows``, ``roll_deg`` (the projector's rows turned
+        against the camera's: turn it by −roll to rectify the rig), ``row_slope`` (δ per camera row: a row-scale
+        mismatch), their standard errors (``*_std``), ``median_abs_rows`` and ``p90_abs_rows`` (of the model over the
+        decoded pixels), ``residual_rows`` (robust spread of measured − model: the codes' quantisation) and
+        ``tolerance_rows``.
     """
     require_variables(correspondence, ("projector_row",), "epipolar_alignment")
     attrs = correspondence.attrs
@@ -391,6 +401,12 @@ def rectify_transport(transport: xr.Dataset, alignment: xr.Dataset, /) -> xr.Dat
         [camera rows] evenly or unevenly spaced, increasing.
     alignment : xr.Dataset
         An ``epipolar_alignment`` of the same rig and sensor: ``model`` δ [camera rows] over (row, col).
+
+    Returns
+    -------
+    xr.Dataset
+        A ``plane_to_ray_transport`` cube: the transport re-indexed so that offset 0 is each pixel's epipolar row (T'(o)
+        = T(o + δ)), lazily; the same kind.
     """
     require_variables(transport, ("transport",), "rectify_transport")
     require_variables(alignment, ("model",), "rectify_transport")

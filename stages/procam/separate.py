@@ -114,9 +114,7 @@ def separate_direct_global(capture: xr.Dataset, /, *, black_level: Fraction | No
 
     On a floodlit (global-shutter) stack it gives Nayar's direct and global images; on a stack captured in epipolar
     mode, the epipolar-direct and epipolar-global images. Refused: fewer than 2 shifts, or shifts under which some
-    phase of the board is never lit or never dark (it could not be separated). Returns ``direct`` and ``global``
-    [counts] over (row, col), ``flags`` (saturated, nonfinite; flagged pixels are NaN) and the usable share
-    ``unsaturated_fraction`` (floor 50 %).
+    phase of the board is never lit or never dark (it could not be separated).
 
     Parameters
     ----------
@@ -134,6 +132,12 @@ def separate_direct_global(capture: xr.Dataset, /, *, black_level: Fraction | No
     dark_level : float or None
         The sensor's offset, subtracted from every frame before separating [counts]; None: the capture's
         ``dark_level_counts`` attr (an in-memory capture without it: 0).
+
+    Returns
+    -------
+    xr.Dataset
+        A ``direct_global`` cube: ``direct`` and ``global`` [counts] over (row, col), ``flags`` (saturated, nonfinite;
+        flagged pixels are NaN) and the usable share ``unsaturated_fraction`` (floor 50 %).
     """
     require_variables(capture, ("image",), "separate_direct_global")
     image = capture["image"]

@@ -72,6 +72,12 @@ def short_range_images(transport: xr.Dataset, /, *,
     lines : int or None
         Line positions of the sweep, for the capture counts [1]; None: 1 for a plane-to-ray transport, the
         transport's ``lines`` attr for a full one (else give it).
+
+    Returns
+    -------
+    xr.Dataset
+        A ``short_range`` cube: the floodlit short-range ``image`` [counts] over (max_delay, row, col), each sweep's
+        ``energy_fraction`` and its capture counts.
     """
     require_variables(transport, ("transport",), "short_range_images")
     t = transport["transport"]

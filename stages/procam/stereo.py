@@ -102,15 +102,6 @@ def calibrate_procam_stereo(target: xr.Dataset, /, *, window_px: Count = 10, min
     Also how far the rows are from epipolar, with a UserWarning when the sync's rows are off by more than
     ``tolerance_rows`` at one corner in ten; the intrinsics come with standard deviations.
 
-    Returns ``camera_matrix``, ``projector_matrix``, ``rotation`` (3 × 3 over (i, j)), ``translation`` [mm] (i),
-    ``camera_distortion`` and ``projector_distortion`` (k: OpenCV's k1, k2, p1, p2, k3), ``rectify_camera`` and
-    ``rectify_projector`` (stereoRectify's R1, R2), ``project_camera`` and ``project_projector`` (its P1, P2 over
-    (i, m)), and per pose ``pose_used`` and ``pose_rms_px``; attrs the reprojection errors, ``roll_deg``,
-    ``pitch_deg``, ``yaw_deg`` (of R = Rz·Ry·Rx), ``baseline_mm``, the intrinsics' standard deviations,
-    ``row_disparity_before``/``_after`` (median |row difference| of corresponding corners on the camera's scale,
-    undistorted, unrectified and rectified; ``_p90`` too) and ``sync_rows_median``/``_p90`` (|projector row as the
-    sync pairs it − camera row| at the corners, camera rows).
-
     Parameters
     ----------
     target : xr.Dataset
@@ -127,6 +118,18 @@ def calibrate_procam_stereo(target: xr.Dataset, /, *, window_px: Count = 10, min
         ``min_contrast`` of the pixel's white − black.
     tolerance_rows : float
         The sync's rows off by more than this at one corner in ten are warned of [camera rows].
+
+    Returns
+    -------
+    xr.Dataset
+        A ``procam_stereo_calibration`` cube: ``camera_matrix``, ``projector_matrix``, ``rotation`` (3 × 3 over (i, j)),
+        ``translation`` [mm] (i), ``camera_distortion`` and ``projector_distortion`` (k: OpenCV's k1, k2, p1, p2, k3),
+        ``rectify_camera`` and ``rectify_projector`` (stereoRectify's R1, R2), ``project_camera`` and
+        ``project_projector`` (its P1, P2 over (i, m)), and per pose ``pose_used`` and ``pose_rms_px``; attrs the
+        reprojection errors, ``roll_deg``, ``pitch_deg``, ``yaw_deg`` (of R = Rz·Ry·Rx), ``baseline_mm``, the
+        intrinsics' standard deviations, ``row_disparity_before``/``_after`` (median |row difference| of corresponding
+        corners on the camera's scale, undistorted, unrectified and rectified; ``_p90`` too) and
+        ``sync_rows_median``/``_p90`` (|projector row as the sync pairs it − camera row| at the corners, camera rows).
     """
     require_variables(target, ("image",), "calibrate_procam_stereo")
     attrs = target.attrs

@@ -65,13 +65,6 @@ def choose_delay(transport: xr.Dataset, /, *, delays: TimeSweep = TimeSweep(star
                  min_signal: Fraction = 0.01) -> xr.Dataset:
     """Choose the sync delay that shows a structure below the surface best, and image it (§5.4.7, Fig. 49).
 
-    Returns ``image`` over (view, row, col) [counts]: the regular image (all the transport's light), the far-range
-    indirect image (all light from beyond the direct band, |o| ≥ v_p·(t_e + t_p)/2) and the frame at the chosen
-    delay; ``contrast`` over delay (NaN where a delay is not a candidate) and ``contrast_of`` over view; attrs
-    ``chosen_delay_us`` (the true delay: the transport's offsets are true ones) and ``commanded_delay_us`` (what to
-    set on this rig's controller: chosen minus the calibrated sync offset t_o). Refused: no candidate delay clear of
-    direct light, a structure or surround with no pixel.
-
     Parameters
     ----------
     transport : xr.Dataset
@@ -88,6 +81,20 @@ def choose_delay(transport: xr.Dataset, /, *, delays: TimeSweep = TimeSweep(star
         objects) or ``image`` (an integer label image, its codes named by ``classes``).
     min_signal : float
         Delays whose surround's mean is below this share of its regular-image mean are left out [1].
+
+    Returns
+    -------
+    xr.Dataset
+        A ``delay_choice`` cube: ``image`` over (view, row, col) [counts]: the regular image (all the transport's
+        light), the far-range indirect image (all light from beyond the direct band, |o| ≥ v_p·(t_e + t_p)/2) and the
+        frame at the chosen delay; ``contrast`` over delay (NaN where a delay is not a candidate) and ``contrast_of``
+        over view; attrs ``chosen_delay_us`` (the true delay: the transport's offsets are true ones) and
+        ``commanded_delay_us`` (what to set on this rig's controller: chosen minus the calibrated sync offset t_o).
+
+    Raises
+    ------
+    StageError
+        No candidate delay clear of direct light, a structure or surround with no pixel.
     """
     require_variables(transport, ("transport",), "choose_delay")
     t = transport["transport"]

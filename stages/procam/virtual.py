@@ -180,6 +180,12 @@ def relight_images(transport: xr.Dataset, /, *, patterns: Patterns | None = None
         transport's camera-rectified rows, as is.
     projector_rows : int or None
         The projector's rows where the transport does not record them.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``relit_images`` cube: the relit ``image`` [counts] over (pattern, row, col), each pattern's ``lit_share`` and
+        ``censored`` where clipped light was used, lazily.
     """
     _transport(transport, "relight")
     rows = _pattern_rows(transport, projector_rows, space)
@@ -218,6 +224,12 @@ def epipolar_images(transport: xr.Dataset, /, *,
         A ``plane_to_ray_transport`` or ``full_transport`` store (a full one is summed over du first).
     bands : list of int
         Half-widths b of the bands [camera rows], each ≥ 0.
+
+    Returns
+    -------
+    xr.Dataset
+        An ``epipolar_images`` cube: ``epipolar`` and ``non_epipolar`` [counts] over (band, row, col), summing to the
+        floodlit image, and ``censored`` where the transport was seen only clipped.
     """
     t = _transport(transport, "epipolar_images")
     if "du" in t.dims:
@@ -239,6 +251,12 @@ def relit_figure(relit: xr.Dataset, /) -> xr.Dataset:
     ----------
     relit : xr.Dataset
         A ``relit_images`` store: ``image`` over (pattern, row, col).
+
+    Returns
+    -------
+    xr.Dataset
+        A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
+        ``<store>.png``.
     """
     require_variables(relit, ("image",), "relit_figure")
     names = [str(n) for n in relit["pattern"].values]

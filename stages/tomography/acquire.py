@@ -116,6 +116,13 @@ def acquire_tomography(
         Stage angles {start, stop, step} [degree]; stop > start, at most 100 000 angles.
     progress : bool
         Show a progress bar.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``tomography_capture`` cube: the store ``store``: ``target`` and ``reference`` [counts] over (angle, row,
+        col), with ``backlit`` and ``dark`` where the rig has them, and the rig geometry in its attrs; written angle by
+        angle, opened lazily.
     """
     if rig == "sim":
         instruments = simulated_rig(load_scene(scene))

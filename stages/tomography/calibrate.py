@@ -83,6 +83,12 @@ def subtract_background(capture: xr.Dataset, /, *, background: str = "dark",
         Variable holding the background frame (dims ``row, col``), e.g. ``dark``.
     variables : list of str
         Frame variables to correct; those absent from the capture are skipped.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``tomography_capture`` cube: the capture with the background subtracted from its frame variables (lazy; the
+        same kind).
     """
     require_variables(capture, (background,), "subtract_background")
     if capture.attrs.get("background_subtracted"):
@@ -102,6 +108,12 @@ def subtract_dark(capture: xr.Dataset, /) -> xr.Dataset:
     ----------
     capture : xr.Dataset
         A ``tomography_capture`` store with a ``dark`` frame (row, col) [counts].
+
+    Returns
+    -------
+    xr.Dataset
+        A ``tomography_capture`` cube: the capture with ``dark`` subtracted from ``target``, ``reference`` and
+        ``backlit`` (lazy; the same kind).
     """
     return subtract_background(capture, background="dark")
 
@@ -379,6 +391,12 @@ def normalise_reference(capture: xr.Dataset, silhouettes: xr.Dataset | None = No
     """Transmittance I_target / I_reference per pixel (dark-subtracted), with flags for unusable pixels.
 
     {pair}
+
+    Returns
+    -------
+    xr.Dataset
+        A ``transmittance`` cube: ``transmittance`` I_target / I_reference over (angle, row, col) [1] (lazy), NaN where
+        ``flags`` says why, and the usable shares.
     """
     value, flags, attrs, shares = _checked_pair(capture, "normalise_reference", saturation_level, min_signal,
                                                 min_signal_relative, absorption=False,
@@ -400,6 +418,12 @@ def absorption(capture: xr.Dataset, silhouettes: xr.Dataset | None = None, /, *,
     1e-8…1e8 cannot under- or overflow.
 
     {pair}
+
+    Returns
+    -------
+    xr.Dataset
+        An ``absorption`` cube: ``absorption`` A over (angle, row, col) [1] (lazy), NaN where ``flags`` (CF flag bits)
+        says why; the usable share ``object_valid_fraction`` and, given ``silhouettes``, ``background_fraction``.
     """
     value, flags, attrs, shares = _checked_pair(capture, "absorption", saturation_level, min_signal,
                                                 min_signal_relative, absorption=True,

@@ -54,6 +54,12 @@ def reconstruction_error(reconstruction: xr.Dataset, truth: xr.Dataset, /) -> xr
     truth : xr.Dataset
         A ``reconstruction`` store of the true σ (``phantom_truth``) on the same (y, x) grid and in the same units,
         of one slice or of every reconstructed slice.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``reconstruction_error`` cube: ``rmse`` and ``max_abs_error`` [per length unit] over every slice and pixel,
+        and the inclusion's ``centroid_error`` and ``radius_error`` where it has one.
     """
     require_variables(reconstruction, ("sigma",), "reconstruction_error")
     require_variables(truth, ("sigma",), "reconstruction_error")

@@ -50,6 +50,12 @@ def sinogram_figure(sinogram: xr.Dataset, /, *, slice_index: Index = 0) -> xr.Da
         A ``sinogram`` store (``bin_sinogram``): ``absorption`` and ``observed`` over (slice, theta, x).
     slice_index : int
         Position along the sinogram's ``slice`` dim.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
+        ``<store>.png``.
     """
     require_variables(sinogram, ("absorption", "observed"), "sinogram_figure")
     one = sinogram.isel(slice=slice_index) if "slice" in sinogram.dims else sinogram
@@ -97,6 +103,12 @@ def coverage_figure(coverage: xr.Dataset | None = None, /) -> xr.Dataset:
     coverage : xr.Dataset or None
         A ``coverage`` store (the ``coverage`` stage): measured ``coverage`` per slice, and
         ``analytic_coverage`` where present, drawn at its ``light_angle_deg``; None: the model curves only.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
+        ``<store>.png``.
     """
     caption = """Coverage d_max − d_min (dimensionless share of the sinogram's X range that holds observed rays)
         versus the light angle θ_l [degree], by the closed forms of Eq. 8–19 for a cylinder seen by an
@@ -135,6 +147,12 @@ def capture_figure(capture: xr.Dataset, /, *, angle_index: Index = 0) -> xr.Data
         (angle, row, col).
     angle_index : int
         Position along the capture's ``angle`` dim.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
+        ``<store>.png``.
     """
     require_variables(capture, ("target", "backlit"), "capture_figure")
     one = capture.isel(angle=angle_index)

@@ -138,6 +138,12 @@ def silhouettes(capture: xr.Dataset, /, *, threshold: Positive | None = None,
         plane's levels (the means of Otsu's two classes) [counts].
     min_size : int
         Blobs and holes up to this many pixels are removed (noise, dust); 0: none [px].
+
+    Returns
+    -------
+    xr.Dataset
+        A ``silhouettes`` cube: ``silhouette`` (True where the object is) over (angle, row, col), lazily per angle
+        chunk, and the usable share ``object_fraction``.
     """
     require_variables(capture, ("backlit",), "silhouettes")
     capture = sorted_sweep(capture, "angle", "silhouettes")
@@ -256,6 +262,13 @@ def visual_hull(silhouettes: xr.Dataset, /) -> xr.Dataset:
     silhouettes : xr.Dataset
         A ``silhouettes`` store (the ``silhouettes`` stage): ``silhouette`` over (angle, row, col), angle the stage
         angle [degree]; attrs: the rig geometry (``camera_model`` and its camera's, ``light_angle_deg``).
+
+    Returns
+    -------
+    xr.Dataset
+        A ``hull`` cube: per slice the contour's ``vertices`` over (slice, vertex, xy) (counter-clockwise, object frame)
+        [length unit] and ``n_vertices``, with the views that gave no constraint (``empty_views``, ``border_views``,
+        ``gapped_views``).
     """
     require_variables(silhouettes, ("silhouette",), "visual_hull")
     mask = silhouettes["silhouette"]

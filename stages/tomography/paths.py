@@ -143,6 +143,12 @@ def align_paths(absorption: xr.Dataset, hull: xr.Dataset, /, *, min_exit_cos: Fr
         the rig geometry the rays are traced in (camera, ``light_angle_deg``, ``light_kind``, ``beam_height``).
     min_exit_cos : float
         Rays leaving the contour at a smaller |cos| to its normal graze it and are dropped, in [0, 1]; 0: none [1].
+
+    Returns
+    -------
+    xr.Dataset
+        A ``rays`` cube: ``theta`` [degree], ``x`` [length unit] and ``absorption`` [1] over (angle, row, col): every
+        lit pixel's ray, with ``reason`` (why a pixel gives none), lazily.
     """
     require_variables(absorption, ("absorption",), "align_paths")
     geometry = RigGeometry.from_attrs(hull.attrs, absorption.sizes["row"], absorption.sizes["col"],

@@ -135,6 +135,11 @@ def simulate_sinogram(*, scene: StorePath, light_angle_deg: LightAngle | None = 
         Gaussian noise added to the absorption of every bin [absorption].
     seed : int
         Noise seed.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``sinogram`` cube: the exact ``absorption`` [1] over (slice, theta, x) and the rig's ``observed`` mask.
     """
     spec = load_scene(scene)
     if light_angle_deg is not None:
@@ -191,6 +196,12 @@ def phantom_truth(sinogram: xr.Dataset, /, *, scene: StorePath, n_pixels: Count 
         Image size n (as given to the reconstruction); None: the sinogram's number of X bins.
     supersample : int
         Samples per cell and axis.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``reconstruction`` cube: ``sigma`` [per length unit] of the scene's inclusions over (slice, y, x) on
+        ``sinogram``'s grid.
     """
     spec = load_scene(scene)
     x = sinogram["x"].values

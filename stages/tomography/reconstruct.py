@@ -297,6 +297,12 @@ def fbp(sinogram: xr.Dataset, hull: xr.Dataset | None = None, /, *, n_pixels: Co
         Bins whose ray misses the hull are known zeros either way.
     dtype : str
         ``float32`` or ``float64``.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``reconstruction`` cube: ``sigma`` over (slice, y, x) [per length unit], zero outside the hull, lazily per
+        slice chunk.
     """
     check_inputs(sinogram, hull, "fbp")
     geometry = grid_geometry(sinogram, n_pixels)
@@ -375,6 +381,12 @@ def reconstruct_tv(sinogram: xr.Dataset, hull: xr.Dataset | None = None, /, *,
         ``joseph`` (interpolating) or ``binary`` (the thesis's r_ij of Eq. 22).
     dtype : str
         ``float32`` or ``float64``.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``reconstruction`` cube: ``sigma`` over (slice, y, x) [per length unit], zero outside the hull, with the
+        solver's ``converged``, ``iterations`` and residual histories per slice, lazily.
     """
     check_inputs(sinogram, hull, "reconstruct_tv")
     if tv_weight < 0 or rho <= 0 or tol <= 0 or max_iter < 1 or cg_steps < 1 or bound_slack < 0:

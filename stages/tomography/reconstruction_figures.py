@@ -133,6 +133,12 @@ def reconstruction_figure(fbp: xr.Dataset, optimised: xr.Dataset, truth: xr.Data
         [1/length unit] and ``tv_weight`` title the panel); None: the two shortest-path reconstructions only.
     slice_index : int
         Position along the reconstructions' ``slice`` dim.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
+        ``<store>.png``.
     """
     given = [fbp, optimised] + ([] if bundles is None else [bundles])
     for reconstruction in given:
@@ -230,6 +236,12 @@ def convergence_figure(optimised: xr.Dataset, /) -> xr.Dataset:
     optimised : xr.Dataset
         A ``reconstruction`` store made by ``reconstruct_tv``: ``objective``, ``primal_residual`` and
         ``dual_residual`` over (slice, iteration), and ``iterations`` and ``converged`` per slice where present.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
+        ``<store>.png``.
     """
     require_variables(optimised, ("objective", "primal_residual", "dual_residual"), "convergence_figure")
     count = optimised["objective"].shape[0]
@@ -303,6 +315,12 @@ def volume_figure(reconstruction: xr.Dataset, truth: xr.Dataset | None = None, /
     at : (float, float, float) or None
         (x, y, z) [length unit] where the sections cross; the nearest slice, row and column are drawn. None: the
         rotation axis (x = y = 0) at the middle slice's height.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
+        ``<store>.png``.
     """
     volumes = {"reconstruction": reconstruction} | ({"truth": truth} if truth is not None else {})
     for name, volume in volumes.items():

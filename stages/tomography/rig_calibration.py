@@ -136,6 +136,13 @@ def calibrate_rig(capture: xr.Dataset, /, *, axis: bool = True, light_angle: boo
         Camera rows (spread over the object's height) whose silhouettes fit the axis; the lit rows fit θ_l.
     min_signal : float
         Counts above dark below which a pixel's absorption is not used for θ_l [counts].
+
+    Returns
+    -------
+    xr.Dataset
+        A ``rig_calibration`` cube: the estimates ``axis_column`` [px] and ``light_angle`` [degree] with their standard
+        uncertainties (``*_std``), the values stated, the fits' residuals and the θ_l profile ``light_cost`` over
+        ``light_angle_trial``; the corrected geometry in its attrs.
     """
     if not axis and not light_angle:
         raise StageError(Problem("calibrate_rig: nothing to calibrate", fix="set axis or light_angle to true"))
@@ -239,6 +246,12 @@ def apply_rig_calibration(capture: xr.Dataset, calibration: xr.Dataset, /) -> xr
     calibration : xr.Dataset
         A ``calibrate_rig`` result. Its camera (model, focal length or pixel size, distance), length unit and
         light kind must be the capture's: a calibration of another rig is refused.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``tomography_capture`` cube: the capture with ``principal_point_px`` and ``light_angle_deg`` from the
+        calibration, ``stated_principal_point_px`` and ``stated_light_angle_deg`` kept; frames untouched and lazy.
     """
     if calibration.attrs.get("selpath_kind") != RIG_CALIBRATION.name:
         raise StageError(Problem("apply_rig_calibration: the calibration is not a calibrate_rig result "

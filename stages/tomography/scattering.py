@@ -180,11 +180,14 @@ def reconstruct_scattering(rays: xr.Dataset, sinogram: xr.Dataset, hull: xr.Data
     seed : int
         Seed of the walks (with the slice's row).
 
-    Returns a ``reconstruction`` store: ``sigma`` over (slice, y, x), NaN for a slice without a contour or where no
-    walk reached an observed bin (no data: never a confident 0); per slice ``converged`` (L-BFGS-B met ``tol``),
-    ``iterations``, ``final_objective``, ``paths_per_bin`` (the median over the observed bins of their distinct
-    paths: below the setting where paths repeat) and ``bins_without_paths`` (observed bins no walk's light reached:
-    left out of the fit; raise ``photons`` if many).
+    Returns
+    -------
+    xr.Dataset
+        A ``reconstruction`` store: ``sigma`` over (slice, y, x), NaN for a slice without a contour or where no walk
+        reached an observed bin (no data: never a confident 0); per slice ``converged`` (L-BFGS-B met ``tol``),
+        ``iterations``, ``final_objective``, ``paths_per_bin`` (the median over the observed bins of their distinct
+        paths: below the setting where paths repeat) and ``bins_without_paths`` (observed bins no walk's light reached:
+        left out of the fit; raise ``photons`` if many).
     """
     sigma_s = _scattering_coefficient(scattering, sigma_s)
     if sigma_s == 0:

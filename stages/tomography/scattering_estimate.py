@@ -183,10 +183,13 @@ def estimate_scattering(capture: xr.Dataset, hull: xr.Dataset, /, *, views: Coun
     seed : int
         Seed of the walks and of the bootstrap.
 
-    Returns a ``scattering_estimate`` store: ``sigma_s`` (NaN where no view gave light in every distance bin),
-    ``sigma_s_low``/``sigma_s_high``, ``settled``, ``rounds``, ``effective_walks`` (the walks' effective number at
-    the estimate: low means the reweighting is stretched), and the last round's ``objective`` over its candidates
-    ``candidate_sigma_s``, and the ``measured_profile``/``modelled_profile`` over ``bin_distance`` [length unit].
+    Returns
+    -------
+    xr.Dataset
+        A ``scattering_estimate`` store: ``sigma_s`` (NaN where no view gave light in every distance bin),
+        ``sigma_s_low``/``sigma_s_high``, ``settled``, ``rounds``, ``effective_walks`` (the walks' effective number at
+        the estimate: low means the reweighting is stretched), and the last round's ``objective`` over its candidates
+        ``candidate_sigma_s``, and the ``measured_profile``/``modelled_profile`` over ``bin_distance`` [length unit].
     """
     require_variables(capture, ("reference",), "estimate_scattering")
     geometry = RigGeometry.from_attrs(capture.attrs, capture.sizes["row"], capture.sizes["col"],

@@ -117,6 +117,12 @@ def simulate_parallel_capture(
         Gaussian read noise; 0 for none [counts].
     seed : int
         Seed of the noise.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``tomography_capture`` cube: ``target``, ``reference`` and ``backlit`` [counts] over (angle, row, col) and
+        ``dark`` (row, col), with the parallel rig's geometry in its attrs.
     """
     angle_values = angles.values()
     per_chunk = angles_per_chunk(len(angle_values), n_rows * n_cols * 4)
@@ -196,6 +202,12 @@ def simulate_capture(*, scene: StorePath, angles: AngleSweep = AngleSweep(),  # 
         Sensor rows per chunk; None: whole frames, as an acquisition stores them (silhouettes need whole frames).
         Angles per chunk follow from whole frames (about 8 MiB of one frame kind, at least one angle), banded or not:
         silhouettes join the bands back into whole frames.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``tomography_capture`` cube: ``target``, ``reference`` and ``backlit`` [counts] over (angle, row, col) and
+        ``dark`` (row, col), rendered lazily chunk by chunk, with the scene's stated geometry in its attrs.
     """
     spec = load_scene(scene)
     if spec.effects.scattering is not None:

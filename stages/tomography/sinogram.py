@@ -168,6 +168,12 @@ def bin_sinogram(rays: xr.Dataset, /, *, n_theta: Bins | None = None, n_x: Bins 
         Bins over [−x_extent, x_extent], at least 2; None: one per pixel pitch at the axis, 2·x_extent / pitch + 1.
     x_extent : float or None
         Half-width of the X grid [length unit]; None: the camera's view half-width at the axis.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``sinogram`` cube: ``absorption`` [1] over (slice, theta, x), the mean of the rays in each bin, and
+        ``observed`` (True where a ray fell), lazily per slice.
     """
     require_variables(rays, ("theta", "x", "absorption"), "bin_sinogram")
     extent = float(x_extent if x_extent is not None else rays.attrs.get("x_extent", np.nan))
@@ -370,6 +376,12 @@ def coverage(sinogram: xr.Dataset, hull: xr.Dataset, /) -> xr.Dataset:
     hull : xr.Dataset
         A ``hull`` store (``visual_hull``) holding every slice of the sinogram: ``vertices``, ``n_vertices``, and the
         camera's geometry attrs.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``coverage`` cube: per slice the observed share ``coverage`` [1] of the sinogram and the band [``d_min``,
+        ``d_max``] it covers, with Eq. 8–19's analytic values where the hull allows them.
     """
     require_variables(sinogram, ("observed",), "coverage")
     if "slice" not in sinogram.dims:

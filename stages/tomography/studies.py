@@ -85,6 +85,12 @@ def light_angle_study(*, scene: StorePath,
         ADMM iteration cap.
     angles : AngleSweep
         Stage angles of the simulated sweep [degree]; stop > start, at most 100 000 angles.
+
+    Returns
+    -------
+    xr.Dataset
+        A ``light_angle_study`` cube: ``rmse`` and ``max_abs_error`` [per length unit] over (light_angle, method), and
+        the reconstructions ``sigma`` over (light_angle, method, y, x).
     """
     results, observed = [], []
     truth = None
