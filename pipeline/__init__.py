@@ -8,7 +8,11 @@ The public surface, for notebooks and plugins::
 import lazy_loader
 
 # imported when first used (SPEC 1), so that the command line answers --help without importing xarray or dask
-__getattr__, __dir__, __all__ = lazy_loader.attach(__name__, submod_attrs={
+_MODULES = [  # ``selpath.pipeline.integrity.…``
+    "capture_store", "compute", "constraints", "engine", "errors", "identity", "integrity", "kinds", "locks",
+    "manifest", "migrations", "outputs", "provenance", "quality", "reference", "registry", "remote", "report",
+    "report_spec", "spec", "store", "workflow_schema", "yaml_source"]
+__getattr__, __dir__, _names = lazy_loader.attach(__name__, submodules=_MODULES, submod_attrs={
     "capture_store": ["create_capture", "missing_frames", "write_frame"],
     "constraints": ["StorePath"],
     "engine": ["RunReport", "build", "run_workflow"],
@@ -20,3 +24,4 @@ __getattr__, __dir__, __all__ = lazy_loader.attach(__name__, submod_attrs={
     "spec": ["Workflow", "load_workflow"],
     "store": ["open_store", "to_store"],
 })
+__all__ = [name for name in _names if name not in _MODULES]  # the API; the modules are attributes too

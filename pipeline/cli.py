@@ -201,6 +201,10 @@ def stages(
     separated by tabs); NAME (or --all) shows inputs, settings, defaults, units and docs."""
     with guard():
         known = _installed()["stages"]  # the manifest: no stage module imported to list them
+        if name and name not in known:  # every installed stage decides (a manifest is only a hint)
+            from selpath.pipeline.registry import default_registry
+
+            known = {s.name: {} for s in default_registry()}
     if name and name not in known:
         close = difflib.get_close_matches(name, list(known), n=3)
         errors.print(f"[bold red]error:[/] unknown stage {escape(repr(name))}; "
@@ -276,12 +280,16 @@ def kinds(
             print(describe_kinds(default_registry().kinds.values()))
         return
     if name is not None:
-        if name not in index["kinds"]:
-            fail(SelpathError(f"unknown cube kind {name!r}; installed: {', '.join(sorted(index['kinds']))}"))
-        from selpath.pipeline.registry import resolve_kind
+        from selpath.pipeline.registry import default_registry, resolve_kind
 
         with guard():
-            _print_kind(resolve_kind(name, module=index["kinds"][name]["module"]), makers[name])
+            if name in index["kinds"]:
+                _print_kind(resolve_kind(name, module=index["kinds"][name]["module"]), makers[name])
+                return
+            registry = default_registry()  # every installed stage decides (a manifest is only a hint)
+        if name not in registry.kinds:
+            fail(SelpathError(f"unknown cube kind {name!r}; installed: {', '.join(registry.kinds)}"))
+        _print_kind(registry.kinds[name], registry.makers(name))
         return
     rows = [(kind, ", ".join(makers[kind]), about["description"]) for kind, about in sorted(index["kinds"].items())]
     if not console.is_terminal:  # piped or redirected: one plain line a kind, to grep

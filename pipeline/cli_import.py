@@ -54,9 +54,14 @@ def _advise(store: Path) -> None:
     with guard():
         ds = open_store(store)
         kind = resolve_kind(ds.attrs["selpath_kind"], module=ds.attrs.get("selpath_kind_module"))
-        for check in kind.data_checks:
-            for advice in check(ds):
-                errors.print(f"[yellow]warning:[/] {escape(advice)}", highlight=False, soft_wrap=True)
+    for check in kind.data_checks:
+        try:
+            advice = check(ds)
+        except Exception as exc:  # noqa: BLE001 - the store is written and kept: a check that fails says so
+            advice = [f"the check {getattr(check, '__name__', check)} could not run ({type(exc).__name__}: {exc}); "
+                      "the store is written and kept"]
+        for line in advice:
+            errors.print(f"[yellow]warning:[/] {escape(line)}", highlight=False, soft_wrap=True)
 
 
 def import_provenance(spec: Path, store: Path, identity: dict) -> dict:

@@ -29,20 +29,23 @@ GROUP = "selpath.stages"
 
 
 def folder() -> Path | None:
-    """Where manifests are kept; None when ``SELPATH_MANIFEST_CACHE=off``."""
+    """Where manifests are kept; None when ``SELPATH_MANIFEST_CACHE=off`` or where no home folder is known."""
     setting = os.environ.get("SELPATH_MANIFEST_CACHE", "")
     if setting.lower() == "off":
         return None
     if setting:
         return Path(setting)
-    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "selpath" / "manifests"
+    try:
+        return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "selpath" / "manifests"
+    except RuntimeError:  # no HOME and no passwd entry: no cache, commands still work
+        return None
 
 
 def _module_stamp(module: str) -> list:
     """The module's file, size and modification time, found without importing it (only its parent packages)."""
     try:
         spec = importlib.util.find_spec(module)
-    except (ImportError, ValueError):  # a parent package fails to import: the full registry will say why
+    except Exception:  # noqa: BLE001 - a parent package fails to import: the full registry will say why
         return [module, "unfindable"]
     origin = getattr(spec, "origin", None)
     if not origin or not os.path.exists(origin):
@@ -51,39 +54,55 @@ def _module_stamp(module: str) -> list:
     return [module, origin, stat.st_size, stat.st_mtime_ns]
 
 
-def key(group: str) -> str:
-    """A digest of what the entry-point ``group`` installs: the entry points, their distributions and module files."""
-    points = sorted(entry_points(group=group), key=lambda e: (e.name, e.value))
-    record = [[p.name, p.value, p.dist.name if p.dist else "", p.dist.version if p.dist else "",
-               _module_stamp(p.value.split(":")[0])] for p in points]
+def key(group: str) -> str | None:
+    """A digest of what the entry-point ``group`` installs (the entry points, their distributions and module files);
+    None where that cannot be told (then no manifest is read or kept)."""
+    try:
+        points = sorted(entry_points(group=group), key=lambda e: (e.name, e.value))
+        record = [[p.name, p.value, p.dist.name if p.dist else "", p.dist.version if p.dist else "",
+                   _module_stamp(p.value.split(":")[0])] for p in points]
+    except Exception:  # noqa: BLE001 - a cache never stops a command
+        return None
     text = json.dumps([FORMAT, group, record], sort_keys=True)
     return hashlib.sha256(text.encode()).hexdigest()[:32]
 
 
-def _path(group: str) -> Path | None:
-    where = folder()
-    return None if where is None else where / f"{group}-{key(group)}.json"
+def _path(group: str, stamp: str | None = None) -> Path | None:
+    where, stamp = folder(), stamp or key(group)
+    return None if where is None or stamp is None else where / f"{group}-{stamp}.json"
 
 
-def read(group: str) -> dict[str, dict[str, dict]] | None:
-    """The manifest of what ``group`` installs now: ``{"stages": {name: {"module", "summary", "kinds"}}, "kinds":
-    {name: {"module", "description"}}}``; None when none is kept for it (never written, unreadable, or the cache is
-    off)."""
-    path = _path(group)
+def _valid(data) -> bool:
+    """Whether ``data`` has the shape :func:`read` promises (a file edited by hand, or of another version, has not)."""
+    if not isinstance(data, dict) or not all(isinstance(data.get(k), dict) for k in ("stages", "kinds")):
+        return False
+    stages = all(isinstance(v, dict) and isinstance(v.get("module"), str) and isinstance(v.get("summary"), str)
+                 and isinstance(v.get("kinds"), list) and all(isinstance(k, str) for k in v["kinds"])
+                 for v in data["stages"].values())
+    kinds = all(isinstance(v, dict) and isinstance(v.get("module"), str) and isinstance(v.get("description"), str)
+                for v in data["kinds"].values())
+    return stages and kinds
+
+
+def read(group: str, stamp: str | None = None) -> dict[str, dict[str, dict]] | None:
+    """The manifest of what ``group`` installs now (or of the installation whose :func:`key` was ``stamp``):
+    ``{"stages": {name: {"module", "summary", "kinds"}}, "kinds": {name: {"module", "description"}}}``; None when none
+    is kept for it (never written, unreadable, malformed, or the cache is off)."""
+    path = _path(group, stamp)
     try:
         data = json.loads(path.read_text(encoding="utf-8")) if path is not None else None
     except (OSError, ValueError):
         return None
-    if not isinstance(data, dict) or not all(isinstance(data.get(k), dict) for k in ("stages", "kinds")):
-        return None
-    return {"stages": data["stages"], "kinds": data["kinds"]}
+    return {"stages": data["stages"], "kinds": data["kinds"]} if _valid(data) else None
 
 
-def write(group: str, index: dict[str, dict[str, dict]]) -> None:
-    """Keep ``index`` (as :func:`read` returns it) as the manifest of ``group``. A cache: a folder that cannot be
-    written (a read-only home) is passed over silently, and a manifest is replaced whole, never half-written."""
-    path = _path(group)
-    if path is None or read(group) == index:
+def write(group: str, index: dict[str, dict[str, dict]], stamp: str | None = None) -> None:
+    """Keep ``index`` (as :func:`read` returns it) as the manifest of ``group``, under ``stamp``: the :func:`key`
+    taken *before* the modules were imported (a module edited meanwhile then gives another key, never a stale
+    manifest under the new one). A cache: a folder that cannot be written (a read-only home) is passed over
+    silently, and a manifest is replaced whole, never half-written."""
+    path = _path(group, stamp)
+    if path is None or read(group, stamp) == index:
         return
     text = json.dumps({"format": FORMAT} | index, indent=1, sort_keys=True, ensure_ascii=False)
     handle = None
@@ -96,4 +115,3 @@ def write(group: str, index: dict[str, dict[str, dict]]) -> None:
     except OSError:
         if handle is not None:
             Path(handle.name).unlink(missing_ok=True)
-

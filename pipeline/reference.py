@@ -43,6 +43,10 @@ def _cell(text: str) -> str:
     return markdown(" ".join(str(text).split())).replace("|", "\\|") or "—"
 
 
+#: numpydoc sections of ``type`` lines with indented descriptions
+_TYPED = ("Returns", "Yields", "Raises", "Warns")
+
+
 def _entries(section: str) -> str:
     """A numpydoc section of ``type`` lines, each with its indented description (Returns, Raises), as one paragraph
     per entry: ``type``: description. Text in another shape is kept as it is."""
@@ -69,7 +73,8 @@ def _body(stage: Stage) -> str:
     for i, match in enumerate(sections):
         end = sections[i + 1].start() if i + 1 < len(sections) else len(rest)
         if match.group(1).strip() != "Parameters":
-            kept.append(f"**{match.group(1).strip()}**\n\n" + _entries(rest[match.end():end].strip("\n")))
+            title, text = match.group(1).strip(), rest[match.end():end].strip("\n")
+            kept.append(f"**{title}**\n\n" + (_entries(text) if title in _TYPED else text))
     return markdown("\n\n".join(part.strip() for part in kept if part.strip()))
 
 

@@ -273,8 +273,9 @@ class StageRegistry:
 def default_registry() -> StageRegistry:
     """The stages installed in this environment (entry-point group ``selpath.stages``) and their kinds, cached; the
     installation's manifest of where each is declared is kept for :func:`registry_for`."""
+    stamp = manifest.key(ENTRY_POINT_GROUP)  # before importing: a module edited meanwhile gets another key
     registry = StageRegistry.from_entry_points()
-    manifest.write(ENTRY_POINT_GROUP, index(registry))
+    manifest.write(ENTRY_POINT_GROUP, index(registry), stamp)
     return registry
 
 
@@ -296,8 +297,11 @@ def registry_for(names: Iterable[str]) -> StageRegistry:
     known = manifest.read(ENTRY_POINT_GROUP)
     if known is None or not names <= known["stages"].keys():
         return default_registry()
+    modules = sorted({known["stages"][n]["module"] for n in names})
+    if any(m.split(".")[0] not in _entry_point_packages() for m in modules):  # only what an entry point installs
+        return default_registry()
     try:
-        registry = StageRegistry.from_modules(sorted({known["stages"][n]["module"] for n in names}))
+        registry = StageRegistry.from_modules(modules)
     except Exception:  # noqa: BLE001 - a module that fails: the full registry names it and why
         return default_registry()
     return registry if all(n in registry for n in names) else default_registry()

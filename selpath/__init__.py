@@ -40,7 +40,8 @@ import lazy_loader
 
 from selpath._after_import import after_import
 
-__getattr__, _, _lazy = lazy_loader.attach(__name__, submod_attrs={
+_MODULES = ["devices", "explore", "geometry", "pipeline", "stages", "workflows"]  # selpath.pipeline.… after import
+__getattr__, _, _lazy = lazy_loader.attach(__name__, submodules=_MODULES, submod_attrs={
     "pipeline.engine": ["RunReport", "run_workflow"],
     "pipeline.errors": ["ConfigError", "DeviceError", "EnvironmentFault", "Problem", "SelpathError", "SpecError",
                         "StageError", "StoreError"],
@@ -78,7 +79,7 @@ def run(file: str | os.PathLike, *, scheduler: str | None = None, force: bool = 
     return run_workflow(load_workflow(file), scheduler=scheduler, reuse=not force, verify=verify, progress=progress)
 
 
-__all__ = sorted([*_lazy, "__version__", "run"])
+__all__ = sorted([*(n for n in _lazy if n not in _MODULES), "__version__", "run"])
 
 
 def __dir__() -> list[str]:

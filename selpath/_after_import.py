@@ -9,37 +9,52 @@ from __future__ import annotations
 
 import importlib.abc
 import sys
+import warnings
 from collections.abc import Callable
 from types import ModuleType
 
 
 class _AfterImport(importlib.abc.MetaPathFinder):
-    """A finder that finds nothing itself: it asks the finders after it for ``name``'s spec and wraps the loader's
-    ``exec_module`` so that ``callback`` runs once the module has been executed; then it removes itself."""
+    """A finder that finds nothing itself: it asks the finders after it for ``name``'s spec and has its loader call
+    ``callback`` once that module has been executed. It stays on ``sys.meta_path`` until then (a spec asked for and
+    never loaded, ``importlib.util.find_spec(name)``, leaves it there), and never changes what the loader does for
+    any other module (a zip or frozen importer loads many with one object)."""
 
     def __init__(self, name: str, callback: Callable[[], None]):
-        self.name, self.callback = name, callback
+        self.name, self.callback, self.done = name, callback, False
 
     def find_spec(self, fullname: str, path, target: ModuleType | None = None):
-        if fullname != self.name:
+        if fullname != self.name or self.done or fullname in sys.modules:
             return None
-        if self in sys.meta_path:
-            sys.meta_path.remove(self)  # once, and never asked again while the others look
         spec = None
         for finder in list(sys.meta_path):
-            find = getattr(finder, "find_spec", None)
+            find = None if finder is self else getattr(finder, "find_spec", None)
             spec = find(fullname, path, target) if find is not None else None
             if spec is not None:
                 break
-        if spec is None or spec.loader is None or not hasattr(spec.loader, "exec_module"):
-            return spec  # not found (the import fails as it would have) or a loader we cannot wrap
-        exec_module, callback = spec.loader.exec_module, self.callback
+        loader = getattr(spec, "loader", None)
+        if loader is None or not hasattr(loader, "exec_module") or "exec_module" in getattr(loader, "__dict__", {}):
+            return spec  # not found (the import fails as it would have), or a loader we cannot, or did, wrap
+        exec_module = loader.exec_module
 
         def exec_then_call(module: ModuleType) -> None:
+            if module.__name__ != self.name or self.done:
+                exec_module(module)
+                return
+            self.done = True
+            del loader.exec_module  # the loader's own again, for whatever it loads next
+            sys.meta_path = [f for f in sys.meta_path if f is not self]  # a new list: a loop elsewhere keeps its own
             exec_module(module)
-            callback()
+            try:
+                self.callback()
+            except Exception as exc:  # noqa: BLE001 - the module imported; only what the callback adds is missing
+                warnings.warn(f"after importing {self.name}: {type(exc).__name__}: {exc}", RuntimeWarning,
+                              stacklevel=2)
 
-        spec.loader.exec_module = exec_then_call  # this spec's own loader object, made for this import
+        try:
+            loader.exec_module = exec_then_call
+        except (AttributeError, TypeError):  # a loader without an instance dict: the module loads, unhooked
+            pass
         return spec
 
 
@@ -48,4 +63,4 @@ def after_import(name: str, callback: Callable[[], None]) -> None:
     if name in sys.modules:
         callback()
     else:
-        sys.meta_path.insert(0, _AfterImport(name, callback))
+        sys.meta_path = [_AfterImport(name, callback), *sys.meta_path]

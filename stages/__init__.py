@@ -9,5 +9,8 @@ the solvers' :class:`Solution`, :class:`Result` codes and :class:`SolverError`, 
 
 import lazy_loader
 
-__getattr__, __dir__, __all__ = lazy_loader.attach(__name__, submod_attrs={
+_MODULES = [  # ``selpath.stages.tomography.…``
+    "camera_target", "frame_files", "importing", "io", "procam", "tomography"]
+__getattr__, __dir__, _names = lazy_loader.attach(__name__, submodules=_MODULES, submod_attrs={
     "_common": ["UnsortedSweepWarning"], "_solution": ["Result", "Solution", "SolverError"]})
+__all__ = [name for name in _names if name not in _MODULES]  # the API; the modules are attributes too

@@ -161,7 +161,7 @@ def test_the_manifest_key_changes_when_a_stage_module_changes(tmp_path, monkeypa
     assert manifest.read("probe-group") is None
 
 
-@pytest.mark.parametrize("argv", [["stages"], ["kinds"], ["stages", "absorptoin"]])
+@pytest.mark.parametrize("argv", [["stages"], ["kinds"]])
 def test_listing_stages_and_kinds_imports_none_of_them(argv):
     """With the installation's manifest kept, ``selpath stages`` and ``selpath kinds`` list every stage and kind from
     it: the same names, summaries and makers as the registry, and no stage module, xarray or JAX imported."""
@@ -179,5 +179,86 @@ def test_listing_stages_and_kinds_imports_none_of_them(argv):
         rows = {line.split("\t")[0]: line.split("\t")[1:] for line in seen["out"].splitlines()}
         assert rows == {name: [", ".join(sorted(registry.makers(name))), kind.description]
                         for name, kind in registry.kinds.items()}
-    else:
-        assert seen["code"] == 2 and "did you mean 'absorption'?" in seen["out"]
+
+
+def test_a_name_the_manifest_lacks_is_asked_of_every_stage():
+    """A manifest is a hint: a stage name it lacks is looked up among every installed stage before it is called
+    unknown (with the nearest names), and one the registry has is shown even when the manifest lacks it."""
+    from selpath.pipeline.registry import index
+
+    registry = default_registry()
+    manifest.write(ENTRY_POINT_GROUP, index(registry))
+    typo = _cli(["stages", "absorptoin"])
+    assert typo["code"] == 2 and "did you mean 'absorption'?" in typo["out"]
+    partial = index(registry)
+    del partial["stages"]["absorption"], partial["kinds"]["absorption"]
+    manifest.write(ENTRY_POINT_GROUP, partial)
+    for argv in (["stages", "absorption"], ["kinds", "absorption"]):
+        shown = _cli(argv, COLUMNS="200")
+        assert shown["code"] == 0 and "absorption" in shown["out"] and "unknown" not in shown["out"], shown["out"]
+    manifest.write(ENTRY_POINT_GROUP, index(registry))
+
+
+def test_the_accessor_hook_survives_a_probe_and_a_shared_loader(tmp_path):
+    """``importlib.util.find_spec("xarray")`` before the import leaves the hook in place; a loader that loads many
+    modules (a zip importer) runs the callback for xarray alone, after xarray has run, and loads the others as it
+    would have."""
+    import zipfile
+
+    probed = _python("""
+        import importlib.util, json, selpath
+        importlib.util.find_spec("xarray")
+        import xarray as xr
+        print(json.dumps({"accessor": hasattr(xr.Dataset, "selpath")}))
+        """)
+    assert probed["accessor"]
+    archive = tmp_path / "lib.zip"
+    with zipfile.ZipFile(archive, "w") as zipped:  # a stand-in xarray that imports a sibling from the same zip
+        zipped.writestr("xarray.py", "import sibling\nclass Dataset: pass\nclass DataArray: pass\n"
+                                     "def register_dataset_accessor(name):\n"
+                                     "    return lambda cls: setattr(Dataset, name, cls) or cls\n"
+                                     "register_dataarray_accessor = register_dataset_accessor\n")
+        zipped.writestr("sibling.py", "VALUE = 1\n")
+    zipped_run = _python(f"""
+        import json, sys
+        sys.path.insert(0, {str(archive)!r})
+        import selpath, xarray, sibling
+        print(json.dumps({{"accessor": hasattr(xarray.Dataset, "selpath"), "sibling": sibling.VALUE}}))
+        """)
+    assert zipped_run == {"accessor": True, "sibling": 1}
+
+
+def test_import_selpath_keeps_its_subpackages_as_attributes():
+    """``import selpath`` then ``selpath.pipeline.open_store`` or ``selpath.pipeline.integrity`` (docs/format.md), as
+    before the names became lazy; still nothing heavy until one is used."""
+    seen = _python(f"""
+        import json, sys, selpath
+        heavy = {_heavy_imported()}
+        names = [selpath.pipeline.open_store.__module__, selpath.pipeline.integrity.__name__,
+                 selpath.stages.tomography.__name__, selpath.pipeline.errors.StageError.__name__]
+        print(json.dumps({{"heavy": heavy, "names": names, "all": "pipeline" in selpath.__all__}}))
+        """)
+    assert seen["heavy"] == [] and not seen["all"]
+    assert seen["names"] == ["selpath.pipeline.store", "selpath.pipeline.integrity", "selpath.stages.tomography",
+                             "StageError"]
+
+
+def test_no_home_or_a_malformed_manifest_is_no_cache(tmp_path, monkeypatch):
+    """Without a home folder (no HOME, no passwd entry) there is no cache and validation still works; a manifest
+    edited by hand into another shape is not read."""
+    from pathlib import Path
+
+    monkeypatch.delenv("SELPATH_MANIFEST_CACHE")
+    monkeypatch.delenv("XDG_CACHE_HOME", raising=False)
+    monkeypatch.setattr(Path, "home", classmethod(lambda cls: (_ for _ in ()).throw(RuntimeError("no home"))))
+    assert manifest.folder() is None and manifest.read(ENTRY_POINT_GROUP) is None
+    manifest.write(ENTRY_POINT_GROUP, {"stages": {}, "kinds": {}})  # nothing happens
+    from selpath.pipeline.registry import registry_for
+
+    assert "absorption" in registry_for(["absorption"])
+    monkeypatch.setenv("SELPATH_MANIFEST_CACHE", str(tmp_path))
+    manifest.write(ENTRY_POINT_GROUP, {"stages": {"x": {"module": "m", "summary": "", "kinds": []}}, "kinds": {}})
+    assert manifest.read(ENTRY_POINT_GROUP) is not None
+    (path,) = tmp_path.glob("*.json")
+    path.write_text(json.dumps({"stages": {"x": {"module": 3}}, "kinds": {}}))
+    assert manifest.read(ENTRY_POINT_GROUP) is None

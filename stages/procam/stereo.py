@@ -28,7 +28,8 @@ from selpath.pipeline.kinds import CubeKind, Variable
 from selpath.pipeline.registry import stage
 from selpath.stages._common import require_variables
 from selpath.stages.camera_target import board_points, camera_corners
-from selpath.stages.procam.rectify import _decode_band, check_code_count, paired_camera_row, resolved_drop
+from selpath.stages.procam._gray_code import check_code_count, decode_band, resolved_drop
+from selpath.stages.procam.rectify import paired_camera_row
 
 _M = ("i", "j")
 PROCAM_STEREO_CALIBRATION = CubeKind(
@@ -155,7 +156,7 @@ def calibrate_procam_stereo(target: xr.Dataset, /, *, window_px: Count = 10, min
         if corners is None:
             used.append(False)
             continue
-        decoded = _decode_band(np.moveaxis(stack, 0, -1), column_bits=column_bits, row_bits=row_bits,
+        decoded = decode_band(np.moveaxis(stack, 0, -1), column_bits=column_bits, row_bits=row_bits,
                                shape=projector_shape, min_lit=min_lit * full_scale, min_contrast=min_contrast,
                                drop=drop)
         usable = np.isfinite(decoded[..., 0]) & (decoded[..., 2] >= min_sharpness)

@@ -26,9 +26,17 @@ from selpath.pipeline.kinds import ANGLE_UNITS, SENSOR_COUNTS, CubeKind, Variabl
 from selpath.pipeline.registry import stage
 from selpath.stages._common import read_file, sweep_log
 from selpath.stages._sweeps import Sweep
-from selpath.stages.tomography._axis_check import stated_axis_advice
+
 
 #: frames of the rotating object (DESIGN §2): what ``acquire_tomography``, the simulators and ``import_capture`` make
+def stated_axis_advice(capture: xr.Dataset) -> list[str]:
+    """:func:`selpath.stages.tomography._axis_check.stated_axis_advice` (imported when a store is checked: the fits
+    are not needed to declare the kind)."""
+    from selpath.stages.tomography._axis_check import stated_axis_advice as check
+
+    return check(capture)
+
+
 TOMOGRAPHY_CAPTURE = CubeKind(
     name="tomography_capture",
     description="frames of the rotating object: target, reference (no inclusion), backlit, dark",

@@ -26,6 +26,7 @@ from selpath.pipeline.kinds import ANGLE_UNITS, FLAGS, CubeKind, Variable
 from selpath.pipeline.quality import usable_share
 from selpath.pipeline.registry import stage
 from selpath.stages._common import require_variables, sorted_sweep
+from selpath.stages.tomography._pair_docs import pair_docs
 from selpath.stages.tomography.acquire import TOMOGRAPHY_CAPTURE
 from selpath.stages.tomography.hull import SILHOUETTE_FLOOR, object_masks
 
@@ -337,53 +338,8 @@ def _checked_pair(capture: xr.Dataset, stage_name: str, saturation_level: float 
     return value, flags, attrs, shares
 
 
-_PAIR_DOCS = """Parameters
-    ----------
-    capture : xr.Dataset
-        A ``tomography_capture`` store (or one with its ``target``, ``reference`` and ``dark`` frames over
-        (angle, row, col) [counts]; ``backlit`` optional, for the background flag), raw or dark-subtracted.
-    silhouettes : xr.Dataset or None
-        A ``silhouettes`` store of this capture (input, optional): its masks say which pixels are the object's,
-        so the frames are thresholded once, by the stage the visual hull reads, and the two cannot disagree
-        (a workflow wires ``silhouettes: $silhouettes``); None: masks made here from ``backlit``.
-    saturation_level : float or None
-        Raw count at or above which a pixel is saturated [counts]; default: the capture's
-        ``saturation_counts`` attr (``saturation_level`` in stores of format ≤ 5), else the integer dtype's maximum.
-    min_signal : float
-        Dark-subtracted count at or below which a pixel has no usable signal [counts].
-    min_signal_relative : float
-        Also no usable signal at or below this share of the frame's brightest unsaturated reference pixel
-        (dark-subtracted) [1]: a threshold meaningful on any intensity scale (radiance renders, 16-bit
-        cameras); 0 turns it off. A pixel must pass both.
-    flag_background : bool
-        With ``backlit`` frames in the capture, flag pixels off the object ``background`` (bit 64, NaN): those
-        outside the silhouette of the backlit frame at that angle (where the object does not hide the lit
-        plane; the ``silhouettes`` stage's kernel and ``min_size``), whose target and reference are both the
-        dark level and whose log difference is noise. Without backlit frames no pixel is flagged background,
-        nor where a backlit value is NaN or inf (a frame never filmed: nothing says the pixel is off the
-        object). False: none is.
-    silhouette_threshold : float or None
-        Backlit counts above dark below which a pixel is on the object, as the ``silhouettes`` stage's
-        ``threshold`` (give both the same); None: Otsu's threshold per frame [counts]. Not with ``silhouettes``.
-
-    Besides the result and ``flags``, the shares ``signal_fraction`` (the object's pixels whose reference has
-    usable signal; floor 0.1 %), ``usable_fraction`` (of those, pixels whose target is usable too; floor 5 %)
-    and ``dark_fraction`` (dark pixels ≥ 0 counts; floor 5 %): below a floor the workflow stops, naming the
-    cause (:mod:`selpath.pipeline.quality`). The object's pixels are those not flagged background (every pixel
-    without backlit frames). Two informative 0-d variables, never checked against a floor, say what a
-    summary of the object needs: ``object_valid_fraction`` (the object's pixels that are valid) and
-    ``background_fraction`` (pixels flagged background). A repeated angle is refused and unsorted angles are
-    sorted (with a warning)."""
-
-
-def _pair_docs(func):
-    """The settings' documentation shared by absorption and normalise_reference (read by the registry)."""
-    func.__doc__ = func.__doc__.replace("{pair}", _PAIR_DOCS)
-    return func
-
-
 @stage("normalise_reference", kind=TRANSMITTANCE)
-@_pair_docs
+@pair_docs
 def normalise_reference(capture: xr.Dataset, silhouettes: xr.Dataset | None = None, /, *,
                         saturation_level: Positive | None = None, min_signal: NonNegative = 0.0,
                         min_signal_relative: Fraction = 0.0, flag_background: bool = True,
@@ -396,7 +352,7 @@ def normalise_reference(capture: xr.Dataset, silhouettes: xr.Dataset | None = No
     -------
     xr.Dataset
         A ``transmittance`` cube: ``transmittance`` I_target / I_reference over (angle, row, col) [1] (lazy), NaN where
-        ``flags`` says why, and the usable shares.
+        ``flags`` (CF flag bits) says why; {shares}
     """
     value, flags, attrs, shares = _checked_pair(capture, "normalise_reference", saturation_level, min_signal,
                                                 min_signal_relative, absorption=False,
@@ -407,7 +363,7 @@ def normalise_reference(capture: xr.Dataset, silhouettes: xr.Dataset | None = No
 
 
 @stage("absorption", kind=ABSORPTION)
-@_pair_docs
+@pair_docs
 def absorption(capture: xr.Dataset, silhouettes: xr.Dataset | None = None, /, *,
                saturation_level: Positive | None = None, min_signal: NonNegative = 0.0,
                min_signal_relative: Fraction = 0.0, flag_background: bool = True,
@@ -423,7 +379,7 @@ def absorption(capture: xr.Dataset, silhouettes: xr.Dataset | None = None, /, *,
     -------
     xr.Dataset
         An ``absorption`` cube: ``absorption`` A over (angle, row, col) [1] (lazy), NaN where ``flags`` (CF flag bits)
-        says why; the usable share ``object_valid_fraction`` and, given ``silhouettes``, ``background_fraction``.
+        says why; {shares}
     """
     value, flags, attrs, shares = _checked_pair(capture, "absorption", saturation_level, min_signal,
                                                 min_signal_relative, absorption=True,

@@ -12,7 +12,7 @@ import pytest
 from selpath.devices.patterns import gray_code_levels
 from selpath.devices.sim.stereo_target import StereoTargetScene, capture_target, trace
 from selpath.pipeline.errors import StageError
-from selpath.stages.procam.rectify import _decode_band
+from selpath.stages.procam._gray_code import decode_band
 from selpath.stages.procam.stereo import calibrate_procam_stereo, camera_corners, euler_angles, projector_corners
 
 
@@ -46,7 +46,7 @@ def test_corners_carried_into_the_projector_land_where_the_projector_sees_them()
     # OpenCV may number the corners from the opposite end of the board (the same for every pose)
     found = min((corners, corners[::-1]), key=lambda c: np.max(np.abs(c - truth_camera.reshape(-1, 2))))
     assert np.max(np.abs(found - truth_camera.reshape(-1, 2))) < 0.15  # measured 0.11 (3 × 3 sub-pixel render)
-    decoded = _decode_band(np.moveaxis(stack, 0, -1), column_bits=column_bits, row_bits=row_bits, shape=(160, 256),
+    decoded = decode_band(np.moveaxis(stack, 0, -1), column_bits=column_bits, row_bits=row_bits, shape=(160, 256),
                            min_lit=0.02 * 4095, min_contrast=0.2, drop=(0, 0))
     usable = np.isfinite(decoded[..., 0]) & (decoded[..., 2] >= 0.75)
     carried = projector_corners(truth_camera.reshape(-1, 2), decoded[..., 0], decoded[..., 1], usable, 10)

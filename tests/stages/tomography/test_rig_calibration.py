@@ -190,10 +190,10 @@ def test_the_axis_check_says_nothing_where_the_frames_cannot_tell():
     assert stated_axis_advice(centred) == []
 
 
-def test_selpath_import_warns_of_a_forgotten_pixel_centre_convention(tmp_path):
+def test_selpath_import_warns_of_a_forgotten_pixel_centre_convention(tmp_path, monkeypatch):
     """Frames and a spec as a renderer writes them (principal point in its convention, pixel j centred at j + ½):
     imported without ``pixel_centres: half``, the command warns and names it, and keeps the store; with it, no
-    warning."""
+    warning. A check that fails is a warning too: the import succeeded and its store is kept."""
     import yaml
     from typer.testing import CliRunner
 
@@ -220,3 +220,12 @@ def test_selpath_import_warns_of_a_forgotten_pixel_centre_convention(tmp_path):
         assert store.exists() and ("warning:" in shown.output) == warned, shown.output
         if warned:
             assert "Half a pixel" in shown.output and "pixel_centres: half" in shown.output
+
+    def broken(capture):
+        raise ValueError("a fit failed")
+
+    monkeypatch.setattr("selpath.stages.tomography._axis_check.stated_axis_advice", broken)
+    shown = runner.invoke(app, ["import", str(tmp_path / "spec.yaml"), str(tmp_path / "broken.zarr")],
+                          env={"COLUMNS": "300"})
+    assert shown.exit_code == 0 and (tmp_path / "broken.zarr").exists(), shown.output
+    assert "could not run (ValueError: a fit failed); the store is written and kept" in shown.output
