@@ -181,6 +181,7 @@ def test_listing_stages_and_kinds_imports_none_of_them(argv):
                         for name, kind in registry.kinds.items()}
 
 
+@pytest.mark.slow  # the default job's 8 minutes (three commands, one importing every stage)
 def test_a_name_the_manifest_lacks_is_asked_of_every_stage():
     """A manifest is a hint: a stage name it lacks is looked up among every installed stage before it is called
     unknown (with the nearest names), and one the registry has is shown even when the manifest lacks it."""

@@ -157,11 +157,14 @@ def test_bad_captures_say_why(miscalibrated):
 
 
 # -- the stated axis against the frames, at import (#57) ----------------------------------------------------------
+_SLOW = pytest.mark.slow  # (the default job's 8 minutes: one case each way there, the others in the slow job)
+
+
 @pytest.mark.parametrize(("offset", "says"), [
-    (0.0, None), (0.03, None),  # within its uncertainty (measured ± 0.05 px): nothing to say
+    (0.0, None), pytest.param(0.03, None, marks=_SLOW),  # within its uncertainty (measured ± 0.05 px): nothing
     (-0.5, "state pixel_centres: half"),  # a renderer's principal point read in selpath's convention
-    (0.5, "leave pixel_centres out"),  # the other way round
-    (0.2, "correct principal_point_px"), (3.7, "correct principal_point_px")])
+    pytest.param(0.5, "leave pixel_centres out", marks=_SLOW),  # the other way round
+    pytest.param(0.2, "correct principal_point_px", marks=_SLOW), (3.7, "correct principal_point_px")])
 def test_a_stated_axis_its_frames_contradict_is_named_with_its_likely_cause(offset, says):
     """The axis's true column is (COLS − 1)/2 + offset, the records say (COLS − 1)/2: the advice names the offset
     (the simulator's truth, within 3 of its stated uncertainties) and, for half a pixel, the convention."""
@@ -178,6 +181,7 @@ def test_a_stated_axis_its_frames_contradict_is_named_with_its_likely_cause(offs
     assert ("left" if offset > 0 else "right") in text
 
 
+@pytest.mark.slow  # the default job's 8 minutes; a right record saying nothing stays there (offset 0)
 def test_the_axis_check_says_nothing_where_the_frames_cannot_tell():
     """A partial turn, no backlit frames, and an object centred on the axis (its edges never move, so their
     quantisation, ± 0.29 px, hides half a pixel): no advice, never a false one."""
