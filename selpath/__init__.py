@@ -36,20 +36,11 @@ import os
 import sys
 from importlib.metadata import PackageNotFoundError, version
 
-import lazy_loader
-
 from selpath._after_import import after_import
+from selpath._lazy import attach
 
-_MODULES = ["devices", "explore", "geometry", "pipeline", "stages", "workflows"]  # selpath.pipeline.… after import
-__getattr__, _, _lazy = lazy_loader.attach(__name__, submodules=_MODULES, submod_attrs={
-    "pipeline.engine": ["RunReport", "run_workflow"],
-    "pipeline.errors": ["ConfigError", "DeviceError", "EnvironmentFault", "Problem", "SelpathError", "SpecError",
-                        "StageError", "StoreError"],
-    "pipeline.kinds": ["FORMAT_VERSION", "CubeKind", "Variable"],
-    "pipeline.registry": ["StageRegistry", "default_registry", "stage"],
-    "pipeline.spec": ["Workflow", "load_workflow"],
-    "pipeline.store": ["open_store", "to_store"],
-})
+# the names, and the submodules (attributes too), are those of the stub beside this file, which editors read
+__getattr__, _lazy_dir, __all__ = attach(__name__, __file__)
 
 try:
     __version__ = version("selpath")
@@ -63,7 +54,7 @@ def _register_accessor() -> None:
 
 after_import("xarray", _register_accessor)
 if os.environ.get("EAGER_IMPORT"):  # lazy_loader's switch: import everything now (tests check every name resolves)
-    for _name in _lazy:
+    for _name in _lazy_dir():
         getattr(sys.modules[__name__], _name)
 
 
@@ -79,8 +70,5 @@ def run(file: str | os.PathLike, *, scheduler: str | None = None, force: bool = 
     return run_workflow(load_workflow(file), scheduler=scheduler, reuse=not force, verify=verify, progress=progress)
 
 
-__all__ = sorted([*(n for n in _lazy if n not in _MODULES), "__version__", "run"])
-
-
 def __dir__() -> list[str]:
-    return list(__all__)
+    return sorted({*_lazy_dir(), "__version__", "run"})

@@ -7,10 +7,8 @@ the solvers' :class:`Solution`, :class:`Result` codes and :class:`SolverError`, 
 :class:`UnsortedSweepWarning` a stage gives when it sorts a sweep.
 """
 
-import lazy_loader
+from selpath._lazy import attach
 
-_MODULES = [  # ``selpath.stages.tomography.…``
-    "camera_target", "frame_files", "importing", "io", "procam", "tomography"]
-__getattr__, __dir__, _names = lazy_loader.attach(__name__, submodules=_MODULES, submod_attrs={
-    "_common": ["UnsortedSweepWarning"], "_solution": ["Result", "Solution", "SolverError"]})
-__all__ = [name for name in _names if name not in _MODULES]  # the API; the modules are attributes too
+# imported when first used (SPEC 1), so that the command line answers --help without importing xarray or dask: the
+# names, and the submodules (attributes too), are those of the stub beside this file, which editors read
+__getattr__, __dir__, __all__ = attach(__name__, __file__)
