@@ -33,7 +33,6 @@ xarray is imported, before or after selpath (:mod:`selpath._after_import`).
 from __future__ import annotations
 
 import os
-import sys
 from importlib.metadata import PackageNotFoundError, version
 
 from selpath._after_import import after_import
@@ -52,10 +51,7 @@ def _register_accessor() -> None:
     import selpath.explore.accessor  # noqa: F401, PLC0415  (registers the .selpath accessor on xarray objects)
 
 
-after_import("xarray", _register_accessor)
-if os.environ.get("EAGER_IMPORT"):  # lazy_loader's switch: import everything now (tests check every name resolves)
-    for _name in _lazy_dir():
-        getattr(sys.modules[__name__], _name)
+after_import("xarray", _register_accessor)  # (EAGER_IMPORT=1 imports every name at once: lazy_loader's switch)
 
 
 def run(file: str | os.PathLike, *, scheduler: str | None = None, force: bool = False, verify: bool = False,
