@@ -60,9 +60,7 @@ def main() -> None:
 
     from benchmarks._demux_sweep import matrix as _matrix
     from benchmarks._demux_sweep import pixels as _pixels
-    from selpath.stages.procam._demux_certificate import certified_gap
-    from selpath.stages.procam._demux_problem import DemuxProblem
-    from selpath.stages.procam._demux_solver import DemuxADMM
+    from selpath.stages.procam.solver import DemuxADMM, DemuxProblem, certified_gap
 
     k, p = 128, args.pixels
     a = _matrix(k, kept_only=True)

@@ -139,8 +139,7 @@ def reference(problem, data, weight=None, clipped=None) -> np.ndarray:
 def run_case(case: Case, sample: int, methods=METHODS) -> list[dict]:
     import jax
 
-    from selpath.stages.procam._demux_problem import DemuxProblem
-    from selpath.stages.procam._demux_solver import DemuxADMM
+    from selpath.stages.procam.solver import DemuxADMM, DemuxProblem
 
     problem = DemuxProblem.build(case.illumination)
     a = case.illumination

@@ -38,9 +38,7 @@ def main() -> None:
     from benchmarks._demux_sweep import matrix as _matrix
     from benchmarks._demux_sweep import offsets as _offsets
     from benchmarks._demux_sweep import pixels as _pixels
-    from selpath.stages.procam._capture_to_transport import solve_pixels
-    from selpath.stages.procam._demux_problem import DemuxProblem
-    from selpath.stages.procam._demux_solver import DemuxADMM
+    from selpath.stages.procam.solver import DemuxADMM, DemuxProblem, solve_pixels
 
     k = 128
     matrix = _matrix(k, kept_only=True)

@@ -76,9 +76,7 @@ def main() -> None:
 
     from benchmarks._demux_sweep import FAST, default_cvxpy_seconds, device_line, matrix, sample
     from selpath.pipeline.compute import blas_on_one_thread
-    from selpath.stages.procam._capture_to_transport import pixels_per_call
-    from selpath.stages.procam._demux_problem import DemuxProblem
-    from selpath.stages.procam._demux_solver import DemuxADMM
+    from selpath.stages.procam.solver import DemuxADMM, DemuxProblem, pixels_per_call
 
     k = 128
     pixels = args.pixels or pixels_per_call(1600 * 64, k)

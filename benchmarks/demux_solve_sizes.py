@@ -3,9 +3,8 @@ precision of its products (for a GPU session: see docs/results.md, "On a GPU").
 
 On the throughput benchmark's K = 128 sweep (``benchmarks.demux_throughput``'s pixels), ``DemuxADMM`` at its defaults
 solves P pixels in one call, for growing P (compiles excluded: the second of two calls); the stage calls it with
-``selpath.stages.procam._capture_to_transport.pixels_per_call`` pixels (16 batches), so this shows what larger calls would give.
-On the
-first 200 pixels it also reports the objective gap against Clarabel's optimum and the certified bound, for the
+``selpath.stages.procam.solver.pixels_per_call`` pixels (16 batches), so this shows what larger calls would give. On
+the first 200 pixels it also reports the objective gap against Clarabel's optimum and the certified bound, for the
 defaults, the exact finish on every pixel above gap_tol (``max_gap=1e-4``) and float64 and, with
 ``--default-precision``, for JAX's own default precision of float32
 products (TF32 on NVIDIA Ampere and Hopper GPUs; the same as full precision on a CPU), which the solver no longer uses.
@@ -36,7 +35,7 @@ def main() -> None:
     from benchmarks._demux_sweep import matrix as _matrix
     from benchmarks._demux_sweep import sample as _sample
     from benchmarks.demux_catalogue import reference
-    from selpath.stages.procam._demux_solver import DemuxADMM
+    from selpath.stages.procam.solver import DemuxADMM
 
     device = device_line(jax)
     print(f"device: {device}")

@@ -70,8 +70,8 @@ def measure(mode: str, args) -> dict:
         enable_compile_cache()
     k = args.k
     if mode in ("selpath", "generate", "io"):
-        from selpath.stages.procam._capture_to_transport import OffsetGrid
         from selpath.stages.procam.demux import demux_plane_to_ray
+        from selpath.stages.procam.solver import OffsetGrid
 
         pixels = args.rows * args.cols
         with contextlib.ExitStack() as stack:
@@ -105,7 +105,7 @@ def measure(mode: str, args) -> dict:
             peak = peak_rss_gb() + (sum(client.run(peak_rss_gb).values()) if client is not None else 0.0)
             result = {"seconds": seconds, "pixels": pixels, "peak_rss_gb": peak}
             if mode == "selpath":  # the stage's own output on the sample pixels, for the objective gap
-                from selpath.stages.procam._demux_problem import DemuxProblem
+                from selpath.stages.procam.solver import DemuxProblem
 
                 stored = open_store(args.out or f"{tmp}/t.zarr")
                 n = min(args.sample, args.cols)
@@ -128,9 +128,7 @@ def measure(mode: str, args) -> dict:
 
         import cvxpy as cp
 
-        from selpath.stages.procam._capture_to_transport import solve_pixels
-        from selpath.stages.procam._demux_problem import DemuxProblem
-        from selpath.stages.procam._demux_solver import DemuxADMM
+        from selpath.stages.procam.solver import DemuxADMM, DemuxProblem, solve_pixels
 
         a = matrix(k, kept_only=True)
         problem = DemuxProblem.build(a)

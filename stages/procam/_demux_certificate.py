@@ -306,6 +306,26 @@ def kkt_bound(problem: DemuxProblem, transport: np.ndarray, data: np.ndarray, we
     return np.where(np.isfinite(relative), relative, 1.0)
 
 
+def first_order_gap(xp, ops, t, residual, target, beta, e=None, *, shift=None, steps=DUAL_SEARCH_STEPS):
+    """The first-order bound of :func:`certified_gap` relative to f(T), in [0, 1], with ∇f(T) − β (z, (P, K)) and f(T)
+    (P,): the one computation the float64 reference and the solver's kernels
+    (:mod:`selpath.stages.procam._demux_kernels`, scaled data in the solver's dtype) share.
+
+    ``ops`` gives ``adjoint``, ``smooth_gradient``, ``smoothness`` and ``alpha`` (a problem in numpy, its operators in
+    JAX, with ``xp`` the array module); ``residual`` is w(AT − ỹ) and ``target`` ỹ (P, N); ``beta`` (P,) or a scalar;
+    ``e`` the observed unclipped frames (1, else 0) of the dual's shift, or ``shift`` given whole as (Aᵀe, Σ eỹ, Σ eu,
+    Σ e) when the caller has it cheaper (every frame observed: Aᵀ1 is one row for all pixels)."""
+    u = 2.0 * residual
+    z = ops.adjoint(u) + 2.0 * ops.alpha * ops.smooth_gradient(t)
+    a = xp.sum(u * target, axis=-1)
+    b = xp.sum(residual * residual, axis=-1) + ops.alpha * ops.smoothness(t)
+    if shift is None:
+        shift = ops.adjoint(e), xp.sum(e * target, axis=-1), xp.sum(e * u, axis=-1), xp.sum(e, axis=-1)
+    dual = best_dual_value(xp, a, b, z, *shift, beta, steps=steps)
+    primal = b + beta * xp.sum(t, axis=-1)
+    return _relative(xp, primal - dual, primal, True), z, primal
+
+
 def certified_gap(problem: DemuxProblem | SeparableDemuxProblem, transport: np.ndarray, data: np.ndarray,
                   weight: np.ndarray | None = None, clipped: np.ndarray | None = None, *,
                   search_steps: int = DUAL_SEARCH_STEPS, dual_steps: int = DUAL_STEPS) -> np.ndarray:
@@ -337,19 +357,11 @@ def certified_gap(problem: DemuxProblem | SeparableDemuxProblem, transport: np.n
     if weight is not None:  # a frame is observed or not (the solver's rule): a fractional weight is not this QP's
         weight = (np.asarray(weight) > 0).astype(np.float64)
     residual, target = _residual(problem, t, data, weight, clipped)
-    w = np.ones_like(target) if weight is None else weight
-    e = w if clipped is None else w * ~np.asarray(clipped, bool)
-    u = 2.0 * residual
-    adjoint = problem.adjoint
-    z = adjoint(u) + 2.0 * problem.alpha * problem.smooth_gradient(t)
-    a = (u * target * w).sum(-1)
-    b = (residual**2).sum(-1) + problem.alpha * problem.smoothness(t)
+    e = np.ones_like(target) if weight is None else weight
+    if clipped is not None:
+        e = e * ~np.asarray(clipped, bool)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        dual = best_dual_value(np, a, b, z, adjoint(e), (e * target).sum(-1), (e * u).sum(-1), e.sum(-1),
-                               problem.beta, steps=search_steps)
-        primal = b + problem.beta * t.sum(-1)
-        gap = np.maximum(primal - dual, 0.0)
-        relative = np.where(primal > 0, np.minimum(gap / primal, 1.0), 0.0)
+        relative, _, _ = first_order_gap(np, problem, t, residual, target, problem.beta, e, steps=search_steps)
     if problem.second_order_bound:
         relative = np.minimum(relative, kkt_bound(problem, t, data, weight, clipped, dual_steps=dual_steps))
     return np.where(np.isfinite(relative), relative, 1.0)

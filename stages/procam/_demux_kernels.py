@@ -15,7 +15,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
-from selpath.stages.procam._demux_certificate import DUAL_SEARCH_STEPS, KKT_HELD, best_dual_value, kkt_gap
+from selpath.stages.procam._demux_certificate import DUAL_SEARCH_STEPS, KKT_HELD, first_order_gap, kkt_gap
 
 
 class Limits(NamedTuple):
@@ -293,17 +293,17 @@ START_SEARCH_STEPS, START_SHARES = 0, (0.0,)
 
 @partial(jax.jit, static_argnames=("chunk", "masked"))
 def gaps(ops, pool: Rows, z, *, chunk: int, masked: bool):
-    """:func:`certified_gap` of every pixel of the pool at its warm start ``z`` with :data:`START_SEARCH_STEPS` and
+    """:func:`scaled_gap` of every pixel of the pool at its warm start ``z`` with :data:`START_SEARCH_STEPS` and
     :data:`START_SHARES`: a pixel certified there needs no iteration."""
-    return _in_chunks(lambda *a: certified_gap(ops, Rows(*a[:-1]), a[-1], masked=masked, steps=START_SEARCH_STEPS,
+    return _in_chunks(lambda *a: scaled_gap(ops, Rows(*a[:-1]), a[-1], masked=masked, steps=START_SEARCH_STEPS,
                                                shares=START_SHARES), chunk, *pool, z)
 
 
-def certified_gap(ops, rows: Rows, t, *, masked: bool, steps: int = DUAL_SEARCH_STEPS, shares=KKT_HELD,
+def scaled_gap(ops, rows: Rows, t, *, masked: bool, steps: int = DUAL_SEARCH_STEPS, shares=KKT_HELD,
                   dual_steps: int = 0):
     """:func:`selpath.stages.procam._demux_certificate.certified_gap` (the methods and their proofs are there: the
-    first-order
-    bound, and for dense problems on fully observed, unclipped pixels the smaller KKT bound) on the scaled data,
+    first-order bound through the same :func:`~selpath.stages.procam._demux_certificate.first_order_gap`, and for
+    dense problems on fully observed, unclipped pixels the smaller KKT bound) on the scaled data,
     in the solver's dtype, with ``steps`` of the dual search and the KKT bound's ``shares``: about as much as two
     to four iterations; and ``dual_steps`` of the KKT bound's dual ascent, one K × K product each. Where no frame
     of the call is masked or clipped (``masked`` False) every frame is in the dual's shift, whose Aᵀe is then one
@@ -313,24 +313,16 @@ def certified_gap(ops, rows: Rows, t, *, masked: bool, steps: int = DUAL_SEARCH_
     prediction = ops.forward(t)
     target = _target(rows, prediction) if masked else rows.y
     residual = (prediction - target) * rows.weight if masked else prediction - target
-    u = 2.0 * residual
-    z = ops.adjoint(u) + 2.0 * ops.alpha * ops.smooth_gradient(t)
-    a = jnp.sum(u * target, axis=-1)
-    b = _sq(residual) + ops.alpha * ops.smoothness(t)
     beta = rows.beta[:, 0]
     if masked:
-        e = rows.weight * (1.0 - rows.clipped) * jnp.ones_like(u)  # observed unclipped frames (flags may broadcast)
-        shift = ops.adjoint(e), jnp.sum(e * target, -1), jnp.sum(e * u, -1), jnp.sum(e, -1)
+        e = rows.weight * (1.0 - rows.clipped) * jnp.ones_like(residual)  # observed unclipped (flags may broadcast)
+        first_order, z, primal = first_order_gap(jnp, ops, t, residual, target, beta, e, steps=steps)
         applies = jnp.all(e > 0, axis=-1)
-    else:  # every frame observed and unclipped: e = 1
-        ones = jnp.ones((1, u.shape[1]), u.dtype)
-        shift = ops.adjoint(ones), jnp.sum(target, -1), jnp.sum(u, -1), jnp.full_like(a, u.shape[1])
-        applies = jnp.ones(a.shape, bool)
-    dual = best_dual_value(jnp, a, b, z, *shift, beta, steps=steps)
-    tiny = jnp.finfo(t.dtype).tiny
-    primal = b + beta * jnp.sum(t, axis=-1)
-    gap = jnp.maximum(primal - dual, 0.0)
-    first_order = jnp.where(primal > 0, jnp.minimum(gap / jnp.maximum(primal, tiny), 1.0), 0.0)
+    else:  # every frame observed and unclipped: e = 1, Aᵀe one row for all pixels
+        shift = (ops.adjoint(jnp.ones((1, residual.shape[1]), t.dtype)), jnp.sum(target, -1),
+                 2.0 * jnp.sum(residual, -1), jnp.full(beta.shape, residual.shape[1], t.dtype))
+        first_order, z, primal = first_order_gap(jnp, ops, t, residual, target, beta, shift=shift, steps=steps)
+        applies = jnp.ones(beta.shape, bool)
     if not ops.SECOND_ORDER:  # the separable problem keeps the first-order bound only
         return first_order
     return jnp.minimum(first_order, kkt_gap(jnp, t, z + rows.beta, lambda d: jnp.sum(d * ops.inverse(d), axis=-1),
@@ -381,4 +373,4 @@ def _finish_rows(ops, rows: Rows, scale, z, *, polish_iter: int, polish_rounds: 
             if round_:  # an offset held at 0 whose gradient is negative would lower f: free it (an active-set step)
                 free = free | (_gradient(ops, rows, z) < 0)
             z, value = _polish(ops, rows, z, value, free.astype(dtype), polish_iter=polish_iter, masked=masked)
-    return z * scale, value * scale[:, 0] ** 2, certified_gap(ops, rows, z, masked=masked, dual_steps=dual_steps)
+    return z * scale, value * scale[:, 0] ** 2, scaled_gap(ops, rows, z, masked=masked, dual_steps=dual_steps)

@@ -20,7 +20,7 @@ ADMM in plain JAX (kernels in :mod:`selpath.stages.procam._demux_kernels`):
 * each pixel scaled by its largest observation (β with it), so data from 1e-8 to 1e8 run in float32;
 * a final polish (conjugate gradients on the support's KKT system, ``polish_rounds`` of them with active-set
   steps), kept per pixel only where it lowers the objective;
-* a certificate beside the answer (:func:`~selpath.stages.procam._demux_kernels.certified_gap`; the float64
+* a certificate beside the answer (:func:`~selpath.stages.procam._demux_kernels.scaled_gap`; the float64
   reference :func:`~selpath.stages.procam._demux_certificate.certified_gap`): a bound on each pixel's relative
   objective gap from weak duality, and where the problem has the second-order bound
   (``problem.second_order_bound``) the smaller of it and the KKT bound, tightened by ``dual_steps`` of dual ascent;
