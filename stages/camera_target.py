@@ -92,6 +92,10 @@ def calibrate_camera(target: xr.Dataset, /) -> xr.Dataset:
         ``principal_point_px`` [cx, cy] (pixel centres at whole numbers), their standard deviations (``*_std_px``),
         ``pixel_aspect`` (fy / fx), ``reprojection_rms_px``, ``distortion_max_px`` (how far the distortion moves a pixel
         within the area the board's corners covered; k3 is held at 0) and ``sensor_px`` [rows, cols].
+
+    References
+    ----------
+    Thesis §4.2.6 Light path alignment.
     """
     require_variables(target, ("image",), "calibrate_camera")
     missing = [a for a in ("board_corners", "board_square_mm") if a not in target.attrs]
@@ -153,6 +157,10 @@ def apply_camera_calibration(capture: xr.Dataset, calibration: xr.Dataset, /) ->
     xr.Dataset
         The capture unchanged but for its attrs: ``focal_length_px`` and the principal point's row from the calibration,
         the stated values kept (``stated_focal_length_px``, ``stated_principal_point_px``); its kind is the capture's.
+
+    References
+    ----------
+    Thesis §4.2.6 Light path alignment.
     """
     if calibration.attrs.get("selpath_kind") != CAMERA_CALIBRATION.name:
         raise StageError(Problem("the calibration is not a calibrate_camera result (selpath_kind "

@@ -258,6 +258,10 @@ def acquire_plane_to_ray(
     xr.Dataset
         A ``plane_to_ray_capture`` cube: the store ``store``: ``image`` [counts] over (delay, exposure, row, col),
         written frame by frame and opened lazily, with the rig's timing in its attrs.
+
+    References
+    ----------
+    Thesis §5.2.2 Light Multiplexing using Delay and Exposure; §5.2.3 Delay-Exposure Image Stacks.
     """
     with acquisition_rig(rig, scene, hardware, sensor, rig_changes) as instruments:
         return plane_sweep(instruments, store, delays.values(), exposures, hdr=hdr == "auto", progress=progress,
@@ -306,6 +310,10 @@ def acquire_full_transport(
     xr.Dataset
         A ``full_transport_capture`` cube: the store ``store``: ``image`` [counts] over (delay, exposure, line, row,
         col), written frame by frame and opened lazily, with the rig's timing in its attrs.
+
+    References
+    ----------
+    Thesis §5.3 Acquisition of full light transport; §5.3.1 Illumination multiplexing.
     """
     with acquisition_rig(rig, scene, hardware, sensor, rig_changes) as instruments:
         return full_sweep(instruments, store, delays.values(), exposures, lines.values(), line_width,
@@ -346,6 +354,10 @@ def acquire_scan_calibration(
     xr.Dataset
         A ``plane_to_ray_capture`` cube: the store ``store``: ``image`` [counts] over (delay, exposure, row, col), taken
         in global-shutter mode, for ``calibrate_scan_speed``.
+
+    References
+    ----------
+    Thesis §5.3.2 Hardware.
     """
     with _simulated_rig(scene, sensor, rig_changes) as instruments:
         if not hasattr(instruments.camera, "set_shutter"):

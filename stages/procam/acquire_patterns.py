@@ -134,6 +134,10 @@ def acquire_checkerboards(
     xr.Dataset
         A ``checkerboard_capture`` cube: the store ``store``: ``image`` [counts] over (shift, row, col) with each
         shift's board offset (``shift_row``, ``shift_col``), written frame by frame and opened lazily.
+
+    References
+    ----------
+    Thesis §5.4.6 Epipolar direct/global separation.
     """
     if shifts_per_axis < 2:
         raise SelpathError(f"shifts_per_axis is {shifts_per_axis}: at least 2 are needed, so that every pixel of "
@@ -203,6 +207,10 @@ def acquire_gray_code(
     xr.Dataset
         A ``gray_code_capture`` cube: the store ``store``: ``image`` [counts] over (pattern, row, col), white, black and
         the Gray codes, written frame by frame and opened lazily.
+
+    References
+    ----------
+    Thesis §5.2.1 Epipolar geometry and light transport.
     """
     with acquisition_rig(rig, scene, hardware, sensor, rig_changes) as instruments:
         attrs = instruments.attrs
@@ -243,5 +251,9 @@ def acquire_stereo_target(*, store: StorePath, scene: StorePath, progress: bool 
     xr.Dataset
         A ``stereo_target_capture`` cube: the store ``store``: ``image`` [counts] over (pose, pattern, row, col),
         written frame by frame and opened lazily.
+
+    References
+    ----------
+    Thesis §5.2.1 Epipolar geometry and light transport.
     """
     return capture_target(load_stereo_target(scene), store, progress=progress, log=sweep_log(progress))

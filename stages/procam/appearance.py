@@ -105,6 +105,10 @@ def fit_scattering_profile(capture: xr.Dataset, /, *, material: str, labels: Lab
     ------
     StageError
         A material with no usable pixel, a capture of several exposures without ``exposure``.
+
+    References
+    ----------
+    Thesis §5.4.8 Appearance capture for graphics.
     """
     frames, saturated, what = profile_frames(capture, exposure)
     if what["source_kind"] != "plane_to_ray_capture":
@@ -208,6 +212,10 @@ def render_appearance(profile: xr.Dataset, /, *, mesh: Literal["teapot", "sphere
     xr.Dataset
         An ``appearance_render`` cube: ``image`` over (render, row, col) [1: irradiance of a white surface, plus the
         highlight]: ``lambertian`` and ``subsurface``, and the silhouette ``mask``. Lazy: rendered when computed.
+
+    References
+    ----------
+    Thesis §5.4.8 Appearance capture for graphics.
     """
     if not {"fraction", "width_px"} <= set(profile.attrs):
         raise StageError(Problem("the profile has no fitted fraction and width_px", where="profile",

@@ -54,6 +54,10 @@ def separation_figure(floodlit: xr.Dataset, epipolar: xr.Dataset, /) -> xr.Datas
     xr.Dataset
         A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
         ``<store>.png``.
+
+    References
+    ----------
+    Thesis §5.4.6 Epipolar direct/global separation.
     """
     for name, ds in (("floodlit", floodlit), ("epipolar", epipolar)):
         if not {"direct", "global"} <= set(ds.data_vars):
@@ -107,6 +111,10 @@ def short_range_figure(short_range: xr.Dataset, /) -> xr.Dataset:
     xr.Dataset
         A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
         ``<store>.png``.
+
+    References
+    ----------
+    Thesis §5.4.4 Efficient Acquisition of Short Range Transport.
     """
     if "image" not in short_range or "max_delay" not in short_range.dims:
         raise StageError(Problem("not a short_range store", where="short_range",
@@ -165,6 +173,10 @@ def line_relighting_figure(study: xr.Dataset, /) -> xr.Dataset:
     xr.Dataset
         A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
         ``<store>.png``.
+
+    References
+    ----------
+    Thesis §5.4.3 Improving SNR by Multiplexing.
     """
     if study.attrs.get("selpath_kind") != "line_relighting_snr" or "image" not in study:
         raise StageError(Problem("not a line_relighting_snr store", where="study",
@@ -229,6 +241,10 @@ def multiplexed_relighting_figure(simplex: xr.Dataset, multiplexed: xr.Dataset, 
     xr.Dataset
         A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
         ``<store>.png``.
+
+    References
+    ----------
+    Thesis §5.4.3 Improving SNR by Multiplexing.
     """
     for name, ds in (("simplex", simplex), ("multiplexed", multiplexed)):
         if ds.attrs.get("selpath_kind") != "relighting_snr":
@@ -326,6 +342,10 @@ def transport_matrix_figure(transport: xr.Dataset, /, *,
     xr.Dataset
         A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
         ``<store>.png``.
+
+    References
+    ----------
+    Thesis §5.4.4 Efficient Acquisition of Short Range Transport.
     """
     if "transport" not in transport or not ({"offset", "row", "col"} <= set(transport["transport"].dims)
                                             or {"du", "dv", "row", "col"} <= set(transport["transport"].dims)):

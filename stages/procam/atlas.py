@@ -78,6 +78,10 @@ def material_atlas(transport: xr.Dataset, /, *, pixels: Pixels,
     StageError
         A transport whose du or dv range does not reach ``reach``, cells wider than 1 px along du or dv (the window
         would not be in pixels).
+
+    References
+    ----------
+    Thesis §5.4.10 Acquired materials.
     """
     require_variables(transport, ("transport",), "material_atlas")
     t = transport["transport"]

@@ -79,6 +79,10 @@ def calibrate_scan_speed(capture: xr.Dataset, /, *, min_rows: NonNegative = 2.0)
         A ``scan_calibration`` cube: each frame's lit-band ``count`` and ``centroid`` [px] over (delay, exposure) with
         the fits' ``fitted_count`` and ``fitted_centroid``; v_p and t_o in attrs (``scan_speed_px_per_us``,
         ``sync_offset_us``) with their standard errors (``scan_speed_std``, ``sync_offset_std``).
+
+    References
+    ----------
+    Thesis §5.3.2 Hardware.
     """
     # one pass over the frames: the column average of every frame, (delay, exposure, row)
     profiles = capture["image"].mean("col").transpose("delay", "exposure", "row").values

@@ -161,6 +161,10 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
         A ``plane_to_ray_transport`` cube: ``transport`` T over (offset, row, col) [counts: the image of one projector
         row lit for a line time], lazily per row band, with the solver's ``converged``, ``iterations``, ``gap_bound``,
         ``objective`` and the clipping flags (``censored``, ``frames_clipped``, ``clip_ratio``) per pixel.
+
+    References
+    ----------
+    Thesis §5.2.2 Light Multiplexing using Delay and Exposure; §5.2.3 Delay-Exposure Image Stacks.
     """
     max_gap = max(gap_tol, DemuxADMM.DEFAULT_MAX_GAP) if max_gap is None else max_gap
     if gap_tol > max_gap:

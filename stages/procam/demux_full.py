@@ -139,6 +139,10 @@ def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, 
         A ``full_transport`` cube: ``transport`` T over (du, dv, row, col) [counts: the image of one u-cell lit for a
         line time], lazily per row band, with the solver's ``converged``, ``iterations``, ``gap_bound`` and the clipping
         flags per pixel.
+
+    References
+    ----------
+    Thesis §5.3 Acquisition of full light transport; §5.3.1 Illumination multiplexing.
     """
     if "line" not in capture.dims:
         raise StageError(Problem("this capture has no line dimension (a plane-to-ray sweep)",

@@ -82,6 +82,10 @@ def delay_profile_figure(capture: xr.Dataset, transport: xr.Dataset, /, *,
     xr.Dataset
         A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
         ``<store>.png``.
+
+    References
+    ----------
+    Thesis §5.4.1 Analysis of light behavior.
     """
     exposure = float(capture["exposure"].min()) if exposure is None else exposure
     if exposure not in capture["exposure"].values:
@@ -194,6 +198,10 @@ def relighting_figure(transport: xr.Dataset, /, *, lines: tuple[Fraction, ...] =
     xr.Dataset
         A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
         ``<store>.png``.
+
+    References
+    ----------
+    Thesis §5.4.2 Relighting.
     """
     t = transport["transport"]
     rows = t.sizes["row"]
@@ -290,6 +298,10 @@ def epipolar_figure(capture: xr.Dataset, transport: xr.Dataset, /, *, exposure: 
     xr.Dataset
         A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
         ``<store>.png``.
+
+    References
+    ----------
+    Thesis §5.4.5 Sharpening epipolar imaging.
     """
     if 0.0 not in capture["delay"].values:
         raise StageError(Problem("the capture has no frame at delay 0 (the epipolar frame)",

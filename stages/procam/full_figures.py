@@ -91,6 +91,10 @@ def profile_2d_figure(transport: xr.Dataset, /, *, pixels: Pixels) -> xr.Dataset
     xr.Dataset
         A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
         ``<store>.png``.
+
+    References
+    ----------
+    Thesis §5.4.1 Analysis of light behavior.
     """
     t = _full(transport)["transport"]
     at = {name: pixel_at(transport, where) for name, where in pixels.items()}
@@ -134,6 +138,10 @@ def relighting_full_figure(transport: xr.Dataset, /, *, square_px: Count | None 
     xr.Dataset
         A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
         ``<store>.png``.
+
+    References
+    ----------
+    Thesis §5.4.2 Relighting.
     """
     _full(transport)
     step, cells = float(transport.attrs["cell_width_px"]), transport.attrs["cells_px"]

@@ -194,6 +194,10 @@ def classify_materials(profiles: xr.Dataset, classifier: xr.Dataset, /, *, label
     StageError
         Profiles over other delays, another source kind or exposure than the classifier's, a model store whose hash does
         not match.
+
+    References
+    ----------
+    Thesis §5.4.9 Material Recognition of Subsurface Scattering.
     """
     require_variables(profiles, ("profile", "area", "flags"), "classify_materials")
     require_variables(classifier, ("model", "mean_profile"), "classify_materials")

@@ -74,6 +74,10 @@ def material_figure(classification: xr.Dataset, classifier: xr.Dataset, /) -> xr
     xr.Dataset
         A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
         ``<store>.png``.
+
+    References
+    ----------
+    Thesis §5.4.9 Material Recognition of Subsurface Scattering.
     """
     require_variables(classification, ("label", "image"), "material_figure")
     require_variables(classifier, ("mean_profile",), "material_figure")
@@ -144,6 +148,10 @@ def vein_figure(choice: xr.Dataset, /) -> xr.Dataset:
     xr.Dataset
         A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
         ``<store>.png``.
+
+    References
+    ----------
+    Thesis §5.4.7 Visualization of vein.
     """
     require_variables(choice, ("image", "contrast", "contrast_of"), "vein_figure")
     a = choice.attrs
@@ -213,6 +221,10 @@ def atlas_figure(atlas: xr.Dataset, /) -> xr.Dataset:
     xr.Dataset
         A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
         ``<store>.png``.
+
+    References
+    ----------
+    Thesis §5.4.10 Acquired materials.
     """
     require_variables(atlas, ("profile", "extent", "image"), "atlas_figure")
     reach = atlas.attrs.get("reach_px", "?")
@@ -277,6 +289,10 @@ def appearance_figure(profile: xr.Dataset, render: xr.Dataset, /) -> xr.Dataset:
     xr.Dataset
         A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
         ``<store>.png``.
+
+    References
+    ----------
+    Thesis §5.4.8 Appearance capture for graphics.
     """
     require_variables(profile, ("profile",), "appearance_figure")
     require_variables(render, ("image",), "appearance_figure")

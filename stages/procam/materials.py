@@ -139,6 +139,10 @@ def delay_profiles(source: xr.Dataset, /, *, exposure: Positive | None = None, f
     ------
     StageError
         When under 1 % of the pixels have a usable profile.
+
+    References
+    ----------
+    Thesis §5.4.9 Material Recognition of Subsurface Scattering.
     """
     frames, saturated, what = profile_frames(source, exposure)
     if fold:
@@ -309,6 +313,10 @@ def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scen
     ------
     StageError
         Fewer than 2 classes, a class with fewer usable labelled pixels than folds, no labelled pixel.
+
+    References
+    ----------
+    Thesis §5.4.9 Material Recognition of Subsurface Scattering.
     """
     import sklearn
     import skops.io

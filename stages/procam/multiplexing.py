@@ -156,6 +156,10 @@ def multiplexing_gain_study(*, lines: Count = 31,
     xr.Dataset
         A ``multiplexing_study`` cube: ``predicted_gain_db`` and ``measured_gain_db`` [dB] of multiplexed codes over
         simplex, over (signal, code).
+
+    References
+    ----------
+    Thesis §5.3.1 Illumination multiplexing; §5.4.3 Improving SNR by Multiplexing.
     """
     try:
         s = s_matrix(lines)
@@ -242,6 +246,10 @@ def line_relighting_snr(capture: xr.Dataset, transport: xr.Dataset, /, *, line: 
     xr.Dataset
         A ``line_relighting_snr`` cube: the relit line ``image`` over (method, row, col) and its ``truth`` (row, col)
         [counts], ``snr_db`` per method and, where the noise model predicts it, ``predicted_snr_db``.
+
+    References
+    ----------
+    Thesis §5.4.3 Improving SNR by Multiplexing.
     """
     require_variables(transport, ("transport",), "line_relighting_snr")
     scene = simulated_scene(capture, "capture")
@@ -330,6 +338,10 @@ def full_relighting_snr(capture: xr.Dataset, transport: xr.Dataset, /, *, square
     xr.Dataset
         A ``relighting_snr`` cube: the relit ``image`` and its ``truth`` [counts] over (pattern, row, col), and
         ``snr_db`` per pattern.
+
+    References
+    ----------
+    Thesis §5.4.3 Improving SNR by Multiplexing.
     """
     require_variables(transport, ("transport", "u_direct"), "full_relighting_snr")
     scene = simulated_scene(capture, "capture")

@@ -99,6 +99,10 @@ def decode_gray_code(capture: xr.Dataset, /, *, min_lit: Fraction = 0.02, min_co
         A ``projector_correspondence`` cube: ``projector_col`` and ``projector_row`` [projector px, pixel centres at
         whole numbers, sub-pixel] over (row, col), NaN where undecoded, and the usable share ``decoded_fraction`` (floor
         5 %).
+
+    References
+    ----------
+    Thesis §5.2.1 Epipolar geometry and light transport.
     """
     require_variables(capture, ("image",), "decode_gray_code")
     attrs = capture.attrs
@@ -232,6 +236,10 @@ def epipolar_alignment(correspondence: xr.Dataset, /, *, tolerance_rows: Positiv
         mismatch), their standard errors (``*_std``), ``median_abs_rows`` and ``p90_abs_rows`` (of the model over the
         decoded pixels), ``residual_rows`` (robust spread of measured − model: the codes' quantisation) and
         ``tolerance_rows``.
+
+    References
+    ----------
+    Thesis §5.2.1 Epipolar geometry and light transport.
     """
     require_variables(correspondence, ("projector_row",), "epipolar_alignment")
     attrs = correspondence.attrs
@@ -312,6 +320,10 @@ def rectify_transport(transport: xr.Dataset, alignment: xr.Dataset, /) -> xr.Dat
     xr.Dataset
         A ``plane_to_ray_transport`` cube: the transport re-indexed so that offset 0 is each pixel's epipolar row (T'(o)
         = T(o + δ)), lazily; the same kind.
+
+    References
+    ----------
+    Thesis §5.2.1 Epipolar geometry and light transport.
     """
     require_variables(transport, ("transport",), "rectify_transport")
     require_variables(alignment, ("model",), "rectify_transport")

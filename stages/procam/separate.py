@@ -138,6 +138,10 @@ def separate_direct_global(capture: xr.Dataset, /, *, black_level: Fraction | No
     xr.Dataset
         A ``direct_global`` cube: ``direct`` and ``global`` [counts] over (row, col), ``flags`` (saturated, nonfinite;
         flagged pixels are NaN) and the usable share ``unsaturated_fraction`` (floor 50 %).
+
+    References
+    ----------
+    Thesis §5.4.6 Epipolar direct/global separation.
     """
     require_variables(capture, ("image",), "separate_direct_global")
     image = capture["image"]

@@ -78,6 +78,10 @@ def short_range_images(transport: xr.Dataset, /, *,
     xr.Dataset
         A ``short_range`` cube: the floodlit short-range ``image`` [counts] over (max_delay, row, col), each sweep's
         ``energy_fraction`` and its capture counts.
+
+    References
+    ----------
+    Thesis §5.4.4 Efficient Acquisition of Short Range Transport.
     """
     require_variables(transport, ("transport",), "short_range_images")
     t = transport["transport"]

@@ -131,6 +131,10 @@ def calibrate_procam_stereo(target: xr.Dataset, /, *, window_px: Count = 10, min
         intrinsics' standard deviations, ``row_disparity_before``/``_after`` (median |row difference| of corresponding
         corners on the camera's scale, undistorted, unrectified and rectified; ``_p90`` too) and
         ``sync_rows_median``/``_p90`` (|projector row as the sync pairs it − camera row| at the corners, camera rows).
+
+    References
+    ----------
+    Thesis §5.2.1 Epipolar geometry and light transport.
     """
     require_variables(target, ("image",), "calibrate_procam_stereo")
     attrs = target.attrs

@@ -95,6 +95,10 @@ def choose_delay(transport: xr.Dataset, /, *, delays: TimeSweep = TimeSweep(star
     ------
     StageError
         No candidate delay clear of direct light, a structure or surround with no pixel.
+
+    References
+    ----------
+    Thesis §5.4.7 Visualization of vein.
     """
     require_variables(transport, ("transport",), "choose_delay")
     t = transport["transport"]

@@ -186,6 +186,10 @@ def relight_images(transport: xr.Dataset, /, *, patterns: Patterns | None = None
     xr.Dataset
         A ``relit_images`` cube: the relit ``image`` [counts] over (pattern, row, col), each pattern's ``lit_share`` and
         ``censored`` where clipped light was used, lazily.
+
+    References
+    ----------
+    Thesis §5.4.2 Relighting.
     """
     _transport(transport, "relight")
     rows = _pattern_rows(transport, projector_rows, space)
@@ -230,6 +234,10 @@ def epipolar_images(transport: xr.Dataset, /, *,
     xr.Dataset
         An ``epipolar_images`` cube: ``epipolar`` and ``non_epipolar`` [counts] over (band, row, col), summing to the
         floodlit image, and ``censored`` where the transport was seen only clipped.
+
+    References
+    ----------
+    Thesis §5.4.5 Sharpening epipolar imaging.
     """
     t = _transport(transport, "epipolar_images")
     if "du" in t.dims:
@@ -257,6 +265,10 @@ def relit_figure(relit: xr.Dataset, /) -> xr.Dataset:
     xr.Dataset
         A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
         ``<store>.png``.
+
+    References
+    ----------
+    Thesis §5.4.2 Relighting.
     """
     require_variables(relit, ("image",), "relit_figure")
     names = [str(n) for n in relit["pattern"].values]

@@ -131,6 +131,10 @@ def acquire_tomography(
         A ``tomography_capture`` cube: the store ``store``: ``target`` and ``reference`` [counts] over (angle, row,
         col), with ``backlit`` and ``dark`` where the rig has them, and the rig geometry in its attrs; written angle by
         angle, opened lazily.
+
+    References
+    ----------
+    Thesis §4.2.5 Setup of the measurement.
     """
     if rig == "sim":
         instruments = simulated_rig(load_scene(scene))

@@ -90,6 +90,10 @@ def subtract_background(capture: xr.Dataset, /, *, background: str = "dark",
     xr.Dataset
         A ``tomography_capture`` cube: the capture with the background subtracted from its frame variables (lazy; the
         same kind).
+
+    References
+    ----------
+    Thesis §4.2.1 Distribution of the absorption coefficient and total absorption.
     """
     require_variables(capture, (background,), "subtract_background")
     if capture.attrs.get("background_subtracted"):
@@ -115,6 +119,10 @@ def subtract_dark(capture: xr.Dataset, /) -> xr.Dataset:
     xr.Dataset
         A ``tomography_capture`` cube: the capture with ``dark`` subtracted from ``target``, ``reference`` and
         ``backlit`` (lazy; the same kind).
+
+    References
+    ----------
+    Thesis §4.2.1 Distribution of the absorption coefficient and total absorption.
     """
     return subtract_background(capture, background="dark")
 
@@ -353,6 +361,10 @@ def normalise_reference(capture: xr.Dataset, silhouettes: xr.Dataset | None = No
     xr.Dataset
         A ``transmittance`` cube: ``transmittance`` I_target / I_reference over (angle, row, col) [1] (lazy), NaN where
         ``flags`` (CF flag bits) says why; {shares}
+
+    References
+    ----------
+    Thesis §4.2.1 Distribution of the absorption coefficient and total absorption.
     """
     value, flags, attrs, shares = _checked_pair(capture, "normalise_reference", saturation_level, min_signal,
                                                 min_signal_relative, absorption=False,
@@ -380,6 +392,10 @@ def absorption(capture: xr.Dataset, silhouettes: xr.Dataset | None = None, /, *,
     xr.Dataset
         An ``absorption`` cube: ``absorption`` A over (angle, row, col) [1] (lazy), NaN where ``flags`` (CF flag bits)
         says why; {shares}
+
+    References
+    ----------
+    Thesis §4.2.1 Distribution of the absorption coefficient and total absorption.
     """
     value, flags, attrs, shares = _checked_pair(capture, "absorption", saturation_level, min_signal,
                                                 min_signal_relative, absorption=True,

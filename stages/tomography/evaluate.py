@@ -60,6 +60,10 @@ def reconstruction_error(reconstruction: xr.Dataset, truth: xr.Dataset, /) -> xr
     xr.Dataset
         A ``reconstruction_error`` cube: ``rmse`` and ``max_abs_error`` [per length unit] over every slice and pixel,
         and the inclusion's ``centroid_error`` and ``radius_error`` where it has one.
+
+    References
+    ----------
+    Thesis §4.4.1 Appropriate setup of the measurement.
     """
     require_variables(reconstruction, ("sigma",), "reconstruction_error")
     require_variables(truth, ("sigma",), "reconstruction_error")

@@ -56,6 +56,10 @@ def sinogram_figure(sinogram: xr.Dataset, /, *, slice_index: Index = 0) -> xr.Da
     xr.Dataset
         A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
         ``<store>.png``.
+
+    References
+    ----------
+    Thesis §4.2.7 Observation rate of the light path.
     """
     require_variables(sinogram, ("absorption", "observed"), "sinogram_figure")
     one = sinogram.isel(slice=slice_index) if "slice" in sinogram.dims else sinogram
@@ -109,6 +113,10 @@ def coverage_figure(coverage: xr.Dataset | None = None, /) -> xr.Dataset:
     xr.Dataset
         A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
         ``<store>.png``.
+
+    References
+    ----------
+    Thesis §4.2.7 Observation rate of the light path.
     """
     caption = """Coverage d_max − d_min (dimensionless share of the sinogram's X range that holds observed rays)
         versus the light angle θ_l [degree], by the closed forms of Eq. 8–19 for a cylinder seen by an
@@ -153,6 +161,10 @@ def capture_figure(capture: xr.Dataset, /, *, angle_index: Index = 0) -> xr.Data
     xr.Dataset
         A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
         ``<store>.png``.
+
+    References
+    ----------
+    Thesis §4.2.5 Setup of the measurement.
     """
     require_variables(capture, ("target", "backlit"), "capture_figure")
     one = capture.isel(angle=angle_index)

@@ -144,6 +144,10 @@ def silhouettes(capture: xr.Dataset, /, *, threshold: Positive | None = None,
     xr.Dataset
         A ``silhouettes`` cube: ``silhouette`` (True where the object is) over (angle, row, col), lazily per angle
         chunk, and the usable share ``object_fraction``.
+
+    References
+    ----------
+    Thesis §4.2.6 Light path alignment.
     """
     require_variables(capture, ("backlit",), "silhouettes")
     capture = sorted_sweep(capture, "angle", "silhouettes")
@@ -269,6 +273,10 @@ def visual_hull(silhouettes: xr.Dataset, /) -> xr.Dataset:
         A ``hull`` cube: per slice the contour's ``vertices`` over (slice, vertex, xy) (counter-clockwise, object frame)
         [length unit] and ``n_vertices``, with the views that gave no constraint (``empty_views``, ``border_views``,
         ``gapped_views``).
+
+    References
+    ----------
+    Thesis §4.2.6 Light path alignment.
     """
     require_variables(silhouettes, ("silhouette",), "visual_hull")
     mask = silhouettes["silhouette"]

@@ -149,6 +149,10 @@ def align_paths(absorption: xr.Dataset, hull: xr.Dataset, /, *, min_exit_cos: Fr
     xr.Dataset
         A ``rays`` cube: ``theta`` [degree], ``x`` [length unit] and ``absorption`` [1] over (angle, row, col): every
         lit pixel's ray, with ``reason`` (why a pixel gives none), lazily.
+
+    References
+    ----------
+    Thesis §4.2.6 Light path alignment.
     """
     require_variables(absorption, ("absorption",), "align_paths")
     geometry = RigGeometry.from_attrs(hull.attrs, absorption.sizes["row"], absorption.sizes["col"],

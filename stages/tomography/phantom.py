@@ -140,6 +140,10 @@ def simulate_sinogram(*, scene: StorePath, light_angle_deg: LightAngle | None = 
     -------
     xr.Dataset
         A ``sinogram`` cube: the exact ``absorption`` [1] over (slice, theta, x) and the rig's ``observed`` mask.
+
+    References
+    ----------
+    Thesis §4.4.1 Appropriate setup of the measurement.
     """
     spec = load_scene(scene)
     if light_angle_deg is not None:
@@ -202,6 +206,10 @@ def phantom_truth(sinogram: xr.Dataset, /, *, scene: StorePath, n_pixels: Count 
     xr.Dataset
         A ``reconstruction`` cube: ``sigma`` [per length unit] of the scene's inclusions over (slice, y, x) on
         ``sinogram``'s grid.
+
+    References
+    ----------
+    Thesis §4.4.1 Appropriate setup of the measurement.
     """
     spec = load_scene(scene)
     x = sinogram["x"].values

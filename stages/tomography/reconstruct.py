@@ -303,6 +303,10 @@ def fbp(sinogram: xr.Dataset, hull: xr.Dataset | None = None, /, *, n_pixels: Co
     xr.Dataset
         A ``reconstruction`` cube: ``sigma`` over (slice, y, x) [per length unit], zero outside the hull, lazily per
         slice chunk.
+
+    References
+    ----------
+    Thesis §4.2.2 Radon transform; §4.3 Reconstruction.
     """
     check_inputs(sinogram, hull, "fbp")
     geometry = grid_geometry(sinogram, n_pixels)
@@ -387,6 +391,10 @@ def reconstruct_tv(sinogram: xr.Dataset, hull: xr.Dataset | None = None, /, *,
     xr.Dataset
         A ``reconstruction`` cube: ``sigma`` over (slice, y, x) [per length unit], zero outside the hull, with the
         solver's ``converged``, ``iterations`` and residual histories per slice, lazily.
+
+    References
+    ----------
+    Thesis §4.3.1 Formulation as an optimization problem.
     """
     check_inputs(sinogram, hull, "reconstruct_tv")
     if tv_weight < 0 or rho <= 0 or tol <= 0 or max_iter < 1 or cg_steps < 1 or bound_slack < 0:

@@ -139,6 +139,10 @@ def reconstruction_figure(fbp: xr.Dataset, optimised: xr.Dataset, truth: xr.Data
     xr.Dataset
         A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
         ``<store>.png``.
+
+    References
+    ----------
+    Thesis §4.4.1 Appropriate setup of the measurement.
     """
     given = [fbp, optimised] + ([] if bundles is None else [bundles])
     for reconstruction in given:
@@ -242,6 +246,10 @@ def convergence_figure(optimised: xr.Dataset, /) -> xr.Dataset:
     xr.Dataset
         A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
         ``<store>.png``.
+
+    References
+    ----------
+    Thesis §4.3.1 Formulation as an optimization problem.
     """
     require_variables(optimised, ("objective", "primal_residual", "dual_residual"), "convergence_figure")
     count = optimised["objective"].shape[0]
@@ -321,6 +329,10 @@ def volume_figure(reconstruction: xr.Dataset, truth: xr.Dataset | None = None, /
     xr.Dataset
         A ``figure``: the RGBA ``image`` (y, x, rgba) and its ``caption`` attr; a workflow output also saves it as
         ``<store>.png``.
+
+    References
+    ----------
+    Thesis §4.4.2 Experiment on a real object.
     """
     volumes = {"reconstruction": reconstruction} | ({"truth": truth} if truth is not None else {})
     for name, volume in volumes.items():

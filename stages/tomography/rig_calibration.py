@@ -143,6 +143,10 @@ def calibrate_rig(capture: xr.Dataset, /, *, axis: bool = True, light_angle: boo
         A ``rig_calibration`` cube: the estimates ``axis_column`` [px] and ``light_angle`` [degree] with their standard
         uncertainties (``*_std``), the values stated, the fits' residuals and the θ_l profile ``light_cost`` over
         ``light_angle_trial``; the corrected geometry in its attrs.
+
+    References
+    ----------
+    Thesis §4.2.5 Setup of the measurement; §4.2.6 Light path alignment.
     """
     if not axis and not light_angle:
         raise StageError(Problem("calibrate_rig: nothing to calibrate", fix="set axis or light_angle to true"))
@@ -252,6 +256,10 @@ def apply_rig_calibration(capture: xr.Dataset, calibration: xr.Dataset, /) -> xr
     xr.Dataset
         A ``tomography_capture`` cube: the capture with ``principal_point_px`` and ``light_angle_deg`` from the
         calibration, ``stated_principal_point_px`` and ``stated_light_angle_deg`` kept; frames untouched and lazy.
+
+    References
+    ----------
+    Thesis §4.2.5 Setup of the measurement; §4.2.6 Light path alignment.
     """
     if calibration.attrs.get("selpath_kind") != RIG_CALIBRATION.name:
         raise StageError(Problem("apply_rig_calibration: the calibration is not a calibrate_rig result "

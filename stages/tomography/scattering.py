@@ -188,6 +188,10 @@ def reconstruct_scattering(rays: xr.Dataset, sinogram: xr.Dataset, hull: xr.Data
         ``iterations``, ``final_objective``, ``paths_per_bin`` (the median over the observed bins of their distinct
         paths: below the setting where paths repeat) and ``bins_without_paths`` (observed bins no walk's light reached:
         left out of the fit; raise ``photons`` if many).
+
+    References
+    ----------
+    Thesis §4.4.4 Effect of scattering.
     """
     sigma_s = _scattering_coefficient(scattering, sigma_s)
     if sigma_s == 0:

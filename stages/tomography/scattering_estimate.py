@@ -190,6 +190,10 @@ def estimate_scattering(capture: xr.Dataset, hull: xr.Dataset, /, *, views: Coun
         ``sigma_s_low``/``sigma_s_high``, ``settled``, ``rounds``, ``effective_walks`` (the walks' effective number at
         the estimate: low means the reweighting is stretched), and the last round's ``objective`` over its candidates
         ``candidate_sigma_s``, and the ``measured_profile``/``modelled_profile`` over ``bin_distance`` [length unit].
+
+    References
+    ----------
+    Thesis §4.4.4 Effect of scattering.
     """
     require_variables(capture, ("reference",), "estimate_scattering")
     geometry = RigGeometry.from_attrs(capture.attrs, capture.sizes["row"], capture.sizes["col"],

@@ -123,6 +123,10 @@ def simulate_parallel_capture(
     xr.Dataset
         A ``tomography_capture`` cube: ``target``, ``reference`` and ``backlit`` [counts] over (angle, row, col) and
         ``dark`` (row, col), with the parallel rig's geometry in its attrs.
+
+    References
+    ----------
+    Thesis §4.4.2 Experiment on a real object.
     """
     angle_values = angles.values()
     per_chunk = angles_per_chunk(len(angle_values), n_rows * n_cols * 4)
@@ -208,6 +212,10 @@ def simulate_capture(*, scene: StorePath, angles: AngleSweep = AngleSweep(),  # 
     xr.Dataset
         A ``tomography_capture`` cube: ``target``, ``reference`` and ``backlit`` [counts] over (angle, row, col) and
         ``dark`` (row, col), rendered lazily chunk by chunk, with the scene's stated geometry in its attrs.
+
+    References
+    ----------
+    Thesis §4.2.5 Setup of the measurement; §4.4.3 Measurement of arbitrary convex shape.
     """
     spec = load_scene(scene)
     if spec.effects.scattering is not None:

@@ -113,10 +113,8 @@ def _bin_kernel(index, absorption, *, n_theta: int, n_x: int):
 #: angle chunk and row chunk; one row per task made 1.3 M at 1600 × 1200 × 360)
 BIN_CHUNK_BYTES = 64 * 2**20
 
-#: how the rays move from angle chunks to slice chunks, on any scheduler: dask's task-based rechunk, whose pieces
-#: are managed memory that a worker spills to disk. Distributed's default (p2p) holds its shards outside that
-#: accounting: at 1600 × 1200 × 360 (5.5 GB of rays) it stalled a 4 GB worker twice, paused at 80 % in unmanaged
-#: memory, where the task-based rechunk finished (benchmarks/tomo_volume.py, 2026-11-26)
+#: how the rays move from angle chunks to slice chunks, on any scheduler: dask's task-based rechunk, whose pieces are
+#: managed memory a worker can spill (distributed's p2p stalled a 4 GB worker at 1600 × 1200 × 360: docs/results.md)
 RAYS_RECHUNK = "tasks"
 
 
@@ -174,6 +172,10 @@ def bin_sinogram(rays: xr.Dataset, /, *, n_theta: Bins | None = None, n_x: Bins 
     xr.Dataset
         A ``sinogram`` cube: ``absorption`` [1] over (slice, theta, x), the mean of the rays in each bin, and
         ``observed`` (True where a ray fell), lazily per slice.
+
+    References
+    ----------
+    Thesis §4.2.2 Radon transform; §4.2.6 Light path alignment.
     """
     require_variables(rays, ("theta", "x", "absorption"), "bin_sinogram")
     extent = float(x_extent if x_extent is not None else rays.attrs.get("x_extent", np.nan))
@@ -382,6 +384,10 @@ def coverage(sinogram: xr.Dataset, hull: xr.Dataset, /) -> xr.Dataset:
     xr.Dataset
         A ``coverage`` cube: per slice the observed share ``coverage`` [1] of the sinogram and the band [``d_min``,
         ``d_max``] it covers, with Eq. 8–19's analytic values where the hull allows them.
+
+    References
+    ----------
+    Thesis §4.2.7 Observation rate of the light path.
     """
     require_variables(sinogram, ("observed",), "coverage")
     if "slice" not in sinogram.dims:

@@ -91,6 +91,10 @@ def light_angle_study(*, scene: StorePath,
     xr.Dataset
         A ``light_angle_study`` cube: ``rmse`` and ``max_abs_error`` [per length unit] over (light_angle, method), and
         the reconstructions ``sigma`` over (light_angle, method, y, x).
+
+    References
+    ----------
+    Thesis §4.4.1 Appropriate setup of the measurement.
     """
     results, observed = [], []
     truth = None

@@ -90,6 +90,41 @@ def test_every_installed_stage_documents_every_input_and_setting():
         "alpha": "Weights [1].", "beta": "Weights [1]."}
 
 
+#: what selpath adds around the thesis's pipeline: stages with no thesis section to cite
+NO_THESIS_SECTION = {"import_capture", "load_store"}
+
+
+def test_every_stage_cites_its_thesis_section():
+    """#56: every built-in stage's docstring ends its sections with a numpydoc References section, one line
+    ``Thesis §N.N Title; §… .``; one section has one title everywhere, and where the thesis's text is beside the
+    repository (``../shared/thesis.md``) each § and title is one of its headings."""
+    import inspect
+    import re
+    from pathlib import Path
+
+    cited, problems = {}, {}
+    for s in default_registry():
+        if not s.func.__module__.startswith("selpath."):
+            continue
+        doc = inspect.cleandoc(s.func.__doc__ or "")
+        found = re.search(r"\nReferences\n-{10}\nThesis (§.+)\.$", doc)
+        if s.name in NO_THESIS_SECTION:
+            assert found is None, s.name
+            continue
+        if found is None:
+            problems[s.name] = "no References section citing the thesis at the docstring's end"
+            continue
+        for part in found.group(1).split("; "):
+            number, title = re.fullmatch(r"§([45](?:\.\d+){1,2}) (.+)", part).groups()
+            if cited.setdefault(number, title) != title:
+                problems[s.name] = f"§{number} titled {title!r} here, {cited[number]!r} elsewhere"
+    assert not problems, problems
+    thesis = Path(__file__).resolve().parents[3] / "shared" / "thesis.md"
+    if thesis.is_file():
+        headings = dict(re.findall(r"^###? (\d+(?:\.\d+)+) (.+?)\s*$", thesis.read_text(), re.M))
+        assert {n: t for n, t in cited.items() if headings.get(n) != t} == {}
+
+
 def test_every_stage_documents_what_it_returns():
     """numpydoc: every installed stage's docstring has a Returns section, ``xr.Dataset`` with a description naming
     the cube kind(s) it makes (the reference pages and ``help()`` show it; a renamed kind fails here)."""
