@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 
 from selpath.stages.procam._demux_certificate import DUAL_SEARCH_STEPS, KKT_HELD, first_order_gap, kkt_gap
+from selpath.stages.procam._demux_problem import _sq
 
 
 class Limits(NamedTuple):
@@ -55,10 +56,6 @@ class Batch(NamedTuple):
     iters: jnp.ndarray
     done: jnp.ndarray
     age: jnp.ndarray
-
-
-def _sq(x):
-    return jnp.sum(x * x, axis=-1)
 
 
 def _scaled(data, weight, beta):

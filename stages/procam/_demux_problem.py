@@ -128,7 +128,7 @@ class DemuxProblem:
 
     def smooth_gradient(self, transport: np.ndarray) -> np.ndarray:
         """DᵀD T per pixel (½ the gradient of ‖D T‖²)."""
-        return _dtd_np(np.asarray(transport, np.float64))
+        return _dtd(np.asarray(transport, np.float64), np)
 
     def lit_by(self, frames: np.ndarray) -> np.ndarray:
         """(P, N) 0/1 frames → (P, K): how many of them light each offset (A_ik > 0)."""
@@ -222,7 +222,7 @@ class SeparableDemuxProblem:
     def smooth_gradient(self, transport: np.ndarray) -> np.ndarray:
         """DᵀD T per pixel along dv."""
         t = np.asarray(transport, np.float64)
-        return _dtd_np(t.reshape(-1, *self.cells)).reshape(t.shape)
+        return _dtd(t.reshape(-1, *self.cells), np).reshape(t.shape)
 
     def lit_by(self, frames: np.ndarray) -> np.ndarray:
         """(P, N_u·N_v) 0/1 frames (line-major) → (P, K_u·K_v): how many of them light each cell."""
@@ -251,12 +251,6 @@ def _objective(problem, transport, data, weight, clipped) -> np.ndarray:
     transport = np.asarray(transport, np.float64)
     residual, _ = _residual(problem, transport, data, weight, clipped)
     return (residual**2).sum(-1) + problem.alpha * problem.smoothness(transport) + problem.beta * transport.sum(-1)
-
-
-def _dtd_np(t: np.ndarray) -> np.ndarray:
-    """DᵀD along the last axis, in numpy."""
-    d = np.diff(t, axis=-1)
-    return -np.diff(np.pad(d, [(0, 0)] * (d.ndim - 1) + [(1, 1)]), axis=-1)
 
 
 def _sq(x):
@@ -369,11 +363,11 @@ class KroneckerOperators(NamedTuple):
         return _dtd(self._cells(t)).reshape(t.shape[0], -1)
 
 
-def _dtd(t):
-    """DᵀD along the last axis (D the first difference): −Δ(pad(D t)) — no matrix formed."""
-    d = jnp.diff(t, axis=-1)
-    pad = [(0, 0)] * (d.ndim - 1) + [(1, 1)]
-    return -jnp.diff(jnp.pad(d, pad), axis=-1)
+def _dtd(t, xp=jnp):
+    """DᵀD along the last axis (D the first difference): −Δ(pad(D t)), no matrix formed; ``xp`` numpy for the
+    float64 reference, ``jax.numpy`` in the kernels."""
+    d = xp.diff(t, axis=-1)
+    return -xp.diff(xp.pad(d, [(0, 0)] * (d.ndim - 1) + [(1, 1)]), axis=-1)
 
 
 def _caster(dtype):

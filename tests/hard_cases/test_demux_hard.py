@@ -105,7 +105,7 @@ def test_data_scaled_by_1e_minus_8_and_1e8_in_float32(scale):
     assert differ.mean() <= 0.1
 
 
-@pytest.mark.parametrize("scale", [1e-8, 1e8])
+@pytest.mark.parametrize("scale", [1e-8, pytest.param(1e8, marks=pytest.mark.slow)])
 def test_separable_full_transport_with_nan_and_saturated_frames_at_extreme_scales(scale):
     """The Kronecker (full-transport) solver on a rank-deficient sweep (N = 30 < K = 6 × 33) with NaN
     frames, a fully masked pixel and data scaled by 1e±8 in float32: finite, non-negative, converged with
@@ -137,7 +137,7 @@ def test_separable_full_transport_with_nan_and_saturated_frames_at_extreme_scale
                                problem.objective(base.value, clean, weight), rtol=1e-3, atol=1e-9)
 
 
-@pytest.mark.parametrize("scale", [1e-8, 1.0, 1e8])
+@pytest.mark.parametrize("scale", [1e-8, pytest.param(1.0, marks=pytest.mark.slow), 1e8])
 def test_clipped_frames_at_extreme_scales_in_float32(scale):
     """Clipped frames (#30) through the per-pixel scaling: a pixel clipped in every frame, one clipped where its
     direct peak is, and clean ones, at 1e-8, 1 and 1e8 with β scaled alike. Finite, non-negative; every clipped

@@ -18,7 +18,8 @@ from selpath.stages.procam._illumination import epipolar_boundary, plane_to_ray_
 from tests.helpers.demux_cases import CASES, cvxpy_optimum, sparse_transport, sweep_matrix
 
 
-@pytest.mark.parametrize("case", CASES)
+@pytest.mark.parametrize("case", ["wide-exposures", *(pytest.param(c, marks=pytest.mark.slow)
+                                                     for c in CASES if c != "wide-exposures")])
 def test_objective_and_solution_match_cvxpy(case):
     delays, exposures, offsets = CASES[case]
     matrix = sweep_matrix(delays, exposures, offsets)

@@ -72,7 +72,8 @@ def cvxpy_optimum(geometry, sinogram, observed, upper, tv_weight) -> float:
     return float(qp.value)
 
 
-@pytest.mark.parametrize(("method", "tv_weight", "seed"), [("joseph", 1e-2, 0), ("binary", 3e-3, 1)])
+@pytest.mark.parametrize(("method", "tv_weight", "seed"), [
+    ("joseph", 1e-2, 0), pytest.param("binary", 3e-3, 1, marks=pytest.mark.slow)])
 def test_tvadmm_reaches_the_cvxpy_optimum(method, tv_weight, seed):
     """In float64 at tol 1e-6, TVADMM's objective (½‖M(Rσ − A)‖² + λ TV(σ), recomputed here from its σ with the
     dense R) is within 1e-4 relative of Clarabel's optimum (the bar), and not below it by more than Clarabel's
