@@ -31,7 +31,8 @@ from typing import Annotated, Literal
 import numpy as np
 import pydantic
 
-from selpath.devices.sim.scene import Angle, Pixels, quantity, saturation_above_dark
+from selpath.devices.sim.scene import saturation_above_dark
+from selpath.devices.sim.units import Angle, Pixels, quantity
 from selpath.pipeline.yaml_source import load_yaml_model
 
 Micros = quantity({"us": 1.0, "ms": 1e3, "s": 1e6}, "170 us", "a duration")

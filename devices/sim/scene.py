@@ -18,70 +18,24 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import math
 import os
-import re
 from typing import Annotated, Any, Literal
 
 import numpy as np
 import pydantic
 
+from selpath.devices.sim.units import (
+    SCENE_LENGTH_UNITS,
+    Angle,
+    Duration,
+    InvLength,
+    Length,
+    Pixels,
+    lengths_in,
+)
 from selpath.geometry.rig import OrthographicCamera, PerspectiveCamera, RigGeometry
 from selpath.geometry.shapes import Ellipse, Ellipsoid, Polygon, Prism, Solid, convex_polygon
 from selpath.pipeline.yaml_source import load_yaml_model
-
-_TO_MM = {"m": 1000.0, "cm": 10.0, "mm": 1.0, "um": 1e-3}
-_TO_DEG = {"deg": 1.0, "degree": 1.0, "rad": 180.0 / np.pi}
-_TO_S = {"s": 1.0, "ms": 1e-3, "us": 1e-6}
-_QUANTITY = re.compile(r"^\s*(?P<value>[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?)\s*(?P<unit>\S+)\s*$")
-
-
-def unit_parser(units: dict[str, float], example: str, what: str):
-    """A validator reading ``<number> <unit>`` (one of ``units``, each its factor to the canonical unit)."""
-
-    def parse(value: Any) -> float:
-        if isinstance(value, bool) or not isinstance(value, str | int | float):
-            raise ValueError(f"expected {what} such as {example!r}")
-        if not isinstance(value, str):
-            raise ValueError(f"{value} has no unit; write it as {what}, e.g. {example!r}")
-        match = _QUANTITY.match(value)
-        if not match or match["unit"] not in units:
-            raise ValueError(f"{value!r} is not {what}; write e.g. {example!r} (units: {', '.join(units)})")
-        number = float(match["value"]) * units[match["unit"]]
-        if not math.isfinite(number):
-            raise ValueError(f"{value!r} is not a finite {what.removeprefix('a ').removeprefix('an ')}")
-        return number
-
-    return pydantic.BeforeValidator(parse)
-
-
-@dataclasses.dataclass(frozen=True)
-class Quantity:
-    """What a quantity field reads, for people and for the generated docs (``selpath.pipeline.reference``): ``what``
-    it is, an ``example``, the ``units`` it accepts and the ``canonical`` one the simulator works in."""
-
-    what: str
-    example: str
-    units: tuple[str, ...]
-    canonical: str
-
-
-def quantity(units: dict[str, float], example: str, what: str):
-    """A float read as ``<number> <unit>`` (:func:`unit_parser`) and dumped to JSON in the canonical unit (the one
-    of factor 1), so that a model dumped with ``model_dump(mode="json")`` validates again."""
-    canonical = next(unit for unit, factor in units.items() if factor == 1.0)
-    serializer = pydantic.PlainSerializer(lambda value: f"{value!r} {canonical}", when_used="json")
-    return Annotated[float, unit_parser(units, example, what), serializer,
-                     Quantity(what, example, tuple(units), canonical)]
-
-
-Length = quantity(_TO_MM, "20 mm", "a length")
-#: absorption or scattering coefficient, per mm
-InvLength = quantity({f"/{u}": 1.0 / f for u, f in _TO_MM.items()} | {f"1/{u}": 1.0 / f for u, f in _TO_MM.items()},
-                     "0.1 /mm", "a coefficient per length")
-Angle = quantity(_TO_DEG, "45 deg", "an angle")
-Pixels = quantity({"px": 1.0}, "800 px", "a pixel quantity")
-Duration = quantity(_TO_S, "50 ms", "a duration")
 
 
 def saturation_above_dark(sensor):
@@ -355,12 +309,28 @@ class Scene(_Model):
 
     scene: str
     description: str = ""
+    length_unit: Literal[SCENE_LENGTH_UNITS] = pydantic.Field("mm", description=(
+        "`mm`: every length carries a physical unit and is read in mm; `\"1\"`: lengths are dimensionless (a "
+        "renderer's scene units), bare numbers, coefficients per that unit; the captures record it as their "
+        "length_unit"))
     object: SceneObject
     light: Light
     camera: Annotated[PerspectiveCameraSpec | OrthographicCameraSpec, pydantic.Field(discriminator="model")]
     sensor: Sensor = Sensor()
     effects: Effects = Effects()
     stated: Stated | None = pydantic.Field(None, description="a miscalibrated rig: what its records say instead")
+
+    @pydantic.model_validator(mode="wrap")
+    @classmethod
+    def _read_in_its_length_unit(cls, data: Any, handler):
+        unit = data.get("length_unit", "mm") if isinstance(data, dict) else getattr(data, "length_unit", "mm")
+        with lengths_in(unit if unit in SCENE_LENGTH_UNITS else "mm"):
+            return handler(data)
+
+    @pydantic.model_serializer(mode="wrap")
+    def _written_in_its_length_unit(self, handler):
+        with lengths_in(self.length_unit):
+            return handler(self)
 
     @pydantic.model_validator(mode="after")
     def _scattering_needs_beam(self):
@@ -369,8 +339,8 @@ class Scene(_Model):
         return self
 
     def geometry(self) -> RigGeometry:
-        """The rig geometry this scene's camera and light define (lengths in mm)."""
-        return RigGeometry(self.camera.build(), light_angle_deg=self.light.angle, length_unit="mm",
+        """The rig geometry this scene's camera and light define (lengths in mm, or dimensionless)."""
+        return RigGeometry(self.camera.build(), light_angle_deg=self.light.angle, length_unit=self.length_unit,
                            light_distance=self.light.distance, light_kind=self.light.kind,
                            beam_height=self.light.height)
 

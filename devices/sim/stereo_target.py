@@ -19,7 +19,8 @@ import cv2
 import numpy as np
 import pydantic
 
-from selpath.devices.sim.scene import Angle, Length
+from selpath.devices.sim.units import Angle
+from selpath.devices.sim.units import PhysicalLength as Length
 from selpath.pipeline.yaml_source import load_yaml_model
 
 

@@ -129,3 +129,68 @@ def test_a_band_of_rows_keeps_every_pixels_ray_and_the_records_move_with_it():
         np.testing.assert_allclose(part.pixel_rays()[0], want[0], atol=1e-12)
         np.testing.assert_allclose(part.pixel_rays()[1], want[1], atol=1e-12)
     assert band.camera.rows == 4 and band.stated.principal_point == (4.0, 3.5)
+
+
+#: GOOD with dimensionless lengths: the same numbers, bare or in the unit 1, coefficients per that unit
+DIMENSIONLESS = (GOOD.replace("scene: ok\n", 'scene: ok\nlength_unit: "1"\n').replace(" mm", "").replace(" /mm", "")
+                 .replace("distance: 300,", "distance: 300 1,"))
+
+
+def test_a_dimensionless_scene_reads_the_same_numbers_and_records_length_unit_1():
+    """#57: ``length_unit: "1"`` as in an import spec: lengths in the user's own unit (bare, or ``1``), coefficients
+    per that unit (bare, or ``/1``). Every value equals GOOD's in mm, the geometry records ``1``, and a dumped scene
+    validates again to itself."""
+    from selpath.devices.sim.scene import Scene
+
+    mm, free = load_scene(GOOD), load_scene(DIMENSIONLESS.replace("sigma: 0.1}", "sigma: 0.1 /1}"))
+    assert free.length_unit == "1" and mm.length_unit == "mm"
+    assert free.model_dump(exclude={"length_unit"}) == mm.model_dump(exclude={"length_unit"})
+    assert free.geometry().length_unit == "1" and free.geometry().attrs()["length_unit"] == "1"
+    assert Scene.model_validate_json(free.model_dump_json()) == free
+    assert '"300.0 1"' in free.model_dump_json() and '"0.1 /1"' in free.model_dump_json()
+
+
+@pytest.mark.parametrize(("text", "old", "new", "message"), [
+    ("dimensionless", "radius: 20}", "radius: 2 cm}",
+     r"<scene>:4: object.shape.radius: '2 cm': this scene's lengths are dimensionless \(length_unit: \"1\"\), so a "
+     r"length is a bare number \(or 2 1\), never in a physical unit"),
+    ("dimensionless", "sigma: 0.1}", "sigma: 0.1 /mm}", r"<scene>:7: object.inclusions\[0\].sigma: '0.1 /mm': this "),
+    ("mm", "radius: 20 mm", "radius: 20 1",
+     r"<scene>:3: object.shape.radius: '20 1' is dimensionless; declare length_unit: \"1\" at the scene's top"),
+    ("mm", "radius: 20 mm", "radius: 20",
+     r"20 has no unit; write it as a length, e.g. '20 mm' \(or declare length_unit: \"1\" at the scene's top"),
+    ("mm", "scene: ok\n", "scene: ok\nlength_unit: cm\n", r"<scene>:2: length_unit: Input should be 'mm' or '1'"),
+])
+def test_lengths_of_the_other_kind_are_refused_naming_the_scenes_length_unit(text, old, new, message):
+    source = DIMENSIONLESS if text == "dimensionless" else GOOD
+    assert old in source
+    with pytest.raises(ConfigError, match=message):
+        load_scene(source.replace(old, new))
+
+
+def test_a_dimensionless_scenes_capture_and_sinogram_are_the_mm_scenes_numbers_in_unit_1():
+    """The same cylinder with an absorbing rod in mm and dimensionless: the simulated frames, the rays' X and the
+    sinogram are equal to the last bit, and every length the chain records is in ``1``, not ``mm``."""
+    import numpy as np
+
+    from selpath.stages.tomography.calibrate import absorption
+    from selpath.stages.tomography.hull import silhouettes, visual_hull
+    from selpath.stages.tomography.paths import align_paths
+    from selpath.stages.tomography.sinogram import bin_sinogram
+    from tests.helpers.tomography import capture, cylinder_camera, make_scene
+
+    rod = [{"shape": {"kind": "ellipse", "semi_axes": ["2 mm", "2 mm"], "centre": ["3 mm", "0 mm"]}, "sigma": "0.2 /mm"}]
+    mm = make_scene({"kind": "cylinder", "radius": "10 mm"}, cylinder_camera(None, 64), 60.0, rod)
+    free = type(mm).model_validate_json(mm.model_dump_json().replace(" mm", " 1").replace(" /mm", " /1")
+                                        .replace('"length_unit":"mm"', '"length_unit":"1"'))
+    chains = []
+    for scene in (mm, free):
+        cap = capture(scene, np.arange(0.0, 360.0, 15.0))
+        hull = visual_hull(silhouettes(cap))
+        rays = align_paths(absorption(cap), hull)
+        chains.append((cap, hull, rays, bin_sinogram(rays, n_theta=12, n_x=16, x_extent=10.0)))
+    for a, b in zip(*chains, strict=True):
+        for name in a.data_vars:
+            np.testing.assert_array_equal(a[name].values, b[name].values, err_msg=name)
+        assert a.attrs.get("length_unit") == "mm" and b.attrs.get("length_unit") == "1"
+    assert chains[1][3]["x"].attrs.get("units") == "1"
