@@ -104,6 +104,35 @@ def test_the_site_check_names_console_errors_and_requests_off_the_machine(tmp_pa
     assert "request off the machine: https://example.invalid/a.css" in found["fetches.html"]
 
 
+def test_the_site_check_names_every_broken_link_between_pages_and_follows_none_off_the_site(tmp_path):
+    """docs/check_site.py's link check (offline: nothing fetched): a link to a page or anchor that exists passes, a
+    missing page, a missing anchor (on another page or its own) and a file outside the site are named; links off
+    the site are counted, not followed."""
+    sys.path.insert(0, str(ROOT / "docs"))
+    try:
+        from check_site import broken_links
+    finally:
+        sys.path.remove(str(ROOT / "docs"))
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "index.html").write_text(
+        "<html><body><h1 id='top'>x</h1><a href='sub/page.html#here'>ok</a> <a href='#top'>ok</a>"
+        "<a href='sub/'>ok, a folder's index</a><a href='https://example.invalid/'>off</a>"
+        "<a href='mailto:a@b.invalid'>off</a><a href='sub/gone.html'>gone</a><a href='#nowhere'>own</a></body></html>")
+    (tmp_path / "sub" / "index.html").write_text("<html><body><img src='../_static/logo.png'></body></html>")
+    (tmp_path / "sub" / "page.html").write_text(
+        "<html><body><section id='here'><a name='old'></a><a href='../index.html#missing'>x</a>"
+        "<a href='../index.html#top'>ok</a><a href='#old'>ok</a><a href='../../outside.html'>out</a></section>"
+        "</body></html>")
+    (tmp_path.parent / "outside.html").write_text("<html></html>")
+    found, outside = broken_links(tmp_path)
+    assert found == {
+        "index.html": ["link sub/gone.html: no such file", "link #nowhere: no anchor #nowhere there"],
+        "sub/index.html": ["link ../_static/logo.png: no such file"],
+        "sub/page.html": ["link ../index.html#missing: no anchor #missing there", "link ../../outside.html: no such file"],
+    }, found
+    assert outside == 2
+
+
 def test_the_project_files_agree_with_the_package():
     """CITATION.cff (validated against the CFF 1.2.0 schema with cffconvert 2.0 when written) names the package's
     version and licence; LICENSE is the BSD-3-Clause text pyproject.toml declares."""
