@@ -307,6 +307,16 @@ def registry_for(names: Iterable[str]) -> StageRegistry:
     return registry if all(n in registry for n in names) else default_registry()
 
 
+def installed_kind_names(asked: Iterable[str] = ()) -> set[str]:
+    """The names of every installed cube kind: from the installation's manifest where it has one and it names every
+    kind ``asked`` (no stage module imported), else from :func:`default_registry` (a manifest that lies costs time,
+    never a wrong "unknown kind")."""
+    known = manifest.read(ENTRY_POINT_GROUP)
+    if known is not None and set(asked) <= known["kinds"].keys():
+        return set(known["kinds"])
+    return set(default_registry().kinds)
+
+
 def resolve_kind(kind: str | CubeKind, registry: StageRegistry | None = None, *, module: str | None = None) -> CubeKind:
     """``kind`` itself, or the kind it names: in ``registry`` if that declares it (a workflow's own, a test's), else
     in ``module`` (a store's ``selpath_kind_module``: imported alone, and only if an installed ``selpath.stages``

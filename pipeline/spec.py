@@ -24,7 +24,7 @@ import pydantic
 from selpath.pipeline.constraints import PathMarker, describe
 from selpath.pipeline.errors import Problem, SpecError
 from selpath.pipeline.outputs import OutputPath, output_problems
-from selpath.pipeline.registry import Stage, StageRegistry, default_registry, registry_for
+from selpath.pipeline.registry import Stage, StageRegistry, installed_kind_names, registry_for
 from selpath.pipeline.remote import is_url, local_path, url_problems
 from selpath.pipeline.report_spec import ReportSpec, report_problems
 from selpath.pipeline.yaml_source import Located, format_path, parse_yaml, pydantic_message, read_source
@@ -348,8 +348,8 @@ def _check_outputs(spec: WorkflowFile, steps: dict[str, Step], located: Located,
     outputs: dict[str, OutputSpec] = {}
     stores: dict[str, str] = {}
     ids = [s.id for s in spec.steps]
-    known = sorted(set(registry.kinds) | set(default_registry().kinds)) if any(
-        out.kind is not None for out in spec.outputs.values()) else []
+    asked = {out.kind for out in spec.outputs.values() if out.kind is not None} - set(registry.kinds)
+    known = sorted(set(registry.kinds) | installed_kind_names(asked)) if asked else sorted(registry.kinds)
     for name, out in spec.outputs.items():
         path = ("outputs", name)
         if out.from_ not in ids:

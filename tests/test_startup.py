@@ -120,6 +120,17 @@ def test_validation_imports_only_the_stages_a_workflow_names(tmp_path, monkeypat
     assert "selpath.stages.procam.demux" not in warm["modules"]
     assert "selpath.stages.tomography.reconstruct" in warm["modules"]
     assert not any(m.startswith("selpath.stages.procam.") for m in warm["modules"])
+    # an output that declares a kind another module declares: checked against the manifest's kinds, none imported
+    text = path.read_text().replace("absorption: {from: absorption, store: out/gelatin-bin/absorption.zarr}",
+                                    "absorption: {from: absorption, store: out/absorption.zarr, kind: absorption}")
+    typed = tmp_path / "typed.yaml"
+    (tmp_path / "scenes").symlink_to(path.parent / "scenes")  # the workflow's scene files, where it looks for them
+    typed.write_text(text.replace("kind: absorption}", "kind: delay_profiles}"))  # known (procam), if not apt
+    declared = _validate_imports(typed)
+    assert not any(m.startswith("selpath.stages.procam.") for m in declared["modules"]), declared["modules"]
+    typed.write_text(text.replace("kind: absorption}", "kind: delay_profile}"))
+    with pytest.raises(AssertionError, match="did you mean 'delay_profiles'"):
+        _validate_imports(typed)
 
 
 def test_a_manifest_that_lies_costs_time_never_an_answer(tmp_path, monkeypatch, small_workflow):
