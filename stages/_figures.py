@@ -12,14 +12,17 @@ the data give (errors, iterations) are printed in the figure itself.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import dask
 import dask.array as da
 import numpy as np
 import xarray as xr
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
 
 from selpath.pipeline.kinds import CubeKind, Variable
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 #: every figure stage's result: an RGBA image a workflow output also saves as ``<store>.png``
 FIGURE = CubeKind(
@@ -34,7 +37,11 @@ SIZE_IN, DPI = (9.0, 4.0), 100
 
 
 def panels(*args, size: tuple[float, float] = SIZE_IN, **kwargs):
-    """A new figure of ``size`` inches and its axes: ``Figure.subplots(*args, **kwargs)``."""
+    """A new figure of ``size`` inches and its axes: ``Figure.subplots(*args, **kwargs)`` (matplotlib is imported
+    here, when a figure is drawn, so that reading or validating a workflow of figure stages never loads it)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
     figure = Figure(figsize=size, dpi=DPI, layout="constrained")
     FigureCanvasAgg(figure)
     return figure, figure.subplots(*args, **kwargs)
@@ -42,6 +49,8 @@ def panels(*args, size: tuple[float, float] = SIZE_IN, **kwargs):
 
 def rgba(figure: Figure) -> np.ndarray:
     """The figure drawn into an (height, width, 4) uint8 array."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
     canvas = figure.canvas if isinstance(figure.canvas, FigureCanvasAgg) else FigureCanvasAgg(figure)
     canvas.draw()
     return np.asarray(canvas.buffer_rgba()).copy()

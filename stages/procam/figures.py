@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import numpy as np
 import xarray as xr
-from matplotlib.colors import Normalize, PowerNorm
 
 from selpath.pipeline.constraints import Count, Fraction, Index, Positive
 from selpath.pipeline.errors import Problem, StageError
@@ -154,6 +153,8 @@ def draw_relit(images: list[np.ndarray], titles: list[str], size: tuple[float, f
     false the largest image's; a power law ``gamma``)
     with one colour bar; ``extra(ax, images)`` draws into one more panel after them; ``censored`` pixels
     (:func:`mark_censored`) painted on every image."""
+    from matplotlib.colors import Normalize, PowerNorm  # matplotlib when drawing, not on import
+
     count = len(images) + (extra is not None)
     rows, cols = _grid(count)
     fig, axes = panels(rows, cols, size=size, squeeze=False)

@@ -40,6 +40,7 @@ import numpy as np
 
 from selpath.pipeline.constraints import machine_memory
 from selpath.stages._solution import Solution, outcome, raise_if_failed
+from selpath.stages.tomography import _tv_settings as defaults
 from selpath.stages.tomography._projector import Geometry, HostProjector, MatrixProjector, WalkProjector, operator_norm
 
 _GRADIENT_NORM = np.sqrt(8.0)  # ‖∇‖₂ of 2D forward differences (Neumann boundary)
@@ -105,15 +106,12 @@ class TVADMM:
     axis everywhere.
     """
 
-    #: λ of Eq. 20 [absorption² per (1/length)·cell]
-    DEFAULT_TV_WEIGHT: ClassVar[float] = 1e-3
-    #: ADMM penalty relative to ‖MR‖² [1]
-    DEFAULT_RHO: ClassVar[float] = 0.1
-    #: relative primal and dual residual at which to stop [1]
-    DEFAULT_TOL: ClassVar[float] = 1e-3
-    DEFAULT_MAX_ITER: ClassVar[int] = 200
-    #: conjugate-gradient steps per σ-update (warm-started)
-    DEFAULT_CG_STEPS: ClassVar[int] = 3
+    #: the defaults (:mod:`selpath.stages.tomography._tv_settings`, where each is described)
+    DEFAULT_TV_WEIGHT: ClassVar[float] = defaults.TV_WEIGHT
+    DEFAULT_RHO: ClassVar[float] = defaults.RHO
+    DEFAULT_TOL: ClassVar[float] = defaults.TOL
+    DEFAULT_MAX_ITER: ClassVar[int] = defaults.MAX_ITER
+    DEFAULT_CG_STEPS: ClassVar[int] = defaults.CG_STEPS
 
     geometry: Geometry
     tv_weight: float = DEFAULT_TV_WEIGHT

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import numpy as np
 import xarray as xr
-from matplotlib import colormaps
 
 from selpath.pipeline.constraints import Index
 from selpath.pipeline.registry import stage
@@ -24,6 +23,8 @@ CAPTURE_SIZE = (9.0, 2.2)
 
 def _draw_sinogram(absorption: np.ndarray, observed: np.ndarray, theta: np.ndarray, x: np.ndarray,
                    unit: str, title: str) -> np.ndarray:
+    from matplotlib import colormaps  # matplotlib when drawing, not on import
+
     fig, (left, right) = panels(1, 2)
     fig.suptitle(title, fontsize=10)
     step_t = (theta[1] - theta[0]) / 2 if theta.size > 1 else 0.5

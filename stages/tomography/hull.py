@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import numpy as np
 import xarray as xr
-from scipy.optimize import linprog
 from scipy.spatial import ConvexHull, HalfspaceIntersection
 from skimage.filters import threshold_otsu
 from skimage.measure import label
@@ -205,6 +204,8 @@ def tangent_half_planes(left: np.ndarray, right: np.ndarray, angles_deg: np.ndar
 
 def intersect_half_planes(normals: np.ndarray, offsets: np.ndarray) -> np.ndarray | None:
     """Vertices (counter-clockwise) of ``{p : normals·p ≤ offsets}``, or None if empty or unbounded."""
+    from scipy.optimize import linprog  # here, not on import (~0.2 s of reading a workflow)
+
     if len(normals) < 3:
         return None
     # opposite views give the same tangent line twice (orthographic φ and φ + 180°): qhull wants each once

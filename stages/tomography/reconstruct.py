@@ -15,11 +15,9 @@ the area inside the blue line of Fig. 21, where FBP is exact up to discretisatio
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import dask.array as da
-import jax
-import jax.numpy as jnp
 import numpy as np
 import xarray as xr
 
@@ -30,11 +28,15 @@ from selpath.pipeline.errors import Problem, StageError
 from selpath.pipeline.kinds import LENGTH_UNITS, CubeKind, Variable
 from selpath.pipeline.registry import stage
 from selpath.stages._common import Dtype, MaxIter, require_variables
-from selpath.stages.tomography._admm import TVADMM
+from selpath.stages.tomography import _tv_settings as tv
 from selpath.stages.tomography._filters import ramp_filter
-from selpath.stages.tomography._projector import Geometry, any_nearest, backproject
+from selpath.stages.tomography._ome import ome_attrs
 from selpath.stages.tomography.hull import contours
 from selpath.stages.tomography.sinogram import observed_share
+
+if TYPE_CHECKING:  # the solvers and projectors (JAX) are imported when a reconstruction runs, not on import
+    from selpath.stages.tomography._admm import TVADMM
+    from selpath.stages.tomography._projector import Geometry
 
 _SIGMA = "1/{length}"
 RECONSTRUCTION = CubeKind(
@@ -82,6 +84,8 @@ def grid_geometry(sinogram: xr.Dataset, n_pixels: int | None, method: str = "jos
     """The projector geometry of a sinogram: its (θ, X) grid and an n × n image over ±x_extent."""
     x = sinogram["x"].values
     extent = float(sinogram.attrs.get("x_extent", max(abs(x[0]), abs(x[-1]))))
+    from selpath.stages.tomography._projector import Geometry
+
     return Geometry.from_grids(sinogram["theta"].values, x, int(n_pixels or len(x)), extent, method)
 
 
@@ -105,6 +109,8 @@ def known_zero(vertices: np.ndarray | None, geometry: Geometry) -> np.ndarray:
 def reliable_cells(known: np.ndarray, geometry: Geometry) -> np.ndarray:
     """Cells whose nearest bin is known (observed or known zero) at every θ: (n, n) from one (θ, X) mask, (S, n, n)
     from a batch."""
+    from selpath.stages.tomography._projector import any_nearest
+
     return ~any_nearest(geometry, ~np.asarray(known, bool))
 
 
@@ -181,28 +187,6 @@ def check_inputs(sinogram: xr.Dataset, hull: xr.Dataset | None, name: str) -> No
         contours(hull, sinogram["slice"], name)  # raises naming the sinogram's slices the hull lacks
 
 
-#: NGFF names of the length units a rig may use (OME-Zarr axes take these or none)
-_NGFF_UNITS = {"m": "meter", "cm": "centimeter", "mm": "millimeter", "um": "micrometer"}
-
-
-def ome_attrs(z: np.ndarray, y: np.ndarray, x: np.ndarray, unit: str) -> dict:
-    """The ``ome`` attr (OME-Zarr 0.5 multiscales, one level) that lets 3-D viewers open a reconstruction store's
-    ``sigma`` (slice, y, x) as a volume in the rig's length unit; empty where the grid is not one: fewer than 2
-    slices, or spacings that are not uniform.
-
-    The axes keep the array's dim names (NGFF requires them to match its ``dimension_names``): ``slice`` is the
-    height axis, with a negative scale, because z falls as the slice (camera row) grows."""
-    steps = [np.diff(np.asarray(v, float)) for v in (z, y, x)]
-    if len(z) < 2 or not all(np.allclose(d, d[0], rtol=1e-6, atol=0) and d[0] != 0 for d in steps):
-        return {}
-    ngff = {"unit": _NGFF_UNITS[unit]} if unit in _NGFF_UNITS else {}
-    axes = [{"name": name, "type": "space"} | ngff for name in ("slice", "y", "x")]
-    transforms = [{"type": "scale", "scale": [float(d[0]) for d in steps]},
-                  {"type": "translation", "translation": [float(z[0]), float(y[0]), float(x[0])]}]
-    return {"ome": {"version": "0.5", "multiscales": [{"name": "sigma", "axes": axes, "datasets": [
-        {"path": "sigma", "coordinateTransformations": transforms}]}]}}
-
-
 def reconstruction_store(sinogram: xr.Dataset, geometry: Geometry, variables: dict, attrs: dict) -> xr.Dataset:
     """A ``reconstruction`` store of ``variables`` (``sigma`` over (slice, y, x) and per-slice numbers) on
     ``geometry``'s grid in the sinogram's length unit, with its slices, heights (and OME-Zarr attrs where they form a
@@ -225,12 +209,18 @@ def fbp_slice(absorption: np.ndarray, known: np.ndarray, support: np.ndarray, ge
               filter_name: str = "ram-lak", fill: str = "zero", dtype: str = "float32") -> np.ndarray:
     """FBP of (θ, X) sinograms, one or a (S, θ, X) batch: unknown bins filled (``fill``), ramp-filtered,
     back-projected, and zero outside ``support`` ((n, n) or (S, n, n))."""
+    import jax.numpy as jnp
+
+    from selpath.stages.tomography._projector import backproject
+
     values = _fill_missing(absorption, known, fill)
     filtered = ramp_filter(values, float(geometry.x[1] - geometry.x[0]), filter_name)
     return np.where(support, np.asarray(backproject(geometry, jnp.asarray(filtered, dtype))), 0.0)
 
 
 def _fbp_block(block: xr.Dataset, *, geometry: Geometry, filter_name: str, fill: str, dtype: str) -> xr.Dataset:
+    import jax
+
     hull = block if "vertices" in block else None
     absorption, observed, polygons = zip(*_slice_inputs(block, hull, geometry), strict=True)
     known = np.array([o | known_zero(p, geometry) for o, p in zip(observed, polygons, strict=True)])
@@ -320,6 +310,9 @@ def fbp(sinogram: xr.Dataset, hull: xr.Dataset | None = None, /, *, n_pixels: Co
 
 
 def _tv_block(block: xr.Dataset, *, solver: TVADMM, slack: float, bound: str, dtype: str) -> xr.Dataset:
+    import jax
+    import jax.numpy as jnp
+
     geometry = solver.geometry
     hull = block if "vertices" in block else None
     sinograms, masks, uppers, known, supports = [], [], [], [], []
@@ -346,10 +339,10 @@ def _tv_block(block: xr.Dataset, *, solver: TVADMM, slack: float, bound: str, dt
 
 @stage("reconstruct_tv", kind=RECONSTRUCTION, precheck=_image_precheck)
 def reconstruct_tv(sinogram: xr.Dataset, hull: xr.Dataset | None = None, /, *,
-                   tv_weight: NonNegative = TVADMM.DEFAULT_TV_WEIGHT, n_pixels: Count | None = None,
+                   tv_weight: NonNegative = tv.TV_WEIGHT, n_pixels: Count | None = None,
                    bound: Literal["physical", "nonnegative"] = "physical", bound_slack: NonNegative = 0.0,
-                   rho: Positive = TVADMM.DEFAULT_RHO, tol: Positive = TVADMM.DEFAULT_TOL,
-                   max_iter: MaxIter = TVADMM.DEFAULT_MAX_ITER, cg_steps: Count = TVADMM.DEFAULT_CG_STEPS,
+                   rho: Positive = tv.RHO, tol: Positive = tv.TOL,
+                   max_iter: MaxIter = tv.MAX_ITER, cg_steps: Count = tv.CG_STEPS,
                    projector: Literal["joseph", "binary"] = "joseph", dtype: Dtype = "float32") -> xr.Dataset:
     """Constrained TV reconstruction of Eq. 20 by ADMM, per slice (lazy; slices of a chunk are batched).
 
@@ -400,6 +393,8 @@ def reconstruct_tv(sinogram: xr.Dataset, hull: xr.Dataset | None = None, /, *,
     if tv_weight < 0 or rho <= 0 or tol <= 0 or max_iter < 1 or cg_steps < 1 or bound_slack < 0:
         raise StageError(Problem("tv_weight and bound_slack must be >= 0; rho, tol > 0; max_iter, cg_steps >= 1"))
     geometry = grid_geometry(sinogram, n_pixels, projector)
+    from selpath.stages.tomography._admm import TVADMM
+
     solver = TVADMM(geometry, tv_weight=tv_weight, rho=rho, tol=tol, max_iter=max_iter, cg_steps=cg_steps)
     inputs = _blocks(sinogram, hull)
     image, flag, hist = ("slice", "y", "x"), ("slice",), ("slice", "iteration")

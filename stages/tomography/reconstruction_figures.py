@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import numpy as np
 import xarray as xr
-from matplotlib.patches import Rectangle
 
 from selpath.pipeline.constraints import Index
 from selpath.pipeline.errors import Problem, StageError
@@ -75,6 +74,8 @@ def _draw_reconstructions(images: list[np.ndarray], titles: list[str], truth: np
         return shown
 
     def overview(ax):
+        from matplotlib.patches import Rectangle  # matplotlib when drawing, not on import
+
         draw(ax, images[0], "magma", 0, peak, f"whole slice, {titles[0].split(') ')[-1]}; box: window", crop=False)
         ax.add_patch(Rectangle((window[0], window[2]), window[1] - window[0], window[3] - window[2], fill=False,
                                edgecolor="tab:cyan", lw=1.2))
