@@ -27,7 +27,7 @@ class _Page(HTMLParser):
     def handle_starttag(self, tag, attrs):
         values = dict(attrs)
         self.ids.update(v for k in ("id", "name") if (v := values.get(k)) and (k == "id" or tag == "a"))
-        self.links += [v for k in ("href", "src") if (v := values.get(k)) and (k == "href" or tag != "script")]
+        self.links += [v for k in ("href", "src") if (v := values.get(k))]
 
 
 def _pages(site: Path) -> list[Path]:

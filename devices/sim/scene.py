@@ -23,6 +23,7 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 import pydantic
+from pydantic_core import PydanticCustomError
 
 from selpath.devices.sim.units import (
     SCENE_LENGTH_UNITS,
@@ -32,6 +33,7 @@ from selpath.devices.sim.units import (
     Length,
     Pixels,
     lengths_in,
+    scene_length_unit,
 )
 from selpath.geometry.rig import OrthographicCamera, PerspectiveCamera, RigGeometry
 from selpath.geometry.shapes import Ellipse, Ellipsoid, Polygon, Prism, Solid, convex_polygon
@@ -309,7 +311,8 @@ class Scene(_Model):
 
     scene: str
     description: str = ""
-    length_unit: Literal[SCENE_LENGTH_UNITS] = pydantic.Field("mm", description=(
+    length_unit: Annotated[Literal[SCENE_LENGTH_UNITS], pydantic.BeforeValidator(scene_length_unit)] = pydantic.Field(
+        "mm", description=(
         "`mm`: every length carries a physical unit and is read in mm; `\"1\"`: lengths are dimensionless (a "
         "renderer's scene units), bare numbers, coefficients per that unit; the captures record it as their "
         "length_unit"))
@@ -324,7 +327,12 @@ class Scene(_Model):
     @classmethod
     def _read_in_its_length_unit(cls, data: Any, handler):
         unit = data.get("length_unit", "mm") if isinstance(data, dict) else getattr(data, "length_unit", "mm")
-        with lengths_in(unit if unit in SCENE_LENGTH_UNITS else "mm"):
+        unit = scene_length_unit(unit)
+        if unit not in SCENE_LENGTH_UNITS:  # its own error alone: the lengths cannot be read in an unknown unit
+            raise pydantic.ValidationError.from_exception_data(cls.__name__, [{
+                "type": PydanticCustomError("length_unit", "neither 'mm' nor '1' (dimensionless lengths)"),
+                "loc": ("length_unit",), "input": unit}])
+        with lengths_in(unit):
             return handler(data)
 
     @pydantic.model_serializer(mode="wrap")

@@ -7,7 +7,9 @@ a unit the user keeps consistent (a renderer's scene units), written as bare num
 units are refused in such a scene, and dimensionless ones in a scene of physical lengths: a length is never
 converted between the two. :func:`lengths_in` sets the unit a scene's fields are read and written in (a context
 variable the scene sets while it validates or serialises itself: the fields cannot see their model's own
-``length_unit``).
+``length_unit``). So a whole ``Scene`` validates and dumps in its unit; a part of a dimensionless scene (its
+``light``, its ``object``) validated or dumped on its own is read and written in mm, unless inside
+``lengths_in("1")``.
 
 >>> import pydantic
 >>> adapter = pydantic.TypeAdapter(Length)
@@ -39,6 +41,11 @@ _QUANTITY = re.compile(r"^\s*(?P<value>[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?)\s*
 _NUMBER = re.compile(r"^\s*[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?\s*$")
 _FREE = 'length_unit: "1"'
 _LENGTH_UNIT: contextvars.ContextVar[str] = contextvars.ContextVar("selpath_scene_length_unit", default="mm")
+
+
+def scene_length_unit(value: Any) -> Any:
+    """A scene's ``length_unit`` as text: YAML reads an unquoted ``1`` as a number, which means ``"1"`` here."""
+    return "1" if not isinstance(value, bool) and isinstance(value, int | float) and value == 1 else value
 
 
 @contextlib.contextmanager

@@ -142,9 +142,9 @@ def _kkt_shares(xp, t, gradient, quadratic, shares, inverse=None):
 
 
 def _relative(xp, gap, primal, applies):
-    """The bound relative to f(T) = ``primal``, in [0, 1]; 1 where it does not apply."""
-    tiny = xp.finfo(gap.dtype).tiny
-    relative = xp.where(primal > 0, xp.minimum(xp.maximum(gap, 0.0) / xp.maximum(primal, tiny), 1.0), 0.0)
+    """The bound relative to f(T) = ``primal``, in [0, 1]; 1 where it does not apply. Divided by f(T) itself wherever
+    it is positive, subnormal too (a floor on the divisor would shrink the bound below the truth there)."""
+    relative = xp.where(primal > 0, xp.minimum(xp.maximum(gap, 0.0) / xp.where(primal > 0, primal, 1.0), 1.0), 0.0)
     return xp.where(applies, relative, 1.0)
 
 

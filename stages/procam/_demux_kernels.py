@@ -293,11 +293,11 @@ def gaps(ops, pool: Rows, z, *, chunk: int, masked: bool):
     """:func:`scaled_gap` of every pixel of the pool at its warm start ``z`` with :data:`START_SEARCH_STEPS` and
     :data:`START_SHARES`: a pixel certified there needs no iteration."""
     return _in_chunks(lambda *a: scaled_gap(ops, Rows(*a[:-1]), a[-1], masked=masked, steps=START_SEARCH_STEPS,
-                                               shares=START_SHARES), chunk, *pool, z)
+                                            shares=START_SHARES), chunk, *pool, z)
 
 
 def scaled_gap(ops, rows: Rows, t, *, masked: bool, steps: int = DUAL_SEARCH_STEPS, shares=KKT_HELD,
-                  dual_steps: int = 0):
+               dual_steps: int = 0):
     """:func:`selpath.stages.procam._demux_certificate.certified_gap` (the methods and their proofs are there: the
     first-order bound through the same :func:`~selpath.stages.procam._demux_certificate.first_order_gap`, and for
     dense problems on fully observed, unclipped pixels the smaller KKT bound) on the scaled data,

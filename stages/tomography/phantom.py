@@ -162,9 +162,10 @@ def simulate_sinogram(*, scene: StorePath, light_angle_deg: LightAngle | None = 
     return SINOGRAM.label(xr.Dataset(
         {"absorption": (dims, absorption[None]), "observed": (dims, observed[None]),
          "count": (dims, observed[None].astype(np.int64))},
-        coords={"slice": ("slice", [0]), "z": ("slice", [0.0], {"units": "mm", "long_name": "slice height z"}),
+        coords={"slice": ("slice", [0]),
+                "z": ("slice", [0.0], {"units": spec.length_unit, "long_name": "slice height z"}),
                 "theta": ("theta", theta, {"units": "degree"}),
-                "x": ("x", x, {"units": "mm"})},
+                "x": ("x", x, {"units": spec.length_unit})},
         attrs=geometry | {"x_extent": extent, "theta_step_deg": 180.0 / n_theta,
                           "x_step": 2 * extent / (n_x - 1), "scene": spec.scene, "noise_std": noise_std}))
 

@@ -20,7 +20,7 @@ from selpath.pipeline.constraints import Count, NonNegative, Positive, StorePath
 from selpath.pipeline.kinds import ANGLE_UNITS, LENGTH_UNITS, CubeKind, Variable
 from selpath.pipeline.registry import stage
 from selpath.stages._common import MaxIter
-from selpath.stages.tomography._admm import TVADMM
+from selpath.stages.tomography import _tv_settings as tv
 from selpath.stages.tomography.acquire import AngleSweep
 from selpath.stages.tomography.phantom import (
     LightAngle,
@@ -59,8 +59,7 @@ def light_angle_study(*, scene: StorePath,
                       light_angles: Annotated[tuple[LightAngle, ...], pydantic.Field(min_length=1)] = (
                           0.0, 30.0, 60.0, 90.0, 120.0),
                       n_theta: Count = 180, n_x: Bins = 128, noise_std: NonNegative = 0.0,
-                      tv_weight: NonNegative = TVADMM.DEFAULT_TV_WEIGHT, tol: Positive = TVADMM.DEFAULT_TOL,
-                      max_iter: MaxIter = TVADMM.DEFAULT_MAX_ITER,
+                      tv_weight: NonNegative = tv.TV_WEIGHT, tol: Positive = tv.TOL, max_iter: MaxIter = tv.MAX_ITER,
                       angles: AngleSweep = AngleSweep()) -> xr.Dataset:  # noqa: B008 (frozen model)
     """FBP and the optimisation versus θ_l, with RMSE and max |error| against the truth (Table 1).
 

@@ -159,13 +159,42 @@ def test_a_dimensionless_scene_reads_the_same_numbers_and_records_length_unit_1(
      r"<scene>:3: object.shape.radius: '20 1' is dimensionless; declare length_unit: \"1\" at the scene's top"),
     ("mm", "radius: 20 mm", "radius: 20",
      r"20 has no unit; write it as a length, e.g. '20 mm' \(or declare length_unit: \"1\" at the scene's top"),
-    ("mm", "scene: ok\n", "scene: ok\nlength_unit: cm\n", r"<scene>:2: length_unit: Input should be 'mm' or '1'"),
+    ("dimensionless", 'length_unit: "1"', "length_unit: cm",
+     r"^<scene>:2: length_unit: neither 'mm' nor '1' \(dimensionless lengths\) \(got 'cm'\)$"),  # that alone
 ])
 def test_lengths_of_the_other_kind_are_refused_naming_the_scenes_length_unit(text, old, new, message):
     source = DIMENSIONLESS if text == "dimensionless" else GOOD
     assert old in source
     with pytest.raises(ConfigError, match=message):
         load_scene(source.replace(old, new))
+
+
+def test_an_unquoted_1_is_the_dimensionless_unit():
+    """YAML reads ``length_unit: 1`` as a number: it means "1", as quoted."""
+    assert load_scene(DIMENSIONLESS.replace('length_unit: "1"', "length_unit: 1")) == load_scene(DIMENSIONLESS)
+
+
+def test_a_dimensionless_scenes_exact_sinogram_and_truth_are_labelled_1(tmp_path):
+    """``simulate_sinogram`` and ``phantom_truth`` of a dimensionless scene: the same numbers as the scene in mm, with
+    every coordinate and the store's length_unit in ``1``."""
+    import numpy as np
+
+    from selpath.stages.tomography.phantom import phantom_truth, simulate_sinogram
+
+    paths = {"mm": tmp_path / "mm.yaml", "1": tmp_path / "free.yaml"}
+    paths["mm"].write_text(GOOD)
+    paths["1"].write_text(DIMENSIONLESS)
+    made = {}
+    for unit, path in paths.items():
+        sinogram = simulate_sinogram(scene=str(path), n_theta=12, n_x=16)
+        made[unit] = sinogram, phantom_truth(sinogram, scene=str(path), n_pixels=8)
+    for mm, free in zip(made["mm"], made["1"], strict=True):
+        for name in mm.data_vars:
+            np.testing.assert_array_equal(mm[name].values, free[name].values, err_msg=name)
+        assert free.attrs.get("length_unit", "1") == "1" and mm.attrs.get("length_unit", "mm") == "mm"
+        assert {free[c].attrs.get("units") for c in ("x", "y", "z") if c in free.coords} == {"1"}
+        assert {mm[c].attrs.get("units") for c in ("x", "y", "z") if c in mm.coords} == {"mm"}
+    assert made["1"][0].attrs["length_unit"] == "1"  # the sinogram records it; the truth carries it in its axes
 
 
 def test_a_dimensionless_scenes_capture_and_sinogram_are_the_mm_scenes_numbers_in_unit_1():
