@@ -66,9 +66,10 @@ def _formats() -> dict:
     return {
         "scene": ("Tomography scene files", units + "The tomography simulator reads these files "
                   "(`workflows/scenes/*.yaml`; `acquire_tomography` with `rig: sim`, `simulate_capture`); lengths "
-                  "are converted to mm, angles to degrees. A scene may instead declare `length_unit: \"1\"` (as an import "
-                  "spec may): its lengths are dimensionless numbers in a unit you keep consistent (a renderer's scene "
-                  "units), bare or in `1`, its coefficients per that unit (bare or `/1`), and its captures record "
+                  "are converted to mm, angles to degrees. A scene may instead declare `length_unit: \"1\"` (as an "
+                  "import spec may): its lengths are dimensionless numbers in a unit you keep consistent (a "
+                  "renderer's scene units), bare or in `1`, its coefficients per that unit (bare or `/1`), and its "
+                  "captures record "
                   "`length_unit: \"1\"`. The shipped `gelatin-bin.yaml` is an example.", Scene),
         "procam-scene": ("Projector–camera scene files", units + "The projector–camera simulator reads these files "
                          "(`acquire_plane_to_ray` and the other procam acquisitions with `rig: sim`); the shipped "

@@ -128,7 +128,8 @@ def test_the_site_check_names_every_broken_link_between_pages_and_follows_none_o
     assert found == {
         "index.html": ["link sub/gone.html: no such file", "link #nowhere: no anchor #nowhere there"],
         "sub/index.html": ["link ../_static/logo.png: no such file"],
-        "sub/page.html": ["link ../index.html#missing: no anchor #missing there", "link ../../outside.html: no such file"],
+        "sub/page.html": ["link ../index.html#missing: no anchor #missing there",
+                          "link ../../outside.html: no such file"],
     }, found
     assert outside == 2
 

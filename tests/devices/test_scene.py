@@ -208,7 +208,8 @@ def test_a_dimensionless_scenes_capture_and_sinogram_are_the_mm_scenes_numbers_i
     from selpath.stages.tomography.sinogram import bin_sinogram
     from tests.helpers.tomography import capture, cylinder_camera, make_scene
 
-    rod = [{"shape": {"kind": "ellipse", "semi_axes": ["2 mm", "2 mm"], "centre": ["3 mm", "0 mm"]}, "sigma": "0.2 /mm"}]
+    rod = [{"shape": {"kind": "ellipse", "semi_axes": ["2 mm", "2 mm"], "centre": ["3 mm", "0 mm"]},
+            "sigma": "0.2 /mm"}]
     mm = make_scene({"kind": "cylinder", "radius": "10 mm"}, cylinder_camera(None, 64), 60.0, rod)
     free = type(mm).model_validate_json(mm.model_dump_json().replace(" mm", " 1").replace(" /mm", " /1")
                                         .replace('"length_unit":"mm"', '"length_unit":"1"'))

@@ -16,7 +16,6 @@ from selpath.stages.tomography.reconstruct import fbp, reconstruct_tv
 from selpath.stages.tomography.sinogram import bin_sinogram, coverage, coverage_model, optimal_light_angle
 from tests.helpers.tomography import R, capture, cylinder_camera, lazy_chain, make_scene
 
-
 #: θ_l × camera pairs the default job keeps (both sides of the optimum, each camera model); the other 12 run in the
 #: slow job (about 6.5 s each)
 _COVERAGE_DEFAULT = {(30.0, None), (60.0, 30.0), (120.0, 60.0)}
