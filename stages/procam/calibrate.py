@@ -5,10 +5,7 @@ squares (optimistix), with standard uncertainties.
 
 from __future__ import annotations
 
-import jax
-import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 import xarray as xr
 
 from selpath.pipeline.constraints import NonNegative
@@ -96,6 +93,9 @@ def calibrate_scan_speed(capture: xr.Dataset, /, *, min_rows: NonNegative = 2.0)
                                  f"{min_rows} illuminated rows (counts per frame: {np.round(count, 1).tolist()})",
                                  fix="capture longer exposures, or delays that keep the band on the sensor"))
     line_time = float(capture.attrs["line_time_us"])
+    import jax  # the fit's libraries when it runs: reading or validating a workflow imports neither
+    import jax.numpy as jnp
+    import optimistix as optx
 
     def residuals(theta, _):
         speed, offset = theta[0] * 1e-2, theta[1] * 1e2  # scaled to O(1) unknowns
