@@ -311,8 +311,7 @@ class Scene(_Model):
 
     scene: str
     description: str = ""
-    length_unit: Annotated[Literal[SCENE_LENGTH_UNITS], pydantic.BeforeValidator(scene_length_unit)] = pydantic.Field(
-        "mm", description=(
+    length_unit: Literal[SCENE_LENGTH_UNITS] = pydantic.Field("mm", description=(
         "`mm`: every length carries a physical unit and is read in mm; `\"1\"`: lengths are dimensionless (a "
         "renderer's scene units), bare numbers, coefficients per that unit; the captures record it as their "
         "length_unit"))
@@ -332,8 +331,8 @@ class Scene(_Model):
             raise pydantic.ValidationError.from_exception_data(cls.__name__, [{
                 "type": PydanticCustomError("length_unit", "neither 'mm' nor '1' (dimensionless lengths)"),
                 "loc": ("length_unit",), "input": unit}])
-        with lengths_in(unit):
-            return handler(data)
+        with lengths_in(unit):  # read as text: YAML's unquoted 1 is a number
+            return handler({**data, "length_unit": unit} if isinstance(data, dict) and "length_unit" in data else data)
 
     @pydantic.model_serializer(mode="wrap")
     def _written_in_its_length_unit(self, handler):

@@ -306,20 +306,23 @@ def kkt_bound(problem: DemuxProblem, transport: np.ndarray, data: np.ndarray, we
     return np.where(np.isfinite(relative), relative, 1.0)
 
 
-def first_order_gap(xp, ops, t, residual, target, beta, e=None, *, shift=None, steps=DUAL_SEARCH_STEPS):
+def first_order_gap(xp, ops, t, residual, target, beta, e=None, *, steps=DUAL_SEARCH_STEPS):
     """The first-order bound of :func:`certified_gap` relative to f(T), in [0, 1], with ∇f(T) − β (z, (P, K)) and f(T)
     (P,): the one computation the float64 reference and the solver's kernels
     (:mod:`selpath.stages.procam._demux_kernels`, scaled data in the solver's dtype) share.
 
     ``ops`` gives ``adjoint``, ``smooth_gradient``, ``smoothness`` and ``alpha`` (a problem in numpy, its operators in
     JAX, with ``xp`` the array module); ``residual`` is w(AT − ỹ) and ``target`` ỹ (P, N); ``beta`` (P,) or a scalar;
-    ``e`` the observed unclipped frames (1, else 0) of the dual's shift, or ``shift`` given whole as (Aᵀe, Σ eỹ, Σ eu,
-    Σ e) when the caller has it cheaper (every frame observed: Aᵀ1 is one row for all pixels)."""
+    ``e`` the observed unclipped frames (1, else 0) of the dual's shift; None: every frame of every pixel, whose Aᵀe
+    is then one row for all pixels."""
     u = 2.0 * residual
     z = ops.adjoint(u) + 2.0 * ops.alpha * ops.smooth_gradient(t)
     a = xp.sum(u * target, axis=-1)
     b = xp.sum(residual * residual, axis=-1) + ops.alpha * ops.smoothness(t)
-    if shift is None:
+    if e is None:
+        shift = (ops.adjoint(xp.ones((1, u.shape[-1]), u.dtype)), xp.sum(target, axis=-1), xp.sum(u, axis=-1),
+                 xp.full(a.shape, u.shape[-1], u.dtype))
+    else:
         shift = ops.adjoint(e), xp.sum(e * target, axis=-1), xp.sum(e * u, axis=-1), xp.sum(e, axis=-1)
     dual = best_dual_value(xp, a, b, z, *shift, beta, steps=steps)
     primal = b + beta * xp.sum(t, axis=-1)

@@ -315,10 +315,8 @@ def scaled_gap(ops, rows: Rows, t, *, masked: bool, steps: int = DUAL_SEARCH_STE
         e = rows.weight * (1.0 - rows.clipped) * jnp.ones_like(residual)  # observed unclipped (flags may broadcast)
         first_order, z, primal = first_order_gap(jnp, ops, t, residual, target, beta, e, steps=steps)
         applies = jnp.all(e > 0, axis=-1)
-    else:  # every frame observed and unclipped: e = 1, Aᵀe one row for all pixels
-        shift = (ops.adjoint(jnp.ones((1, residual.shape[1]), t.dtype)), jnp.sum(target, -1),
-                 2.0 * jnp.sum(residual, -1), jnp.full(beta.shape, residual.shape[1], t.dtype))
-        first_order, z, primal = first_order_gap(jnp, ops, t, residual, target, beta, shift=shift, steps=steps)
+    else:  # every frame observed and unclipped: e = 1
+        first_order, z, primal = first_order_gap(jnp, ops, t, residual, target, beta, steps=steps)
         applies = jnp.ones(beta.shape, bool)
     if not ops.SECOND_ORDER:  # the separable problem keeps the first-order bound only
         return first_order
