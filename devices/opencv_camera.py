@@ -8,7 +8,6 @@ OpenCV's silent ``(False, None)``.
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
 from selpath.pipeline.errors import DeviceError
@@ -35,6 +34,8 @@ class OpenCVCamera:
 
     def __init__(self, source: int | str, *, width: int | None = None, height: int | None = None,
                  exposure: float | None = None, discard: int = 0, keep_first: bool = True):
+        import cv2  # OpenCV when a camera is opened, not when a rig file is read
+
         self.source, self.discard = str(source), discard
         self._capture = cv2.VideoCapture(source)
         if not self._capture.isOpened():
@@ -61,6 +62,8 @@ class OpenCVCamera:
             raise DeviceError(f"the camera returned no {what}", port=self.source,
                               fix="check the cable and trigger; run the acquisition again to resume")
         if frame.ndim == 3:
+            import cv2
+
             frame = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY)
         return frame.astype(np.float32)
 

@@ -18,18 +18,15 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-import dask.array as da
 import numpy as np
 import xarray as xr
 from rich.progress import Progress, TextColumn, TimeElapsedColumn
 
 from selpath.devices.patterns import checkerboard, gray_code_levels, vertical_line, white
 from selpath.devices.protocols import Camera, Projector, SyncController
-from selpath.pipeline.capture_store import create_capture, missing_frames, write_frame
 from selpath.pipeline.compute import BAR_COLUMNS, show_bars
 from selpath.pipeline.errors import DeviceError, Problem, SpecError
 from selpath.pipeline.locks import store_lock
-from selpath.pipeline.store import open_store
 
 #: camera rows per stored chunk of a capture
 CAPTURE_BAND_ROWS = 64
@@ -104,6 +101,8 @@ def capture_template(instruments: ProcamInstruments, kind: str, delays, exposure
         coords["line"] = ("line", np.asarray(lines, float), {"units": "px", "long_name": "line centre l_p"})
         dims.append("line")
     shape = tuple(len(coords[d][1]) for d in dims) + (rows, cols)
+    import dask.array as da  # on acquiring, not on reading a workflow that acquires
+
     # stored in bands of rows, so per-pixel work (demultiplexing) reads a band of every frame, not whole frames
     stack = da.zeros(shape, dtype=np.float32, chunks=(1,) * len(dims) + (min(rows, CAPTURE_BAND_ROWS), cols))
     return xr.Dataset({"image": ((*dims, "row", "col"), stack, {"units": "counts"})}, coords=coords,
@@ -131,6 +130,9 @@ def show_line(projector, position: float, width: float) -> None:
 
 def _sweep_frames(instruments: ProcamInstruments, store, template: xr.Dataset, kind: str, show: Callable,
                   progress: bool, log: Callable[[str], None]) -> xr.Dataset:
+    from selpath.pipeline.capture_store import create_capture, missing_frames, write_frame  # zarr: on acquiring
+    from selpath.pipeline.store import open_store
+
     delays, exposures = template["delay"].values, template["exposure"].values
     refuse_impossible(instruments, delays, exposures)
     speed = float(instruments.attrs.get("scan_speed_px_per_us", 0.0))
@@ -267,6 +269,7 @@ def acquire_plane_to_ray(instruments: ProcamInstruments, store: str | os.PathLik
 def _existing_hdr(store: str | os.PathLike) -> dict[str, Any] | None:
     """The HDR plan an existing capture at ``store`` recorded (its sweep is resumed as planned), else None."""
     from selpath.pipeline.integrity import is_selpath_store
+    from selpath.pipeline.store import open_store
 
     if not is_selpath_store(store):
         return None
@@ -332,6 +335,9 @@ def pattern_stack(instruments: ProcamInstruments, store: str | os.PathLike, kind
     """One frame per pattern ``pattern_of(i)`` at one delay and exposure into a ``kind`` store over the first of
     ``coords``' dims, resumable: ``floodlit`` (global shutter) or ``epipolar`` (the synchronised rolling
     shutter)."""
+    from selpath.pipeline.capture_store import create_capture, missing_frames, write_frame  # zarr: on acquiring
+    from selpath.pipeline.store import open_store
+
     rows, cols = instruments.camera.shape
     refuse_impossible(instruments, [delay], [exposure])
     if mode == "floodlit":
@@ -341,6 +347,8 @@ def pattern_stack(instruments: ProcamInstruments, store: str | os.PathLike, kind
         instruments.camera.set_shutter("global")
     elif hasattr(instruments.camera, "set_shutter"):
         instruments.camera.set_shutter("rolling")  # a camera left in global mode by a floodlit stack
+    import dask.array as da
+
     dim = next(iter(coords))
     count = len(coords[dim][1])
     template = xr.Dataset(

@@ -17,18 +17,15 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
-import dask.array as da
 import numpy as np
 import xarray as xr
 from rich.progress import Progress, TextColumn, TimeElapsedColumn
 
 from selpath.devices.protocols import Camera, LightSource, RotaryStage, SampleChanger
 from selpath.devices.serial_stage import angular_distance
-from selpath.pipeline.capture_store import create_capture, missing_frames, write_frame
 from selpath.pipeline.compute import BAR_COLUMNS, show_bars
 from selpath.pipeline.errors import DeviceError
 from selpath.pipeline.locks import store_lock
-from selpath.pipeline.store import open_store
 
 KIND = "tomography_capture"
 
@@ -53,6 +50,8 @@ class TomographyRig:
 
 def capture_template(rig: TomographyRig, angles: Sequence[float]) -> xr.Dataset:
     """The full capture cube as lazy zeros (never computed): dims, coords and attrs of the store."""
+    import dask.array as da  # on acquiring, not on reading a rig file
+
     rows, cols = rig.camera.shape
     angles = np.asarray(angles, dtype=float)
     stack = da.zeros((len(angles), rows, cols), dtype=np.float32, chunks=(1, rows, cols))
@@ -79,6 +78,9 @@ def acquire_tomography(rig: TomographyRig, store: str | os.PathLike, angles: Seq
 
 def _sweep(rig: TomographyRig, store: str | os.PathLike, angles: Sequence[float], *, progress: bool,
            log: Callable[[str], None]) -> xr.Dataset:
+    from selpath.pipeline.capture_store import create_capture, missing_frames, write_frame  # zarr: on acquiring
+    from selpath.pipeline.store import open_store
+
     angles = [float(a) for a in angles]
     if len(set(np.round(np.asarray(angles) % 360.0, 6))) != len(angles):
         raise ValueError("the sweep repeats an angle (modulo 360°); each angle must be captured once")

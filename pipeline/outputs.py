@@ -32,8 +32,6 @@ from pathlib import Path
 
 from selpath.pipeline import remote
 from selpath.pipeline.errors import Problem, StoreError
-from selpath.pipeline.integrity import is_selpath_store, read_manifest
-from selpath.pipeline.provenance import read_provenance
 from selpath.pipeline.remote import is_url
 
 STORE_SUFFIX = ".zarr"
@@ -41,6 +39,14 @@ _PARTIAL = ".partial-"
 _REPLACED = ".replaced-"
 #: PNG text key naming the store a figure PNG was rendered from (marks PNGs selpath may replace)
 PNG_MARKER = "selpath_store"
+
+
+def _is_selpath_store(path: str | os.PathLike) -> bool:
+    """:func:`selpath.pipeline.integrity.is_selpath_store`, imported (with zarr) only where a path exists to ask
+    about, so checking a new workflow's outputs reads no store library."""
+    from selpath.pipeline.integrity import is_selpath_store
+
+    return is_selpath_store(path)
 
 
 def is_remote(path: str | os.PathLike) -> bool:
@@ -111,7 +117,7 @@ def output_problems(outputs: list[OutputPath], protected: Mapping[str, str | os.
             there = Path(text) if text.strip() and not is_remote(text) else None
             held = ("" if there is None or not (there.exists() or there.is_symlink()) else
                     ": it is an existing folder, and not a selpath store, so selpath never writes into it" if
-                    there.is_dir() and not is_selpath_store(there) else ": it is an existing file")
+                    there.is_dir() and not _is_selpath_store(there) else ": it is an existing file")
             problems.append((out.field, f"output {out.name!r} store {text!r} is not a path ending in "
                              f"'{STORE_SUFFIX}'{held}", f"name a new store, like out/{out.name}.zarr"))
             continue
@@ -123,7 +129,7 @@ def output_problems(outputs: list[OutputPath], protected: Mapping[str, str | os.
             problems.append((out.field, f"output {out.name!r}: {text} exists and is not a folder",
                              "choose another path; selpath replaces only stores it wrote"))
             continue
-        if path.exists() and not is_selpath_store(path):
+        if path.exists() and not _is_selpath_store(path):
             garbled = _garbled_root(path)
             problems.append((out.field, f"output {out.name!r}: {text} holds a store whose root metadata "
                              "(zarr.json) cannot be read; selpath never replaces it" if garbled
@@ -151,7 +157,7 @@ def _remote_problems(out: OutputPath, url: str) -> list[tuple[str, str]]:
     names = remote.members(url)
     if not names:
         return []
-    if not is_selpath_store(url):
+    if not _is_selpath_store(url):
         return [(f"output {out.name!r}: {url} holds objects that are not a selpath store (no selpath_format "
                  "marker); selpath never replaces them", "choose another prefix, or move those objects away")]
     return _ownership(out, url, names)
@@ -161,6 +167,9 @@ def _ownership(out: OutputPath, path: Path | str, names: list[str] | None = None
     """An existing selpath store is replaced only by the workflow output that wrote it; an acquisition resumes
     only a capture (its own sweep is checked when it starts). ``names``: the store's top-level entries (None:
     listed here, for a local folder)."""
+    from selpath.pipeline.integrity import read_manifest
+    from selpath.pipeline.provenance import read_provenance
+
     try:
         provenance = read_provenance(path)
     except StoreError as exc:  # a garbled record: no proof of who wrote the store, so it is kept
@@ -224,7 +233,7 @@ class Staging:
             return
         final = Path(self.final)
         if final.exists() or final.is_symlink():
-            if final.is_symlink() or not is_selpath_store(final):
+            if final.is_symlink() or not _is_selpath_store(final):
                 self.abort()
                 raise StoreError(Problem("something that is not a selpath store appeared at this path while the "
                                          "output was written; it was left untouched and the output not written",
@@ -253,7 +262,7 @@ def tidy_staging(final: str | os.PathLike) -> list[str]:
     name = glob.escape(target.name)  # a store named "a*.zarr" must not match another's leftovers
     replaced = sorted(target.parent.glob(f".{name}{_REPLACED}*"))
     for leftover in sorted(target.parent.glob(f".{name}{_PARTIAL}*")) + replaced:
-        if leftover in replaced and not target.exists() and is_selpath_store(leftover):
+        if leftover in replaced and not target.exists() and _is_selpath_store(leftover):
             os.rename(leftover, target)
             done.append(f"restored {target} from {leftover.name}")
         else:

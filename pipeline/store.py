@@ -30,7 +30,6 @@ from pathlib import Path
 from typing import Any
 
 import dask
-import dask.array as da
 import numpy as np
 import xarray as xr
 from dask.base import tokenize
@@ -148,6 +147,8 @@ def _open_raw(path: str | os.PathLike) -> xr.Dataset:
             Problem(f"cannot be read as a zarr store ({type(exc).__name__}: {exc})", where=where,
                     fix="the store is corrupt or not zarr v3; re-create it or restore it from a backup")
         ) from exc
+    import dask.array as da  # with its scipy: on opening a store, not on reading a workflow
+
     stamp = _store_stamp(where)
     lazy = {}
     for name, var in ds.data_vars.items():

@@ -15,7 +15,6 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 import dask
-import dask.array as da
 import numpy as np
 import xarray as xr
 
@@ -83,6 +82,8 @@ def as_figure(render, *args, caption: str, size: tuple[float, float] = SIZE_IN) 
     caption = one_line(caption)
     if not caption:
         raise ValueError("a figure needs a caption")
+    import dask.array as da  # on drawing, not on reading a workflow that draws
+
     image = da.from_delayed(dask.delayed(checked)(*args), shape=shape, dtype=np.uint8)
     return FIGURE.label(xr.Dataset({"image": (("y", "x", "rgba"), image)}, attrs={"caption": caption}))
 

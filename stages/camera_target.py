@@ -11,7 +11,6 @@ film the board near the sensor's corners too, or the check sees only its middle.
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 import xarray as xr
 
@@ -40,6 +39,8 @@ MAX_DISTORTION_PX = 0.5
 def camera_corners(frame: np.ndarray, corners: tuple[int, int]) -> np.ndarray | None:
     """The board's inner corners in a frame, sub-pixel (N, 2) float32 in OpenCV's order, or None if not all found.
     The frame is scaled to 8 bits by its own 99.5th percentile (any intensity scale)."""
+    import cv2  # OpenCV when it calibrates, not when a workflow is read
+
     finite = np.nan_to_num(np.asarray(frame, float))
     top = np.percentile(finite, 99.5)
     image = np.clip(finite / max(top, 1e-12) * 255, 0, 255).astype(np.uint8)
@@ -68,6 +69,8 @@ def distortion_shift(matrix: np.ndarray, distortion: np.ndarray, box: tuple[floa
     """The largest distance [px] between where the distortion model puts a pixel and where the pinhole would, over
     a grid on ``box`` = (x0, y0, x1, y1) [px]: the area the board's corners covered (beyond it the polynomial is
     an extrapolation)."""
+    import cv2
+
     xs, ys = np.meshgrid(np.linspace(box[0], box[2], 17), np.linspace(box[1], box[3], 13))
     points = np.stack([xs.ravel(), ys.ravel()], axis=1).reshape(-1, 1, 2).astype(np.float64)
     ideal = cv2.undistortPoints(points, matrix, distortion, P=matrix).reshape(-1, 2)
@@ -97,6 +100,8 @@ def calibrate_camera(target: xr.Dataset, /) -> xr.Dataset:
     ----------
     Thesis §4.2.6 Light path alignment.
     """
+    import cv2
+
     require_variables(target, ("image",), "calibrate_camera")
     missing = [a for a in ("board_corners", "board_square_mm") if a not in target.attrs]
     if missing:

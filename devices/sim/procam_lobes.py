@@ -13,7 +13,6 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.special import ndtr
 
 from selpath.devices.sim.procam_scene import Effects, ProcamRig, ProcamScene
 
@@ -38,6 +37,8 @@ class Lobe:
 def _cdf(y: np.ndarray, width: np.ndarray, shape: str) -> np.ndarray:
     """The distribution function of a unit lobe (``gauss``: standard deviation ``width``; ``exp``: Laplace scale)."""
     if shape == "gauss":
+        from scipy.special import ndtr  # scipy when a scene renders, not when its file is read
+
         return ndtr(y / width)
     if shape == "exp":
         return np.where(y < 0, 0.5 * np.exp(np.minimum(y, 0) / width), 1.0 - 0.5 * np.exp(-np.maximum(y, 0) / width))

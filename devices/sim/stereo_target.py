@@ -15,7 +15,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 import pydantic
 
@@ -83,6 +82,8 @@ def board_poses(count: int, *, distance: float = 600.0, tilt_deg: float = 25.0, 
                 board: Checkerboard = Checkerboard()) -> list[tuple[np.ndarray, np.ndarray]]:
     """``count`` (rvec, tvec) board poses in the camera's frame: the board's centre near the optical axis at about
     ``distance`` mm, tilted up to ``tilt_deg`` about both in-plane axes (a calibration needs varied tilts)."""
+    import cv2  # OpenCV's Rodrigues when poses are made, not when a scene file is read
+
     rng = np.random.default_rng(seed)
     cols, rows = board.corners
     centre = np.array([(cols - 1) * board.square / 2, (rows - 1) * board.square / 2, 0.0])
@@ -107,6 +108,8 @@ class TracedPose:
 def trace(rig: PinholeProcam, board: Checkerboard, pose: tuple[np.ndarray, np.ndarray], supersample: int = 3
           ) -> TracedPose:
     """Trace every camera sub-pixel to the board and on to the projector."""
+    import cv2
+
     width, height = rig.camera_size
     offsets = (np.arange(supersample) + 0.5) / supersample - 0.5
     u = (np.arange(width)[:, None] + offsets[None, :]).ravel()

@@ -12,10 +12,8 @@ certified) the engine logs.
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import ClassVar
+from typing import TYPE_CHECKING, ClassVar
 
-import dask.array as da
-import jax
 import numpy as np
 import pydantic
 import xarray as xr
@@ -25,8 +23,6 @@ from selpath.pipeline.kinds import CubeKind, Variable
 from selpath.pipeline.quality import usable_share
 from selpath.stages._solution import Solution, raise_if_failed
 from selpath.stages._sweeps import Sweep
-from selpath.stages.procam._demux_problem import DemuxProblem, SeparableDemuxProblem
-from selpath.stages.procam._demux_solver import DemuxADMM, batch_slots, observed
 from selpath.stages.procam._illumination import (
     SYNC_DELAY_ATTRS,
     RigTiming,
@@ -34,6 +30,10 @@ from selpath.stages.procam._illumination import (
     offset_delay,
     plane_to_ray_illumination,
 )
+
+if TYPE_CHECKING:  # the solver imports JAX: these modules load when a band is solved, not when a workflow is read
+    from selpath.stages.procam._demux_problem import DemuxProblem, SeparableDemuxProblem
+    from selpath.stages.procam._demux_solver import DemuxADMM
 
 #: streaming batches per solver call: a call's pool (data, warm starts, results: ~8 (P × K) arrays, 64 MB at
 #: K = 128) is bounded while the batch's tail (its last, slowest pixels) is paid once per 16 batches of pixels
@@ -43,6 +43,8 @@ POOL_BATCHES = 16
 def pixels_per_call(pixels: int, offsets: int) -> int:
     """Pixels per solver call: at most POOL_BATCHES streaming batches, the calls of ``pixels`` equal in size
     (a multiple of the batch, so a band's calls share one compiled shape and little is padding)."""
+    from selpath.stages.procam._demux_solver import batch_slots
+
     slots = batch_slots(offsets)
     calls = max(1, -(-pixels // (POOL_BATCHES * slots)))
     return slots * max(1, -(-pixels // (calls * slots)))
@@ -152,6 +154,10 @@ def solve_pixels(solver: DemuxADMM, problem: DemuxProblem | SeparableDemuxProble
     per iteration), so the pixels with such observations (weight 0, non-finite or clipped) are solved last,
     together: only the calls that hold them pay.
     """
+    import jax
+
+    from selpath.stages.procam._demux_solver import observed
+
     p, per_call = data.shape[0], pixels_per_call(data.shape[0], problem.offsets)
     clipped = np.zeros(data.shape, bool) if clipped is None else np.asarray(clipped, bool)
     if p == 0:  # no pixels (an empty band): nothing to solve, the solver's batches need at least one row
@@ -223,6 +229,8 @@ PER_PIXEL = {"iterations": np.int32, "converged": bool, "censored": bool, "censo
 def transport_template(capture: xr.Dataset, transport_dims: tuple[str, ...], transport_sizes: tuple[int, ...],
                        row_chunks: tuple[int, ...], dtype: str, **per_pixel) -> xr.Dataset:
     """The lazy template of a transport store: T over ``transport_dims`` + (row, col), and per-pixel maps."""
+    import dask.array as da
+
     rows, cols = capture.sizes["row"], capture.sizes["col"]
 
     def lazy(dims, sizes, dt):

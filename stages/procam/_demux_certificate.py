@@ -15,6 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from selpath.stages.procam._demux_problem import DemuxProblem, SeparableDemuxProblem, _residual
+from selpath.stages.procam._demux_settings import DUAL_STEPS
 
 #: golden-section steps of the dual search in :func:`best_dual_value` (the interval shrinks 0.618× per step)
 DUAL_SEARCH_STEPS = 16
@@ -79,11 +80,6 @@ def _repeat(xp, steps, body, carry):
 KKT_HELD = (0.0, 1e-6, 1e-4, 1e-2)
 
 
-#: projected accelerated gradient steps of the KKT bound's dual ascent (:func:`kkt_gap`) in the solver's final
-#: certificate: each costs one K × K product per pixel. Measured ad hoc in float64 on the solver's float32 answers to
-#: ``benchmarks/demux_catalogue.py``'s thesis K = 128 case (the bound's median / p99): 0 steps 3.0e-4 / 0.20, 10 steps
-#: 9.8e-5 / 1.0e-2, 20 steps 8.3e-5 / 7.4e-3, 50 steps 7.2e-5 / 5.1e-3, where the true gap's median is 9.0e-5
-DUAL_STEPS = 10
 
 
 def kkt_gap(xp, t, gradient, quadratic, primal, applies, shares=KKT_HELD, *, inverse=None, step=0.0, steps=0):

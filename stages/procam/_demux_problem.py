@@ -21,9 +21,9 @@ Each problem also says what it supports: ``second_order_bound`` (the certificate
 (the active-set finish and the ``max_gap`` cap), and its operators' ``SECOND_ORDER``; its float64 numpy
 ``forward``, ``adjoint``, ``smoothness`` and ``smooth_gradient`` serve the host certificate and the objective.
 
-Defaults live here once (:data:`DEFAULT_ALPHA`, :data:`DEFAULT_BETA`, :data:`DEFAULT_RHO_FACTOR`); the stages
-take theirs from them. α (smoothness along the offset) and β (sparsity) are not tomography's TV weight λ;
-``rho_factor`` (ρ relative to λ_max(2G)) is not tomography's ``rho`` (relative to ‖MR‖²). ρ belongs to the
+Defaults live once, in :mod:`selpath.stages.procam._demux_settings` (no JAX there; ``DEFAULT_ALPHA``,
+``DEFAULT_BETA`` and ``DEFAULT_RHO_FACTOR`` are re-exported here); the stages take theirs from it. α (smoothness along the offset) and β (sparsity) are not
+tomography's TV weight λ; ``rho_factor`` (ρ relative to λ_max(2G)) is not tomography's ``rho`` (relative to ‖MR‖²). ρ belongs to the
 problem because the T-update's inverse (2G + ρI)⁻¹, built once per sweep, depends on it.
 
 Every product of the operators runs at :data:`PRECISION` (full float32 or float64). JAX's default precision for
@@ -42,14 +42,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from selpath.stages.procam._demux_settings import DEFAULT_ALPHA, DEFAULT_BETA, DEFAULT_RHO_FACTOR
 from selpath.stages.procam._illumination import smoothness_matrix
-
-#: smoothness weight α of the thesis (§5.2.2), on images scaled to [0, 1]
-DEFAULT_ALPHA = 0.01
-#: sparsity weight β of the thesis (§5.2.2), on images scaled to [0, 1]
-DEFAULT_BETA = 0.01
-#: ADMM penalty ρ = rho_factor · λ_max(2G): 0.01 was the best of 0.003–0.3 on a Fig. 38-like sweep
-DEFAULT_RHO_FACTOR = 0.01
 
 
 @dataclass(frozen=True)

@@ -54,7 +54,8 @@ import numpy as np
 
 from selpath.stages._solution import Result, Solution, outcome, raise_if_failed
 from selpath.stages.procam import _demux_kernels as kernels
-from selpath.stages.procam._demux_certificate import DUAL_STEPS, kkt_bound
+from selpath.stages.procam import _demux_settings as defaults
+from selpath.stages.procam._demux_certificate import kkt_bound
 from selpath.stages.procam._demux_finish import active_set_finish
 from selpath.stages.procam._demux_kernels import MIN_BATCH, Batch, Limits, Rows, State, alive, compact_at
 from selpath.stages.procam._demux_problem import DemuxProblem, SeparableDemuxProblem
@@ -170,15 +171,15 @@ class DemuxADMM:
     max_gap=1)``.
     """
 
-    DEFAULT_TOL: ClassVar[float] = 2e-3
-    DEFAULT_MAX_ITER: ClassVar[int] = 200
-    DEFAULT_CHECK_EVERY: ClassVar[int] = 5
-    DEFAULT_POLISH_ITER: ClassVar[int] = 5
-    DEFAULT_POLISH_ROUNDS: ClassVar[int] = 2
-    DEFAULT_GAP_TOL: ClassVar[float] = 1e-4
-    DEFAULT_MAX_GAP: ClassVar[float] = 1e-3
-    DEFAULT_DUAL_STEPS: ClassVar[int] = DUAL_STEPS
-    DEFAULT_FINISH_ROUNDS: ClassVar[int] = 16
+    DEFAULT_TOL: ClassVar[float] = defaults.TOL
+    DEFAULT_MAX_ITER: ClassVar[int] = defaults.MAX_ITER
+    DEFAULT_CHECK_EVERY: ClassVar[int] = defaults.CHECK_EVERY
+    DEFAULT_POLISH_ITER: ClassVar[int] = defaults.POLISH_ITER
+    DEFAULT_POLISH_ROUNDS: ClassVar[int] = defaults.POLISH_ROUNDS
+    DEFAULT_GAP_TOL: ClassVar[float] = defaults.GAP_TOL
+    DEFAULT_MAX_GAP: ClassVar[float] = defaults.MAX_GAP
+    DEFAULT_DUAL_STEPS: ClassVar[int] = defaults.DUAL_STEPS
+    DEFAULT_FINISH_ROUNDS: ClassVar[int] = defaults.FINISH_ROUNDS
 
     tol: float = DEFAULT_TOL
     max_iter: int = DEFAULT_MAX_ITER

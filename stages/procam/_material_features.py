@@ -28,7 +28,6 @@ pixels unlike every trained material.
 from __future__ import annotations
 
 import numpy as np
-from scipy.ndimage import uniform_filter
 
 #: spatial blocks of the cross-validation per fold (bands of rows over the labelled pixels' span)
 BLOCKS_PER_FOLD = 2
@@ -46,6 +45,8 @@ def pool(frames: np.ndarray, regions: np.ndarray, window: int) -> np.ndarray:
     >>> pool(frames, np.array([[0, 0, 1, 1], [0, 0, 1, 1]]), 3)[0].round(6).tolist()
     [[2.5, 2.5, 4.5, 4.5], [2.5, 2.5, 4.5, 4.5]]
     """
+    from scipy.ndimage import uniform_filter  # scipy when it computes, not when a workflow is read
+
     if window <= 1:
         return frames
     from scipy.ndimage import find_objects
@@ -108,6 +109,7 @@ def zero_of(delays: np.ndarray) -> int:
 def superpixels(profile: np.ndarray, pixels_per_region: int, usable: np.ndarray) -> np.ndarray:
     """Regions of about ``pixels_per_region`` pixels whose profiles are alike (SLIC on the profiles, each delay
     standardised, lightly smoothed, compactness 0.1); −1 where a pixel has no usable profile."""
+    from scipy.ndimage import uniform_filter
     from skimage.segmentation import slic
 
     image = np.moveaxis(np.where(usable[None], profile, 0.0), 0, -1)

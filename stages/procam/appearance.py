@@ -25,12 +25,9 @@ from __future__ import annotations
 from typing import Annotated, Literal
 
 import dask
-import dask.array as da
 import numpy as np
 import pydantic
 import xarray as xr
-from scipy.ndimage import convolve1d
-from scipy.optimize import least_squares
 
 from selpath.pipeline.constraints import Count, Fraction, NonNegative, Positive, StorePath
 from selpath.pipeline.errors import Problem, StageError
@@ -110,6 +107,8 @@ def fit_scattering_profile(capture: xr.Dataset, /, *, material: str, labels: Lab
     ----------
     Thesis §5.4.8 Appearance capture for graphics.
     """
+    from scipy.optimize import least_squares  # scipy when it fits, not when a workflow is read
+
     frames, saturated, what = profile_frames(capture, exposure)
     if what["source_kind"] != "plane_to_ray_capture":
         raise StageError(Problem("the profile is fitted to a delay sweep through its illumination matrix",
@@ -163,6 +162,8 @@ def fit_scattering_profile(capture: xr.Dataset, /, *, material: str, labels: Lab
 def shade(covered: np.ndarray, normal: np.ndarray, light: np.ndarray, fraction: float, width_px: float, *,
           specular: float, shininess: float) -> tuple[np.ndarray, np.ndarray]:
     """The Lambertian and the subsurface image of a rasterised surface (module doc), albedo 1."""
+    from scipy.ndimage import convolve1d
+
     light = light / np.linalg.norm(light)
     irradiance = np.clip(normal @ light, 0, None) * covered
     halfway = light + np.array([0.0, 0.0, 1.0])
@@ -232,6 +233,8 @@ def render_appearance(profile: xr.Dataset, /, *, mesh: Literal["teapot", "sphere
         covered, normal = rasterise(rotate(vertices, yaw, pitch), faces, shape)
         return np.stack([*shade(covered, normal, direction, f, width, specular=specular, shininess=shininess),
                          covered.astype(float)])
+
+    import dask.array as da  # on computing, not on reading a workflow
 
     stack = da.from_delayed(dask.delayed(render)(), shape=(3, *shape), dtype=float)
     return APPEARANCE_RENDER.label(xr.Dataset(

@@ -15,6 +15,8 @@ its whole line time t_p, so Σ_o T(o) w(o; t_d, t_e) reproduces a frame.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 import xarray as xr
 
@@ -23,6 +25,7 @@ from selpath.pipeline.errors import Problem, StageError
 from selpath.pipeline.kinds import PX_UNITS, CubeKind, Variable
 from selpath.pipeline.registry import stage
 from selpath.stages._common import Dtype, DualSteps, FinishRounds, GapTol, MaxGap, MaxIter
+from selpath.stages.procam import _demux_settings as defaults
 from selpath.stages.procam._capture_to_transport import (
     DEMUX_EXTRAS,
     TRANSPORT_ATTRS,
@@ -37,8 +40,10 @@ from selpath.stages.procam._capture_to_transport import (
     transport_template,
     with_sync_delay,
 )
-from selpath.stages.procam._demux_problem import DEFAULT_ALPHA, DEFAULT_BETA, DemuxProblem
-from selpath.stages.procam._demux_solver import DemuxADMM
+
+if TYPE_CHECKING:
+    from selpath.stages.procam._demux_problem import DemuxProblem
+    from selpath.stages.procam._demux_solver import DemuxADMM
 
 
 def _band(block: xr.Dataset, *, solver: DemuxADMM, problem: DemuxProblem, keep: np.ndarray, levels: Levels
@@ -64,14 +69,14 @@ PLANE_TO_RAY_TRANSPORT = CubeKind(
 
 @stage("demux_plane_to_ray", kind=PLANE_TO_RAY_TRANSPORT)
 def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, /, *,
-                       offsets: OffsetGrid | None = None, alpha: NonNegative = DEFAULT_ALPHA,
-                       beta: NonNegative = DEFAULT_BETA, tol: Positive = DemuxADMM.DEFAULT_TOL,
-                       gap_tol: GapTol = DemuxADMM.DEFAULT_GAP_TOL, max_gap: MaxGap | None = None,
-                       finish_rounds: FinishRounds = DemuxADMM.DEFAULT_FINISH_ROUNDS,
-                       dual_steps: DualSteps = DemuxADMM.DEFAULT_DUAL_STEPS,
-                       max_iter: MaxIter = DemuxADMM.DEFAULT_MAX_ITER,
-                       polish_iter: Index = DemuxADMM.DEFAULT_POLISH_ITER,
-                       polish_rounds: Count = DemuxADMM.DEFAULT_POLISH_ROUNDS,
+                       offsets: OffsetGrid | None = None, alpha: NonNegative = defaults.DEFAULT_ALPHA,
+                       beta: NonNegative = defaults.DEFAULT_BETA, tol: Positive = defaults.TOL,
+                       gap_tol: GapTol = defaults.GAP_TOL, max_gap: MaxGap | None = None,
+                       finish_rounds: FinishRounds = defaults.FINISH_ROUNDS,
+                       dual_steps: DualSteps = defaults.DUAL_STEPS,
+                       max_iter: MaxIter = defaults.MAX_ITER,
+                       polish_iter: Index = defaults.POLISH_ITER,
+                       polish_rounds: Count = defaults.POLISH_ROUNDS,
                        boundary_margin_us: NonNegative | None = None, sync_offset_us: float | None = None,
                        full_scale: Positive | None = None, rows_per_tile: Count = 32,
                        dtype: Dtype = "float32") -> xr.Dataset:
@@ -166,7 +171,7 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
     ----------
     Thesis §5.2.2 Light Multiplexing using Delay and Exposure; §5.2.3 Delay-Exposure Image Stacks.
     """
-    max_gap = max(gap_tol, DemuxADMM.DEFAULT_MAX_GAP) if max_gap is None else max_gap
+    max_gap = max(gap_tol, defaults.MAX_GAP) if max_gap is None else max_gap
     if gap_tol > max_gap:
         raise StageError(Problem(f"gap_tol = {gap_tol:g} is above max_gap = {max_gap:g}",
                                  fix="gap_tol is the certificate's target and max_gap the largest gap a converged "
@@ -178,6 +183,9 @@ def demux_plane_to_ray(capture: xr.Dataset, scan_calibration: xr.Dataset | None 
     levels = levels_of(capture, full_scale)
     sweep = sweep_illumination(capture, timing, boundary_margin_us, offsets)
     grid = sweep.offsets
+    from selpath.stages.procam._demux_problem import DemuxProblem  # JAX: when it solves, not when a workflow is read
+    from selpath.stages.procam._demux_solver import DemuxADMM
+
     problem = DemuxProblem.build(sweep.matrix, alpha=alpha, beta=beta)
     stack = capture[["image"]].chunk({"delay": -1, "exposure": -1, "row": rows_per_tile, "col": -1})
     template = transport_template(capture, ("offset",), (grid.size,), stack.chunksizes["row"], dtype)

@@ -9,6 +9,8 @@ direct light.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 import xarray as xr
 
@@ -17,6 +19,7 @@ from selpath.pipeline.errors import Problem, StageError
 from selpath.pipeline.kinds import PX_UNITS, CubeKind, Variable
 from selpath.pipeline.registry import stage
 from selpath.stages._common import Dtype, GapTol, MaxIter
+from selpath.stages.procam import _demux_settings as defaults
 from selpath.stages.procam._capture_to_transport import (
     DEMUX_EXTRAS,
     TRANSPORT_ATTRS,
@@ -31,9 +34,11 @@ from selpath.stages.procam._capture_to_transport import (
     transport_template,
     with_sync_delay,
 )
-from selpath.stages.procam._demux_problem import DEFAULT_ALPHA, DEFAULT_BETA, SeparableDemuxProblem
-from selpath.stages.procam._demux_solver import DemuxADMM
 from selpath.stages.procam._illumination import line_cells, line_illumination
+
+if TYPE_CHECKING:
+    from selpath.stages.procam._demux_problem import SeparableDemuxProblem
+    from selpath.stages.procam._demux_solver import DemuxADMM
 
 #: bytes of full transport one dask task may hold (the default rows_per_tile of demux_full follows from it)
 FULL_TILE_BYTES = 64 * 2**20
@@ -89,10 +94,10 @@ FULL_TRANSPORT = CubeKind(
 @stage("demux_full", kind=FULL_TRANSPORT)
 def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, /, *,
                offsets: OffsetGrid | None = None, cell_width_px: Positive | None = None,
-               du_reach_px: NonNegative | None = None, alpha: NonNegative = DEFAULT_ALPHA,
-               beta: NonNegative = DEFAULT_BETA, tol: Positive = FULL_TOL,
-               gap_tol: GapTol = DemuxADMM.DEFAULT_GAP_TOL, max_iter: MaxIter = DemuxADMM.DEFAULT_MAX_ITER,
-               polish_iter: Index = DemuxADMM.DEFAULT_POLISH_ITER,
+               du_reach_px: NonNegative | None = None, alpha: NonNegative = defaults.DEFAULT_ALPHA,
+               beta: NonNegative = defaults.DEFAULT_BETA, tol: Positive = FULL_TOL,
+               gap_tol: GapTol = defaults.GAP_TOL, max_iter: MaxIter = defaults.MAX_ITER,
+               polish_iter: Index = defaults.POLISH_ITER,
                boundary_margin_us: NonNegative | None = None, sync_offset_us: float | None = None,
                full_scale: Positive | None = None, rows_per_tile: Count | None = None,
                dtype: Dtype = "float32") -> xr.Dataset:
@@ -162,6 +167,9 @@ def demux_full(capture: xr.Dataset, scan_calibration: xr.Dataset | None = None, 
         cells, step = line_cells(lines, width, cell_width_px)
     except ValueError as error:
         raise StageError(Problem(str(error), where="capture line sweep", fix="set cell_width_px > 0")) from None
+    from selpath.stages.procam._demux_problem import SeparableDemuxProblem  # JAX: when it solves, not on reading
+    from selpath.stages.procam._demux_solver import DemuxADMM
+
     problem = SeparableDemuxProblem.build(line_illumination(lines, width, cells, step), sweep.matrix,
                                           alpha=alpha, beta=beta)
     k_u = cells.size

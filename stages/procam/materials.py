@@ -24,7 +24,7 @@ from __future__ import annotations
 import hashlib
 from typing import Annotated
 
-import dask.array as da
+import dask
 import numpy as np
 import pydantic
 import xarray as xr
@@ -196,8 +196,8 @@ def _pixels(profiles: xr.Dataset, index: np.ndarray) -> tuple[np.ndarray, np.nda
     """Profiles (pixels, delays) and areas (pixels,) of flat pixel ``index``, read only where they lie."""
     flat = profiles["profile"].transpose("delay", "row", "col").data.reshape(profiles.sizes["delay"], -1)
     area = profiles["area"].data.reshape(-1)
-    if isinstance(flat, da.Array):
-        flat, area = da.compute(flat[:, index], area[index])
+    if dask.is_dask_collection(flat):
+        flat, area = dask.compute(flat[:, index], area[index])
     else:
         flat, area = flat[:, index], area[index]
     return np.asarray(flat, np.float64).T, np.asarray(area, np.float64)

@@ -29,7 +29,6 @@ from typing import Annotated
 
 import numpy as np
 import pydantic
-import scipy.linalg
 import xarray as xr
 
 from selpath.devices.patterns import checkerboard
@@ -50,6 +49,8 @@ def s_matrix(n: int) -> np.ndarray:
     order n + 1 without its first row and column, −1 → 1 (lit) and +1 → 0, so each capture lights (n + 1)/2 lines."""
     if n < 1 or (n + 1) & n:
         raise ValueError(f"an S-matrix from a Sylvester–Hadamard matrix needs n + 1 a power of 2; n = {n}")
+    import scipy.linalg  # scipy when a code is made, not when a workflow is read
+
     return (scipy.linalg.hadamard(n + 1)[1:, 1:] < 0).astype(float)
 
 

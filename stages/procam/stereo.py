@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import warnings
 
-import cv2
 import numpy as np
 import xarray as xr
 
@@ -74,6 +73,8 @@ def projector_corners(corners: np.ndarray, col: np.ndarray, row: np.ndarray, usa
                       window: int) -> np.ndarray:
     """Each camera corner carried into the projector by a homography fitted to the decoded pixels within
     ``window`` px of it (NaN where fewer than MIN_HOMOGRAPHY_PIXELS are usable)."""
+    import cv2  # OpenCV when it calibrates, not when a workflow is read
+
     ys, xs = np.nonzero(usable)
     out = np.full(corners.shape, np.nan, dtype=np.float64)
     for k, (x, y) in enumerate(corners):
@@ -91,6 +92,8 @@ def projector_corners(corners: np.ndarray, col: np.ndarray, row: np.ndarray, usa
 
 
 def _rows(points: np.ndarray, k: np.ndarray, dist: np.ndarray, rect: np.ndarray | None, p: np.ndarray) -> np.ndarray:
+    import cv2
+
     return cv2.undistortPoints(points.reshape(-1, 1, 2).astype(np.float64), k, dist, R=rect, P=p).reshape(-1, 2)[:, 1]
 
 
@@ -136,6 +139,8 @@ def calibrate_procam_stereo(target: xr.Dataset, /, *, window_px: Count = 10, min
     ----------
     Thesis §5.2.1 Epipolar geometry and light transport.
     """
+    import cv2
+
     require_variables(target, ("image",), "calibrate_procam_stereo")
     attrs = target.attrs
     missing = [a for a in ("column_bits", "row_bits", "projector_shape", "board_corners", "board_square_mm",

@@ -10,8 +10,6 @@ import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.ndimage import map_coordinates
-from scipy.optimize import least_squares
 
 from selpath.geometry.rig import Camera, to_object_xy
 from selpath.geometry.shapes import convex_polygon
@@ -104,6 +102,8 @@ class Fit:
 def _least_squares(residuals, start, inflation: float, step: float = 1e-4) -> Fit:
     """Levenberg–Marquardt (scipy's MINPACK, central differences of ``step``) from ``start``; standard
     uncertainties s²(JᵀJ)⁻¹ × ``inflation``², s² the residual variance."""
+    from scipy.optimize import least_squares  # scipy when it fits, not when a workflow is read
+
     x0 = np.atleast_1d(np.asarray(start, float))
     solution = least_squares(residuals, x0, method="lm", jac="3-point", diff_step=step, xtol=1e-12, ftol=1e-12)
     r, jac = solution.fun, solution.jac
@@ -212,6 +212,8 @@ def _pair_mask(params, data: LightData, camera: Camera, min_exit_cos: float = 0.
 
 def _light_residuals(params, slices) -> np.ndarray:
     """Absorption of each pair minus its reversed chord's; ``slices``: (pairs, camera) of each lit slice."""
+    from scipy.ndimage import map_coordinates
+
     pieces = []
     for d, camera in slices:
         index, col, _ = _conjugates(params, d, camera)

@@ -15,7 +15,7 @@ from selpath.pipeline.constraints import Index
 from selpath.pipeline.registry import stage
 from selpath.stages._common import require_variables
 from selpath.stages._figures import FIGURE, as_figure, image_colorbar, panels, pixel_axes, rgba, slice_name
-from selpath.stages.tomography.sinogram import coverage_model, optimal_light_angle
+from selpath.stages.tomography.coverage import coverage_model, optimal_light_angle
 
 #: sizes [in] of the figures that are not of the standard size
 CAPTURE_SIZE = (9.0, 2.2)

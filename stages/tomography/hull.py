@@ -13,10 +13,6 @@ from __future__ import annotations
 
 import numpy as np
 import xarray as xr
-from scipy.spatial import ConvexHull, HalfspaceIntersection
-from skimage.filters import threshold_otsu
-from skimage.measure import label
-from skimage.morphology import remove_small_holes, remove_small_objects
 
 from selpath.geometry.rig import RIG_ATTRS, Camera, RigGeometry, camera_attr_problems, geometry_attrs, to_object_xy
 from selpath.pipeline.constraints import Index, Positive
@@ -61,6 +57,8 @@ HULL = CubeKind(
 
 def _silhouette_kernel(backlit: np.ndarray, dark: np.ndarray, *, threshold: float | None, min_size: int
                        ) -> np.ndarray:
+    from skimage.morphology import remove_small_objects  # scikit-image on computing, not on reading a workflow
+
     signal = backlit.astype(np.float64) - dark
     out = np.zeros(signal.shape, dtype=bool)
     for i, frame in enumerate(signal.reshape(-1, *signal.shape[-2:])):
@@ -79,6 +77,8 @@ def _silhouette_kernel(backlit: np.ndarray, dark: np.ndarray, *, threshold: floa
 def backlight_levels(values: np.ndarray) -> tuple[float, float, float] | None:
     """Otsu's level splitting a backlit frame's finite values into object and lit plane, and the two classes'
     means (object, plane); None where the values do not split (empty, constant)."""
+    from skimage.filters import threshold_otsu
+
     if not values.size or np.ptp(values) <= 0:
         return None
     level = threshold_otsu(values)
@@ -91,6 +91,9 @@ def backlight_levels(values: np.ndarray) -> tuple[float, float, float] | None:
 def _fill_small_holes(mask: np.ndarray, max_size: int) -> np.ndarray:
     """Fill holes up to ``max_size`` pixels; background touching the image border is never a hole (a thin
     strip of lit plane beside the object must stay background)."""
+    from skimage.measure import label
+    from skimage.morphology import remove_small_holes
+
     border = np.zeros_like(mask)
     border[[0, -1], :] = border[:, [0, -1]] = True
     labels = label(~mask, connectivity=1)
@@ -204,7 +207,8 @@ def tangent_half_planes(left: np.ndarray, right: np.ndarray, angles_deg: np.ndar
 
 def intersect_half_planes(normals: np.ndarray, offsets: np.ndarray) -> np.ndarray | None:
     """Vertices (counter-clockwise) of ``{p : normals·p ≤ offsets}``, or None if empty or unbounded."""
-    from scipy.optimize import linprog  # here, not on import (~0.2 s of reading a workflow)
+    from scipy.optimize import linprog  # scipy here, not on import (~0.2 s of reading a workflow)
+    from scipy.spatial import ConvexHull, HalfspaceIntersection
 
     if len(normals) < 3:
         return None

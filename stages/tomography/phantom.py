@@ -16,7 +16,6 @@ from __future__ import annotations
 from typing import Annotated
 
 import dask
-import dask.array as da
 import numpy as np
 import pydantic
 import xarray as xr
@@ -224,6 +223,8 @@ def phantom_truth(sinogram: xr.Dataset, /, *, scene: StorePath, n_pixels: Count 
     if "z" in sinogram.coords and sinogram["z"].attrs.get("units", unit) != unit:
         raise StageError(Problem(f"the sinogram's z is in {sinogram['z'].attrs['units']!r}, its x in {unit!r}",
                                  fix="bin it with bin_sinogram from one capture"))
+    import dask.array as da  # on computing, not on reading a workflow
+
     rasters = {z: dask.delayed(truth_raster)(spec, n, extent, supersample, z) for z in dict.fromkeys(heights.tolist())}
     volume = da.stack([da.from_delayed(rasters[z], (n, n), np.float64) for z in heights.tolist()])  # a slice a task
     return RECONSTRUCTION.label(xr.Dataset(

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Literal
 
-import dask.array as da
 import numpy as np
 import xarray as xr
 
@@ -237,6 +236,8 @@ def _fbp_block(block: xr.Dataset, *, geometry: Geometry, filter_name: str, fill:
 def _template(inputs: xr.Dataset, geometry: Geometry, variables: dict[str, tuple[tuple[str, ...], type]],
               extra: dict[str, int] | None = None) -> xr.Dataset:
     """Lazy zeros shaped like the blocks' results, chunked along slice as ``inputs`` (from :func:`_blocks`)."""
+    import dask.array as da
+
     sizes = {"slice": inputs.sizes["slice"], "y": geometry.n, "x": geometry.n} | (extra or {})
     chunks = inputs.chunksizes["slice"]
     data = {name: (dims, da.zeros(tuple(sizes[d] for d in dims), dtype=dtype,

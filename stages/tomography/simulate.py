@@ -4,7 +4,6 @@ from __future__ import annotations
 
 from typing import Annotated
 
-import dask.array as da
 import numpy as np
 import pydantic
 import xarray as xr
@@ -128,6 +127,8 @@ def simulate_parallel_capture(
     ----------
     Thesis §4.4.2 Experiment on a real object.
     """
+    import dask.array as da  # on computing, not on reading a workflow
+
     angle_values = angles.values()
     per_chunk = angles_per_chunk(len(angle_values), n_rows * n_cols * 4)
     lazy_angles = da.from_array(np.stack([angle_values, np.arange(len(angle_values))], axis=1),
@@ -221,6 +222,8 @@ def simulate_capture(*, scene: StorePath, angles: AngleSweep = AngleSweep(),  # 
     if spec.effects.scattering is not None:
         raise StageError(Problem("simulate_capture renders straight paths; the scene has scattering",
                                  fix="capture it with acquire_tomography, rig sim"))
+    import dask.array as da
+
     rows, cols = spec.camera.rows, spec.camera.cols
     band = min(rows_per_chunk or rows, rows)
     angle_values = angles.values()

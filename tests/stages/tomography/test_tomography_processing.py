@@ -13,7 +13,8 @@ from selpath.stages.tomography.calibrate import absorption
 from selpath.stages.tomography.hull import hull_polygons, silhouettes, visual_hull
 from selpath.stages.tomography.paths import REASONS, align_paths
 from selpath.stages.tomography.reconstruct import fbp, reconstruct_tv
-from selpath.stages.tomography.sinogram import bin_sinogram, coverage, coverage_model, optimal_light_angle
+from selpath.stages.tomography.coverage import coverage, coverage_model, optimal_light_angle
+from selpath.stages.tomography.sinogram import bin_sinogram
 from tests.helpers.tomography import R, capture, cylinder_camera, lazy_chain, make_scene
 
 #: θ_l × camera pairs the default job keeps (both sides of the optimum, each camera model); the other 12 run in the
