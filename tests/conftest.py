@@ -24,6 +24,24 @@ _MANIFESTS = tempfile.mkdtemp(prefix="selpath-test-manifests-")
 os.environ["SELPATH_MANIFEST_CACHE"] = _MANIFESTS
 atexit.register(shutil.rmtree, _MANIFESTS, ignore_errors=True)
 
+# XLA's compiled kernels are kept between test runs (JAX's persistent compilation cache) in pytest's cache folder,
+# by this process and by every command and worker it starts (they inherit the environment): most of the demultiplexer
+# tests' time is compiling (tests/hard_cases/test_demux_hard.py: 30 s cold, 8.5 s from the cache on a 2-core VM), so a
+# second run of the default job skips it. Kernels are keyed by their HLO, JAX version and machine, so a changed kernel
+# is compiled again and the old entry stays: the folder grows by a few MB a run that changes kernels (delete it at
+# will). SELPATH_TEST_COMPILE_CACHE names another folder, or "off" for a cold run (CI's clone starts empty anyway);
+# JAX_COMPILATION_CACHE_DIR, if set, wins.
+_TEST_COMPILE_CACHE = os.environ.get("SELPATH_TEST_COMPILE_CACHE",
+                                     str(Path(__file__).resolve().parents[1] / ".pytest_cache" / "selpath-jax"))
+if _TEST_COMPILE_CACHE.lower() != "off" and "JAX_COMPILATION_CACHE_DIR" not in os.environ:
+    try:
+        Path(_TEST_COMPILE_CACHE).mkdir(parents=True, exist_ok=True)
+    except OSError:  # a read-only checkout: no cache, as before
+        pass
+    else:
+        os.environ |= {"JAX_COMPILATION_CACHE_DIR": _TEST_COMPILE_CACHE,
+                       "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0"}
+
 SMALL_WORKFLOW = textwrap.dedent("""\
     workflow: small-absorption
     scheduler: synchronous

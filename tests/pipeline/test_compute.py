@@ -31,6 +31,21 @@ def test_compile_cache_writes_to_its_folder_or_nowhere(tmp_path, setting):
     assert not (tmp_path / "xdg").exists()  # never the default folder when one is named or it is off
 
 
+def test_the_tests_and_the_commands_they_start_keep_their_compiled_kernels():
+    """tests/conftest.py points JAX's persistent compilation cache at one folder (pytest's cache by default) for the
+    test processes and every command they start: a kernel never compiled before lands there."""
+    from pathlib import Path
+
+    if os.environ.get("SELPATH_TEST_COMPILE_CACHE", "").lower() == "off":
+        pytest.skip("the test compile cache is off (SELPATH_TEST_COMPILE_CACHE=off)")
+    folder = Path(os.environ["JAX_COMPILATION_CACHE_DIR"])
+    before = set(folder.iterdir())
+    unique = float(int.from_bytes(os.urandom(4), "little"))  # a constant in the kernel: a key no run made before
+    script = f"import jax, jax.numpy as jnp; jax.jit(lambda x: x * {unique!r} + 1.0)(jnp.ones(3)).block_until_ready()"
+    subprocess.run([sys.executable, "-c", script], env=os.environ | {"SELPATH_COMPILE_CACHE": "off"}, check=True)
+    assert set(folder.iterdir()) - before
+
+
 def test_cluster_workers_start_with_the_malloc_settings_and_p2p_buffer():
     """The malloc settings reach the worker processes before they start (glibc reads them at start, so they must go
     through distributed's pre-spawn environment, not ``env``), beside distributed's own trim threshold, and the
