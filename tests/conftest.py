@@ -24,23 +24,37 @@ _MANIFESTS = tempfile.mkdtemp(prefix="selpath-test-manifests-")
 os.environ["SELPATH_MANIFEST_CACHE"] = _MANIFESTS
 atexit.register(shutil.rmtree, _MANIFESTS, ignore_errors=True)
 
-# XLA's compiled kernels are kept between test runs (JAX's persistent compilation cache) in pytest's cache folder,
-# by this process and by every command and worker it starts (they inherit the environment): most of the demultiplexer
-# tests' time is compiling (tests/hard_cases/test_demux_hard.py: 30 s cold, 8.5 s from the cache on a 2-core VM), so a
-# second run of the default job skips it. Kernels are keyed by their HLO, JAX version and machine, so a changed kernel
-# is compiled again and the old entry stays: the folder grows by a few MB a run that changes kernels (delete it at
-# will). SELPATH_TEST_COMPILE_CACHE names another folder, or "off" for a cold run (CI's clone starts empty anyway);
-# JAX_COMPILATION_CACHE_DIR, if set, wins.
-_TEST_COMPILE_CACHE = os.environ.get("SELPATH_TEST_COMPILE_CACHE",
-                                     str(Path(__file__).resolve().parents[1] / ".pytest_cache" / "selpath-jax"))
-if _TEST_COMPILE_CACHE.lower() != "off" and "JAX_COMPILATION_CACHE_DIR" not in os.environ:
+#: the folder of XLA's compiled kernels the tests keep between runs (see pytest_configure), or None
+TEST_COMPILE_CACHE: Path | None = None
+
+
+def pytest_configure(config):
+    """XLA's compiled kernels are kept between test runs (JAX's persistent compilation cache), for this process and
+    every command and worker it starts (they inherit the environment; set before any test module imports JAX). Most
+    of the demultiplexer tests' time is compiling (tests/hard_cases/test_demux_hard.py: 30 s cold, 8.5 s from the
+    cache on a 2-core VM), so a second run of the default job skips it. Kernels are keyed by their HLO, JAX's version
+    and the machine, so a changed kernel is compiled again and its old entry stays: the folder grows by a few MB a
+    run that changes kernels (delete it at will).
+
+    The folder is pytest's cache (``.pytest_cache/d/selpath-jax``, or ``--cache-dir``'s); SELPATH_TEST_COMPILE_CACHE
+    names another, or ``off`` for a cold run (CI's clone starts empty anyway). None where pytest keeps no cache
+    (``-p no:cacheprovider``), the folder cannot be written, or JAX_COMPILATION_CACHE_DIR is set (the user's wins)."""
+    global TEST_COMPILE_CACHE
+    setting = os.environ.get("SELPATH_TEST_COMPILE_CACHE", "")
+    if setting.lower() == "off" or "JAX_COMPILATION_CACHE_DIR" in os.environ:
+        return
     try:
-        Path(_TEST_COMPILE_CACHE).mkdir(parents=True, exist_ok=True)
-    except OSError:  # a read-only checkout: no cache, as before
-        pass
-    else:
-        os.environ |= {"JAX_COMPILATION_CACHE_DIR": _TEST_COMPILE_CACHE,
-                       "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0"}
+        folder = Path(setting).resolve() if setting else (config.cache.mkdir("selpath-jax")
+                                                          if getattr(config, "cache", None) else None)
+        if folder is not None:
+            folder.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        folder = None
+    if folder is None or not os.access(folder, os.W_OK | os.X_OK):  # a read-only checkout: no cache, as before
+        return
+    TEST_COMPILE_CACHE = folder
+    os.environ |= {"JAX_COMPILATION_CACHE_DIR": str(folder), "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0"}
+
 
 SMALL_WORKFLOW = textwrap.dedent("""\
     workflow: small-absorption
@@ -70,7 +84,8 @@ SMALL_WORKFLOW = textwrap.dedent("""\
 
 @pytest.fixture(autouse=True)
 def no_compile_cache(monkeypatch):
-    """The command line keeps compiled kernels in ~/.cache; tests leave the home folder (and JAX's config) alone."""
+    """The command line keeps compiled kernels in ~/.cache; tests leave the home folder alone (their kernels go to the
+    test cache of :func:`pytest_configure`)."""
     monkeypatch.setenv("SELPATH_COMPILE_CACHE", "off")
 
 

@@ -80,8 +80,6 @@ def _repeat(xp, steps, body, carry):
 KKT_HELD = (0.0, 1e-6, 1e-4, 1e-2)
 
 
-
-
 def kkt_gap(xp, t, gradient, quadratic, primal, applies, shares=KKT_HELD, *, inverse=None, step=0.0, steps=0):
     """A second certified bound, from the Lagrangian dual of min f(T) s.t. T ≥ 0 through a quadratic q ≤ f that
     touches f at T: f's squared residuals of the observed, unclipped frames, α‖DT‖² and β1ᵀT as they are, and each

@@ -22,9 +22,10 @@ Each problem also says what it supports: ``second_order_bound`` (the certificate
 ``forward``, ``adjoint``, ``smoothness`` and ``smooth_gradient`` serve the host certificate and the objective.
 
 Defaults live once, in :mod:`selpath.stages.procam._demux_settings` (no JAX there; ``DEFAULT_ALPHA``,
-``DEFAULT_BETA`` and ``DEFAULT_RHO_FACTOR`` are re-exported here); the stages take theirs from it. α (smoothness along the offset) and β (sparsity) are not
-tomography's TV weight λ; ``rho_factor`` (ρ relative to λ_max(2G)) is not tomography's ``rho`` (relative to ‖MR‖²). ρ belongs to the
-problem because the T-update's inverse (2G + ρI)⁻¹, built once per sweep, depends on it.
+``DEFAULT_BETA`` and ``DEFAULT_RHO_FACTOR`` are re-exported here); the stages take theirs from it. α (smoothness
+along the offset) and β (sparsity) are not tomography's TV weight λ; ``rho_factor`` (ρ relative to λ_max(2G)) is not
+tomography's ``rho`` (relative to ‖MR‖²). ρ belongs to the problem because the T-update's inverse (2G + ρI)⁻¹, built
+once per sweep, depends on it.
 
 Every product of the operators runs at :data:`PRECISION` (full float32 or float64). JAX's default precision for
 float32 products is the hardware's fastest: TF32 on NVIDIA Ampere and Hopper GPUs (a 10-bit mantissa, relative

@@ -9,9 +9,9 @@ import xarray as xr
 from selpath.devices.sim import tomography as tomo
 from selpath.devices.sim.scene import Scene
 from selpath.stages.tomography.calibrate import absorption
+from selpath.stages.tomography.coverage import coverage
 from selpath.stages.tomography.hull import silhouettes, visual_hull
 from selpath.stages.tomography.paths import align_paths
-from selpath.stages.tomography.coverage import coverage
 from selpath.stages.tomography.sinogram import bin_sinogram
 
 R = 10.0

@@ -32,18 +32,23 @@ def test_compile_cache_writes_to_its_folder_or_nowhere(tmp_path, setting):
 
 
 def test_the_tests_and_the_commands_they_start_keep_their_compiled_kernels():
-    """tests/conftest.py points JAX's persistent compilation cache at one folder (pytest's cache by default) for the
-    test processes and every command they start: a kernel never compiled before lands there."""
+    """tests/conftest.py points JAX's persistent compilation cache at one folder (pytest's cache by default), every
+    kernel kept, for the test processes and every command they start: a started command's JAX has that folder, and
+    the kernel it compiles lands there."""
     from pathlib import Path
 
-    if os.environ.get("SELPATH_TEST_COMPILE_CACHE", "").lower() == "off":
-        pytest.skip("the test compile cache is off (SELPATH_TEST_COMPILE_CACHE=off)")
+    if "JAX_COMPILATION_CACHE_DIR" not in os.environ or os.environ.get("SELPATH_TEST_COMPILE_CACHE", "") == "off":
+        pytest.skip("no test compile cache (off, no pytest cache, or the user's JAX_COMPILATION_CACHE_DIR)")
     folder = Path(os.environ["JAX_COMPILATION_CACHE_DIR"])
-    before = set(folder.iterdir())
     unique = float(int.from_bytes(os.urandom(4), "little"))  # a constant in the kernel: a key no run made before
-    script = f"import jax, jax.numpy as jnp; jax.jit(lambda x: x * {unique!r} + 1.0)(jnp.ones(3)).block_until_ready()"
-    subprocess.run([sys.executable, "-c", script], env=os.environ | {"SELPATH_COMPILE_CACHE": "off"}, check=True)
-    assert set(folder.iterdir()) - before
+    script = ("import jax, jax.numpy as jnp; jax.jit(lambda x: x * " + repr(unique) + " + 1.0)(jnp.ones(3))"
+              ".block_until_ready(); c = jax.config; "
+              "print(c.jax_compilation_cache_dir, c.jax_persistent_cache_min_compile_time_secs)")
+    done = subprocess.run([sys.executable, "-c", script], env=os.environ | {"SELPATH_COMPILE_CACHE": "off"},
+                          capture_output=True, text=True, check=True)
+    where, least = done.stdout.split()
+    assert Path(where) == folder and float(least) == 0.0
+    assert any(folder.iterdir())
 
 
 def test_cluster_workers_start_with_the_malloc_settings_and_p2p_buffer():

@@ -10,10 +10,10 @@ from scipy.spatial.distance import directed_hausdorff
 from selpath.pipeline import FORMAT_VERSION, StageError, open_store
 from selpath.pipeline.integrity import write_manifest
 from selpath.stages.tomography.calibrate import absorption
+from selpath.stages.tomography.coverage import coverage, coverage_model, optimal_light_angle
 from selpath.stages.tomography.hull import hull_polygons, silhouettes, visual_hull
 from selpath.stages.tomography.paths import REASONS, align_paths
 from selpath.stages.tomography.reconstruct import fbp, reconstruct_tv
-from selpath.stages.tomography.coverage import coverage, coverage_model, optimal_light_angle
 from selpath.stages.tomography.sinogram import bin_sinogram
 from tests.helpers.tomography import R, capture, cylinder_camera, lazy_chain, make_scene
 
