@@ -141,16 +141,15 @@ def test_validation_imports_only_the_stages_a_workflow_names(tmp_path, monkeypat
 def test_validating_the_shipped_workflows_imports_no_solver(tmp_path, monkeypatch):
     """The demultiplexer's stages take their defaults from a module without JAX; the stages and acquisition devices
     import JAX, scipy, scikit-image, OpenCV, the store library and dask.array when they compute or acquire. So reading
-    every shipped workflow but ``tomography-scattering`` (whose scattering model is written in JAX at its module's top)
-    imports none of them (benchmarks/cli_startup.py times it). ``procam-materials-apply`` is read last: it fails, for
-    it reads a classifier store not made here, and its ``load_store`` step imports the store library (zarr) to open
-    the store it reads, so zarr is allowed there alone. The workflows are read from a copy, where no output of an
+    every shipped workflow imports none of them (benchmarks/cli_startup.py times it). ``procam-materials-apply`` is
+    read last: it fails, for it reads a classifier store not made here, and its ``load_store`` step imports the store
+    library (zarr) to open the store it reads, so zarr is allowed there alone. The workflows are read from a copy, where no output of an
     earlier run lies."""
     from selpath.pipeline.registry import index
 
     monkeypatch.setenv("SELPATH_MANIFEST_CACHE", str(tmp_path / "manifests"))
     manifest.write(ENTRY_POINT_GROUP, index(default_registry()))
-    names = [n for n in workflows.names() if n not in ("tomography-scattering", "procam-materials-apply")]
+    names = [n for n in workflows.names() if n != "procam-materials-apply"]
     names.append("procam-materials-apply")  # last
     copy = tmp_path / "workflows"
     shutil.copytree(workflows.folder(), copy, ignore=shutil.ignore_patterns("out", "__pycache__", "*.py"))
@@ -172,7 +171,7 @@ def test_validating_the_shipped_workflows_imports_no_solver(tmp_path, monkeypatc
                            "stages": sorted(stages), "failed": failed}}))
         """)
     assert {"demux_plane_to_ray", "acquire_plane_to_ray", "calibrate_procam_stereo", "bin_sinogram",
-            "reconstruct_tv"} <= set(seen["stages"])
+            "reconstruct_tv", "reconstruct_scattering", "estimate_scattering"} <= set(seen["stages"])
     assert seen["failed"] == ["procam-materials-apply"]
     assert (seen["heavy"] == [] or seen["heavy"] == ["zarr"] and seen["last"] == "procam-materials-apply"
             ) and not seen["dask_array"], seen

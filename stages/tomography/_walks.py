@@ -23,7 +23,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from skimage.measure import approximate_polygon
 
 from selpath.geometry.directions import cosine_hemisphere, isotropic
 from selpath.geometry.rig import RigGeometry, to_object, to_object_xy
@@ -156,6 +155,8 @@ def walk_body(polygon: np.ndarray, geometry: RigGeometry) -> Prism:
     """The prism the walks of a slice stay in: its hull contour (vertices (K, 2), object frame) simplified to within
     :data:`WALK_TOLERANCE` of a camera pixel (Douglas–Peucker keeps a subset of the vertices: still convex, and
     inside the contour)."""
+    from skimage.measure import approximate_polygon  # scikit-image when walks are traced, not on reading
+
     polygon = np.asarray(polygon, float)
     closed = np.vstack([polygon, polygon[:1]])
     simple = approximate_polygon(closed, WALK_TOLERANCE * geometry.camera.axis_pixel_size)[:-1]

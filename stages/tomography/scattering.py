@@ -50,8 +50,9 @@ walks (:mod:`selpath.stages.tomography._walks`), and ``reconstruct_scattering`` 
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import dask
-import dask.array as da
 import numpy as np
 import xarray as xr
 
@@ -61,9 +62,7 @@ from selpath.pipeline.errors import Problem, StageError
 from selpath.pipeline.registry import stage
 from selpath.stages._common import MaxIter, require_variables
 from selpath.stages._solution import Result
-from selpath.stages.tomography._admm import TVADMM
-from selpath.stages.tomography._bundles import fit_slice, trace_bundles
-from selpath.stages.tomography._projector import Geometry
+from selpath.stages.tomography import _tv_settings
 from selpath.stages.tomography.hull import contours
 from selpath.stages.tomography.reconstruct import (
     RECONSTRUCTION,
@@ -74,6 +73,9 @@ from selpath.stages.tomography.reconstruct import (
     support_mask,
 )
 from selpath.stages.tomography.sinogram import bin_index
+
+if TYPE_CHECKING:
+    from selpath.stages.tomography._projector import Geometry
 
 #: the TV smoothing ε of :func:`selpath.stages.tomography._bundles.smooth_total_variation`, relative to the data's σ
 #: scale (the largest observed absorption over the image's width, the σ a uniform object across the grid would need) [1]
@@ -90,6 +92,8 @@ def _fit_one_slice(theta, x, absorption, data, observed, vertices, count, *, geo
                    angles: np.ndarray, grid: Geometry, settings: dict, seed: int):
     """σ (n, n) of one slice by the bundle model, and (converged, iterations, objective, median paths, bins
     without paths)."""
+    from selpath.stages.tomography._bundles import fit_slice, trace_bundles  # JAX: when a slice is fitted
+
     n_theta, n_x = data.shape
     nan = np.full((grid.n, grid.n), np.nan)
     if count < 3:
@@ -126,7 +130,7 @@ def _stats(*values) -> tuple[np.ndarray, ...]:
 @stage("reconstruct_scattering", kind=RECONSTRUCTION)
 def reconstruct_scattering(rays: xr.Dataset, sinogram: xr.Dataset, hull: xr.Dataset,
                            scattering: xr.Dataset | None = None, /, *, sigma_s: NonNegative | None = None,
-                           tv_weight: NonNegative = TVADMM.DEFAULT_TV_WEIGHT, n_pixels: Count | None = None,
+                           tv_weight: NonNegative = _tv_settings.TV_WEIGHT, n_pixels: Count | None = None,
                            photons: Count = 5_000, paths_per_bin: Count = 64,
                            spacing: Positive = 1.0, sigma_max: Positive | None = None, max_events: Count = 1000,
                            max_iter: MaxIter = 500, tol: Positive = 1e-7, seed: Index = 0) -> xr.Dataset:
@@ -211,6 +215,8 @@ def reconstruct_scattering(rays: xr.Dataset, sinogram: xr.Dataset, hull: xr.Data
                 "spacing": spacing, "sigma_max": np.inf if sigma_max is None else sigma_max,
                 "max_events": max_events, "max_iter": max_iter, "tol": tol}
     angles = rays["angle"].values
+    import dask.array as da  # on computing, not on reading a workflow
+
     fit = dask.delayed(_fit_one_slice, nout=2, pure=True)
     images, stats = [], []
     for k, row in enumerate(rows):

@@ -15,7 +15,6 @@ from __future__ import annotations
 from typing import Annotated
 
 import dask
-import dask.array as da
 import numpy as np
 import pydantic
 import xarray as xr
@@ -215,6 +214,8 @@ def estimate_scattering(capture: xr.Dataset, hull: xr.Dataset, /, *, views: Coun
     parts = dask.delayed(_estimate_sigma_s, nout=len(_ESTIMATE), pure=True)(
         raw, dark, shell["vertices"].isel(slice=0).data, shell["n_vertices"].isel(slice=0).data, geometry=geometry,
         angles=capture["angle"].values[pick], rows=rows, settings=settings, seed=seed)
+    import dask.array as da  # on computing, not on reading a workflow
+
     sizes = {"candidate": CANDIDATES, "distance_bin": distance_bins}
     variables = {name: (dims, da.from_delayed(part, tuple(sizes[d] for d in dims), dtype))
                  for (name, (dims, dtype)), part in zip(_ESTIMATE.items(), parts, strict=True)}
