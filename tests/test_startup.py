@@ -143,8 +143,8 @@ def test_validating_the_shipped_workflows_imports_no_solver(tmp_path, monkeypatc
     import JAX, scipy, scikit-image, OpenCV, the store library and dask.array when they compute or acquire. So reading
     every shipped workflow imports none of them (benchmarks/cli_startup.py times it). ``procam-materials-apply`` is
     read last: it fails, for it reads a classifier store not made here, and its ``load_store`` step imports the store
-    library (zarr) to open the store it reads, so zarr is allowed there alone. The workflows are read from a copy, where no output of an
-    earlier run lies."""
+    library (zarr) to open the store it reads, so zarr is allowed there alone. The workflows are read from a copy,
+    where no output of an earlier run lies."""
     from selpath.pipeline.registry import index
 
     monkeypatch.setenv("SELPATH_MANIFEST_CACHE", str(tmp_path / "manifests"))
