@@ -24,8 +24,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from selpath.stages.procam._demux_certificate import DUAL_STEPS, certified_gap
+from selpath.stages.procam._demux_certificate import certified_gap
 from selpath.stages.procam._demux_problem import DemuxProblem
+from selpath.stages.procam._demux_settings import DUAL_STEPS
 from selpath.stages.procam._illumination import smoothness_matrix
 
 #: the active-set rule's weight on T against λ: large, so an offset with light stays free whatever its gradient
