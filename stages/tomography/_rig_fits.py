@@ -301,3 +301,22 @@ def fit_light_angle(slices, camera: Camera, stated: float, search_deg: float, st
         spread = np.std(quarters, axis=0, ddof=1) / np.sqrt(len(quarters))
         fit = Fit(fit.value, np.hypot(fit.std, spread), fit.rms, fit.count, fit.converged)
     return fit, trials, cost, pairs
+
+
+def grid_phase_spread(params, halves, camera: Camera) -> np.ndarray:
+    """How far θ_l and the contour offset move with the angle grid: each half of the turn's angles (the even
+    steps and the odd ones, ``halves``: each its lit slices' :class:`LightData`) refitted from ``params``; half the
+    difference of the two fits, the standard error of their mean.
+
+    The pairs interpolate absorption bilinearly between stage angles; how that error falls depends on where the
+    grid lies against the object's inclusions and differs from rig to rig, so the fits at one grid agree with each
+    other (every quarter turn, every slice, shares it) and no split of the pairs shows it. Two interleaved grids
+    of twice the step do: on simulated rigs of the shipped gelatin bin, grid errors of 0.03–0.16° at a 2° step,
+    while noise accounts for 0.02–0.05° (``benchmarks/calibrate_rig_coverage.py --vary``)."""
+    fits = []
+    for slices in halves:
+        seen = _seen_pairs(params, slices, camera)
+        if sum(len(d.value) for d, _ in seen) < 16:
+            return np.zeros(len(params))
+        fits.append(_least_squares(lambda p, seen=seen: _light_residuals(p, seen), params, 1.0).value)
+    return np.abs(fits[0] - fits[1]) / 2

@@ -27,8 +27,13 @@ independent, so each uncertainty adds what the data cannot average away: the axi
 (a prism's rows repeat one silhouette) and floored by the edge quantisation, 1/√(12·n) px for n distinct sub-pixel
 edge positions (an object centred on the axis has edges that never move: n = 1, 0.29 px); θ_l's is inflated by √8
 (one absorption sample enters about four bilinear pairs, each pair twice), and adds, in quadrature, the spread of
-θ_l fitted on each quarter turn's pairs (the hull's error varies with direction) and how far θ_l moves when the axis
-moves by its uncertainty. On the test rigs the errors lie within 1.5 of these uncertainties.
+θ_l fitted on each quarter turn's pairs (the hull's error varies with direction), how far θ_l moves when the axis
+moves by its uncertainty, and how far it moves with the angle grid: half the difference of θ_l fitted on the even
+steps' absorption and on the odd steps' (:func:`~selpath.stages.tomography._rig_fits.grid_phase_spread`; the
+bilinear pairs' error depends on where the grid falls against the inclusions, the same for every subset of one
+grid), and the method's own error that no split of one capture shows (``method_std_deg``, 0.1°). How often these
+intervals hold the truth is measured over simulated rigs in ``benchmarks/calibrate_rig_coverage.py``
+(docs/results.md).
 
 Assumed and not estimated: the focal length (or pixel size), the camera distance, the beam's height, and that the
 beam passes the axis (a beam offset from the axis is not in the rig model, DESIGN §8).
@@ -53,6 +58,7 @@ from selpath.stages.tomography._rig_fits import (
     LightData,
     fit_axis_column,
     fit_light_angle,
+    grid_phase_spread,
     light_slice_data,
     silhouette_edges,  # noqa: F401  (the module docstring names it; the tests import it here)
     with_axis,
@@ -111,7 +117,7 @@ def _full_turn(angles: np.ndarray, what: str) -> None:
 @stage("calibrate_rig", kind=RIG_CALIBRATION)
 def calibrate_rig(capture: xr.Dataset, /, *, axis: bool = True, light_angle: bool = True,
                   search_deg: Positive = 5.0, search_step_deg: Positive = 0.25, rows: Count = 32,
-                  min_signal: NonNegative = 1.0) -> xr.Dataset:
+                  min_signal: NonNegative = 1.0, method_std_deg: NonNegative = 0.1) -> xr.Dataset:
     """Estimate the rotation axis's column and the light angle θ_l from a capture, with uncertainties.
 
     The result holds the estimates, their standard uncertainties, the values the capture stated and the fit
@@ -136,6 +142,12 @@ def calibrate_rig(capture: xr.Dataset, /, *, axis: bool = True, light_angle: boo
         Camera rows (spread over the object's height) whose silhouettes fit the axis; the lit rows fit θ_l.
     min_signal : float
         Counts above dark below which a pixel's absorption is not used for θ_l [counts].
+    method_std_deg : float
+        The method's own error in θ_l, added in quadrature to the uncertainty the capture shows [degree]: what
+        no split of one capture reveals (the pixels' footprint against the model's single rays, the hull). The
+        default is the scale of θ_l's errors over simulated rigs (the median absolute error / 0.6745 of 16 drawn
+        rigs, ``benchmarks/calibrate_rig_coverage.py --vary``: 0.096°); a lab that has validated its rig against
+        a known θ_l sets its own.
 
     Returns
     -------
@@ -174,13 +186,13 @@ def calibrate_rig(capture: xr.Dataset, /, *, axis: bool = True, light_angle: boo
         values = flags_ok["absorption"].transpose("angle", "row", "col").values.astype(float)
         valid = (flags_ok["flags"].transpose("angle", "row", "col").values == 0) & np.isfinite(values)
 
-        def lit_slices(camera: Camera) -> list[LightData]:
+        def lit_slices(camera: Camera, steps: slice = slice(None)) -> list[LightData]:
             out = []
             for k, row in enumerate(lit):
                 polygon = intersect_half_planes(*tangent_half_planes(edges[:, row, 0], edges[:, row, 1], angles,
                                                                      camera))
-                data = None if polygon is None else light_slice_data(values[:, k], valid[:, k], angles, polygon,
-                                                                     camera)
+                data = None if polygon is None else light_slice_data(values[steps, k], valid[steps, k],
+                                                                     angles[steps], polygon, camera)
                 if data is not None:
                     out.append(data)
             if not out:
@@ -197,6 +209,11 @@ def calibrate_rig(capture: xr.Dataset, /, *, axis: bool = True, light_angle: boo
                                           min(search_deg, 1.0), search_step_deg)
             light_fit = Fit(light_fit.value, np.hypot(light_fit.std, shifted.value - light_fit.value),
                             light_fit.rms, light_fit.count, light_fit.converged)
+        if len(angles) % 2 == 0 and len(angles) >= 16:  # and the angle grid moves it: two interleaved halves
+            halves = [lit_slices(geometry.camera, slice(phase, None, 2)) for phase in (0, 1)]
+            grid = grid_phase_spread(light_fit.value, halves, geometry.camera)
+            light_fit = dataclasses.replace(light_fit, std=np.hypot(light_fit.std, grid))
+        light_fit = dataclasses.replace(light_fit, std=np.hypot(light_fit.std, [method_std_deg, 0.0]))
         theta_l, theta_std = float(light_fit.value[0]), float(light_fit.std[0])
         edge = abs(theta_l - stated.light_angle_deg) >= search_deg - search_step_deg
         depth = float(np.nanmedian(cost) / np.nanmin(cost) - 1.0) if np.nanmin(cost) > 0 else np.inf
