@@ -105,7 +105,9 @@ def _least_squares(residuals, start, inflation: float, step: float = 1e-4) -> Fi
     from scipy.optimize import least_squares  # scipy when it fits, not when a workflow is read
 
     x0 = np.atleast_1d(np.asarray(start, float))
-    solution = least_squares(residuals, x0, method="lm", jac="3-point", diff_step=step, xtol=1e-12, ftol=1e-12)
+    # (tolerances of 1e-9: far below any uncertainty the fits state, and the residuals, piecewise linear through
+    # the interpolation, never converge quadratically: at 1e-12 MINPACK iterated ~20 times a fit)
+    solution = least_squares(residuals, x0, method="lm", jac="3-point", diff_step=step, xtol=1e-9, ftol=1e-9)
     r, jac = solution.fun, solution.jac
     s2 = float(r @ r) / max(len(r) - len(x0), 1)
     cov = s2 * np.linalg.pinv(jac.T @ jac)
@@ -267,14 +269,15 @@ def light_cost(params, slices, camera: Camera) -> tuple[float, int]:
     return (float(np.mean(r**2)) if len(r) else np.nan), len(r)
 
 
-def fit_light_angle(slices, camera: Camera, stated: float, search_deg: float, step_deg: float
-                    ) -> tuple[Fit, np.ndarray, np.ndarray, np.ndarray]:
+def fit_light_angle(slices, camera: Camera, stated: float, search_deg: float, step_deg: float,
+                    quarters: bool = True) -> tuple[Fit, np.ndarray, np.ndarray, np.ndarray]:
     """θ_l and the contour's offset: a profile of :func:`light_cost` over ``stated ± search_deg`` (offset 0), then
     least squares in both from the profile's minimum (twice, the pairs chosen again at the first answer).
 
     ``camera`` sees the axis where the slices were built. Returns the fit (values and uncertainties of θ_l
     [degree] and the offset [pixels at the axis]) and the profile (trial angles, mean squared disagreement,
-    pairs)."""
+    pairs). ``quarters``: add the quarter turns' spread to the uncertainties (four more fits; not needed where only
+    the value is)."""
     trials = stated + np.arange(-search_deg, search_deg + step_deg / 2, step_deg)
     trials = trials[(trials >= 0) & (trials <= 180)]
     profile = np.array([light_cost((t, 0.0), slices, camera) for t in trials])
@@ -291,6 +294,8 @@ def fit_light_angle(slices, camera: Camera, stated: float, search_deg: float, st
     # (the √8: one absorption sample enters about four pairs through the bilinear weights, and each pair twice)
     # The contour's error varies with direction (each part of the hull is cut by other views' edges); the pairs of
     # each quarter turn see another part of it. Their fits' spread, over √4, is the systematic part of θ_l's error.
+    if not quarters:
+        return fit, trials, cost, pairs
     quarters = []
     for q in range(4):
         part = _seen_pairs(params, slices, camera,

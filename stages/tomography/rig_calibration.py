@@ -206,7 +206,7 @@ def calibrate_rig(capture: xr.Dataset, /, *, axis: bool = True, light_angle: boo
         if axis_fit is not None:  # the axis's uncertainty moves θ_l too: refit one standard uncertainty away
             moved = with_axis(geometry.camera, axis_fit.value[0] + axis_fit.std[0])
             shifted, *_ = fit_light_angle(lit_slices(moved), moved, float(light_fit.value[0]),
-                                          min(search_deg, 1.0), search_step_deg)
+                                          min(search_deg, 1.0), search_step_deg, quarters=False)
             light_fit = Fit(light_fit.value, np.hypot(light_fit.std, shifted.value - light_fit.value),
                             light_fit.rms, light_fit.count, light_fit.converged)
         if len(angles) % 2 == 0 and len(angles) >= 16:  # and the angle grid moves it: two interleaved halves
