@@ -60,7 +60,8 @@ from selpath.stages.procam._demux_finish import active_set_finish
 from selpath.stages.procam._demux_kernels import MIN_BATCH, Batch, Limits, Rows, State, alive, compact_at
 from selpath.stages.procam._demux_problem import DemuxProblem, SeparableDemuxProblem
 
-__all__ = ["CENSORED_SHARE", "MIN_BATCH", "DemuxADMM", "batch_slots", "censored_offsets", "observed"]
+__all__ = ["CENSORED_SHARE", "MIN_BATCH", "DemuxADMM", "batch_slots", "censored_offsets", "observed",
+           "pool_size"]
 
 #: elements (pixels × offsets) of the batch the pixels stream through: its (P × K) iterates stay in cache
 BATCH_ELEMENTS = 1024 * 128
@@ -69,6 +70,16 @@ BATCH_ELEMENTS = 1024 * 128
 def batch_slots(offsets: int) -> int:
     """Rows of the streaming batch for K offsets: a power of two near BATCH_ELEMENTS / K, within [64, 16384]."""
     return int(np.clip(2 ** np.round(np.log2(BATCH_ELEMENTS / max(offsets, 1))), 64, 16384))
+
+
+def pool_size(pixels: int, slots: int) -> int:
+    """The pool a solve of ``pixels`` pixels runs on: a pool smaller than the batch is padded to a power of two
+    (at least MIN_BATCH, at most ``slots``), so that pools of 3, 40 or 1900 pixels share their compiled kernels
+    (every distinct pool size compiles the start, stream, certificate and finish once: 1–2 s each on a CPU); a
+    larger pool runs as it is."""
+    if pixels >= slots or pixels == 0:
+        return pixels
+    return int(min(slots, max(MIN_BATCH, 2 ** int(np.ceil(np.log2(max(pixels, 1)))))))
 
 
 def _batch_size(active: int) -> int:
@@ -240,11 +251,18 @@ class DemuxADMM:
         # without clipped frames one column stands for all (broadcast): the pool and batch carry no (P, N) zeros
         flags = clipped if any_clipped else np.zeros((data.shape[0], 1), bool)
         clock = _Clock(self.timed)
-        transport, iterations, done, objective, gap, start = self._run(
-            clock, ops, jnp.asarray(np.where(weight, data, 0.0), dtype), jnp.asarray(weight, dtype),
-            jnp.asarray(flags, dtype),
-            masked=not bool(weight.all()) or any_clipped, slots=int(self.slots or batch_slots(problem.offsets)))
+        slots = int(self.slots or batch_slots(problem.offsets))
+        # the pool padded with copies of its first pixel (each pixel's problem is its own: the copies change no
+        # other pixel's answer, and are dropped)
+        p = data.shape[0]
+        pad = np.zeros(pool_size(p, slots) - p, int)
+        pool = (np.where(weight, data, 0.0), weight, flags)
+        run = self._run(clock, ops, *(jnp.asarray(np.concatenate([a, a[pad]]), dtype) for a in pool),
+                        masked=not bool(weight.all()) or any_clipped, slots=slots)
+        transport, iterations, done, objective, gap = (np.asarray(a)[:p] for a in run[:5])
+        start = _Start(*(np.asarray(a)[:p] for a in run[5]))
         transport, objective, gap = np.array(transport), np.array(objective), np.array(gap)
+        done = np.array(done)
         # a pixel certified at its warm start and never iterated keeps that start where the polish, which accepts
         # any lower objective, raised its bound above gap_tol
         lost = np.flatnonzero(start.certified & (gap > self.gap_tol))
