@@ -258,3 +258,28 @@ def test_every_operator_product_asks_for_full_precision(kind):
         precisions = _dot_precisions(jaxpr.jaxpr)
         assert len(precisions) >= 2, name
         assert all(p == highest for p in precisions), (name, precisions)
+
+
+def test_a_small_pool_is_padded_and_each_pixel_answers_as_in_a_full_pool():
+    """A pool below the batch runs padded to a power of two (:func:`pool_size`; the padding copies its first
+    pixel) so that pool sizes share compiled kernels: each pixel's problem is its own, so 5 pixels solved alone
+    (padded to 64) answer as the same 5 solved among 64 others (one compiled program for both; bounded at float32
+    rounding, measured equal)."""
+    from selpath.stages.procam._demux_solver import pool_size
+
+    assert [pool_size(p, 2048) for p in (0, 1, 3, 64, 65, 2000, 2048, 5000)] == [0, 64, 64, 64, 128, 2048, 2048,
+                                                                                 5000]
+    assert pool_size(40, 32) == 40  # never beyond the batch
+    delays, exposures, offsets = CASES["wide-exposures"]
+    matrix = sweep_matrix(delays, exposures, offsets)
+    rng = np.random.default_rng(11)
+    data = sparse_transport(rng, 64, offsets) @ matrix.T + rng.normal(0, 0.01, (64, matrix.shape[0]))
+    data[2, ::3] = np.nan  # masked frames too
+    problem = DemuxProblem.build(matrix)
+    solver = DemuxADMM(slots=64)
+    alone, among = solver.solve(problem, data[:5]), solver.solve(problem, data)
+    scale = np.abs(among.value[:5]).max()
+    assert np.abs(alone.value - among.value[:5]).max() <= 1e-5 * scale
+    assert (alone.result == among.result[:5]).all()
+    assert np.array_equal(alone.stats["iterations"], among.stats["iterations"][:5])
+    assert alone.value.shape == (5, len(offsets)) and alone.stats["gap_bound"].shape == (5,)
