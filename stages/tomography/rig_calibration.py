@@ -29,7 +29,8 @@ edge positions (an object centred on the axis has edges that never move: n = 1, 
 (one absorption sample enters about four bilinear pairs, each pair twice), and adds, in quadrature, the spread of
 θ_l fitted on each quarter turn's pairs (the hull's error varies with direction), how far θ_l moves when the axis
 moves by its uncertainty, and how far it moves with the angle grid: half the difference of θ_l fitted on the even
-steps' absorption and on the odd steps' (:func:`~selpath.stages.tomography._rig_fits.grid_phase_spread`; the
+steps' absorption and on the odd steps' (an even number of steps, at least 16;
+:func:`~selpath.stages.tomography._rig_fits.grid_phase_spread`; the
 bilinear pairs' error depends on where the grid falls against the inclusions, the same for every subset of one
 grid), and the method's own error that no split of one capture shows (``method_std_deg``, 0.1°). How often these
 intervals hold the truth is measured over simulated rigs in ``benchmarks/calibrate_rig_coverage.py``
