@@ -270,14 +270,14 @@ def light_cost(params, slices, camera: Camera) -> tuple[float, int]:
 
 
 def fit_light_angle(slices, camera: Camera, stated: float, search_deg: float, step_deg: float,
-                    quarters: bool = True) -> tuple[Fit, np.ndarray, np.ndarray, np.ndarray]:
+                    quarter_spread: bool = True) -> tuple[Fit, np.ndarray, np.ndarray, np.ndarray]:
     """θ_l and the contour's offset: a profile of :func:`light_cost` over ``stated ± search_deg`` (offset 0), then
     least squares in both from the profile's minimum (twice, the pairs chosen again at the first answer).
 
     ``camera`` sees the axis where the slices were built. Returns the fit (values and uncertainties of θ_l
     [degree] and the offset [pixels at the axis]) and the profile (trial angles, mean squared disagreement,
-    pairs). ``quarters``: add the quarter turns' spread to the uncertainties (four more fits; not needed where only
-    the value is)."""
+    pairs). ``quarter_spread``: add the quarter turns' spread to the uncertainties (four more fits; not needed where
+    only the value is)."""
     trials = stated + np.arange(-search_deg, search_deg + step_deg / 2, step_deg)
     trials = trials[(trials >= 0) & (trials <= 180)]
     profile = np.array([light_cost((t, 0.0), slices, camera) for t in trials])
@@ -294,7 +294,7 @@ def fit_light_angle(slices, camera: Camera, stated: float, search_deg: float, st
     # (the √8: one absorption sample enters about four pairs through the bilinear weights, and each pair twice)
     # The contour's error varies with direction (each part of the hull is cut by other views' edges); the pairs of
     # each quarter turn see another part of it. Their fits' spread, over √4, is the systematic part of θ_l's error.
-    if not quarters:
+    if not quarter_spread:
         return fit, trials, cost, pairs
     quarters = []
     for q in range(4):

@@ -187,11 +187,15 @@ def calibrate_rig(capture: xr.Dataset, /, *, axis: bool = True, light_angle: boo
         values = flags_ok["absorption"].transpose("angle", "row", "col").values.astype(float)
         valid = (flags_ok["flags"].transpose("angle", "row", "col").values == 0) & np.isfinite(values)
 
-        def lit_slices(camera: Camera, steps: slice = slice(None)) -> list[LightData]:
+        def contours(camera: Camera) -> list:
+            """Each lit slice's hull contour seen from ``camera`` (None where the tangents enclose nothing)."""
+            return [intersect_half_planes(*tangent_half_planes(edges[:, row, 0], edges[:, row, 1], angles, camera))
+                    for row in lit]
+
+        def lit_slices(camera: Camera, steps: slice = slice(None), polygons: list | None = None
+                       ) -> list[LightData]:
             out = []
-            for k, row in enumerate(lit):
-                polygon = intersect_half_planes(*tangent_half_planes(edges[:, row, 0], edges[:, row, 1], angles,
-                                                                     camera))
+            for k, polygon in enumerate(contours(camera) if polygons is None else polygons):
                 data = None if polygon is None else light_slice_data(values[steps, k], valid[steps, k],
                                                                      angles[steps], polygon, camera)
                 if data is not None:
@@ -202,16 +206,18 @@ def calibrate_rig(capture: xr.Dataset, /, *, axis: bool = True, light_angle: boo
                                          "light_angle: false"))
             return out
 
-        light_fit, trials, cost, pairs = fit_light_angle(lit_slices(geometry.camera), geometry.camera,
+        polygons = contours(geometry.camera)  # the same contours serve the whole turn and its two halves
+        light_fit, trials, cost, pairs = fit_light_angle(lit_slices(geometry.camera, polygons=polygons),
+                                                         geometry.camera,
                                                          stated.light_angle_deg, search_deg, search_step_deg)
         if axis_fit is not None:  # the axis's uncertainty moves θ_l too: refit one standard uncertainty away
             moved = with_axis(geometry.camera, axis_fit.value[0] + axis_fit.std[0])
             shifted, *_ = fit_light_angle(lit_slices(moved), moved, float(light_fit.value[0]),
-                                          min(search_deg, 1.0), search_step_deg, quarters=False)
+                                          min(search_deg, 1.0), search_step_deg, quarter_spread=False)
             light_fit = Fit(light_fit.value, np.hypot(light_fit.std, shifted.value - light_fit.value),
                             light_fit.rms, light_fit.count, light_fit.converged)
         if len(angles) % 2 == 0 and len(angles) >= 16:  # and the angle grid moves it: two interleaved halves
-            halves = [lit_slices(geometry.camera, slice(phase, None, 2)) for phase in (0, 1)]
+            halves = [lit_slices(geometry.camera, slice(phase, None, 2), polygons) for phase in (0, 1)]
             grid = grid_phase_spread(light_fit.value, halves, geometry.camera)
             light_fit = dataclasses.replace(light_fit, std=np.hypot(light_fit.std, grid))
         light_fit = dataclasses.replace(light_fit, std=np.hypot(light_fit.std, [method_std_deg, 0.0]))
