@@ -70,6 +70,7 @@ class Geometry:
         return np.flatnonzero(rows), np.flatnonzero(~rows)
 
 
+@partial(jax.jit, static_argnums=(4, 5, 6))
 def _taps(along: jnp.ndarray, across: jnp.ndarray, xs: jnp.ndarray, centres: jnp.ndarray, cell: float,
           origin: float, nearest: bool) -> tuple[tuple[jnp.ndarray, jnp.ndarray], ...]:
     """The cells each step of each ray reads: ((index, weight), …), each (T, n steps, X), the index along the
@@ -98,17 +99,21 @@ def _walk(image: jnp.ndarray, taps) -> jnp.ndarray:
 def _groups(geometry: Geometry, dtype):
     """Per walking axis: (whether it walks the rows, the angles' indices, their taps in ``dtype``)."""
     t = np.deg2rad(np.asarray(geometry.theta_deg))
-    c, s = jnp.asarray(np.cos(t), dtype), jnp.asarray(np.sin(t), dtype)
+    c, s = np.cos(t), np.sin(t)
     xs, centres = jnp.asarray(geometry.x, dtype), jnp.asarray(geometry.centres, dtype)
     nearest, origin = geometry.method == "binary", -geometry.extent
     by_rows, by_cols = geometry._by_axis()
-    # rows: step through y_k, interpolate along x (cos θ·x + sin θ·y_k = X); columns: the other way round
-    return tuple((rows, index, _taps(along[index], across[index], xs, centres, geometry.cell, origin, nearest))
+    # rows: step through y_k, interpolate along x (cos θ·x + sin θ·y_k = X); columns: the other way round (the
+    # angles picked on the host: indexing a device array outside jit compiles a gather per shape)
+    return tuple((rows, index, _taps(jnp.asarray(along[index], dtype), jnp.asarray(across[index], dtype), xs, centres,
+                                     geometry.cell, origin, nearest))
                  for rows, index, along, across in ((True, by_rows, c, s), (False, by_cols, s, c)) if len(index))
 
 
+@partial(jax.jit, static_argnums=0)
 def forward(geometry: Geometry, image: jnp.ndarray) -> jnp.ndarray:
-    """R σ: the (θ, X) sinogram of an (n, n) image [(y, x) indexing], or of a (..., n, n) batch."""
+    """R σ: the (θ, X) sinogram of an (n, n) image [(y, x) indexing], or of a (..., n, n) batch (one compiled walk
+    per geometry, shape and dtype)."""
     if image.ndim > 2:
         return jax.vmap(lambda im: forward(geometry, im))(image.reshape(-1, *image.shape[-2:])).reshape(
             *image.shape[:-2], *geometry.shape)
@@ -118,6 +123,7 @@ def forward(geometry: Geometry, image: jnp.ndarray) -> jnp.ndarray:
     return out
 
 
+@partial(jax.jit, static_argnums=0)
 def adjoint(geometry: Geometry, sinogram: jnp.ndarray) -> jnp.ndarray:
     """Rᵀ y: the exact transpose of :func:`forward` (for one (θ, X) sinogram or a batch)."""
     if sinogram.ndim > 2:
