@@ -127,6 +127,18 @@ def test_a_right_record_stays_put():
     assert float(cal["light_angle"]) == pytest.approx(45.0, abs=0.3)
 
 
+@pytest.mark.slow
+def test_the_method_term_adds_to_the_light_angles_uncertainty_in_quadrature(miscalibrated):
+    """``method_std_deg`` (#57; default 0.1°) moves θ_l's stated uncertainty, never θ_l: the same capture calibrated
+    with 0° and with the default differs by exactly 0.1² in the variance (the terms are independent), and the
+    axis column is untouched."""
+    _, cap, cal = miscalibrated
+    bare = calibrate_rig(cap, method_std_deg=0.0)
+    assert float(bare["light_angle"]) == float(cal["light_angle"])
+    assert float(cal["light_angle_std"]) ** 2 - float(bare["light_angle_std"]) ** 2 == pytest.approx(0.1**2, rel=1e-9)
+    assert float(bare["axis_column_std"]) == float(cal["axis_column_std"])
+
+
 def test_silhouette_edges_are_pixel_edges_on_binary_frames_and_sub_pixel_on_blurred_ones():
     frame = np.full((1, 40, 60), 100.0)
     frame[0, :, 5:12] = 0.0  # object on columns 5..11: outer edges at 4.5 and 11.5
