@@ -24,9 +24,9 @@ from rich.progress import Progress, TextColumn, TimeElapsedColumn
 
 from selpath.devices.patterns import checkerboard, gray_code_levels, vertical_line, white
 from selpath.devices.protocols import Camera, Projector, SyncController
-from selpath.pipeline.compute import BAR_COLUMNS, show_bars
 from selpath.pipeline.errors import DeviceError, Problem, SpecError
 from selpath.pipeline.locks import store_lock
+from selpath.pipeline.progress import BAR_COLUMNS, show_bars
 
 #: camera rows per stored chunk of a capture
 CAPTURE_BAND_ROWS = 64

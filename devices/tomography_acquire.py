@@ -23,9 +23,9 @@ from rich.progress import Progress, TextColumn, TimeElapsedColumn
 
 from selpath.devices.protocols import Camera, LightSource, RotaryStage, SampleChanger
 from selpath.devices.serial_stage import angular_distance
-from selpath.pipeline.compute import BAR_COLUMNS, show_bars
 from selpath.pipeline.errors import DeviceError
 from selpath.pipeline.locks import store_lock
+from selpath.pipeline.progress import BAR_COLUMNS, show_bars
 
 KIND = "tomography_capture"
 

@@ -16,10 +16,10 @@ from typing import Any
 
 import dask
 from dask.callbacks import Callback
-from rich import get_console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.progress import Progress, TextColumn, TimeElapsedColumn
 
 from selpath.pipeline.errors import EnvironmentFault, Problem
+from selpath.pipeline.progress import BAR_COLUMNS, show_bars  # noqa: F401 (re-exported)
 
 #: Environment of worker processes: one thread for XLA and BLAS each, since dask owns the parallelism.
 WORKER_ENV = {
@@ -64,15 +64,6 @@ def enable_compile_cache() -> Path | None:
         jax.config.update(name, value)
         os.environ[name.upper()] = str(value)  # inherited by dask worker processes
     return folder
-
-
-def show_bars(progress: bool) -> bool:
-    """Whether to draw progress bars: asked for, and on a terminal (a log file gets the engine's lines only)."""
-    return progress and get_console().is_terminal
-
-
-#: the columns every progress bar of selpath starts with (the unit and elapsed time follow): what, bar, done/total
-BAR_COLUMNS = (TextColumn("   {task.description}"), BarColumn(bar_width=30), MofNCompleteColumn())
 
 
 class _RichCallback(Callback):

@@ -241,8 +241,8 @@ def capture_target(scene: StereoTargetScene, store, *, progress: bool = True, lo
 
     from selpath.devices.patterns import gray_code_levels
     from selpath.pipeline.capture_store import create_capture, missing_frames, write_frame
-    from selpath.pipeline.compute import BAR_COLUMNS, show_bars
     from selpath.pipeline.locks import store_lock
+    from selpath.pipeline.progress import BAR_COLUMNS, show_bars
     from selpath.pipeline.store import open_store
 
     rig, board = scene.rig(), scene.board()
