@@ -366,5 +366,7 @@ def _dtd(t, xp=jnp):
 
 
 def _caster(dtype):
+    """Cast to ``dtype``: a host array on the host (an eager device cast compiles one program per shape), a device
+    array or tracer by JAX."""
     dtype = jnp.dtype(dtype)
-    return lambda a: jnp.asarray(a, dtype=dtype)
+    return lambda a: jnp.asarray(a, dtype=dtype) if isinstance(a, jax.Array) else jnp.asarray(np.asarray(a, dtype))

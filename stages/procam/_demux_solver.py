@@ -124,6 +124,11 @@ class _Start(NamedTuple):
     gap: np.ndarray
 
 
+def _host_take(rows: jnp.ndarray, order: np.ndarray) -> jnp.ndarray:
+    """``rows[order]`` permuted on the host: an eager gather on the device compiles one program per pool shape."""
+    return jnp.asarray(np.asarray(rows)[order])
+
+
 class _Clock:
     """Seconds per phase of one solve (``DemuxADMM(timed=True)``): each timed call waits for its result
     (``jax.block_until_ready``), so a phase's seconds are its own; untimed, a call runs as it is."""
@@ -257,7 +262,7 @@ class DemuxADMM:
         p = data.shape[0]
         pad = np.zeros(pool_size(p, slots) - p, int)
         pool = (np.where(weight, data, 0.0), weight, flags)
-        run = self._run(clock, ops, *(jnp.asarray(np.concatenate([a, a[pad]]), dtype) for a in pool),
+        run = self._run(clock, ops, *(jnp.asarray(np.concatenate([a, a[pad]]).astype(dtype)) for a in pool),
                         masked=not bool(weight.all()) or any_clipped, slots=slots)
         transport, iterations, done, objective, gap = (np.asarray(a)[:p] for a in run[:5])
         start = _Start(*(np.asarray(a)[:p] for a in run[5]))
@@ -339,7 +344,7 @@ class DemuxADMM:
         live = int(p - certified.sum())
         start = _Start(certified, np.asarray(z0 * scale), start_gap)  # in the pixels' own order
         if live < p:
-            pool, z0 = Rows(*(a[order] for a in pool)), z0[order]
+            pool, z0 = Rows(*(_host_take(a, order) for a in pool)), _host_take(z0, order)
         limits = Limits(jnp.asarray(self.tol, data.dtype), jnp.asarray(self.max_iter, jnp.int32))
         pixel, rows, batch, _, out = clock("ADMM", kernels.stream, ops, limits, pool, z0, jnp.asarray(live, jnp.int32),
                                            check_every=self.check_every, masked=masked, slots=slots)
@@ -351,7 +356,7 @@ class DemuxADMM:
         z_out[live:], iters_out[live:], done_out[live:] = np.asarray(z0[live:]), 0, False  # judged by their gap
         if live < p:
             inverse = np.argsort(order)
-            pool = Rows(*(a[inverse] for a in pool))
+            pool = Rows(*(_host_take(a, inverse) for a in pool))
             z_out, iters_out, done_out = z_out[inverse], iters_out[inverse], done_out[inverse]
         transport, objective, gap = clock("polish + certificate", kernels.finish, ops, pool, scale,
                                           jnp.asarray(z_out), polish_iter=self.polish_iter,
