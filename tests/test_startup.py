@@ -113,7 +113,12 @@ def _validate_imports(path) -> dict:
 
 def test_validation_imports_only_the_stages_a_workflow_names(tmp_path, monkeypatch):
     monkeypatch.setenv("SELPATH_MANIFEST_CACHE", str(tmp_path / "manifests"))
-    path = workflows.path("tomography-sim")
+    shipped = workflows.path("tomography-sim")
+    # validated from a copy: outputs already written beside the shipped file (a run in this checkout) are opened to
+    # check that they are selpath stores, which imports the store library
+    (tmp_path / "scenes").symlink_to(shipped.parent / "scenes")  # the workflow's scene files, where it looks for them
+    path = tmp_path / shipped.name
+    path.write_text(shipped.read_text())
     cold = _validate_imports(path)  # no manifest yet: every installed stage module, and the manifest is written
     assert "selpath.stages.procam.demux" in cold["modules"]
     assert list((tmp_path / "manifests").glob(f"{ENTRY_POINT_GROUP}-*.json"))
@@ -129,7 +134,6 @@ def test_validation_imports_only_the_stages_a_workflow_names(tmp_path, monkeypat
     text = path.read_text().replace("absorption: {from: absorption, store: out/gelatin-bin/absorption.zarr}",
                                     "absorption: {from: absorption, store: out/absorption.zarr, kind: absorption}")
     typed = tmp_path / "typed.yaml"
-    (tmp_path / "scenes").symlink_to(path.parent / "scenes")  # the workflow's scene files, where it looks for them
     typed.write_text(text.replace("kind: absorption}", "kind: delay_profiles}"))  # known (procam), if not apt
     declared = _validate_imports(typed)
     assert not any(m.startswith("selpath.stages.procam.") for m in declared["modules"]), declared["modules"]
