@@ -115,7 +115,8 @@ def main() -> None:
     print(f"one exact round, JAX batched Cholesky, µs/px: float32 {full:.1f} at K = {k}, {compact:.1f} at the median "
           f"free-set size {median_free}; float64 {full64:.1f} and {compact64:.1f}")
     print(f"active_set_probe: rounds_to_1e-4={settled[0] if settled else 'none'} "
-          f"float32_max_bound={table['float32'][-1][0].max():.1e} float64_max_bound={table['float64'][-1][0].max():.1e} "
+          f"float32_max_bound={table['float32'][-1][0].max():.1e} "
+          f"float64_max_bound={table['float64'][-1][0].max():.1e} "
           f"us_per_px_free_float64={compact64:.1f}")
 
 

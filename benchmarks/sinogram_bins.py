@@ -33,7 +33,8 @@ def camera(fov: float | None, cols: int) -> dict:
 
 def capture(fov: float | None, cols: int, step: float) -> xr.Dataset:
     scene = Scene.model_validate({
-        "scene": "bins", "light": {"kind": "sheet", "angle": "45 deg", "distance": "500 mm"}, "camera": camera(fov, cols),
+        "scene": "bins", "light": {"kind": "sheet", "angle": "45 deg", "distance": "500 mm"},
+        "camera": camera(fov, cols),
         "object": {"shape": {"kind": "cylinder", "radius": f"{R} mm"}, "height": "40 mm", "inclusions": [
             {"shape": {"kind": "cylinder", "radius": "3 mm"}, "sigma": "0.05 /mm"}]}})
     frames = {"target": [], "reference": [], "backlit": []}

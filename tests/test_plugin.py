@@ -1,6 +1,6 @@
 """The plugin tutorial's example (docs/tutorials/plugins.md), installed as a package of its own, stores its output in
-a workflow like a built-in stage does: the code and pyproject.toml are read from the tutorial itself, built with pip (offline, into a folder of
-their own) and found by the real entry-point machinery in a fresh interpreter."""
+a workflow like a built-in stage does: the code and pyproject.toml are read from the tutorial itself, built with pip
+(offline, into a folder of their own) and found by the real entry-point machinery in a fresh interpreter."""
 
 from __future__ import annotations
 

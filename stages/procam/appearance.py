@@ -119,14 +119,16 @@ def fit_scattering_profile(capture: xr.Dataset, /, *, material: str, labels: Lab
     finite = np.isfinite(frames).all("delay")
     mask = (codes == names.index(material) + 1) & ~np.asarray(saturated.values) & np.asarray(finite.values)
     if not mask.any():
-        raise StageError(Problem(f"{material!r} has no pixel with a finite, unsaturated sweep", fix="check the capture"))
+        raise StageError(Problem(f"{material!r} has no pixel with a finite, unsaturated sweep",
+                                 fix="check the capture"))
     measured = np.asarray(frames.where(xr.DataArray(mask, dims=("row", "col"))).mean(("row", "col")).values,
                           np.float64)
     delays = frames["delay"].values.astype(float)
     missing = [k for k in ("scan_speed_px_per_us", "line_time_us") if k not in capture.attrs]
     if missing:
         raise StageError(Problem(f"the capture lacks attrs {missing}: the sweep's illumination is unknown",
-                                 where="capture", fix="acquire with acquire_plane_to_ray, or add them (docs/format.md)"))
+                                 where="capture",
+                                 fix="acquire with acquire_plane_to_ray, or add them (docs/format.md)"))
     speed, line_time = float(capture.attrs["scan_speed_px_per_us"]), float(capture.attrs["line_time_us"])
     t_e = what["exposure_us"]
     reach = int(np.ceil(np.abs(delays).max() * speed + (t_e + line_time) / 2 * speed)) + 1
@@ -155,7 +157,8 @@ def fit_scattering_profile(capture: xr.Dataset, /, *, material: str, labels: Lab
                 "delay": ("delay", delays, {"units": "us", "long_name": "sync delay t_d"})},
         attrs={"material": material, "fraction": fraction,
                "fraction_std": float(std[1]), "width_px": width, "width_std_px": float(std[2]),
-               "amplitude_counts": amplitude, "residual_rms_counts": float(np.sqrt(variance)), "pixels": int(mask.sum()),
+               "amplitude_counts": amplitude, "residual_rms_counts": float(np.sqrt(variance)),
+               "pixels": int(mask.sum()),
                "exposure_us": t_e, "scene": capture.attrs.get("scene", "")}))
 
 

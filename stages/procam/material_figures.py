@@ -227,13 +227,13 @@ def atlas_figure(atlas: xr.Dataset, /) -> xr.Dataset:
     Thesis §5.4.10 Acquired materials.
     """
     require_variables(atlas, ("profile", "extent", "image"), "atlas_figure")
-    reach = atlas.attrs.get("reach_px", "?")
+    reach, floor = atlas.attrs.get("reach_px", "?"), atlas.attrs.get("extent_floor", 0)
     caption = f"""A material atlas from full transport (thesis Fig. 53): (a) the white image Σ T in counts, axes in
         camera pixels, with the sites numbered; then each site's profile T(du, dv) over the projector column du
         (horizontal) and row dv (vertical) relative to its direct correspondence, a window of ±{reach} px, scaled to
         its own maximum (dimensionless, on a log scale from 10⁻³; this rig is monochrome, so no white balance;
         blank: cells the sweep never lit), titled with its extent, the RMS distance from the direct correspondence
-        of its light above {atlas.attrs.get('extent_floor', 0):g} of its maximum [px]. A Lambertian surface gives a compact peak,
+        of its light above {floor:g} of its maximum [px]. A Lambertian surface gives a compact peak,
         subsurface scattering a wider one (the more translucent, the wider); materials that differ only in albedo
         (textured styrofoam, the sponge's pink and red) share a shape; inter-reflection stretches the profile
         towards the surface the light comes from."""

@@ -264,7 +264,8 @@ def epipolar_alignment(correspondence: xr.Dataset, /, *, tolerance_rows: Positiv
     magnitude = np.abs(model[seen])
     spread = 1.4826 * np.median(np.abs((delta - model)[seen] - np.median((delta - model)[seen])))
     fitted = {"shift_rows": float(coef[0]), "shift_rows_std": float(std[0]),
-              "roll_deg": float(np.rad2deg(np.arctan(coef[1]))), "roll_deg_std": float(np.rad2deg(std[1] / (1 + coef[1] ** 2))),
+              "roll_deg": float(np.rad2deg(np.arctan(coef[1]))),
+              "roll_deg_std": float(np.rad2deg(std[1] / (1 + coef[1] ** 2))),
               "row_slope": float(coef[2]), "row_slope_std": float(std[2]),
               "median_abs_rows": float(np.median(magnitude)), "p90_abs_rows": float(np.quantile(magnitude, 0.9)),
               "residual_rows": float(spread), "tolerance_rows": float(tolerance_rows),

@@ -312,7 +312,8 @@ class HostProjector:
 
 
 def operator_norm(geometry: Geometry, mask: jnp.ndarray | None = None, *, iterations: int = 30,
-                  dtype=jnp.float32, projector: WalkProjector | MatrixProjector | HostProjector = WalkProjector()
+                  dtype=jnp.float32,
+                  projector: WalkProjector | MatrixProjector | HostProjector = WalkProjector(),  # noqa: B008 (no state)
                   ) -> jnp.ndarray:
     """‖M R‖₂ by power iteration on RᵀMR (deterministic start), used to balance step sizes; for a batch of masks
     (S, T, X), one norm per slice (S,)."""

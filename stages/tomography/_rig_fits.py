@@ -285,11 +285,12 @@ def fit_light_angle(slices, camera: Camera, stated: float, search_deg: float, st
     enough = pairs >= max(16, 0.25 * pairs.max())
     if not enough.any() or not np.isfinite(cost[enough]).any():
         raise StageError(Problem("calibrate_rig: no reversed chord is seen at any trial light angle",
-                                 fix="capture a full turn with the beam's far side in view, or give light_angle: false"))
+                                 fix="capture a full turn with the beam's far side in view, "
+                                 "or give light_angle: false"))
     params = np.array([trials[int(np.nanargmin(np.where(enough, cost, np.nan)))], 0.0])
     for _ in range(2):
         seen = _seen_pairs(params, slices, camera)
-        fit = _least_squares(lambda p: _light_residuals(p, seen), params, np.sqrt(8.0))
+        fit = _least_squares(lambda p, seen=seen: _light_residuals(p, seen), params, np.sqrt(8.0))
         params = fit.value
     # (the √8: one absorption sample enters about four pairs through the bilinear weights, and each pair twice)
     # The contour's error varies with direction (each part of the hull is cut by other views' edges); the pairs of

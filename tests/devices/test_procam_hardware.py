@@ -135,7 +135,8 @@ def test_a_sweep_the_controller_cannot_do_is_refused_before_anything_moves(tmp_p
         instruments = procam_hardware_rig(load_procam_hardware(rig_file(tmp_path, hardware.port)))
         try:
             with pytest.raises(SpecError, match=r"delays span \[-68, 34\] µs; the controller does \[-100, 30\] "
-                                                r"µs.*\n.*exposures span \[85, 170\] µs; the controller does \[10, 150\]"):
+                                                r"µs.*\n.*exposures span \[85, 170\] µs; "
+                                                r"the controller does \[10, 150\]"):
                 acquire_plane_to_ray(instruments, tmp_path / "c.zarr", DELAYS, EXPOSURES, progress=False)
         finally:
             instruments.close()

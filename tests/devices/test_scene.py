@@ -24,7 +24,8 @@ effects:
 """
 
 
-PROCAM_SCENES = {"book-candle-mirrorball", "white-materials", "white-materials-shuffled", "material-atlas", "arm-vein", "disco-glass-marble", "flat-white"}
+PROCAM_SCENES = {"book-candle-mirrorball", "white-materials", "white-materials-shuffled", "material-atlas", "arm-vein",
+                 "disco-glass-marble", "flat-white"}
 #: scenes of the pinhole projector–camera pair that films a calibration target (devices.sim.stereo_target)
 TARGET_SCENES = {"stereo-target"}
 

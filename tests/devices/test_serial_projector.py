@@ -44,7 +44,8 @@ def test_grey_levels_are_shown_at_the_projectors_8_bits_and_bad_patterns_are_ref
             with pytest.raises(DeviceError, match=message):
                 projector.show(bad)
         projector.show_line(7.0, 2.0)
-        np.testing.assert_array_equal(hardware.projector.pattern, np.rint(vertical_line((16, 32), 7.0, 2.0) * 255) / 255)
+        np.testing.assert_array_equal(hardware.projector.pattern,
+                                      np.rint(vertical_line((16, 32), 7.0, 2.0) * 255) / 255)
         projector.line.close()
 
 

@@ -142,7 +142,8 @@ def material_stores(scored: bool) -> tuple[xr.Dataset, xr.Dataset]:
     label = rng.integers(-1, 2, (6, 8))
     result = {"label": (("row", "col"), label), "image": (("row", "col"), rng.random((6, 8)))}
     if scored:
-        result |= {"true_label": (("row", "col"), label), "confusion": (("true_material", "material"), [[5, 1], [0, 9]]),
+        result |= {"true_label": (("row", "col"), label),
+                   "confusion": (("true_material", "material"), [[5, 1], [0, 9]]),
                    "brightness_accuracy": ("material", [0.5, 0.4])}
     return _lazy(xr.Dataset(result, coords={"material": names, "true_material": names})), classifier
 
@@ -176,7 +177,8 @@ def appearance() -> tuple[xr.Dataset, xr.Dataset]:
                          attrs={"material": "soap", "fraction": 0.85, "fraction_std": 0.01, "width_px": 9.0,
                                 "width_std_px": 0.1})
     render = xr.Dataset({"image": (("render", "row", "col"), rng.random((2, 6, 8)))},
-                        coords={"render": ["lambertian", "subsurface"]}, attrs={"mesh": "teapot", "width_render_px": 9.0})
+                        coords={"render": ["lambertian", "subsurface"]},
+                        attrs={"mesh": "teapot", "width_render_px": 9.0})
     return _lazy(profile), _lazy(render)
 
 

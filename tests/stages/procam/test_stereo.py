@@ -68,7 +68,8 @@ def test_the_planted_pair_is_recovered_and_its_rows_rectified(tmp_path):
         calibration = calibrate_procam_stereo(target)
     a = calibration.attrs
     k_c, k_p = calibration["camera_matrix"].values, calibration["projector_matrix"].values
-    for got, want, std in ((k_c[0, 0], 400, a["camera_focal_std_px"][0]), (k_p[0, 0], 320, a["projector_focal_std_px"][0])):
+    for got, want, std in ((k_c[0, 0], 400, a["camera_focal_std_px"][0]),
+                           (k_p[0, 0], 320, a["projector_focal_std_px"][0])):
         assert abs(got - want) < min(0.01 * want, 3 * std + 0.5)
     assert abs(a["roll_deg"] - 1.5) < 0.1 and abs(a["pitch_deg"]) < 0.1
     assert abs(a["yaw_deg"] - np.degrees(np.arctan2(100, 600))) < 0.2

@@ -44,7 +44,7 @@ def scene(model: str = "perspective", *, offset: float = 3.7, true_angle: float 
                    "principal_point": [f"{(COLS - 1) / 2} px", f"{(ROWS - 1) / 2} px"]}})
 
 
-def capture(spec: Scene, angles=np.arange(0.0, 360.0, 1.0), seed: int = 0) -> xr.Dataset:
+def capture(spec: Scene, angles=np.arange(0.0, 360.0, 1.0), seed: int = 0) -> xr.Dataset:  # noqa: B008 (read only)
     """Frames as the rig renders them (the truth), shot and read noise, attrs as its records state them."""
     rng = np.random.default_rng(seed)
     frames = {"target": [], "reference": [], "backlit": []}
