@@ -294,7 +294,10 @@ def fit_light_angle(slices, camera: Camera, stated: float, search_deg: float, st
         params = fit.value
     # (the √8: one absorption sample enters about four pairs through the bilinear weights, and each pair twice)
     # The contour's error varies with direction (each part of the hull is cut by other views' edges); the pairs of
-    # each quarter turn see another part of it. Their fits' spread, over √4, is the systematic part of θ_l's error.
+    # each quarter turn see another part of it. Their fits' spread is the scale of θ_l's systematic error, not
+    # divided by √4: the quarters share the part of the error that does not vary with direction, which their spread
+    # cannot show and which, over simulated rigs, grows with it (benchmarks/calibrate_rig_coverage.py --vary: over
+    # √4, rigs with a wide spread were off by 3 standard uncertainties).
     if not quarter_spread:
         return fit, trials, cost, pairs
     quarters = []
@@ -304,7 +307,7 @@ def fit_light_angle(slices, camera: Camera, stated: float, search_deg: float, st
         if sum(len(d.value) for d, _ in part) >= 16:
             quarters.append(_least_squares(lambda p, part=part: _light_residuals(p, part), params, 1.0).value)
     if len(quarters) >= 2:
-        spread = np.std(quarters, axis=0, ddof=1) / np.sqrt(len(quarters))
+        spread = np.std(quarters, axis=0, ddof=1)
         fit = Fit(fit.value, np.hypot(fit.std, spread), fit.rms, fit.count, fit.converged)
     return fit, trials, cost, pairs
 

@@ -27,12 +27,13 @@ independent, so each uncertainty adds what the data cannot average away: the axi
 (a prism's rows repeat one silhouette) and floored by the edge quantisation, 1/√(12·n) px for n distinct sub-pixel
 edge positions (an object centred on the axis has edges that never move: n = 1, 0.29 px); θ_l's is inflated by √8
 (one absorption sample enters about four bilinear pairs, each pair twice), and adds, in quadrature, the spread of
-θ_l fitted on each quarter turn's pairs (the hull's error varies with direction), how far θ_l moves when the axis
+θ_l fitted on each quarter turn's pairs (the hull's error varies with direction; the spread itself, not its standard
+error: the quarters share the rest of that error), how far θ_l moves when the axis
 moves by its uncertainty, and how far it moves with the angle grid: half the difference of θ_l fitted on the even
 steps' absorption and on the odd steps' (an even number of steps, at least 16;
 :func:`~selpath.stages.tomography._rig_fits.grid_phase_spread`; the
 bilinear pairs' error depends on where the grid falls against the inclusions, the same for every subset of one
-grid), and the method's own error that no split of one capture shows (``method_std_deg``, 0.1°). How often these
+grid), and the method's own error that no split of one capture shows (``method_std_deg``, 0.05°). How often these
 intervals hold the truth is measured over simulated rigs in ``benchmarks/calibrate_rig_coverage.py``
 (docs/results.md).
 
@@ -118,7 +119,7 @@ def _full_turn(angles: np.ndarray, what: str) -> None:
 @stage("calibrate_rig", kind=RIG_CALIBRATION)
 def calibrate_rig(capture: xr.Dataset, /, *, axis: bool = True, light_angle: bool = True,
                   search_deg: Positive = 5.0, search_step_deg: Positive = 0.25, rows: Count = 32,
-                  min_signal: NonNegative = 1.0, method_std_deg: NonNegative = 0.1) -> xr.Dataset:
+                  min_signal: NonNegative = 1.0, method_std_deg: NonNegative = 0.05) -> xr.Dataset:
     """Estimate the rotation axis's column and the light angle θ_l from a capture, with uncertainties.
 
     The result holds the estimates, their standard uncertainties, the values the capture stated and the fit
@@ -146,9 +147,9 @@ def calibrate_rig(capture: xr.Dataset, /, *, axis: bool = True, light_angle: boo
     method_std_deg : float
         The method's own error in θ_l, added in quadrature to the uncertainty the capture shows [degree]: what
         no split of one capture reveals (the pixels' footprint against the model's single rays, the hull). The
-        default is the scale of θ_l's errors over simulated rigs (the median absolute error / 0.6745 of 16 drawn
-        rigs, ``benchmarks/calibrate_rig_coverage.py --vary``: 0.096°); a lab that has validated its rig against
-        a known θ_l sets its own.
+        default makes the errors over 16 simulated rigs one standard uncertainty in the mean square (RMS z = 1;
+        ``benchmarks/calibrate_rig_coverage.py --vary``, the rigs of generator seed 57); a lab that has validated
+        its rig against a known θ_l sets its own.
 
     Returns
     -------

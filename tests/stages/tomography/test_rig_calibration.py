@@ -129,13 +129,13 @@ def test_a_right_record_stays_put():
 
 @pytest.mark.slow
 def test_the_method_term_adds_to_the_light_angles_uncertainty_in_quadrature(miscalibrated):
-    """``method_std_deg`` (#57; default 0.1°) moves θ_l's stated uncertainty, never θ_l: the same capture calibrated
-    with 0° and with the default differs by exactly 0.1² in the variance (the terms are independent), and the
+    """``method_std_deg`` (#57; default 0.05°) moves θ_l's stated uncertainty, never θ_l: the same capture calibrated
+    with 0° and with the default differs by exactly 0.05² in the variance (the terms are independent), and the
     axis column is untouched."""
     _, cap, cal = miscalibrated
     bare = calibrate_rig(cap, method_std_deg=0.0)
     assert float(bare["light_angle"]) == float(cal["light_angle"])
-    assert float(cal["light_angle_std"]) ** 2 - float(bare["light_angle_std"]) ** 2 == pytest.approx(0.1**2, rel=1e-9)
+    assert float(cal["light_angle_std"]) ** 2 - float(bare["light_angle_std"]) ** 2 == pytest.approx(0.05**2, rel=1e-9)
     assert float(bare["axis_column_std"]) == float(cal["axis_column_std"])
 
 
