@@ -19,7 +19,7 @@ from dask.callbacks import Callback
 from rich.progress import Progress, TextColumn, TimeElapsedColumn
 
 from selpath.pipeline.errors import EnvironmentFault, Problem
-from selpath.pipeline.progress import BAR_COLUMNS, show_bars  # noqa: F401 (re-exported)
+from selpath.pipeline.progress import BAR_COLUMNS, show_bars
 
 #: Environment of worker processes: one thread for XLA and BLAS each, since dask owns the parallelism.
 WORKER_ENV = {

@@ -45,6 +45,10 @@ class Geometry:
     extent: float
     method: Literal["joseph", "binary"] = "joseph"
 
+    def __post_init__(self):  # tuples of floats: the geometry is a static (hashed) argument of the jitted walk
+        for name in ("theta_deg", "x"):
+            object.__setattr__(self, name, tuple(float(v) for v in getattr(self, name)))
+
     @classmethod
     def from_grids(cls, theta_deg, x, n: int, extent: float | None = None,
                    method: Literal["joseph", "binary"] = "joseph") -> Geometry:

@@ -147,7 +147,7 @@ def calibrate_rig(capture: xr.Dataset, /, *, axis: bool = True, light_angle: boo
     method_std_deg : float
         The method's own error in θ_l, added in quadrature to the uncertainty the capture shows [degree]: what
         no split of one capture reveals (the pixels' footprint against the model's single rays, the hull). The
-        default makes the errors over 16 simulated rigs one standard uncertainty in the mean square (RMS z = 1;
+        default makes the errors over 16 simulated rigs about one standard uncertainty in the mean square (RMS z 0.95;
         ``benchmarks/calibrate_rig_coverage.py --vary``, the rigs of generator seed 57); a lab that has validated
         its rig against a known θ_l sets its own.
 

@@ -139,6 +139,39 @@ def test_the_method_term_adds_to_the_light_angles_uncertainty_in_quadrature(misc
     assert float(bare["axis_column_std"]) == float(cal["axis_column_std"])
 
 
+@pytest.mark.slow
+def test_the_quarter_turns_add_their_whole_spread_to_the_light_angles_variance(miscalibrated, monkeypatch):
+    """θ_l's quarter-turn term (#57) is the sample variance of the four quarter fits, not its standard error (a
+    quarter of it): the quarters share the direction-independent part of the error. Recorded on the test rig: the
+    fit with the term against the same fit without it, and the quarter fits themselves."""
+    from selpath.stages.tomography import _rig_fits
+    from selpath.stages.tomography import rig_calibration as rc
+
+    _, cap, _ = miscalibrated
+    seen, quarters, fit, least_squares = {}, [], rc.fit_light_angle, _rig_fits._least_squares
+
+    def recording_least_squares(residuals, params, scale):
+        result = least_squares(residuals, params, scale)
+        if scale == 1.0:  # the quarter fits (the whole turn's are scaled by √8)
+            quarters.append(float(result.value[0]))
+        return result
+
+    def both(*args, **kwargs):
+        if not kwargs.get("quarter_spread", True) or "with" in seen:
+            return fit(*args, **kwargs)
+        seen["without"] = float(fit(*args, **kwargs, quarter_spread=False)[0].std[0])
+        monkeypatch.setattr(_rig_fits, "_least_squares", recording_least_squares)
+        out = fit(*args, **kwargs)
+        monkeypatch.setattr(_rig_fits, "_least_squares", least_squares)
+        seen["with"] = float(out[0].std[0])
+        return out
+
+    monkeypatch.setattr(rc, "fit_light_angle", both)
+    calibrate_rig(cap)
+    assert len(quarters) == 4
+    assert seen["with"] ** 2 - seen["without"] ** 2 == pytest.approx(np.var(quarters, ddof=1), rel=1e-6)
+
+
 def test_silhouette_edges_are_pixel_edges_on_binary_frames_and_sub_pixel_on_blurred_ones():
     frame = np.full((1, 40, 60), 100.0)
     frame[0, :, 5:12] = 0.0  # object on columns 5..11: outer edges at 4.5 and 11.5
