@@ -366,7 +366,7 @@ def _dtd(t, xp=jnp):
 
 
 def _caster(dtype):
-    """Cast to ``dtype``: a host array on the host (an eager device cast compiles one program per shape), a device
-    array or tracer by JAX."""
+    """Cast to ``dtype``: a host array on the host and moved by ``jax.device_put`` (an eager device cast, and
+    ``jnp.asarray`` of a host array, each compile one program per shape), a device array or tracer by JAX."""
     dtype = jnp.dtype(dtype)
-    return lambda a: jnp.asarray(a, dtype=dtype) if isinstance(a, jax.Array) else jnp.asarray(np.asarray(a, dtype))
+    return lambda a: jnp.asarray(a, dtype=dtype) if isinstance(a, jax.Array) else jax.device_put(np.asarray(a, dtype))

@@ -125,8 +125,9 @@ class _Start(NamedTuple):
 
 
 def _host_take(rows: jnp.ndarray, order: np.ndarray) -> jnp.ndarray:
-    """``rows[order]`` permuted on the host: an eager gather on the device compiles one program per pool shape."""
-    return jnp.asarray(np.asarray(rows)[order])
+    """``rows[order]`` permuted on the host and put back with ``jax.device_put``: an eager gather on the device, and
+    ``jnp.asarray`` of a host array, each compile one program per pool shape."""
+    return jax.device_put(np.asarray(rows)[order])
 
 
 class _Clock:
@@ -262,7 +263,7 @@ class DemuxADMM:
         p = data.shape[0]
         pad = np.zeros(pool_size(p, slots) - p, int)
         pool = (np.where(weight, data, 0.0), weight, flags)
-        run = self._run(clock, ops, *(jnp.asarray(np.concatenate([a, a[pad]]).astype(dtype)) for a in pool),
+        run = self._run(clock, ops, *(jax.device_put(np.concatenate([a, a[pad]]).astype(dtype)) for a in pool),
                         masked=not bool(weight.all()) or any_clipped, slots=slots)
         transport, iterations, done, objective, gap = (np.asarray(a)[:p] for a in run[:5])
         start = _Start(*(np.asarray(a)[:p] for a in run[5]))

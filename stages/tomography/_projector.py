@@ -104,12 +104,12 @@ def _groups(geometry: Geometry, dtype):
     """Per walking axis: (whether it walks the rows, the angles' indices, their taps in ``dtype``)."""
     t = np.deg2rad(np.asarray(geometry.theta_deg))
     c, s = np.cos(t), np.sin(t)
-    xs, centres = jnp.asarray(geometry.x, dtype), jnp.asarray(geometry.centres, dtype)
+    xs, centres = np.asarray(geometry.x, dtype), np.asarray(geometry.centres, dtype)
     nearest, origin = geometry.method == "binary", -geometry.extent
     by_rows, by_cols = geometry._by_axis()
     # rows: step through y_k, interpolate along x (cos θ·x + sin θ·y_k = X); columns: the other way round (the
-    # angles picked on the host: indexing a device array outside jit compiles a gather per shape)
-    return tuple((rows, index, _taps(jnp.asarray(along[index], dtype), jnp.asarray(across[index], dtype), xs, centres,
+    # grids cast on the host and handed to the jitted taps: eager device indexing and casts compile per shape)
+    return tuple((rows, index, _taps(np.asarray(along[index], dtype), np.asarray(across[index], dtype), xs, centres,
                                      geometry.cell, origin, nearest))
                  for rows, index, along, across in ((True, by_rows, c, s), (False, by_cols, s, c)) if len(index))
 
