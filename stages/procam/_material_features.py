@@ -17,6 +17,15 @@ pixels unlike every trained material.
   boundary is an edge in brightness), where a hard segmentation cuts a slab's edge strips into regions of their own.
   :func:`guided_smooth`; its radius is ``train_material_classifier``'s ``smooth_px`` (docs/results.md: chosen by
   cross-validation over row bands of the dev set's training placement).
+- **Objects.** Pooling and smoothing act over a fixed neighbourhood; a capture of separate objects on a background
+  (the dev set's slabs before a wall) is better served by finding the objects and letting each take the class most
+  of its known pixels take (:func:`objects`, :func:`vote`). The objects are grown from the pixels the classifier
+  knows (those within the calibrated novelty distance): their connected cores seed a watershed (scikit-image) on
+  the gradient of the regular image's log, the rest of the frame seeds the background some pixels away from every
+  core, and the band between goes to whichever side the brightness edge puts it on. An object's edge strip, where
+  light leaks out of its sides and its profile narrows, then takes its interior's class and is not flagged
+  (docs/results.md: on the dev set's test placement 90.8 % per pixel against 76.7 % smoothed alone, the slabs'
+  pixels flagged 14.5 % against 24.9 %).
 - **Spatial blocks.** Neighbouring pixels share light and noise, so cross-validation over random pixels leaks:
   folds are bands of rows (:func:`row_blocks`), as a new capture shares no pixel with the training one.
 - **Unlike training.** A pixel's distance to its nearest training pixels (k = 5, in the SVM's standardised space) is
@@ -35,6 +44,8 @@ BLOCKS_PER_FOLD = 2
 GUIDED_EPS = 1e-2
 #: neighbours whose mean distance scores a pixel's novelty
 NEIGHBOURS = 5
+#: an object's core: at least this many connected pixels within the novelty distance [px]
+OBJECT_MIN_PX = 30
 
 
 def pool(frames: np.ndarray, regions: np.ndarray, window: int) -> np.ndarray:
@@ -94,6 +105,68 @@ def guided_smooth(scores: np.ndarray, area: np.ndarray, usable: np.ndarray, radi
     values = np.where(usable[..., None], scores, 0.0).astype(np.float32)
     return np.stack([cv2.ximgproc.guidedFilter(guide, np.ascontiguousarray(values[..., k]), int(radius), eps)
                      for k in range(values.shape[-1])], axis=-1)
+
+
+def objects(distance: np.ndarray, threshold: float, area: np.ndarray, usable: np.ndarray, margin: int,
+            min_px: int = OBJECT_MIN_PX) -> np.ndarray:
+    """Objects of trained materials in a frame: (row, col) codes 1 … n, 0 for the background, −1 where a pixel is not
+    ``usable``.
+
+    Cores are the usable pixels whose novelty ``distance`` is at most ``threshold`` (the classifier's calibrated
+    ``novelty_distance``), opened by one pixel and kept where at least ``min_px`` connect (8-connected); the other
+    usable pixels seed the background once eroded by ``margin`` [px]; a watershed on the Sobel gradient of log
+    ``area`` (the regular image: any intensity scale) assigns the pixels between to a core or to the background, so
+    an object ends at its edge in brightness. No core: everything is background.
+
+    >>> area = np.full((12, 12), 10.0); area[2:10, 3:8] = 40.0          # one bright object on a wall
+    >>> distance = np.where(area > 20, 0.5, 5.0); distance[2:10, 3] = 5.0  # its left column looks unlike training
+    >>> found = objects(distance, 1.0, area, np.ones((12, 12), bool), margin=2, min_px=4)
+    >>> bool((found[3:9, 3] == 1).all()), int((found[area < 20] == 1).sum())  # the column joins it; the wall does not
+    (True, 0)
+    """
+    from scipy import ndimage
+    from skimage.filters import sobel
+    from skimage.segmentation import watershed
+
+    usable = np.asarray(usable, bool) & np.isfinite(area) & (np.asarray(area) > 0)
+    core = ndimage.binary_opening(usable & (np.nan_to_num(distance, nan=np.inf) <= threshold))
+    codes, count = ndimage.label(core, structure=np.ones((3, 3)))
+    sizes = np.bincount(codes.ravel(), minlength=count + 1)
+    keep = sizes >= min_px
+    keep[0] = False
+    if not keep.any():
+        return np.where(usable, 0, -1)
+    renumber = np.zeros(count + 1, np.int64)
+    renumber[keep] = np.arange(1, int(keep.sum()) + 1)
+    markers = renumber[codes]
+    background = int(keep.sum()) + 1
+    wall = usable & (markers == 0)
+    markers[ndimage.binary_erosion(wall, iterations=margin) if margin > 0 else wall] = background
+    log = np.log(np.where(usable, area, 1.0))
+    log = np.where(usable, log, log[usable].min())
+    found = watershed(sobel(log), markers, mask=usable)
+    return np.where(usable, np.where(found == background, 0, found), -1)
+
+
+def vote(label: np.ndarray, regions: np.ndarray, voters: np.ndarray | None = None) -> np.ndarray:
+    """``label`` (row, col; class index, −1 none) with every pixel of a region of ``regions`` (codes ≥ 1) given the
+    class most of that region's classified ``voters`` take (ties: the lower index; None: every pixel votes; a region
+    without a voter keeps its pixels' own); pixels of code ≤ 0 keep their own.
+
+    >>> label, regions = np.array([[0, 1, 1, 2], [1, 1, -1, 2]]), np.array([[1, 1, 1, 0], [1, 1, 1, 0]])
+    >>> vote(label, regions).tolist()
+    [[1, 1, 1, 2], [1, 1, 1, 2]]
+    >>> vote(label, regions, voters=label == 0).tolist()  # only the pixels the classifier knows vote
+    [[0, 0, 0, 2], [0, 0, 0, 2]]
+    """
+    label = np.asarray(label)
+    regions = np.asarray(regions)
+    inside = (regions > 0) & (label >= 0) & (True if voters is None else np.asarray(voters, bool))
+    classes = int(label.max(initial=0)) + 1
+    counts = np.zeros((int(regions.max(initial=0)) + 1, classes), np.int64)
+    np.add.at(counts, (regions[inside], label[inside]), 1)
+    winner = np.where(counts.sum(axis=1) > 0, counts.argmax(axis=1), -1)[np.maximum(regions, 0)]
+    return np.where((regions > 0) & (winner >= 0), winner, label).astype(label.dtype)
 
 
 def zero_of(delays: np.ndarray) -> int:

@@ -3,9 +3,10 @@ rendered outside selpath: six translucent slabs, two placements, 12-bit noisy fr
 (``selpath import`` with a spec written from its README, labels from its .npz), trained on placement D1 and scored
 on D2 through ``selpath run``; the plain pipeline (no folding, no pooling) beside it in the same run.
 
-The bounds are the numbers measured at #55's first step (docs/results.md), less a margin for the noise of a
-retrain on another machine: they guard against a regression, they are not the issue's goals (≥ 80 % per pixel,
-every class ≥ 65 %, trained pixels flagged ≤ 5 %), which this step does not reach. Skipped where the set is absent
+The bounds are the numbers measured (docs/results.md), less a margin for the noise of a retrain on another
+machine. With ``objects`` the pipeline meets #55's accuracy goals (≥ 80 % per pixel, every class ≥ 65 %) and the
+background's flag goal (≥ 90 %); the slabs' (≤ 5 % flagged) it still misses, and the bound here guards the measured
+14.5 %. Skipped where the set is absent
 (``SELPATH_MATERIALS_DEV`` names another folder)."""
 
 from __future__ import annotations
@@ -79,16 +80,23 @@ def scored(tmp_path_factory):
           with: {store: D2.zarr}
         """), "  ")
     workflow += textwrap.indent(_steps("plain", False, 1) + _steps("pooled", True, 15)
-                               + _steps("smoothed", True, 15, 4), "  ") + textwrap.dedent("""\
+                               + _steps("smoothed", True, 15, 4) + textwrap.dedent(f"""\
+          - id: objects
+            stage: classify_materials
+            with: {{profiles: $smoothed_d2, classifier: $smoothed_classifier, labels: image,
+                    label_image: {DEV}/D2-materials-sweep.npz:labels, classes: {CLASSES}, objects: true}}
+        """), "  ") + textwrap.dedent("""\
         outputs:
           plain: {from: plain, store: out/plain.zarr}
           pooled: {from: pooled, store: out/pooled.zarr}
           pooled_classifier: {from: pooled_classifier, store: out/pooled-classifier.zarr}
           smoothed: {from: smoothed, store: out/smoothed.zarr}
+          objects: {from: objects, store: out/objects.zarr}
         """)
     (folder / "wf.yaml").write_text(workflow)
     selpath.run(folder / "wf.yaml")
-    return {name: selpath.open_store(folder / f"out/{name}.zarr").load() for name in ("plain", "pooled", "smoothed")}
+    return {name: selpath.open_store(folder / f"out/{name}.zarr").load()
+            for name in ("plain", "pooled", "smoothed", "objects")}
 
 
 def test_pooling_within_objects_lifts_every_class_over_the_plain_pipeline(scored):
@@ -120,3 +128,20 @@ def test_the_never_trained_background_is_flagged(scored):
     background = (pooled["true_label"] < 0) & (pooled["label"] >= 0)
     assert float(pooled["unlike_training"].where(background).mean()) >= 0.9
     assert float(pooled["unlike_training_fraction"]) <= 0.3
+
+
+def test_objects_meet_the_accuracy_goals_and_flag_the_background_not_the_slabs(scored):
+    """#55's goals on the test placement: ≥ 80 % per pixel, every class ≥ 65 %, the never-trained background ≥ 90 %
+    flagged, trained pixels ≤ 5 %. The smoothed pipeline's classes voted within objects grown from the pixels the
+    classifier knows (margin 4 px, chosen on the training placement), measured in one run: 90.8 % per pixel (smoothed
+    alone 76.7 %), worst class 79 % (the dense m4 at the frame's edge; the absorbing m5 81 %), background 97.3 %
+    flagged; slabs 14.5 % flagged (smoothed alone 24.9 %), the one goal still missed: a band of m1 in shadow and m4's
+    half nearest its neighbour form no core."""
+    objects, smoothed = scored["objects"], scored["smoothed"]
+    assert float(objects["overall_accuracy"]) >= 0.85, float(objects["overall_accuracy"])
+    assert float(objects["accuracy"].min()) >= 0.7, objects["accuracy"].values
+    background = (objects["true_label"] < 0) & (objects["label"] >= 0)
+    assert float(objects["unlike_training"].where(background).mean()) >= 0.9
+    assert float(objects["unlike_training_fraction"]) <= 0.2
+    assert float(objects["unlike_training_fraction"]) < float(smoothed["unlike_training_fraction"]) - 0.05
+    assert objects.attrs["objects"] == 1 and int(objects["object"].max()) >= 6
