@@ -25,7 +25,7 @@ pixels unlike every trained material.
   core, and the band between goes to whichever side the brightness edge puts it on. An object's edge strip, where
   light leaks out of its sides and its profile narrows, then takes its interior's class and is not flagged
   (docs/results.md: on the dev set's test placement 90.8 % per pixel against 76.7 % smoothed alone, the slabs'
-  pixels flagged 14.5 % against 24.9 %).
+  pixels flagged 14.4 % against 24.9 %).
 - **Spatial blocks.** Neighbouring pixels share light and noise, so cross-validation over random pixels leaks:
   folds are bands of rows (:func:`row_blocks`), as a new capture shares no pixel with the training one.
 - **Unlike training.** A pixel's distance to its nearest training pixels (k = 5, in the SVM's standardised space) is
@@ -114,9 +114,9 @@ def objects(distance: np.ndarray, threshold: float, area: np.ndarray, usable: np
 
     Cores are the usable pixels whose novelty ``distance`` is at most ``threshold`` (the classifier's calibrated
     ``novelty_distance``), opened by one pixel and kept where at least ``min_px`` connect (8-connected); the other
-    usable pixels seed the background once eroded by ``margin`` [px]; a watershed on the Sobel gradient of log
-    ``area`` (the regular image: any intensity scale) assigns the pixels between to a core or to the background, so
-    an object ends at its edge in brightness. No core: everything is background.
+    usable pixels more than ``margin`` [px] from every core (Euclidean) seed the background; a watershed on the Sobel
+    gradient of log ``area`` (the regular image: any intensity scale) assigns the pixels between to a core or to the
+    background, so an object ends at its edge in brightness. No core: everything is background.
 
     >>> area = np.full((12, 12), 10.0); area[2:10, 3:8] = 40.0          # one bright object on a wall
     >>> distance = np.where(area > 20, 0.5, 5.0); distance[2:10, 3] = 5.0  # its left column looks unlike training
@@ -140,8 +140,7 @@ def objects(distance: np.ndarray, threshold: float, area: np.ndarray, usable: np
     renumber[keep] = np.arange(1, int(keep.sum()) + 1)
     markers = renumber[codes]
     background = int(keep.sum()) + 1
-    wall = usable & (markers == 0)
-    markers[ndimage.binary_erosion(wall, iterations=margin) if margin > 0 else wall] = background
+    markers[usable & (ndimage.distance_transform_edt(markers == 0) > margin)] = background
     log = np.log(np.where(usable, area, 1.0))
     log = np.where(usable, log, log[usable].min())
     found = watershed(sobel(log), markers, mask=usable)
@@ -151,13 +150,13 @@ def objects(distance: np.ndarray, threshold: float, area: np.ndarray, usable: np
 def vote(label: np.ndarray, regions: np.ndarray, voters: np.ndarray | None = None) -> np.ndarray:
     """``label`` (row, col; class index, −1 none) with every pixel of a region of ``regions`` (codes ≥ 1) given the
     class most of that region's classified ``voters`` take (ties: the lower index; None: every pixel votes; a region
-    without a voter keeps its pixels' own); pixels of code ≤ 0 keep their own.
+    without a voter keeps its pixels' own); pixels of code ≤ 0, and unclassified pixels (−1), keep their own.
 
     >>> label, regions = np.array([[0, 1, 1, 2], [1, 1, -1, 2]]), np.array([[1, 1, 1, 0], [1, 1, 1, 0]])
     >>> vote(label, regions).tolist()
-    [[1, 1, 1, 2], [1, 1, 1, 2]]
+    [[1, 1, 1, 2], [1, 1, -1, 2]]
     >>> vote(label, regions, voters=label == 0).tolist()  # only the pixels the classifier knows vote
-    [[0, 0, 0, 2], [0, 0, 0, 2]]
+    [[0, 0, 0, 2], [0, 0, -1, 2]]
     """
     label = np.asarray(label)
     regions = np.asarray(regions)
@@ -166,7 +165,7 @@ def vote(label: np.ndarray, regions: np.ndarray, voters: np.ndarray | None = Non
     counts = np.zeros((int(regions.max(initial=0)) + 1, classes), np.int64)
     np.add.at(counts, (regions[inside], label[inside]), 1)
     winner = np.where(counts.sum(axis=1) > 0, counts.argmax(axis=1), -1)[np.maximum(regions, 0)]
-    return np.where((regions > 0) & (winner >= 0), winner, label).astype(label.dtype)
+    return np.where((regions > 0) & (winner >= 0) & (label >= 0), winner, label).astype(label.dtype)
 
 
 def zero_of(delays: np.ndarray) -> int:
