@@ -20,7 +20,8 @@ from selpath.stages.procam.figures import display_top
 MATERIAL_SIZE = (12.0, 3.0)
 
 
-def _draw_materials(image, delays, mean, names, label, hidden, confusion, brightness_accuracy) -> np.ndarray:
+def _draw_materials(image, delays, mean, names, label, hidden, confusion, brightness_accuracy,
+                    objects=None) -> np.ndarray:
     from matplotlib.colors import ListedColormap
 
     fig, axes = panels(1, 4, size=MATERIAL_SIZE, width_ratios=[1.3, 1.1, 1.3, 1.0])
@@ -39,6 +40,8 @@ def _draw_materials(image, delays, mean, names, label, hidden, confusion, bright
     shown = np.ma.masked_where((label < 0) | hidden, label)
     axes[2].imshow(shown, cmap=ListedColormap(colours), vmin=-0.5, vmax=len(names) - 0.5, interpolation="nearest")
     axes[2].set_facecolor("black")
+    if objects is not None and (objects > 0).any():  # each object's outline
+        axes[2].contour(objects > 0, levels=[0.5], colors="white", linewidths=0.6)
     axes[2].set_title("(c) classified by delay profile", fontsize=8)
     pixel_axes(axes[2], ylabel=None, fontsize=7)
     if confusion is None:
@@ -89,24 +92,29 @@ def material_figure(classification: xr.Dataset, classifier: xr.Dataset, /) -> xr
                "the brightness-only baseline's mean per-class accuracy in the title" if scored else
                "no confusion matrix: the capture was classified without labels")
     made = "delay sweep at one exposure" if source == "plane_to_ray_capture" else "demultiplexed transport"
+    found = "object" in classification.data_vars
+    outlined = ("; white outlines: the objects found, each classified as one (classify_materials's objects)"
+                if found else "")
     caption = f"""Material recognition from delay profiles (thesis Fig. 51 and Fig. 52): (a) the regular image of the
         capture classified (the profiles' area, counts; the materials are all white); (b) each class's mean
         training profile over the sync delay t_d [µs], divided by its area so albedo cancels (from a {made});
         (c) every pixel classified by an RBF-kernel SVM on its profile (C = {classifier.attrs.get('svm_C', '?')},
         γ = {classifier.attrs.get('svm_gamma', '?')} per delay count, by {classifier.attrs.get('folds', '?')}-fold
-        cross-validation; black: no usable profile{unlabelled}); (d) {panel_d}."""
+        cross-validation; black: no usable profile{unlabelled}{outlined}); (d) {panel_d}."""
     args = [classification["image"].data, classifier["delay"].values, classifier["mean_profile"].values, names,
             classification["label"].data,
             classification["true_label"].data < 0 if scored else (
                 classification["unlike_training"].data if "unlike_training" in classification.data_vars
                 else np.zeros(classification["label"].shape, bool)),
             classification["confusion"].data if scored else None,
-            classification["brightness_accuracy"].data if scored else None]
+            classification["brightness_accuracy"].data if scored else None,
+            classification["object"].data if found else None]
 
-    def render(image, delays, mean, names, label, hidden, confusion, brightness):
+    def render(image, delays, mean, names, label, hidden, confusion, brightness, objects):
         return _draw_materials(np.asarray(image), delays, mean, names, np.asarray(label), np.asarray(hidden),
                                None if confusion is None else np.asarray(confusion),
-                               None if brightness is None else np.asarray(brightness))
+                               None if brightness is None else np.asarray(brightness),
+                               None if objects is None else np.asarray(objects))
 
     return as_figure(render, *args, caption=caption, size=MATERIAL_SIZE)
 

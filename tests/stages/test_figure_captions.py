@@ -318,3 +318,21 @@ def test_the_reconstruction_figure_crops_to_the_object_and_shows_the_error():
     blue = [(p[:, 2] - p[:, 0] > 0.3).mean() for p in (_panel_colours(i, 0.6, 0.92, 0.62, 0.8) for i in
                                                           (exact, wrong))]
     assert blue[0] == 0 and blue[1] > 0.05, blue
+
+
+def test_the_material_figure_outlines_the_objects_found():
+    """A classification made with ``objects`` carries ``object``: panel (c) outlines each object in white (the
+    unscored label map is coloured, never white) and the caption says so; without it, no outline is drawn."""
+    stage = default_registry()["material_figure"]
+    classification, classifier = material_stores(scored=False)
+    objects = np.zeros((6, 8), np.int32)
+    objects[1:5, 2:6] = 1
+    outlined = stage(classification.assign(object=(("row", "col"), objects)), classifier)
+    plain = stage(classification, classifier)
+    assert "white outlines: the objects found" in outlined.attrs["caption"]
+    assert "outlines" not in plain.attrs["caption"]
+    a, b = outlined["image"].values, plain["image"].values
+    changed = (a != b).any(axis=-1)
+    cols = np.flatnonzero(changed.any(axis=0))
+    assert changed.sum() > 50 and a.shape[1] * 0.55 < cols.min() < cols.max() < a.shape[1] * 0.8  # panel (c) only
+    assert a[changed][:, :3].mean() > b[changed][:, :3].mean() + 40  # lighter: the white outline over the colours
