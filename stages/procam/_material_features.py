@@ -38,6 +38,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from selpath.pipeline.errors import Problem, StageError
+
 #: spatial blocks of the cross-validation per fold (bands of rows over the labelled pixels' span)
 BLOCKS_PER_FOLD = 2
 #: the guided filter's regularisation ε, on the guide's [0, 1] scale (docs/results.md: 1e-2 and 1e-3 within a point)
@@ -212,6 +214,22 @@ def block_folds(folds: int, seed: int):
     return StratifiedGroupKFold(folds, shuffle=True, random_state=seed)
 
 
+def widest_within_error(results: list[dict], best: list[int], folds: int) -> int:
+    """Of candidates ordered narrowest to widest, each with its grid search's ``cv_results_`` and ``best_index_``, the
+    widest whose best mean score lies within one standard error (std over the folds / √folds) of the best candidate's
+    (Breiman's one-standard-error rule, the wider side preferred: fewer choices made on noise).
+
+    >>> widest_within_error([{"mean_test_score": [0.90], "std_test_score": [0.02]},
+    ...                      {"mean_test_score": [0.95], "std_test_score": [0.02]},
+    ...                      {"mean_test_score": [0.94], "std_test_score": [0.02]}], [0, 0, 0], 4)
+    2
+    """
+    means = [float(r["mean_test_score"][k]) for r, k in zip(results, best, strict=True)]
+    top = int(np.argmax(means))
+    floor = means[top] - float(results[top]["std_test_score"][best[top]]) / np.sqrt(folds)
+    return max(k for k, m in enumerate(means) if m >= floor)
+
+
 def novelty_threshold(standard: np.ndarray, truth: np.ndarray, blocks: np.ndarray, folds: int, seed: int,
                       flag_rate: float) -> float:
     """Cross-fitted split-conformal threshold on the mean distance to the :data:`NEIGHBOURS` nearest training pixels:
@@ -227,3 +245,27 @@ def novelty_threshold(standard: np.ndarray, truth: np.ndarray, blocks: np.ndarra
             standard[held])[0].mean(axis=1)
     level = min(1.0, np.ceil((1 - flag_rate) * (len(scores) + 1)) / len(scores))
     return float(np.quantile(scores, level, method="higher"))
+
+
+def training_sample(codes: np.ndarray, flags: np.ndarray, names: tuple[str, ...], per_class: int, folds: int,
+                    seed: int) -> np.ndarray:
+    """Flat indices of up to ``per_class`` labelled pixels with usable profiles of each class (seeded)."""
+    rng = np.random.default_rng(seed)
+    usable = (flags == 0).ravel()
+    chosen, problems = [], []
+    for k, name in enumerate(names, start=1):
+        labelled = codes.ravel() == k
+        index = np.flatnonzero(labelled & usable)
+        if labelled.any() and index.size < folds:
+            problems.append(Problem(f"class {name!r} has {index.size} labelled pixels with a usable profile (of "
+                                    f"{int(labelled.sum())} labelled; the rest have zero area, or are saturated "
+                                    f"or missing); cross-validation over {folds} folds needs {folds}",
+                                    fix="label more pixels of it, or check its frames"))
+        chosen.append(rng.choice(index, min(per_class, index.size), replace=False) if index.size else index)
+    present = [name for k, name in enumerate(names, start=1) if (codes == k).any()]
+    if len(present) < 2:
+        problems.append(Problem(f"the labels hold {len(present)} class(es) {present}: a classifier needs at least 2",
+                                fix="label pixels of at least two materials"))
+    if problems:
+        raise StageError(problems)
+    return np.concatenate(chosen)

@@ -22,7 +22,7 @@ from selpath.pipeline.registry import stage
 from selpath.stages._common import require_variables
 from selpath.stages.procam import _material_features as features
 from selpath.stages.procam._labels import Labels, label_identity, label_map, label_precheck
-from selpath.stages.procam.materials import FRAME, pooled_profiles
+from selpath.stages.procam.materials import FRAME, pooled_profiles, window_profiles
 
 _CLASS_INDEX = "class index into material (−1: no usable profile)"
 MATERIAL_CLASSIFICATION = CubeKind(
@@ -180,7 +180,8 @@ def classify_materials(profiles: xr.Dataset, classifier: xr.Dataset, /, *, label
     Parameters
     ----------
     profiles : xr.Dataset
-        A ``delay_profiles`` store of the capture to classify (never the training capture's pixels: a new capture).
+        A ``delay_profiles`` store of the capture to classify (never the training capture's pixels: a new capture);
+        kept over the classifier's window of delay (attr ``window_us``, chosen in training) and normalised over it.
     classifier : xr.Dataset
         A ``material_classifier`` store (``train_material_classifier``, or ``load_store`` of a saved one).
     labels : str or None
@@ -209,9 +210,11 @@ def classify_materials(profiles: xr.Dataset, classifier: xr.Dataset, /, *, label
         between to a core or to the background; every pixel of an object takes the class most of its pixels within
         the novelty distance take. ``unlike_training`` is then the object's (its pixels' median distance beyond the
         threshold) and, outside every object, the pixel's own. Objects that touch with no edge in brightness between
-        them merge and take one class. Needs a classifier with a novelty threshold; reads the frame into memory.
-        Off by default; on the materials dev set it lifts the smoothed pipeline from 76.7 to 90.8 % per pixel
-        (docs/results.md).
+        them merge and take one class. Needs a classifier with a novelty threshold, and one that holds on the new
+        capture: where most of the trained materials' pixels are flagged (``unlike_training``) the cores are few
+        and misplaced, and objects lower the accuracy (the dev set's demultiplexed route: 54 → 40 %). Reads the
+        frame into memory. Off by default; on the materials dev set's delay sweep it lifts the smoothed pipeline
+        from 76.7 to 90.8 % per pixel (docs/results.md).
     object_margin_px : int
         With ``objects``: the background's seeds are the pixels more than this far from every core (Euclidean);
         the band between goes to whichever side the brightness edge puts it on [px].
@@ -241,6 +244,9 @@ def classify_materials(profiles: xr.Dataset, classifier: xr.Dataset, /, *, label
     """
     require_variables(profiles, ("profile", "area", "flags"), "classify_materials")
     require_variables(classifier, ("model", "mean_profile"), "classify_materials")
+    regular = profiles["area"]
+    if "window_us" in classifier.attrs:  # the window of delay the training chose
+        profiles = window_profiles(profiles, float(classifier.attrs["window_us"]))
     trained = classifier["delay"].values
     delays = profiles["delay"].values
     problems = []
@@ -300,7 +306,7 @@ def classify_materials(profiles: xr.Dataset, classifier: xr.Dataset, /, *, label
             label, result["object"], result["unlike_training"] = _by_object(
                 label, distance, threshold, profiles, object_margin_px, flag)
     result |= {"label": label, "brightness_label": bright.where(label >= 0, -1).astype(np.int16),
-              "image": profiles["area"]}
+              "image": regular}
     if pool_px > 1:
         result["pooled_area"] = area.assign_attrs(units="counts", long_name="area of the pooled profile")
     if labels is not None:

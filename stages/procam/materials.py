@@ -64,11 +64,15 @@ MATERIAL_CLASSIFIER = CubeKind(
                                  long_name="the profile and brightness classifiers, a skops archive"),
                "mean_profile": Variable(("material", "delay"), units="1", long_name="mean training profile"),
                "reference": Variable(("sample", "delay"), False, units="1",
-                                     long_name="the training pixels' standardised profiles (novelty's neighbours)")},
-    coord_units={"delay": TIME_UNITS},
+                                     long_name="the training pixels' standardised profiles (novelty's neighbours)"),
+               "window_cv_accuracy": Variable(("window",), False, units="1",
+                                              long_name="cross-validated accuracy per window of delay")},
+    coord_units={"delay": TIME_UNITS, "window": TIME_UNITS},
     attrs={"source_kind": "the kind of the training profiles' source",
            "svm_C": "the chosen SVM regularisation C", "svm_gamma": "the chosen RBF width γ"},
 )
+#: the default windows of delay to try, in shares of the sweep's largest |t_d|
+WINDOW_FRACTIONS = (0.25, 0.5, 1.0)
 #: the default grids of the cross-validation: C, and γ in units of 1/(number of delays) (scikit-learn's "scale"
 #: after standardising)
 C_GRID, GAMMA_GRID = (1.0, 10.0, 100.0), (0.1, 0.3, 1.0)
@@ -226,28 +230,33 @@ def pooled_profiles(profiles: xr.Dataset, regions: np.ndarray, window: int) -> t
     return frames / np.where(total > 0, total, np.nan)[None], total
 
 
-def training_sample(codes: np.ndarray, flags: np.ndarray, names: tuple[str, ...], per_class: int, folds: int,
-                    seed: int) -> np.ndarray:
-    """Flat indices of up to ``per_class`` labelled pixels with usable profiles of each class (seeded)."""
-    rng = np.random.default_rng(seed)
-    usable = (flags == 0).ravel()
-    chosen, problems = [], []
-    for k, name in enumerate(names, start=1):
-        labelled = codes.ravel() == k
-        index = np.flatnonzero(labelled & usable)
-        if labelled.any() and index.size < folds:
-            problems.append(Problem(f"class {name!r} has {index.size} labelled pixels with a usable profile (of "
-                                    f"{int(labelled.sum())} labelled; the rest have zero area, or are saturated "
-                                    f"or missing); cross-validation over {folds} folds needs {folds}",
-                                    fix="label more pixels of it, or check its frames"))
-        chosen.append(rng.choice(index, min(per_class, index.size), replace=False) if index.size else index)
-    present = [name for k, name in enumerate(names, start=1) if (codes == k).any()]
-    if len(present) < 2:
-        problems.append(Problem(f"the labels hold {len(present)} class(es) {present}: a classifier needs at least 2",
-                                fix="label pixels of at least two materials"))
-    if problems:
-        raise StageError(problems)
-    return np.concatenate(chosen)
+def _training_values(profiles: xr.Dataset, codes: np.ndarray, flags: np.ndarray, index: np.ndarray,
+                     pool_px: int) -> tuple[np.ndarray, np.ndarray]:
+    """The training pixels' profiles (pixels, delays) and areas, pooled within their labels with ``pool_px`` > 1."""
+    if pool_px <= 1:
+        return _pixels(profiles, index)
+    profile, total = pooled_profiles(profiles, np.where((codes > 0) & (flags == 0), codes, -1), pool_px)
+    return profile.reshape(profile.shape[0], -1)[:, index].T, total.reshape(-1)[index]
+
+
+def window_profiles(profiles: xr.Dataset, window_us: float | None) -> xr.Dataset:
+    """``profiles`` kept over the delays |t_d| ≤ ``window_us`` [µs] and normalised again over them (area their sum;
+    a pixel left without light flagged no_light); None, or a window wider than the sweep: unchanged. Lazy."""
+    delay = profiles["delay"]
+    if window_us is None or window_us >= float(np.abs(delay).max()):
+        return profiles
+    keep = np.abs(delay.values) <= window_us * (1 + 1e-9)
+    if keep.sum() < 2:
+        raise StageError(Problem(f"a window of ±{window_us:g} µs keeps {int(keep.sum())} of the profiles' delays "
+                                 f"({delay.values[0]:g} … {delay.values[-1]:g} µs); a profile needs 2",
+                                 fix="widen the window"))
+    frames = profiles["profile"].isel(delay=keep) * profiles["area"]
+    area = frames.sum("delay")
+    dark = (profiles["flags"] == 0) & ~(area > 0)
+    flags = (profiles["flags"] | (dark.astype(np.uint8) * NO_LIGHT)).assign_attrs(profiles["flags"].attrs)
+    return profiles.drop_vars(["rms_delay"], errors="ignore").isel(delay=keep).assign(
+        profile=(frames / area.where(area > 0)).where(flags == 0), area=area.where(flags == 0, profiles["area"]),
+        flags=flags).assign_attrs(window_us=float(window_us))
 
 
 @stage("train_material_classifier", kind=MATERIAL_CLASSIFIER, precheck=label_precheck, identity=label_identity)
@@ -257,7 +266,8 @@ def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scen
                               folds: Annotated[int, pydantic.Field(ge=2, le=20)] = 5, seed: Index = 0,
                               c_grid: Grid = C_GRID, gamma_grid: Grid = GAMMA_GRID,
                               flag_rate: Annotated[float, pydantic.Field(gt=0.0, lt=0.5)] = 0.01,
-                              pool_px: Count = 1, smooth_px: Index = 0) -> xr.Dataset:
+                              pool_px: Count = 1, smooth_px: Index = 0,
+                              window_grid_us: tuple[Positive, ...] | None = None) -> xr.Dataset:
     """Train an RBF-kernel SVM on labelled pixels' delay profiles, and the brightness-only baseline (§5.4.9).
 
     Hyper-parameters by cross-validation over ``folds`` folds of spatial blocks (2 × folds bands of rows over the
@@ -301,6 +311,13 @@ def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scen
         class probabilities (Platt's sigmoids fitted on out-of-fold decisions over the same spatial blocks,
         scikit-learn's ``CalibratedClassifierCV``). On the materials dev set 4 px was chosen by
         cross-validation over row bands of the training placement (docs/results.md).
+    window_grid_us : tuple of float or None
+        The windows of delay to try: a profile keeps the delays |t_d| ≤ the window, normalised over them [µs].
+        The widest window whose cross-validated accuracy lies within one standard error of the best window's is
+        kept (a narrower window must earn its place: on the materials dev set the best-scoring one, better by
+        0.002, lost 11 points on the other placement; docs/results.md) and ``classify_materials`` applies it.
+        None: a quarter, half and all of the sweep's largest |t_d|. Each window costs one more cross-validated
+        search.
 
     Returns
     -------
@@ -323,14 +340,11 @@ def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scen
 
     require_variables(profiles, ("profile", "area", "flags"), "train_material_classifier")
     codes, names = label_map(profiles, labels, label_image, classes, "profiles")
-    flags = np.asarray(profiles["flags"].values)
-    index = training_sample(codes, flags, names, samples_per_class, folds, seed)
-    if pool_px > 1:
-        profile, total = pooled_profiles(profiles, np.where((codes > 0) & (flags == 0), codes, -1), pool_px)
-        values = profile.reshape(profile.shape[0], -1)[:, index].T
-        area = total.reshape(-1)[index]
-    else:
-        values, area = _pixels(profiles, index)
+    reach = float(np.abs(profiles["delay"].values).max())
+    windows = sorted({min(float(w), reach) for w in (window_grid_us or [f * reach for f in WINDOW_FRACTIONS])})
+    windowed = [window_profiles(profiles, w) for w in windows]
+    flags = np.bitwise_or.reduce([np.asarray(w["flags"].values) for w in windowed])  # usable in every window
+    index = features.training_sample(codes, flags, names, samples_per_class, folds, seed)
     blocks = features.row_blocks(index // profiles.sizes["col"], features.BLOCKS_PER_FOLD * folds)
     if np.unique(blocks).size < folds:
         raise StageError(Problem(f"the training pixels span {np.unique(blocks).size} distinct bands of rows; "
@@ -339,16 +353,23 @@ def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scen
     # classes are indexed among those with training pixels (a label code no pixel carries is not a class): the
     # stored ``material`` coordinate and the SVMs' outputs then agree
     present, truth = np.unique(codes.ravel()[index] - 1, return_inverse=True)
-    splits = list(features.block_folds(folds, seed).split(values, truth, groups=blocks)) if smooth_px > 0 else []
+    splits = list(features.block_folds(folds, seed).split(index, truth, groups=blocks)) if smooth_px > 0 else []
     if smooth_px > 0:  # a fold without a class would calibrate that class on placeholders (or fail inside sklearn)
         lacking = sorted({names[present[k]] for fit, _ in splits for k in set(range(present.size)) - set(truth[fit])})
         if lacking:
             raise StageError(Problem(f"smooth_px: calibrating the class probabilities needs every class in every "
                                      f"fold's training bands; {lacking} lie in too few bands of rows",
                                      fix="label them over more rows, lower folds, or smooth_px: 0"))
+    fits = []
+    for candidate in windowed:  # the window by the same cross-validation
+        values, area = _training_values(candidate, codes, flags, index, pool_px)
+        fits.append((candidate, values, area, _fit(values, truth, {
+            "svm__C": list(c_grid), "svm__gamma": [g / values.shape[1] for g in gamma_grid]}, folds, blocks, seed)))
+    scores = [search.best_score_ for *_, search in fits]
+    chosen = features.widest_within_error([search.cv_results_ for *_, search in fits],
+                                          [search.best_index_ for *_, search in fits], folds)
+    window, (profiles, values, area, search) = windows[chosen], fits[chosen]
     n_delay = values.shape[1]
-    search = _fit(values, truth, {"svm__C": list(c_grid), "svm__gamma": [g / n_delay for g in gamma_grid]},
-                  folds, blocks, seed)
     baseline = _fit(area[:, None], truth, {"svm__C": list(c_grid), "svm__gamma": list(gamma_grid)}, folds, blocks,
                     seed)
     models = {"profile": search.best_estimator_, "brightness": baseline.best_estimator_}
@@ -382,9 +403,11 @@ def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scen
          "reference": (("sample", "delay"), standard.astype(np.float32)),
          "cv_accuracy": ((), search.best_score_, {"units": "1", "long_name": "cross-validated accuracy, profiles"}),
          "brightness_cv_accuracy": ((), baseline.best_score_,
-                                    {"units": "1", "long_name": "cross-validated accuracy, brightness only"})},
-        coords={"material": material, "delay": ("delay", delay.values, dict(delay.attrs))},
-        attrs=keep | {"svm_C": float(search.best_params_["svm__C"]),
+                                    {"units": "1", "long_name": "cross-validated accuracy, brightness only"}),
+         "window_cv_accuracy": ("window", scores, {"units": "1", "long_name": "cross-validated accuracy per window"})},
+        coords={"material": material, "delay": ("delay", delay.values, dict(delay.attrs)),
+                "window": ("window", windows, {"units": "us", "long_name": "window of delay tried, |t_d| ≤ it"})},
+        attrs=keep | {"window_us": window, "svm_C": float(search.best_params_["svm__C"]),
                       "svm_gamma": float(search.best_params_["svm__gamma"]) * n_delay,
                       "svm_gamma_units": "1/(number of delays)",
                       "brightness_C": float(baseline.best_params_["svm__C"]),
