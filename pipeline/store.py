@@ -293,7 +293,14 @@ def writable(ds: xr.Dataset) -> xr.Dataset:
         return ds
     # variables cut differently along a dim (a result beside its input's flags) get one cut: zarr needs it, and
     # Dataset.chunks refuses to answer until they do
-    ds = ds.unify_chunks()
+    try:
+        ds.chunks
+    except ValueError:
+        from dask.array.core import PerformanceWarning
+
+        with warnings.catch_warnings():  # dask counts the product of every dim's chunks, as if one array spanned
+            warnings.simplefilter("ignore", PerformanceWarning)  # them all: a false alarm for many-dim datasets
+            ds = ds.unify_chunks()
     regular = {}
     for dim, chunks in ds.chunks.items():
         if len(chunks) > 1 and (len(set(chunks[:-1])) > 1 or chunks[-1] > chunks[0]):

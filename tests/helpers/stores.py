@@ -19,7 +19,7 @@ SIZES = {"angle": 3, "row": 4, "col": 5, "vertex": 3, "xy": 2, "slice": 2, "dela
          "iteration": 3, "shift": 2, "max_delay": 2, "signal": 2, "code": 2, "pattern": 2,
          "light_angle_trial": 3, "pose": 2, "i": 3, "j": 3, "k": 5, "m": 4, "byte": 64, "material": 3, "view": 3,
          "site": 2, "distance": 4, "render": 2,
-         "candidate": 3, "distance_bin": 4, "band": 2, "sample": 3}
+         "candidate": 3, "distance_bin": 4, "band": 2, "sample": 3, "window": 3}
 
 
 def minimal(kind: str) -> xr.Dataset:
