@@ -294,7 +294,7 @@ def writable(ds: xr.Dataset) -> xr.Dataset:
     # variables cut differently along a dim (a result beside its input's flags) get one cut: zarr needs it, and
     # Dataset.chunks refuses to answer until they do
     try:
-        ds.chunks
+        _ = ds.chunks  # raises while variables are cut differently
     except ValueError:
         from dask.array.core import PerformanceWarning
 
