@@ -125,21 +125,27 @@ def _novelty_measure(classifier: xr.Dataset):
 def _by_object(label: xr.DataArray, distance: xr.DataArray, threshold: float, profiles: xr.Dataset, margin: int,
                flag: str) -> tuple[xr.DataArray, xr.DataArray, xr.DataArray]:
     """(labels voted per object, the objects, the flag: an object's median distance beyond ``threshold``, outside
-    every object the pixel's own) — ``classify_materials``'s ``objects``."""
-    from scipy import ndimage
+    every object the pixel's own) — ``classify_materials``'s ``objects``. Lazy: the objects are found when the
+    result is computed, over the whole frame at once (a watershed has no tiles)."""
 
-    distance = np.asarray(distance.values, np.float64)
-    usable = np.asarray(profiles["flags"].values) == 0
-    regions = features.objects(distance, threshold, np.asarray(profiles["area"].values, np.float64), usable, margin)
-    count = int(regions.max(initial=0))
-    median = np.zeros(count + 1)
-    if count:
-        median[1:] = ndimage.median(np.nan_to_num(distance, nan=np.inf), regions, np.arange(1, count + 1))
-    unlike = np.where(regions > 0, median[np.maximum(regions, 0)] > threshold, distance > threshold)
-    voted = features.vote(np.asarray(label.values), regions, voters=distance <= threshold)
-    return (xr.DataArray(voted, dims=FRAME),
-            xr.DataArray(regions.astype(np.int32), dims=FRAME),
-            xr.DataArray(unlike, dims=FRAME, attrs={"long_name": flag + "; within an object, the object's median"}))
+    def segment(label, distance, area, flags):
+        from scipy import ndimage
+
+        distance = np.asarray(distance, np.float64)
+        regions = features.objects(distance, threshold, np.asarray(area, np.float64), flags == 0, margin)
+        count = int(regions.max(initial=0))
+        median = np.zeros(count + 1)
+        if count:
+            median[1:] = ndimage.median(np.nan_to_num(distance, nan=np.inf), regions, np.arange(1, count + 1))
+        unlike = np.where(regions > 0, median[np.maximum(regions, 0)] > threshold, distance > threshold)
+        return features.vote(label, regions, voters=distance <= threshold), regions.astype(np.int32), unlike
+
+    whole = [a.chunk({"row": -1, "col": -1}) if a.chunks else a
+             for a in (label, distance, profiles["area"], profiles["flags"])]
+    voted, regions, unlike = xr.apply_ufunc(segment, *whole, input_core_dims=[list(FRAME)] * 4,
+                                            output_core_dims=[list(FRAME)] * 3, dask="parallelized",
+                                            output_dtypes=[label.dtype, np.int32, bool])
+    return voted, regions, unlike.assign_attrs(long_name=flag + "; within an object, the object's median")
 
 
 def wilson_interval(successes, trials, z: float = Z95):
@@ -298,8 +304,6 @@ def classify_materials(profiles: xr.Dataset, classifier: xr.Dataset, /, *, label
         distance = xr.apply_ufunc(lambda x: _distance(models["profile"], x, measure), profile,
                                   input_core_dims=[["delay"]], output_dtypes=[np.float32], dask="parallelized")
         threshold = float(classifier.attrs["novelty_distance"])
-        if objects:  # the objects need it now: computed once, not again when the result is stored
-            distance = distance.compute()
         result["novelty_distance"] = distance.assign_attrs(units="1", long_name=what)
         result["unlike_training"] = (distance > threshold).assign_attrs(long_name=flag)
         if objects:

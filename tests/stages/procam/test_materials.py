@@ -374,8 +374,8 @@ def test_a_model_naming_an_untrusted_type_is_refused_even_with_a_matching_hash(t
 
 def test_classification_is_lazy_and_a_class_without_training_pixels_is_no_class(trained, tmp_path):
     """Building the classification of dask-backed profiles computes nothing (the SVM runs once, when the result is
-    computed). A label image whose code 2 no pixel carries trains a classifier of the other two classes, and its
-    labels index them."""
+    computed), with objects too (found when the result is computed, the same as from profiles in memory). A label
+    image whose code 2 no pixel carries trains a classifier of the other two classes, and its labels index them."""
     import dask
 
     from tests.conftest import ComputeCounter
@@ -383,7 +383,11 @@ def test_classification_is_lazy_and_a_class_without_training_pixels_is_no_class(
     profiles, classifier = trained
     with dask.config.set(scheduler=ComputeCounter()):
         scored = classify_materials(profiles.chunk({"row": 40}), classifier, labels="scene")
+        by_object = classify_materials(profiles.chunk({"row": 40}), classifier, labels="scene", objects=True)
     scored = scored.compute()
+    eager = classify_materials(profiles.compute(), classifier, labels="scene", objects=True)
+    for name in ("label", "object", "unlike_training"):
+        np.testing.assert_array_equal(by_object[name].values, eager[name].values)
     codes = np.zeros((120, 160), np.int16)
     truth = scored["true_label"].values  # index into the scene's materials
     names = [str(v) for v in classifier["material"].values]
