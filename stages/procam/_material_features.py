@@ -170,6 +170,17 @@ def vote(label: np.ndarray, regions: np.ndarray, voters: np.ndarray | None = Non
     return np.where((regions > 0) & (winner >= 0) & (label >= 0), winner, label).astype(label.dtype)
 
 
+def kept_delays(delay: np.ndarray, window_us: float | None) -> np.ndarray:
+    """Which of ``delay`` [µs] a window keeps, |t_d| ≤ ``window_us`` (None: all); a window keeping fewer than 2 is
+    refused."""
+    delay = np.asarray(delay, float)
+    keep = np.ones(delay.shape, bool) if window_us is None else np.abs(delay) <= window_us * (1 + 1e-9)
+    if keep.sum() < 2:
+        raise StageError(Problem(f"a window of ±{window_us:g} µs keeps {int(keep.sum())} of the profiles' delays "
+                                 f"({delay[0]:g} … {delay[-1]:g} µs); a profile needs 2", fix="widen the window"))
+    return keep
+
+
 def zero_of(delays: np.ndarray) -> int:
     """The index of t_d = 0 in a delay grid symmetric about it (ValueError otherwise: it cannot be folded)."""
     delays = np.asarray(delays, dtype=float)

@@ -242,14 +242,9 @@ def _training_values(profiles: xr.Dataset, codes: np.ndarray, flags: np.ndarray,
 def window_profiles(profiles: xr.Dataset, window_us: float | None) -> xr.Dataset:
     """``profiles`` kept over the delays |t_d| ≤ ``window_us`` [µs] and normalised again over them (area their sum;
     a pixel left without light flagged no_light); None, or a window wider than the sweep: unchanged. Lazy."""
-    delay = profiles["delay"]
-    if window_us is None or window_us >= float(np.abs(delay).max()):
+    keep = features.kept_delays(profiles["delay"].values, window_us)
+    if keep.all():
         return profiles
-    keep = np.abs(delay.values) <= window_us * (1 + 1e-9)
-    if keep.sum() < 2:
-        raise StageError(Problem(f"a window of ±{window_us:g} µs keeps {int(keep.sum())} of the profiles' delays "
-                                 f"({delay.values[0]:g} … {delay.values[-1]:g} µs); a profile needs 2",
-                                 fix="widen the window"))
     frames = profiles["profile"].isel(delay=keep) * profiles["area"]
     area = frames.sum("delay")
     dark = (profiles["flags"] == 0) & ~(area > 0)
@@ -342,8 +337,9 @@ def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scen
     codes, names = label_map(profiles, labels, label_image, classes, "profiles")
     reach = float(np.abs(profiles["delay"].values).max())
     windows = sorted({min(float(w), reach) for w in (window_grid_us or [f * reach for f in WINDOW_FRACTIONS])})
-    windowed = [window_profiles(profiles, w) for w in windows]
-    flags = np.bitwise_or.reduce([np.asarray(w["flags"].values) for w in windowed])  # usable in every window
+    keeps = [features.kept_delays(profiles["delay"].values, w) for w in windows]
+    # usable in every window: the windows nest, so a pixel dark in one is dark in the narrowest
+    flags = np.asarray(window_profiles(profiles, windows[0])["flags"].values)
     index = features.training_sample(codes, flags, names, samples_per_class, folds, seed)
     blocks = features.row_blocks(index // profiles.sizes["col"], features.BLOCKS_PER_FOLD * folds)
     if np.unique(blocks).size < folds:
@@ -360,15 +356,20 @@ def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scen
             raise StageError(Problem(f"smooth_px: calibrating the class probabilities needs every class in every "
                                      f"fold's training bands; {lacking} lie in too few bands of rows",
                                      fix="label them over more rows, lower folds, or smooth_px: 0"))
+    whole, whole_area = _training_values(profiles, codes, flags, index, pool_px)  # read once, cut per window
     fits = []
-    for candidate in windowed:  # the window by the same cross-validation
-        values, area = _training_values(candidate, codes, flags, index, pool_px)
-        fits.append((candidate, values, area, _fit(values, truth, {
+    for keep in keeps:  # the window by the same cross-validation (pooling and cutting delays commute)
+        values, area = whole, whole_area
+        if not keep.all():
+            frames = whole[:, keep] * whole_area[:, None]
+            area = frames.sum(1)
+            values = frames / area[:, None]
+        fits.append((values, area, _fit(values, truth, {
             "svm__C": list(c_grid), "svm__gamma": [g / values.shape[1] for g in gamma_grid]}, folds, blocks, seed)))
     scores = [search.best_score_ for *_, search in fits]
     chosen = features.widest_within_error([search.cv_results_ for *_, search in fits],
                                           [search.best_index_ for *_, search in fits], folds)
-    window, (profiles, values, area, search) = windows[chosen], fits[chosen]
+    window, (values, area, search) = windows[chosen], fits[chosen]
     n_delay = values.shape[1]
     baseline = _fit(area[:, None], truth, {"svm__C": list(c_grid), "svm__gamma": list(gamma_grid)}, folds, blocks,
                     seed)
@@ -388,7 +389,7 @@ def train_material_classifier(profiles: xr.Dataset, /, *, labels: Labels = "scen
     spread = np.stack([values[truth == k].std(0) for k in range(present.size)])
     keep = {k: v for k, v in profiles.attrs.items() if k not in ("selpath_kind", "simulated_scene")}
     scene = profiles.attrs.get("simulated_scene", {})
-    delay = profiles["delay"]
+    delay = profiles["delay"][keeps[chosen]]
     material = ("material", kept, {"long_name": "material class"})
     return MATERIAL_CLASSIFIER.label(xr.Dataset(
         {"model": ("byte", np.frombuffer(model, np.uint8),
